@@ -1,0 +1,146 @@
+"""Forms of the owner pages: registration, key rotation, robots.
+
+An SM4 key never reaches the server in plaintext: the page's script encrypts it to the
+portal's SM2 public key and only the ciphertext is submitted (`key_ciphertext`).
+"""
+
+from django import forms
+from django.contrib.auth import get_user_model
+from django.contrib.auth.password_validation import (
+    password_validators_help_text_html,
+    validate_password,
+)
+from django.contrib.auth.validators import UnicodeUsernameValidator
+from django.core.exceptions import ValidationError
+
+from accounts.errors import InvalidKeyMaterial
+from accounts.keyexchange import sm4_key_from_submission
+from ros_agent.config import ConfigError, TopicConfig, parse_topics
+
+NO_SCRIPT_KEY = (
+    "Your key was not encrypted in the browser, so it was not sent. This page needs "
+    "JavaScript to encrypt the key before it leaves your computer: enable it and try again."
+)
+# The topics of ros_agent.sim (and of the paper): odometry and a camera.
+DEFAULT_TOPICS = (
+    TopicConfig(name="/robot/odom", type="nav_msgs/Odometry"),
+    TopicConfig(name="/robot/complicatedImage", type="sensor_msgs/Image"),
+)
+
+
+class EncryptedKeyField(forms.CharField):
+    """The SM4 key as SM2 ciphertext (C1C3C2 hex); cleans to the 16 key bytes."""
+
+    widget = forms.HiddenInput
+
+    def __init__(self, **kwargs: object) -> None:
+        super().__init__(required=False, max_length=1024, strip=True, **kwargs)
+
+    def clean(self, value: object) -> bytes:
+        text = super().clean(value)
+        if not text:
+            raise ValidationError(NO_SCRIPT_KEY, code="key_not_encrypted")
+        try:
+            return sm4_key_from_submission(text)
+        except InvalidKeyMaterial as exc:
+            raise ValidationError(str(exc), code="invalid_key") from None
+
+
+class RegisterForm(forms.Form):
+    username = forms.CharField(
+        max_length=150,
+        validators=[UnicodeUsernameValidator()],
+        help_text="Up to 150 characters: letters, digits and @ . + - _ only.",
+        widget=forms.TextInput(attrs={"autocomplete": "username", "autofocus": True}),
+    )
+    password1 = forms.CharField(
+        label="Password",
+        strip=False,
+        widget=forms.PasswordInput(attrs={"autocomplete": "new-password"}),
+        help_text=password_validators_help_text_html(),
+    )
+    password2 = forms.CharField(
+        label="Password again",
+        strip=False,
+        widget=forms.PasswordInput(attrs={"autocomplete": "new-password"}),
+    )
+    key_ciphertext = EncryptedKeyField()
+
+    def clean_username(self) -> str:
+        username = self.cleaned_data["username"]
+        if get_user_model().objects.filter(username=username).exists():
+            raise ValidationError("This username is taken.", code="username_taken")
+        return username
+
+    def clean(self) -> dict:
+        cleaned = super().clean()
+        password1, password2 = cleaned.get("password1"), cleaned.get("password2")
+        if password1 and password2 and password1 != password2:
+            self.add_error("password2", "The two passwords differ.")
+        elif password1:
+            candidate = get_user_model()(username=cleaned.get("username", ""))
+            try:
+                validate_password(password1, candidate)
+            except ValidationError as exc:
+                self.add_error("password1", exc)
+        return cleaned
+
+
+class KeyRotateForm(forms.Form):
+    password = forms.CharField(
+        label="Your password",
+        strip=False,
+        widget=forms.PasswordInput(attrs={"autocomplete": "current-password"}),
+        help_text="Rotating the key is a sensitive change: confirm it is you.",
+    )
+    key_ciphertext = EncryptedKeyField()
+
+    def __init__(self, *args: object, user: object, **kwargs: object) -> None:
+        self.user = user
+        super().__init__(*args, **kwargs)
+
+    def clean_password(self) -> str:
+        password = self.cleaned_data["password"]
+        if not self.user.check_password(password):
+            raise ValidationError("This is not your password.", code="wrong_password")
+        return password
+
+
+class RobotCreateForm(forms.Form):
+    name = forms.CharField(
+        max_length=100,
+        help_text="A name you recognise, unique among your robots (e.g. turtlebot-3).",
+    )
+    topics = forms.CharField(
+        widget=forms.Textarea(attrs={"rows": 3, "spellcheck": "false"}),
+        initial="\n".join(f"{topic.name} {topic.type}" for topic in DEFAULT_TOPICS),
+        help_text=(
+            "For the agent's config file: one topic per line, its name then its ROS type, "
+            "e.g. /robot/odom nav_msgs/Odometry."
+        ),
+    )
+
+    def clean_name(self) -> str:
+        name = self.cleaned_data["name"].strip()
+        if not name:
+            raise ValidationError("Give the robot a name.", code="required")
+        return name
+
+    def clean_topics(self) -> list[TopicConfig]:
+        entries = []
+        for number, line in enumerate(self.cleaned_data["topics"].splitlines(), start=1):
+            parts = line.split()
+            if not parts:
+                continue
+            if len(parts) != 2:
+                raise ValidationError(
+                    f"Line {number}: write the topic name and its type, separated by a space.",
+                    code="invalid_topic",
+                )
+            entries.append({"name": parts[0], "type": parts[1]})
+        if not entries:
+            raise ValidationError("List at least one topic.", code="required")
+        try:
+            return list(parse_topics(entries, "topics"))
+        except ConfigError as exc:
+            raise ValidationError(str(exc).removeprefix("topics: "), code="invalid_topic") from None

@@ -1,0 +1,74 @@
+"""Reads about owners, including the unwrapping of their secrets for the services."""
+
+import hashlib
+
+from eth_account import Account
+from eth_account.signers.local import LocalAccount
+
+from accounts import keywrap
+from accounts.models import Owner, OwnerKey, Robot
+
+
+def owner_eoa_account(owner: Owner) -> LocalAccount:
+    """The owner's custodial EOA, unwrapped from the KEK (keep it in memory only)."""
+    return Account.from_key(keywrap.unwrap(owner.eoa_key_wrapped, purpose=eoa_purpose(owner.pk)))
+
+
+def owner_key_current(owner: Owner) -> OwnerKey:
+    return owner.keys.get(is_current=True)
+
+
+def owner_key_by_id(owner: Owner, key_id: str) -> OwnerKey | None:
+    return owner.keys.filter(key_id=key_id).first()
+
+
+def owner_key_bytes(owner_key: OwnerKey) -> bytes:
+    """The SM4 key itself, unwrapped from the KEK."""
+    purpose = sm4_key_purpose(owner_key.owner_id, owner_key.key_id)
+    return keywrap.unwrap(owner_key.key_wrapped, purpose=purpose)
+
+
+def owner_by_username(username: str) -> Owner | None:
+    return Owner.objects.select_related("user").filter(user__username=username).first()
+
+
+def owner_by_address(address: str) -> Owner | None:
+    return Owner.objects.select_related("user").filter(eoa_address__iexact=address).first()
+
+
+def robot_by_token(token: str) -> Robot | None:
+    """The active robot holding `token`; tokens are compared by their SHA-256 only."""
+    return (
+        Robot.objects.select_related("owner__user")
+        .filter(token_hash=robot_token_hash(token), is_active=True)
+        .first()
+    )
+
+
+def robot_token_hash(token: str) -> str:
+    return hashlib.sha256(token.encode()).hexdigest()
+
+
+def eoa_purpose(owner_pk: int) -> str:
+    return f"eoa-key:{owner_pk}"
+
+
+def sm4_key_purpose(owner_pk: int, key_id: str) -> str:
+    return f"sm4-key:{owner_pk}:{key_id}"
+
+
+def owner_for_user(user: object) -> Owner | None:
+    """The owner behind a logged-in user; None for operators (admin-only accounts)."""
+    if not getattr(user, "is_authenticated", False):
+        return None
+    return Owner.objects.select_related("user").filter(user=user).first()
+
+
+def owner_keys(owner: Owner) -> list[OwnerKey]:
+    """All keys of an owner, newest first (the current one, then retired ones)."""
+    return list(owner.keys.order_by("-created_at"))
+
+
+def robot_list_of(owner: Owner) -> list[Robot]:
+    """An owner's robots: active ones first, then by name."""
+    return list(owner.robots.order_by("-is_active", "name"))

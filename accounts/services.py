@@ -1,0 +1,113 @@
+"""Actions on owners, their keys and robots. Each is one transaction; chain work is queued
+on commit (outbox) and carried out by the chain worker."""
+
+import secrets
+
+from django.contrib.auth import get_user_model
+from django.contrib.auth.password_validation import validate_password
+from django.contrib.auth.validators import UnicodeUsernameValidator
+from django.core.exceptions import ValidationError
+from django.db import IntegrityError, transaction
+from django.utils import timezone
+from eth_account import Account
+
+from accounts import keywrap
+from accounts.errors import (
+    InvalidKeyMaterial,
+    InvalidRobotName,
+    InvalidUsername,
+    KeyAlreadyUsed,
+    RobotNameTaken,
+    UsernameTaken,
+    WeakPassword,
+)
+from accounts.models import ChainState, Owner, OwnerKey, Robot
+from accounts.selectors import eoa_purpose, robot_token_hash, sm4_key_purpose
+from chainworker.outbox import enqueue
+from smcrypto import key_commitment, key_id, sm4
+
+ROBOT_TOKEN_BYTES = 32
+
+
+def owner_create(*, username: str, password: str, sm4_key: bytes) -> Owner:
+    """A new owner with a custodial EOA; funding, enrolment and registration follow on chain."""
+    User = get_user_model()
+    try:
+        UnicodeUsernameValidator()(username)
+    except ValidationError as exc:
+        raise InvalidUsername(" ".join(exc.messages)) from None
+    if not username or len(username) > 150:
+        raise InvalidUsername("a username has 1 to 150 characters")
+    _check_sm4_key(sm4_key)
+    candidate = User(username=username)
+    try:
+        validate_password(password, candidate)
+    except ValidationError as exc:
+        raise WeakPassword(list(exc.messages)) from None
+
+    eoa = Account.create()
+    try:
+        with transaction.atomic():
+            user = User.objects.create_user(username=username, password=password)
+            owner = Owner.objects.create(user=user, eoa_address=eoa.address, eoa_key_wrapped=b"")
+            owner.eoa_key_wrapped = keywrap.wrap(bytes(eoa.key), purpose=eoa_purpose(owner.pk))
+            owner.save(update_fields=["eoa_key_wrapped"])
+            _owner_key_add(owner, sm4_key)
+            transaction.on_commit(lambda: enqueue("chainworker.tasks.owner_register", owner.pk))
+    except IntegrityError:
+        raise UsernameTaken(f"the username {username!r} is taken") from None
+    return owner
+
+
+def key_rotate(*, owner: Owner, sm4_key: bytes) -> OwnerKey:
+    """Make `sm4_key` the owner's current key; older keys stay to read older records."""
+    _check_sm4_key(sm4_key)
+    with transaction.atomic():
+        if owner.keys.filter(key_id=key_id(sm4_key).hex()).exists():
+            raise KeyAlreadyUsed("this key was used by this owner before: choose a new one")
+        owner.keys.filter(is_current=True).update(is_current=False, retired_at=timezone.now())
+        new_key = _owner_key_add(owner, sm4_key)
+        transaction.on_commit(lambda: enqueue("chainworker.tasks.key_rotate", new_key.pk))
+    return new_key
+
+
+def robot_create(*, owner: Owner, name: str) -> tuple[Robot, str]:
+    """A robot and its API token; the token is returned once and only its hash is kept."""
+    name = name.strip()
+    if not name or len(name) > 100:
+        raise InvalidRobotName("a robot name has 1 to 100 characters")
+    token = secrets.token_urlsafe(ROBOT_TOKEN_BYTES)
+    try:
+        with transaction.atomic():
+            robot = Robot.objects.create(
+                owner=owner, name=name, token_hash=robot_token_hash(token), token_prefix=token[:8]
+            )
+    except IntegrityError:
+        raise RobotNameTaken(f"{owner} already has a robot named {name!r}") from None
+    return robot, token
+
+
+def robot_token_revoke(*, robot: Robot) -> Robot:
+    """The robot's token stops working at once; its records stay."""
+    Robot.objects.filter(pk=robot.pk).update(is_active=False, revoked_at=timezone.now())
+    robot.refresh_from_db()
+    return robot
+
+
+def _owner_key_add(owner: Owner, sm4_key: bytes) -> OwnerKey:
+    kid = key_id(sm4_key).hex()
+    return OwnerKey.objects.create(
+        owner=owner,
+        key_id=kid,
+        key_wrapped=keywrap.wrap(sm4_key, purpose=sm4_key_purpose(owner.pk, kid)),
+        commitment="0x" + key_commitment(owner.eoa_address, sm4_key).hex(),
+        is_current=True,
+        chain_state=ChainState.PENDING,
+    )
+
+
+def _check_sm4_key(sm4_key: bytes) -> None:
+    if not isinstance(sm4_key, bytes) or len(sm4_key) != sm4.KEY_SIZE:
+        raise InvalidKeyMaterial("an SM4 key is 16 bytes (32 hex digits)")
+    if sm4_key == bytes(sm4.KEY_SIZE):
+        raise InvalidKeyMaterial("an all-zero SM4 key is not a key")

@@ -1,0 +1,349 @@
+"""Owner pages: registration, sign-in, dashboard, key rotation, robots.
+
+Views validate, call one service and answer; reads go through the selectors. Every page
+but registration and sign-in needs a logged-in owner (`owner_required`).
+"""
+
+from collections.abc import Callable, Sequence
+from decimal import Decimal
+from functools import wraps
+
+import yaml
+from axes.helpers import get_cool_off
+from django.conf import settings
+from django.contrib import messages
+from django.contrib.auth import login
+from django.contrib.auth import views as auth_views
+from django.contrib.auth.decorators import login_required
+from django.http import HttpRequest, HttpResponse, JsonResponse
+from django.shortcuts import get_object_or_404, redirect, render
+from django.urls import reverse_lazy
+from django.utils import timezone
+from django.utils.text import slugify
+from django.views.decorators.cache import never_cache
+from django.views.decorators.http import require_GET, require_http_methods, require_POST
+
+from accounts.errors import (
+    InvalidKeyMaterial,
+    InvalidUsername,
+    KeyAlreadyUsed,
+    RobotNameTaken,
+    UsernameTaken,
+    WeakPassword,
+)
+from accounts.forms import DEFAULT_TOPICS, KeyRotateForm, RegisterForm, RobotCreateForm
+from accounts.keyexchange import portal_sm2_public_key
+from accounts.models import ChainState, Owner, Robot
+from accounts.selectors import owner_for_user, owner_key_current, owner_keys, robot_list_of
+from accounts.services import key_rotate, owner_create, robot_create, robot_token_revoke
+from chainworker.chain import ChainError
+from chainworker.services import chain_client
+from ros_agent.config import TopicConfig
+from sharing.models import Grant
+from sharing.selectors import grant_list_given, grant_list_received, record_list_owned
+
+# The session backend that `login()` records for a user who has just registered.
+MODEL_BACKEND = "django.contrib.auth.backends.ModelBackend"
+WEI_PER_ETHER = Decimal(10) ** 18
+
+OwnerView = Callable[..., HttpResponse]
+
+
+def owner_required(view: OwnerView) -> OwnerView:
+    """Login required, and the user must be an owner: sets `request.owner`.
+
+    Operator accounts (admin users without an owner) get a page pointing to the admin.
+    """
+
+    @wraps(view)
+    @login_required
+    def wrapped(request: HttpRequest, *args: object, **kwargs: object) -> HttpResponse:
+        owner = owner_for_user(request.user)
+        if owner is None:
+            return render(request, "accounts/not_an_owner.html", status=403)
+        request.owner = owner
+        return view(request, *args, **kwargs)
+
+    return wrapped
+
+
+def no_store(response: HttpResponse) -> HttpResponse:
+    """Keep a page that shows a secret or decrypted data out of every cache."""
+    response["Cache-Control"] = "no-store, private"
+    response["Pragma"] = "no-cache"
+    return response
+
+
+# --- registration and sign-in ----------------------------------------------------------------
+
+
+@never_cache
+@require_http_methods(["GET", "POST"])
+def register(request: HttpRequest) -> HttpResponse:
+    if owner_for_user(request.user) is not None:
+        return redirect("dashboard")
+    form = RegisterForm(request.POST or None)
+    if request.method == "POST" and form.is_valid():
+        try:
+            owner = owner_create(
+                username=form.cleaned_data["username"],
+                password=form.cleaned_data["password1"],
+                sm4_key=form.cleaned_data["key_ciphertext"],
+            )
+        except (UsernameTaken, InvalidUsername) as exc:
+            form.add_error("username", str(exc))
+        except WeakPassword as exc:
+            form.add_error("password1", exc.messages)
+        except InvalidKeyMaterial as exc:
+            form.add_error("key_ciphertext", str(exc))
+        else:
+            login(request, owner.user, backend=MODEL_BACKEND)
+            return redirect("registration-progress")
+    status = 400 if form.is_bound else 200
+    return render(
+        request,
+        "accounts/register.html",
+        {"form": form, "sm2_public_key": portal_sm2_public_key()},
+        status=status,
+    )
+
+
+@owner_required
+@require_GET
+def registration_progress(request: HttpRequest) -> HttpResponse:
+    return render(
+        request, "accounts/registration_progress.html", {"owner": request.owner, **_steps(request)}
+    )
+
+
+@owner_required
+@require_GET
+def account_status(request: HttpRequest) -> JsonResponse:
+    """What the progress pages poll: the owner's and the current key's on-chain state."""
+    owner: Owner = request.owner
+    key = owner_key_current(owner)
+    response = JsonResponse(
+        {
+            "username": owner.username,
+            "eoa_address": owner.eoa_address,
+            "chain_state": owner.chain_state,
+            "fund_tx": owner.fund_tx,
+            "enroll_tx": owner.enroll_tx,
+            "register_tx": owner.register_tx,
+            "registered_block": owner.registered_block,
+            "chain_error": owner.chain_error,
+            "key": {
+                "key_id": key.key_id,
+                "chain_state": key.chain_state,
+                "tx_hash": key.tx_hash,
+                "block_number": key.block_number,
+            },
+        }
+    )
+    return no_store(response)
+
+
+def _steps(request: HttpRequest) -> dict[str, object]:
+    owner: Owner = request.owner
+    return {
+        "confirmed": owner.chain_state == ChainState.CONFIRMED,
+        "failed": owner.chain_state == ChainState.FAILED,
+        "steps": [
+            ("fund", "EOA funded by the portal operator", owner.fund_tx),
+            ("enroll", "EOA enrolled in the AuthROS contract", owner.enroll_tx),
+            ("register", "Key commitment registered", owner.register_tx),
+        ],
+    }
+
+
+class LoginView(auth_views.LoginView):
+    """Django's login, with django-axes' lockout shown as a page of its own (429)."""
+
+    template_name = "accounts/login.html"
+    redirect_authenticated_user = True
+
+    def form_invalid(self, form: object) -> HttpResponse:
+        if getattr(self.request, "axes_locked_out", False):
+            cool_off = get_cool_off(self.request)
+            minutes = max(1, round(cool_off.total_seconds() / 60)) if cool_off else None
+            # Our page replaces the plain-text one django-axes' middleware would send.
+            self.request.axes_locked_out = False
+            return render(
+                self.request,
+                "accounts/locked_out.html",
+                {"minutes": minutes, "failure_limit": settings.AXES_FAILURE_LIMIT},
+                status=429,
+            )
+        response = super().form_invalid(form)
+        response.status_code = 400
+        return response
+
+
+class PasswordChangeView(auth_views.PasswordChangeView):
+    template_name = "accounts/password_change.html"
+    success_url = reverse_lazy("dashboard")
+
+    def form_valid(self, form: object) -> HttpResponse:
+        messages.success(self.request, "Your password was changed.")
+        return super().form_valid(form)
+
+
+# --- dashboard and key ---------------------------------------------------------------------
+
+
+@owner_required
+@require_GET
+def dashboard(request: HttpRequest) -> HttpResponse:
+    owner: Owner = request.owner
+    balance, chain_problem = None, None
+    try:
+        balance = Decimal(chain_client().balance(owner.eoa_address)) / WEI_PER_ETHER
+    except ChainError as exc:
+        chain_problem = f"The chain node is not reachable right now ({exc.__class__.__name__})."
+    context = {
+        "owner": owner,
+        "key": owner_key_current(owner),
+        "balance": balance,
+        "chain_problem": chain_problem,
+        "record_count": record_list_owned(owner).count(),
+        "grants_given_count": grant_list_given(owner).filter(status__in=Grant.LIVE).count(),
+        "grants_received_count": grant_list_received(owner)
+        .filter(status=Grant.Status.ACTIVE)
+        .count(),
+        "robot_count": owner.robots.filter(is_active=True).count(),
+        **_steps(request),
+    }
+    return render(request, "accounts/dashboard.html", context)
+
+
+@never_cache
+@owner_required
+@require_http_methods(["GET", "POST"])
+def key_rotation(request: HttpRequest) -> HttpResponse:
+    owner: Owner = request.owner
+    form = KeyRotateForm(request.POST or None, user=request.user)
+    if request.method == "POST" and form.is_valid():
+        try:
+            new_key = key_rotate(owner=owner, sm4_key=form.cleaned_data["key_ciphertext"])
+        except (InvalidKeyMaterial, KeyAlreadyUsed) as exc:
+            form.add_error("key_ciphertext", str(exc))
+        else:
+            messages.success(
+                request,
+                f"Your new key {new_key.key_id} is in use. Put it in the key file of every robot "
+                "within the hour: uploads sealed under the old key are refused after that.",
+            )
+            return redirect("key-rotation")
+    keys = owner_keys(owner)
+    context = {
+        "form": form,
+        "owner": owner,
+        "keys": keys,
+        "pending": any(key.chain_state == ChainState.PENDING for key in keys),
+        "sm2_public_key": portal_sm2_public_key(),
+    }
+    return render(request, "accounts/key.html", context, status=400 if form.is_bound else 200)
+
+
+# --- robots --------------------------------------------------------------------------------
+
+
+@never_cache
+@owner_required
+@require_http_methods(["GET", "POST"])
+def robots(request: HttpRequest) -> HttpResponse:
+    owner: Owner = request.owner
+    form = RobotCreateForm(request.POST or None)
+    if request.method == "POST" and form.is_valid():
+        try:
+            robot, token = robot_create(owner=owner, name=form.cleaned_data["name"])
+        except (RobotNameTaken, InvalidUsername) as exc:
+            form.add_error("name", str(exc))
+        else:
+            topics = form.cleaned_data["topics"]
+            config = agent_config_yaml(request, robot, topics=topics, token=token)
+            context = {
+                "robot": robot,
+                "token": token,
+                "config": config,
+                "config_filename": _config_filename(robot),
+                "key_filename": _key_filename(owner),
+            }
+            # The token exists only in this response: it is never stored nor shown again.
+            return no_store(render(request, "accounts/robot_created.html", context, status=201))
+    context = {"form": form, "robots": robot_list_of(owner)}
+    return render(request, "accounts/robots.html", context, status=400 if form.is_bound else 200)
+
+
+@owner_required
+@require_POST
+def robot_revoke(request: HttpRequest, robot_id: str) -> HttpResponse:
+    robot = get_object_or_404(Robot, pk=robot_id, owner=request.owner)
+    if robot.is_active:
+        robot_token_revoke(robot=robot)
+        messages.success(request, f"The token of {robot.name} is revoked: its uploads now fail.")
+    else:
+        messages.info(request, f"The token of {robot.name} was already revoked.")
+    return redirect("robots")
+
+
+@owner_required
+@require_GET
+def robot_config(request: HttpRequest, robot_id: str) -> HttpResponse:
+    """The agent config again, without the token (shown once): it names a token file."""
+    robot = get_object_or_404(Robot, pk=robot_id, owner=request.owner)
+    text = agent_config_yaml(request, robot, topics=None, token=None)
+    response = HttpResponse(text, content_type="application/yaml; charset=utf-8")
+    response["Content-Disposition"] = f'attachment; filename="{_config_filename(robot)}"'
+    return no_store(response)
+
+
+def agent_config_yaml(
+    request: HttpRequest,
+    robot: Robot,
+    *,
+    topics: Sequence[TopicConfig] | None,
+    token: str | None,
+) -> str:
+    """An agent.yaml for ros_agent (see ros_agent/config.py); never the SM4 key itself."""
+    owner = robot.owner
+    key_file = _key_filename(owner)
+    settings_map: dict[str, object] = {
+        "portal_url": request.build_absolute_uri("/").rstrip("/"),
+        "robot": str(robot.id),
+        "owner": owner.username,
+    }
+    if token is None:
+        settings_map["token_file"] = "robot.token"  # noqa: S105 (a file name)
+    else:
+        settings_map["token"] = token
+    settings_map["key_file"] = key_file
+    settings_map["topics"] = [
+        {"name": topic.name, "type": topic.type} for topic in (topics or DEFAULT_TOPICS)
+    ]
+    token_line = (
+        "# It holds the robot's API token: keep it private too (chmod 600 this file)."
+        if token
+        else "# Put the robot's API token (shown once when the robot was added) in robot.token, "
+        "mode 0600."
+    )
+    header = "\n".join(
+        [
+            f"# AuthROS agent settings for robot {robot.name!r} of {owner.username}, "
+            f"made {timezone.now():%Y-%m-%d %H:%M} UTC.",
+            "# Run it with: python -m ros_agent --config agent.yaml",
+            token_line,
+            "# The SM4 key is not in this file. Put your key (32 hex digits) in the key file",
+            f"# named below, beside this file, readable by you only: chmod 600 {key_file}",
+        ]
+    )
+    body = yaml.safe_dump(settings_map, sort_keys=False, default_flow_style=False)
+    return f"{header}\n{body}"
+
+
+def _config_filename(robot: Robot) -> str:
+    return f"agent-{slugify(robot.name) or 'robot'}.yaml"
+
+
+def _key_filename(owner: Owner) -> str:
+    return f"{slugify(owner.username) or 'owner'}.sm4"

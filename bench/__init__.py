@@ -1,0 +1,117 @@
+"""Benchmarks, never part of the test suite: `python -m bench [NAME [args]]`.
+
+Each benchmark is a module `bench/<name>.py` with `main(argv: list[str]) -> int`; this package
+holds what they share: where results go, timing, and a description of the machine.
+"""
+
+import importlib.metadata
+import os
+import pkgutil
+import platform
+import statistics
+import sys
+import time
+from collections.abc import Callable
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+import psutil
+from tqdm import tqdm
+
+RESULTS_DIR = Path(__file__).resolve().parent / "results"
+
+
+def available() -> list[str]:
+    """Names of the benchmarks in this package (modules not starting with `_`)."""
+    return sorted(
+        module.name
+        for module in pkgutil.iter_modules([str(Path(__file__).parent)])
+        if not module.name.startswith("_")
+    )
+
+
+def measure(
+    operation: Callable[[], object], repeat: int, progress: tqdm, warmup: int = 3
+) -> list[float]:
+    """Run operation warmup + repeat times; return the timed runs in milliseconds."""
+    for _ in range(warmup):
+        operation()
+    samples = []
+    for _ in range(repeat):
+        start = time.perf_counter_ns()
+        operation()
+        samples.append((time.perf_counter_ns() - start) / 1e6)
+        progress.update(1)
+    return samples
+
+
+def summarize(samples: list[float]) -> dict[str, float]:
+    """Median, mean, 5th/95th percentile, min and max of samples in milliseconds."""
+    ordered = sorted(samples)
+    if len(ordered) > 1:
+        cuts = statistics.quantiles(ordered, n=20, method="inclusive")
+        p5, p95 = cuts[0], cuts[-1]
+    else:
+        p5 = p95 = ordered[0]
+    return {
+        "median_ms": statistics.median(ordered),
+        "mean_ms": statistics.fmean(ordered),
+        "p5_ms": p5,
+        "p95_ms": p95,
+        "min_ms": ordered[0],
+        "max_ms": ordered[-1],
+    }
+
+
+def progress_bar(total: int, description: str, unit: str = "op") -> tqdm:
+    """A progress bar on stderr."""
+    return tqdm(total=total, desc=description, file=sys.stderr, unit=unit, mininterval=0.5)
+
+
+def now_iso() -> str:
+    """The current UTC time, ISO 8601."""
+    return datetime.now(UTC).isoformat(timespec="seconds").replace("+00:00", "Z")
+
+
+def machine_info(packages: tuple[str, ...] = ()) -> dict[str, Any]:
+    """CPU, cores, memory, OS, Python and the versions of the given packages."""
+    info: dict[str, Any] = {
+        "cpu_model": _cpu_model(),
+        "cpu_flags": _cpu_flags({"aes", "avx2", "avx512f", "pclmulqdq", "sha_ni", "sm3", "sm4"}),
+        "logical_cores": os.cpu_count(),
+        "physical_cores": psutil.cpu_count(logical=False),
+        "memory_bytes": psutil.virtual_memory().total,
+        "os": platform.platform(),
+        "machine": platform.machine(),
+        "python": f"{platform.python_implementation()} {platform.python_version()}",
+    }
+    frequency = psutil.cpu_freq()
+    if frequency is not None:
+        info["cpu_mhz"] = round(frequency.current)
+    for package in packages:
+        try:
+            info[f"{package}_version"] = importlib.metadata.version(package)
+        except importlib.metadata.PackageNotFoundError:
+            info[f"{package}_version"] = None
+    return info
+
+
+def _cpu_model() -> str:
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or "unknown"
+
+
+def _cpu_flags(interesting: set[str]) -> list[str]:
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("flags"):
+                return sorted(interesting & set(line.split(":", 1)[1].split()))
+    except OSError:
+        pass
+    return []

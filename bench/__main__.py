@@ -1,0 +1,34 @@
+"""`python -m bench` runs every benchmark; `python -m bench NAME [args]` runs one."""
+
+import importlib
+import sys
+
+from bench import available
+
+
+def main(argv: list[str]) -> int:
+    """Dispatch to bench/<name>.py's main(argv); with no name run them all."""
+    names = available()
+    if argv and argv[0] in ("-h", "--help"):
+        print(f"usage: python -m bench [NAME [args]]\nbenchmarks: {', '.join(names)}")
+        return 0
+    if not argv:
+        failures = 0
+        for name in names:
+            print(f"== bench {name} ==", file=sys.stderr)
+            failures += _run(name, []) != 0
+        return 1 if failures else 0
+    name, args = argv[0], argv[1:]
+    if name not in names:
+        print(f"unknown benchmark {name!r}; available: {', '.join(names)}", file=sys.stderr)
+        return 2
+    return _run(name, args)
+
+
+def _run(name: str, args: list[str]) -> int:
+    module = importlib.import_module(f"bench.{name}")
+    return module.main(args) or 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))

@@ -1,0 +1,501 @@
+"""What the REST benchmarks (concurrency, message_size, block_interval) share.
+
+One measured run: a fresh anvil, SQLite database, Redis DB 13 (flushed), W Celery workers and a
+beat (the pipeline benchmark's stack) plus the portal under gunicorn. N robots are created
+through the services before the timed part, spread round-robin over K owners (registered on
+chain first), and one envelope each is sealed in advance. Then N agent threads, each with its
+own requests.Session, are released together by a barrier and each POSTs its envelope to
+`/api/v1/records/` (Authorization: Token). The bench process watches the database for anchored
+records and opens each one as soon as it is anchored with `sharing.services.record_open`, which
+has a worker check the digest on chain: a record that opens is *verified*.
+
+Times are wall-clock (time.time()) on this one machine, so they compare with the database's
+anchored_at: response = POST sent to 201 received; to anchored = POST sent to anchored_at; to
+verified = POST sent to record_open returning.
+
+Every run happens in its own spawned interpreter (Django reads its settings once).
+"""
+
+import argparse
+import csv
+import json
+import multiprocessing
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from collections import Counter
+from concurrent.futures import Future, ProcessPoolExecutor, ThreadPoolExecutor
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import psutil
+import redis
+import requests
+
+from bench import RESULTS_DIR, machine_info, progress_bar, summarize
+from bench.pipeline import (
+    BENCH_REDIS_URL,
+    POLL_INTERVAL,
+    Configuration,
+    _anvil_version,
+    _owners_register,
+    _Stack,
+    seal_record,
+)
+from tests.anvil import free_port
+
+REQUEST_TIMEOUT = 300.0
+WEB_START_TIMEOUT = 60.0
+
+
+@dataclass(frozen=True)
+class UploadRun:
+    """One measured configuration of N concurrent agents uploading one envelope each."""
+
+    block_time: float | None
+    batch_max: int
+    agents: int
+    plaintext_bytes: int
+    owners: int
+    workers: int
+    web_workers: int
+    verifiers: int
+    max_wait: float
+    timeout: float
+    redis_url: str
+    keep_logs: bool
+
+    @property
+    def mode(self) -> str:
+        return "automine" if self.block_time is None else f"block-time {self.block_time:g}s"
+
+    def settings(self) -> dict[str, Any]:
+        return {key: value for key, value in asdict(self).items() if key != "keep_logs"}
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """The options every REST benchmark takes (besides its own sizes and modes)."""
+    parser.add_argument("--owners", type=int, default=5, help="owners; robots round-robin")
+    parser.add_argument("--workers", type=int, default=2, help="Celery worker processes (-c 1)")
+    parser.add_argument("--web-workers", type=int, default=2, help="gunicorn sync workers")
+    parser.add_argument(
+        "--verifiers", type=int, default=4, help="threads opening anchored records (record_open)"
+    )
+    parser.add_argument("--max-wait", type=float, default=0.2, help="ANCHOR_MAX_WAIT, seconds")
+    parser.add_argument(
+        "--timeout", type=float, default=900.0, help="seconds to wait for anchoring per run"
+    )
+    parser.add_argument("--quick", action="store_true", help="smoke run with small numbers")
+    parser.add_argument(
+        "--redis-url",
+        default=BENCH_REDIS_URL,
+        help="Redis database for the benchmark, FLUSHED before every run",
+    )
+    parser.add_argument("--keep-logs", action="store_true", help="keep each run's directory")
+    parser.add_argument("--results-dir", type=Path, default=RESULTS_DIR)
+
+
+def check_arguments(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
+    if min(args.owners, args.workers, args.web_workers, args.verifiers) < 1:
+        parser.error("--owners, --workers, --web-workers and --verifiers must be at least 1")
+    if redis.Redis.from_url(args.redis_url).connection_pool.connection_kwargs.get("db", 0) in (
+        0,
+        14,
+    ):
+        parser.error("refusing to flush Redis DB 0 (development) or 14 (tests)")
+
+
+def upload_run(
+    args: argparse.Namespace,
+    *,
+    block_time: float | None,
+    batch_max: int,
+    agents: int,
+    plaintext_bytes: int,
+) -> UploadRun:
+    return UploadRun(
+        block_time=block_time,
+        batch_max=batch_max,
+        agents=agents,
+        plaintext_bytes=plaintext_bytes,
+        owners=args.owners,
+        workers=args.workers,
+        web_workers=args.web_workers,
+        verifiers=args.verifiers,
+        max_wait=args.max_wait,
+        timeout=args.timeout,
+        redis_url=args.redis_url,
+        keep_logs=args.keep_logs,
+    )
+
+
+def measure_all(runs: list[UploadRun]) -> list[dict[str, Any]]:
+    """Each run in its own child process, in order, with a header line per run."""
+    rows = []
+    for number, run in enumerate(runs, 1):
+        print(
+            f"== [{number}/{len(runs)}] {run.mode}, ANCHOR_BATCH_MAX={run.batch_max}, "
+            f"{run.agents} agents, {run.plaintext_bytes} B",
+            file=sys.stderr,
+        )
+        rows.append(measure_in_child(run))
+    return rows
+
+
+def report_header(name: str, args: argparse.Namespace, started: str) -> dict[str, Any]:
+    """What every REST benchmark's JSON starts with: when, where and with what."""
+    return {
+        "benchmark": name,
+        "date": started,
+        "machine": machine_info(("celery", "django", "gunicorn", "requests", "web3", "redis")),
+        "anvil": _anvil_version(),
+        "load_average_at_start": [round(load, 2) for load in psutil.getloadavg()],
+        "settings": {
+            "owners": args.owners,
+            "workers": args.workers,
+            "web_workers": args.web_workers,
+            "verifiers": args.verifiers,
+            "anchor_max_wait_s": args.max_wait,
+            "timeout_s": args.timeout,
+            "quick": args.quick,
+            "agents": "one thread per agent, requests.Session each, released by a barrier; "
+            "one POST /api/v1/records/ each (Authorization: Token), one robot per agent",
+            "web_command": f"gunicorn portal.wsgi:application --workers {args.web_workers} (sync)",
+            "worker_command": "celery -A portal worker -c 1 --pool prefork, plus one beat",
+        },
+        "notes": [
+            "response = POST sent to 201 received; total response = first POST sent to last "
+            "answer; to anchored = POST sent to Record.anchored_at; to verified = POST sent "
+            "to sharing.services.record_open returning (worker checked the digest on chain).",
+            "success rate = verified / sent.",
+            "every process (anvil, gunicorn, workers, beat and the agent threads) shares "
+            "this machine, and other work may run on it: see load_average_at_start.",
+        ],
+    }
+
+
+def write_results(
+    name: str,
+    report: dict[str, Any],
+    fields: tuple[str, ...],
+    results_dir: Path,
+) -> None:
+    """bench/results/NAME.json and NAME.csv (the PNG is the benchmark's own)."""
+    results_dir.mkdir(parents=True, exist_ok=True)
+    (results_dir / f"{name}.json").write_text(json.dumps(report, indent=2) + "\n")
+    with (results_dir / f"{name}.csv").open("w", newline="") as handle:
+        writer = csv.writer(handle)
+        writer.writerow(fields)
+        for row in report["results"]:
+            writer.writerow(
+                [
+                    f"{value:.6f}" if isinstance(value, float) else value
+                    for value in (row.get(field) for field in fields)
+                ]
+            )
+
+
+def print_table(report: dict[str, Any], columns: tuple[tuple[str, str, str], ...]) -> None:
+    """The results as a table of (header, key, format) columns."""
+    machine = report["machine"]
+    print(
+        f"{report['benchmark']} benchmark, {report['date']}: {machine['cpu_model']}, "
+        f"{machine['logical_cores']} cores, {machine['memory_bytes'] / 2**30:.1f} GiB; "
+        f"load average at start {report['load_average_at_start']}"
+    )
+    table = [
+        ["-" if row.get(key) is None else format(row[key], spec) for _, key, spec in columns]
+        for row in report["results"]
+    ]
+    headers = [header for header, _, _ in columns]
+    widths = [max(len(cell) for cell in column) for column in zip(headers, *table, strict=True)]
+    for cells in (headers, *table):
+        print(" ".join(f"{cell:>{width}}" for cell, width in zip(cells, widths, strict=True)))
+
+
+def measure_in_child(run: UploadRun) -> dict[str, Any]:
+    """Measure one run in a fresh interpreter, so Django reads a fresh environment."""
+    context = multiprocessing.get_context("spawn")
+    with ProcessPoolExecutor(max_workers=1, mp_context=context) as pool:
+        return pool.submit(_measure, run).result()
+
+
+def add_ratios(rows: list[dict[str, Any]], same: tuple[str, ...], keys: tuple[str, ...]) -> None:
+    """Each row's keys divided by those of the batch-size-1 row agreeing on `same` (this run)."""
+    for row in rows:
+        baseline = next(
+            (
+                other
+                for other in rows
+                if other["batch_max"] == 1 and all(other[f] == row[f] for f in same)
+            ),
+            None,
+        )
+        for key in keys:
+            ours, theirs = row.get(key), baseline.get(key) if baseline else None
+            row[f"{key}_ratio_vs_batch1"] = ours / theirs if ours is not None and theirs else None
+
+
+# --- one run, in a child process ---------------------------------------------------------------
+
+
+class _WebStack(_Stack):
+    """The pipeline benchmark's stack plus the portal under gunicorn."""
+
+    def web_start(self, workers: int) -> str:
+        port = free_port()
+        log = (self.logs / "web.log").open("ab")
+        try:
+            process = subprocess.Popen(
+                [
+                    sys.executable,
+                    "-m",
+                    "gunicorn",
+                    "portal.wsgi:application",
+                    "--bind",
+                    f"127.0.0.1:{port}",
+                    "--workers",
+                    str(workers),
+                    "--timeout",
+                    "120",
+                    "--graceful-timeout",
+                    "5",
+                    "--backlog",
+                    "2048",
+                ],
+                cwd=Path(__file__).resolve().parent.parent,
+                env={**os.environ, **self._environment(log_level="WARNING")},
+                stdout=log,
+                stderr=subprocess.STDOUT,
+                start_new_session=True,
+            )
+        finally:
+            log.close()
+        self.processes.append(process)
+        url = f"http://127.0.0.1:{port}"
+        deadline = time.monotonic() + WEB_START_TIMEOUT
+        while time.monotonic() < deadline:
+            self.check_alive()
+            try:
+                requests.get(f"{url}/api/", timeout=2)
+                return url
+            except requests.RequestException:
+                time.sleep(0.2)
+        raise RuntimeError(f"gunicorn did not answer in {WEB_START_TIMEOUT:.0f}s")
+
+
+@dataclass
+class _Agent:
+    robot: Any
+    token: str
+    body: dict[str, str]
+    sent_at: float = 0.0
+    answered_at: float | None = None
+    status: str = "not sent"
+    record_id: str | None = None
+    anchored_at: float | None = None
+    verified_at: float | None = None
+    verify_error: str | None = None
+
+
+def _measure(run: UploadRun) -> dict[str, Any]:
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(128 + signal.SIGTERM))
+    workdir = Path(tempfile.mkdtemp(prefix="authros-bench-rest-"))
+    configuration = Configuration(
+        block_time=run.block_time,
+        batch_max=run.batch_max,
+        records=run.agents,
+        owners=run.owners,
+        workers=run.workers,
+        max_wait=run.max_wait,
+        rate=0.0,
+        timeout=run.timeout,
+        redis_url=run.redis_url,
+        keep_logs=run.keep_logs,
+    )
+    stack = _WebStack(configuration, workdir)
+    try:
+        stack.start()
+        url = stack.web_start(run.web_workers) + "/api/v1/records/"
+        agents = _agents_create(run, configuration, stack)
+        _post_concurrently(url, agents)
+        _await_verified(run, stack, agents)
+        row = _statistics(run, agents)
+    finally:
+        stack.stop()
+    row["worker_logs"] = stack.log_summary()
+    if run.keep_logs:
+        row["workdir"] = str(workdir)
+        print(f"kept {workdir}", file=sys.stderr)
+    else:
+        shutil.rmtree(workdir, ignore_errors=True)
+    return row
+
+
+def _agents_create(run: UploadRun, configuration: Configuration, stack: _Stack) -> list[_Agent]:
+    """K owners registered on chain, then N robots round-robin over them, one sealed envelope
+    each (sealing is not timed)."""
+    import base64
+
+    from accounts.services import robot_create
+
+    owners = _owners_register(configuration, stack)
+    agents = []
+    for number in range(run.agents):
+        owner_robot, key = owners[number % len(owners)]
+        robot, token = robot_create(owner=owner_robot.owner, name=f"agent-{number}")
+        data = seal_record(robot, key, seq=1, plaintext_bytes=run.plaintext_bytes)
+        agents.append(_Agent(robot, token, {"envelope": base64.b64encode(data).decode()}))
+    return agents
+
+
+def _post_concurrently(url: str, agents: list[_Agent]) -> None:
+    """One thread per agent, released together; each POSTs once on its own session."""
+    barrier = threading.Barrier(len(agents) + 1)
+    progress = progress_bar(len(agents), "201 received", unit="req")
+    lock = threading.Lock()
+
+    def agent_post(agent: _Agent) -> None:
+        session = requests.Session()
+        session.headers["Authorization"] = f"Token {agent.token}"
+        barrier.wait()
+        agent.sent_at = time.time()
+        try:
+            response = session.post(url, json=agent.body, timeout=REQUEST_TIMEOUT)
+            agent.answered_at = time.time()
+            agent.status = str(response.status_code)
+            if response.status_code == 201:
+                agent.record_id = response.json()["id"]
+        except requests.RequestException as exc:
+            agent.answered_at = time.time()
+            agent.status = type(exc).__name__
+        finally:
+            session.close()
+            with lock:
+                progress.update(1)
+
+    threading.stack_size(512 * 1024)
+    threads = [threading.Thread(target=agent_post, args=(agent,)) for agent in agents]
+    for thread in threads:
+        thread.start()
+    barrier.wait()
+    for thread in threads:
+        thread.join()
+    progress.close()
+
+
+def _await_verified(run: UploadRun, stack: _Stack, agents: list[_Agent]) -> None:
+    """Watch for anchored records and open each as soon as it is; until all are settled."""
+    from sharing.models import Record
+
+    by_id = {agent.record_id: agent for agent in agents if agent.record_id}
+    anchoring = progress_bar(len(by_id), "anchored", unit="rec")
+    verifying = progress_bar(len(by_id), "verified", unit="rec")
+    pending: list[Future[None]] = []
+    deadline = time.monotonic() + run.timeout
+    with ThreadPoolExecutor(max_workers=run.verifiers) as verifiers:
+        while True:
+            waiting = [a for a in by_id.values() if a.anchored_at is None]
+            newly = Record.objects.filter(
+                pk__in=[a.record_id for a in waiting], status=Record.Status.ANCHORED
+            ).values_list("pk", "anchored_at")
+            for pk, anchored_at in newly:
+                agent = by_id[str(pk)]
+                agent.anchored_at = anchored_at.timestamp()
+                anchoring.update(1)
+                pending.append(verifiers.submit(_verify, agent, verifying))
+            failed = Record.objects.filter(
+                pk__in=[a.record_id for a in waiting], status=Record.Status.FAILED
+            ).count()
+            if len(waiting) - len(newly) - failed <= 0:
+                break
+            stack.check_alive()
+            if time.monotonic() > deadline:
+                print(f"timed out after {run.timeout:.0f}s", file=sys.stderr)
+                break
+            time.sleep(POLL_INTERVAL)
+        for future in pending:
+            future.result()
+    anchoring.close()
+    verifying.close()
+
+
+def _verify(agent: _Agent, progress: Any) -> None:
+    from django.db import connections
+
+    from sharing.services import record_open
+
+    try:
+        record_open(record_id=agent.record_id, viewer=agent.robot.owner)
+        agent.verified_at = time.time()
+        progress.update(1)
+    except Exception as exc:  # every failure is a result: counted, not raised
+        agent.verify_error = f"{type(exc).__name__}: {exc}"
+    finally:
+        connections.close_all()
+
+
+def _statistics(run: UploadRun, agents: list[_Agent]) -> dict[str, Any]:
+    from sharing.models import Record
+
+    first_sent = min(agent.sent_at for agent in agents)
+    answered = [a for a in agents if a.record_id]
+    anchored = [a for a in answered if a.anchored_at is not None]
+    verified = [a for a in anchored if a.verified_at is not None]
+    envelope_bytes = [len(a.body["envelope"]) * 3 // 4 for a in agents]
+    transactions = set(
+        Record.objects.filter(pk__in=[a.record_id for a in anchored]).values_list(
+            "tx_hash", flat=True
+        )
+    )
+    row: dict[str, Any] = {
+        "mode": run.mode,
+        "block_time_s": run.block_time,
+        "batch_max": run.batch_max,
+        "agents": run.agents,
+        "plaintext_bytes": run.plaintext_bytes,
+        "envelope_bytes_mean": sum(envelope_bytes) / len(envelope_bytes),
+        "owners": run.owners,
+        "workers": run.workers,
+        "web_workers": run.web_workers,
+        "sent": len(agents),
+        "http_201": len(answered),
+        "http_statuses": dict(Counter(a.status for a in agents)),
+        "anchored": len(anchored),
+        "verified": len(verified),
+        "success_rate": len(verified) / len(agents),
+        "verify_errors": dict(Counter(a.verify_error for a in anchored if a.verify_error)),
+        "transactions": len(transactions),
+    }
+    responses = [a for a in agents if a.answered_at is not None]
+    if responses:
+        response = summarize([(a.answered_at - a.sent_at) * 1000 for a in responses])
+        row |= {
+            "response_mean_s": response["mean_ms"] / 1000,
+            "response_p50_s": response["median_ms"] / 1000,
+            "response_p95_s": response["p95_ms"] / 1000,
+            "response_max_s": response["max_ms"] / 1000,
+            "total_response_s": max(a.answered_at for a in responses) - first_sent,
+        }
+        row["uploads_per_s"] = len(answered) / row["total_response_s"]
+    for name, done, attribute in (
+        ("anchored", anchored, "anchored_at"),
+        ("verified", verified, "verified_at"),
+    ):
+        if not done:
+            continue
+        latency = summarize([(getattr(a, attribute) - a.sent_at) * 1000 for a in done])
+        row |= {
+            f"to_{name}_mean_s": latency["mean_ms"] / 1000,
+            f"to_{name}_p50_s": latency["median_ms"] / 1000,
+            f"to_{name}_p95_s": latency["p95_ms"] / 1000,
+            f"total_to_{name}_s": max(getattr(a, attribute) for a in done) - first_sent,
+        }
+        row[f"{name}_per_s"] = len(done) / row[f"total_to_{name}_s"]
+    return row

@@ -1,0 +1,189 @@
+"""Concurrency (paper Fig. 14): N agents upload one 1 KB envelope each through REST at once.
+
+For N in 300, 500 and 700 (`--quick`: 30 and 50), on anvil with automine, `--block-time 1` and
+`--block-time 2`, each with ANCHOR_BATCH_MAX 1 (one transaction per record, the paper's way and
+the baseline) and 100 (batching), every configuration in its own process with a fresh stack
+(see bench/_stack.py). Measures total response time (first POST to last 201), time until
+anchored and until verified, and success rate = verified / sent. Batching is reported as a
+ratio against batch size 1 of the same block mode and N, measured in the same run.
+
+Run: `python -m bench concurrency [--agents 300 500 700] [--quick]`.
+Writes bench/results/concurrency.json, concurrency.csv and concurrency.png.
+"""
+
+import argparse
+import sys
+from pathlib import Path
+from typing import Any
+
+if not __package__:  # run as `python bench/concurrency.py`: make the repository importable
+    sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt
+
+from bench import now_iso
+from bench._stack import (
+    add_arguments,
+    add_ratios,
+    check_arguments,
+    measure_all,
+    print_table,
+    report_header,
+    upload_run,
+    write_results,
+)
+
+NAME = "concurrency"
+AGENTS = (300, 500, 700)
+QUICK_AGENTS = (30, 50)
+BLOCK_TIMES: tuple[float | None, ...] = (None, 1.0, 2.0)  # None: automine
+BATCH_SIZES = (1, 100)
+PLAINTEXT_BYTES = 1024
+RATIO_KEYS = ("total_response_s", "total_to_anchored_s", "total_to_verified_s", "to_anchored_p50_s")
+FIELDS = (
+    "mode",
+    "block_time_s",
+    "batch_max",
+    "agents",
+    "plaintext_bytes",
+    "envelope_bytes_mean",
+    "sent",
+    "http_201",
+    "anchored",
+    "verified",
+    "success_rate",
+    "transactions",
+    "response_mean_s",
+    "response_p50_s",
+    "response_p95_s",
+    "total_response_s",
+    "uploads_per_s",
+    "to_anchored_p50_s",
+    "to_anchored_p95_s",
+    "total_to_anchored_s",
+    "anchored_per_s",
+    "to_verified_p50_s",
+    "to_verified_p95_s",
+    "total_to_verified_s",
+    *(f"{key}_ratio_vs_batch1" for key in RATIO_KEYS),
+)
+COLUMNS = (
+    ("mode", "mode", ""),
+    ("batch", "batch_max", "d"),
+    ("N", "agents", "d"),
+    ("success", "success_rate", ".1%"),
+    ("txs", "transactions", "d"),
+    ("resp mean", "response_mean_s", ".2f"),
+    ("total resp", "total_response_s", ".2f"),
+    ("upl/s", "uploads_per_s", ".1f"),
+    ("anch p50", "to_anchored_p50_s", ".2f"),
+    ("total anch", "total_to_anchored_s", ".2f"),
+    ("total verif", "total_to_verified_s", ".2f"),
+    ("anch x b1", "total_to_anchored_s_ratio_vs_batch1", ".2f"),
+)
+
+
+def main(argv: list[str]) -> int:
+    """Run every configuration, print the table and write JSON, CSV and PNG results."""
+    parser = argparse.ArgumentParser(prog="python -m bench concurrency", description=__doc__)
+    parser.add_argument("--agents", type=int, nargs="+", help=f"N values (default {AGENTS})")
+    parser.add_argument(
+        "--block-times",
+        type=float,
+        nargs="+",
+        help="block times in seconds, 0 = automine (default: automine, 1, 2)",
+    )
+    add_arguments(parser)
+    args = parser.parse_args(argv)
+    check_arguments(parser, args)
+    agents = args.agents or (QUICK_AGENTS if args.quick else AGENTS)
+    block_times = tuple(b or None for b in args.block_times) if args.block_times else BLOCK_TIMES
+    started = now_iso()
+    report = report_header(NAME, args, started)
+    runs = [
+        upload_run(
+            args,
+            block_time=block_time,
+            batch_max=batch_max,
+            agents=n,
+            plaintext_bytes=PLAINTEXT_BYTES,
+        )
+        for block_time in block_times
+        for n in agents
+        for batch_max in BATCH_SIZES
+    ]
+    rows = measure_all(runs)
+    add_ratios(rows, ("mode", "agents", "plaintext_bytes"), RATIO_KEYS)
+    report["settings"] |= {
+        "agents_per_run": list(agents),
+        "block_times": ["automine" if b is None else b for b in block_times],
+        "batch_sizes": list(BATCH_SIZES),
+        "plaintext_bytes": PLAINTEXT_BYTES,
+    }
+    report["notes"].append(
+        "ratio columns divide by ANCHOR_BATCH_MAX=1 (one transaction per record) of the same "
+        "block mode and N in this run: below 1 means batching is faster."
+    )
+    report["results"] = rows
+    print_table(report, COLUMNS)
+    write_results(NAME, report, FIELDS, args.results_dir)
+    _plot(report, args.results_dir / f"{NAME}.png")
+    print(f"results: {args.results_dir}/{NAME}.json, {NAME}.csv, {NAME}.png")
+    return 0 if all(row["success_rate"] == 1 for row in rows) else 1
+
+
+def _plot(report: dict[str, Any], path: Path) -> None:
+    rows = report["results"]
+    modes = list(dict.fromkeys(row["mode"] for row in rows))
+    figure, axes = plt.subplots(1, len(modes), figsize=(5 * len(modes), 4.5), squeeze=False)
+    for axis, mode in zip(axes[0], modes, strict=True):
+        rate_axis = axis.twinx()
+        for batch, colour in zip(BATCH_SIZES, ("tab:red", "tab:blue"), strict=True):
+            measured = [r for r in rows if r["mode"] == mode and r["batch_max"] == batch]
+            n = [r["agents"] for r in measured]
+            axis.plot(
+                n,
+                [r.get("total_response_s") for r in measured],
+                "o-",
+                color=colour,
+                label=f"batch {batch}: all 201s",
+            )
+            axis.plot(
+                n,
+                [r.get("total_to_verified_s") for r in measured],
+                "s--",
+                color=colour,
+                label=f"batch {batch}: all verified",
+            )
+            rate_axis.plot(
+                n,
+                [100 * r["success_rate"] for r in measured],
+                "x:",
+                color=colour,
+                alpha=0.6,
+                label=f"batch {batch}: success %",
+            )
+        axis.set_title(mode)
+        axis.set_xlabel("concurrent agents (one 1 KB upload each)")
+        axis.set_ylabel("total time, s")
+        rate_axis.set_ylabel("success rate, % (verified / sent)")
+        rate_axis.set_ylim(0, 105)
+        axis.grid(True, alpha=0.3)
+        axis.legend(fontsize=7, loc="upper left")
+        rate_axis.legend(fontsize=7, loc="lower right")
+    machine = report["machine"]
+    figure.suptitle(
+        f"concurrency (paper Fig. 14): {machine['cpu_model']}, {machine['logical_cores']} "
+        f"cores, {report['date']}",
+        fontsize=9,
+    )
+    figure.tight_layout()
+    figure.savefig(path, dpi=120)
+    plt.close(figure)
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))

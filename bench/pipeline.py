@@ -1,0 +1,727 @@
+"""Anchoring pipeline: anchored records per second and upload-to-anchored latency.
+
+Issue 3, section 7. For ANCHOR_BATCH_MAX 1 (one record per transaction, the paper's way and
+the baseline), 10 and 100, on anvil with automine and with `--block-time 1`. Every
+configuration gets a fresh SQLite database, anvil, contract, W Celery workers and one beat,
+all sharing Redis DB 13 (flushed first). K owners are registered on chain by the workers,
+then N envelopes of about 1 KB are uploaded through `sharing.services.record_create`,
+round-robin over the owners' robots, as fast as one process can (or at `--rate`), and the
+benchmark waits until every record is anchored.
+
+Latency = Record.anchored_at - Record.created_at (upload committed to receipt seen by the
+worker). Throughput = anchored records / (last anchored_at - first created_at). Batch sizes
+10 and 100 are reported as ratios against batch size 1 measured in the same run.
+
+Each configuration runs in its own spawned Python process: Django reads its settings from the
+environment once, and the workers need new environment variables per batch size anyway.
+
+Run: `python -m bench pipeline [--records N] [--owners K] [--workers W] [--quick]`.
+Writes bench/results/pipeline.json, pipeline.csv and pipeline.png.
+"""
+
+import argparse
+import csv
+import json
+import multiprocessing
+import os
+import re
+import secrets
+import shutil
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from collections import Counter
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+if not __package__:  # run as `python bench/pipeline.py`: make the repository importable
+    sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt
+import psutil
+import redis
+
+from bench import RESULTS_DIR, machine_info, now_iso, progress_bar, summarize
+from smcrypto import envelope, sm4
+from tests.anvil import AnvilProcess, start_anvil
+
+REPO_ROOT = Path(__file__).resolve().parent.parent
+BATCH_SIZES = (1, 10, 100)
+BLOCK_TIMES: tuple[float | None, ...] = (None, 1.0)  # None: automine
+BENCH_REDIS_URL = "redis://127.0.0.1:6379/13"
+REDIS_KEY_PREFIX = "authros-bench"
+CELERY_QUEUE = "authros-bench"
+PLAINTEXT_BYTES = 1024
+QUICK = {"records": 20, "owners": 2, "workers": 2}
+REGISTRATION_TIMEOUT = 180.0
+WORKER_STOP_TIMEOUT = 20.0
+POLL_INTERVAL = 0.2
+WORKER_OPTIONS = (
+    "-c",
+    "1",
+    "--pool",
+    "prefork",
+    "--without-gossip",
+    "--without-mingle",
+    "--without-heartbeat",
+)
+_TASK_LINE = re.compile(r"Task (?P<task>[\w.]+)\[[0-9a-f-]+\] (?P<what>succeeded|retry|raised)")
+_ANCHOR_RESULT = re.compile(
+    r"Task chainworker\.tasks\.records_anchor\[[0-9a-f-]+\] succeeded in [\d.e-]+s: (\d+)"
+)
+_RETRY_REASON = re.compile(r"retry: Retry in [^:]+: (\w+)")
+_IDS = re.compile(r"0x[0-9a-fA-F]+|[0-9a-f-]{36}")
+_LOG_LEVEL = re.compile(r"^\S+ \S+ (ERROR|WARNING|CRITICAL) ")
+
+
+@dataclass(frozen=True)
+class Configuration:
+    """One measured configuration; the same for every batch size except batch_max/block_time."""
+
+    block_time: float | None
+    batch_max: int
+    records: int
+    owners: int
+    workers: int
+    max_wait: float
+    rate: float  # uploads per second; 0 = as fast as one process can
+    timeout: float
+    redis_url: str
+    keep_logs: bool
+
+    @property
+    def mode(self) -> str:
+        return "automine" if self.block_time is None else f"block-time {self.block_time:g}s"
+
+
+def main(argv: list[str]) -> int:
+    """Run every configuration, print the table and write JSON, CSV and PNG results."""
+    parser = argparse.ArgumentParser(prog="python -m bench pipeline", description=__doc__)
+    parser.add_argument("--records", type=int, default=300, help="uploads per configuration")
+    parser.add_argument("--owners", type=int, default=3, help="owners (one robot each)")
+    parser.add_argument("--workers", type=int, default=2, help="Celery worker processes (-c 1)")
+    parser.add_argument(
+        "--max-wait", type=float, default=0.2, help="ANCHOR_MAX_WAIT in seconds (default 0.2)"
+    )
+    parser.add_argument(
+        "--rate", type=float, default=0.0, help="uploads per second; 0 = as fast as possible"
+    )
+    parser.add_argument(
+        "--timeout", type=float, default=600.0, help="seconds to wait for anchoring per run"
+    )
+    parser.add_argument(
+        "--quick",
+        action="store_true",
+        help=f"smoke run: {QUICK['records']} records, {QUICK['owners']} owners",
+    )
+    parser.add_argument(
+        "--redis-url",
+        default=BENCH_REDIS_URL,
+        help="Redis database for the benchmark, FLUSHED before every configuration",
+    )
+    parser.add_argument(
+        "--keep-logs", action="store_true", help="keep each configuration's directory and logs"
+    )
+    parser.add_argument("--results-dir", type=Path, default=RESULTS_DIR)
+    args = parser.parse_args(argv)
+    if args.quick:
+        args.records, args.owners = QUICK["records"], QUICK["owners"]
+    if min(args.records, args.owners, args.workers) < 1:
+        parser.error("--records, --owners and --workers must be at least 1")
+    if redis.Redis.from_url(args.redis_url).connection_pool.connection_kwargs.get("db", 0) in (
+        0,
+        14,
+    ):
+        parser.error("refusing to flush Redis DB 0 (development) or 14 (tests)")
+
+    started = now_iso()
+    load_at_start = [round(load, 2) for load in psutil.getloadavg()]  # other work on the host
+    configurations = [
+        Configuration(
+            block_time=block_time,
+            batch_max=batch_max,
+            records=args.records,
+            owners=args.owners,
+            workers=args.workers,
+            max_wait=args.max_wait,
+            rate=args.rate,
+            timeout=args.timeout,
+            redis_url=args.redis_url,
+            keep_logs=args.keep_logs,
+        )
+        for block_time in BLOCK_TIMES
+        for batch_max in BATCH_SIZES
+    ]
+    rows = []
+    for number, configuration in enumerate(configurations, 1):
+        print(
+            f"== [{number}/{len(configurations)}] {configuration.mode}, "
+            f"ANCHOR_BATCH_MAX={configuration.batch_max}",
+            file=sys.stderr,
+        )
+        rows.append(_measure_in_child(configuration))
+    _add_ratios(rows)
+    portal_settings = rows[0]["portal_settings"]
+    for row in rows:
+        del row["portal_settings"]
+    report = {
+        "benchmark": "pipeline",
+        "date": started,
+        "machine": machine_info(("celery", "django", "web3", "redis", "matplotlib")),
+        "anvil": _anvil_version(),
+        "load_average_at_start": load_at_start,
+        "settings": {
+            "records": args.records,
+            "owners": args.owners,
+            "workers": args.workers,
+            "worker_command": f"celery -A portal worker {' '.join(WORKER_OPTIONS)}, plus one beat",
+            "batch_sizes": list(BATCH_SIZES),
+            "block_times": ["automine" if b is None else b for b in BLOCK_TIMES],
+            "anchor_max_wait_s": args.max_wait,
+            "upload_rate_per_s": args.rate or "as fast as possible",
+            "plaintext_bytes": PLAINTEXT_BYTES,
+            "timeout_s": args.timeout,
+            "quick": args.quick,
+            **portal_settings,
+        },
+        "notes": _notes(args),
+        "results": rows,
+    }
+    _print_table(report)
+    args.results_dir.mkdir(parents=True, exist_ok=True)
+    (args.results_dir / "pipeline.json").write_text(json.dumps(report, indent=2) + "\n")
+    _write_csv(rows, args.results_dir / "pipeline.csv")
+    _plot(report, args.results_dir / "pipeline.png")
+    print(f"results: {args.results_dir}/pipeline.json, pipeline.csv, pipeline.png")
+    incomplete = [row for row in rows if row["pending"] or row["failed"]]
+    return 1 if incomplete else 0
+
+
+def _notes(args: argparse.Namespace) -> list[str]:
+    upload = (
+        f"uploads paced at {args.rate:g}/s"
+        if args.rate
+        else "uploads as fast as one process can (record_create, one envelope per call)"
+    )
+    return [
+        f"{upload}, round-robin over {args.owners} owners (one robot each).",
+        "latency = anchored_at - created_at: upload committed to the worker seeing the receipt.",
+        "throughput = anchored records / (last anchored_at - first created_at); upl/s is the "
+        "upload rate: where throughput comes close to it, the single uploader was the limit.",
+        "batch size = ANCHOR_BATCH_MAX; ratio columns divide by batch size 1 of the same "
+        "block mode in this run (throughput: higher is better; latency: lower is better).",
+        "every process (anvil, workers, beat, the uploading bench process) shares this machine.",
+    ]
+
+
+# --- one configuration, in a child process --------------------------------------------------
+
+
+def _measure_in_child(configuration: Configuration) -> dict[str, Any]:
+    """Measure one configuration in a fresh interpreter, so Django reads a fresh environment."""
+    context = multiprocessing.get_context("spawn")
+    with ProcessPoolExecutor(max_workers=1, mp_context=context) as pool:
+        return pool.submit(_measure, configuration).result()
+
+
+def _measure(configuration: Configuration) -> dict[str, Any]:
+    """Start the stack, register owners, upload, wait for anchoring, stop; the row of results."""
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(128 + signal.SIGTERM))
+    workdir = Path(tempfile.mkdtemp(prefix="authros-bench-pipeline-"))
+    stack = _Stack(configuration, workdir)
+    try:
+        stack.start()
+        robots = _owners_register(configuration, stack)
+        _upload(configuration, robots)
+        _await_anchoring(configuration, stack)
+        row = _statistics(configuration)
+    finally:
+        stack.stop()
+    row["worker_logs"] = stack.log_summary()
+    row["portal_settings"] = stack.portal_settings
+    if configuration.keep_logs:
+        row["workdir"] = str(workdir)
+        print(f"kept {workdir}", file=sys.stderr)
+    else:
+        shutil.rmtree(workdir, ignore_errors=True)
+    return row
+
+
+class _Stack:
+    """anvil, the bench process's Django, W workers and a beat, for one configuration."""
+
+    def __init__(self, configuration: Configuration, workdir: Path) -> None:
+        self.configuration = configuration
+        self.workdir = workdir
+        self.logs = workdir / "logs"
+        self.anvil: AnvilProcess | None = None
+        self.processes: list[subprocess.Popen[bytes]] = []
+        self.portal_settings: dict[str, Any] = {}
+
+    def start(self) -> None:
+        configuration = self.configuration
+        redis.Redis.from_url(configuration.redis_url).flushdb()
+        self.anvil = start_anvil(block_time=configuration.block_time)
+        os.environ.update(self._environment(log_level="WARNING"))
+
+        import django
+
+        django.setup()
+        from django.conf import settings
+        from django.core.management import call_command
+
+        from chainworker.services import contract_deploy
+
+        call_command("migrate", verbosity=0, interactive=False)
+        contract_deploy()
+        self.portal_settings = {
+            name.lower(): getattr(settings, name)
+            for name in (
+                "ANCHOR_MAX_WAIT",
+                "ANCHOR_STALE_AFTER",
+                "ANCHOR_LOCK_TTL",
+                "CHAIN_CONFIRMATIONS",
+                "CHAIN_RECEIPT_TIMEOUT",
+            )
+        }
+        self.portal_settings["anchor_sweep_interval"] = settings.CELERY_BEAT_SCHEDULE[
+            "sweep-stale-chain-work"
+        ]["schedule"]
+        self.logs.mkdir()
+        for number in range(configuration.workers):
+            self._spawn(f"w{number}", ["worker", "-n", f"bench{number}@%h", *WORKER_OPTIONS])
+        self._spawn("beat", ["beat", "-s", str(self.workdir / "celerybeat-schedule")])
+
+    def _environment(self, *, log_level: str) -> dict[str, str]:
+        configuration = self.configuration
+        var = self.workdir / "var"
+        return {
+            "DJANGO_SETTINGS_MODULE": "portal.settings",
+            "DJANGO_DEBUG": "false",
+            "AUTHROS_VAR_DIR": str(var),
+            "AUTHROS_SECRETS_DIR": str(var / "secrets"),
+            "AUTHROS_MEDIA_ROOT": str(var / "media"),
+            "AUTHROS_MASTER_KEY": "",
+            "DATABASE_URL": f"sqlite:///{var / 'db.sqlite3'}",
+            "REDIS_URL": configuration.redis_url,
+            "CELERY_BROKER_URL": configuration.redis_url,
+            "CELERY_RESULT_BACKEND": configuration.redis_url,
+            "REDIS_KEY_PREFIX": REDIS_KEY_PREFIX,
+            "CELERY_QUEUE": CELERY_QUEUE,
+            "CELERY_TASK_ALWAYS_EAGER": "false",
+            "CHAIN_RPC_URL": self.anvil.url,
+            "CHAIN_CONTRACT_ADDRESS": "",
+            "CHAIN_OPERATOR_KEY": "",
+            "CHAIN_CONFIRMATIONS": "0",
+            "ANCHOR_BATCH_MAX": str(configuration.batch_max),
+            "ANCHOR_MAX_WAIT": str(configuration.max_wait),
+            "LOG_LEVEL": log_level,
+        }
+
+    def _spawn(self, name: str, celery_args: list[str]) -> None:
+        log = (self.logs / f"{name}.log").open("ab")
+        try:
+            process = subprocess.Popen(
+                [sys.executable, "-m", "celery", "-A", "portal", *celery_args, "-l", "INFO"],
+                cwd=REPO_ROOT,
+                env={**os.environ, **self._environment(log_level="INFO")},
+                stdout=log,
+                stderr=subprocess.STDOUT,
+                start_new_session=True,  # its own group: killed with its pool if it hangs
+            )
+        finally:
+            log.close()
+        self.processes.append(process)
+
+    def check_alive(self) -> None:
+        for process in self.processes:
+            if process.poll() is not None:
+                raise RuntimeError(
+                    f"celery process {process.pid} exited with {process.returncode}; "
+                    f"see {self.logs}:\n{self.log_tail()}"
+                )
+
+    def stop(self) -> None:
+        """Warm shutdown of beat and workers (their pool children stop with them), then anvil."""
+        for process in reversed(self.processes):  # beat first: no new work while workers stop
+            if process.poll() is None:
+                process.terminate()
+        deadline = time.monotonic() + WORKER_STOP_TIMEOUT
+        for process in self.processes:
+            try:
+                process.wait(timeout=max(deadline - time.monotonic(), 0.1))
+            except subprocess.TimeoutExpired:
+                os.killpg(process.pid, signal.SIGKILL)
+                process.wait()
+        if self.anvil is not None:
+            self.anvil.stop()
+        if "django" in sys.modules:
+            from django.db import connections
+
+            connections.close_all()
+
+    def log_tail(self, lines: int = 30) -> str:
+        text = "\n".join(p.read_text(errors="replace") for p in sorted(self.logs.glob("*.log")))
+        return "\n".join(text.splitlines()[-lines:])
+
+    def log_summary(self) -> dict[str, Any]:
+        """What the workers' logs say: task outcomes, retries, warnings and errors."""
+        outcomes: Counter[str] = Counter()
+        retries: Counter[str] = Counter()
+        anchor_results: Counter[int] = Counter()
+        problems: Counter[str] = Counter()
+        for path in sorted(self.logs.glob("*.log")):
+            for line in path.read_text(errors="replace").splitlines():
+                if match := _TASK_LINE.search(line):
+                    outcomes[f"{match['task'].rsplit('.', 1)[-1]} {match['what']}"] += 1
+                if match := _RETRY_REASON.search(line):
+                    retries[match[1]] += 1
+                if match := _ANCHOR_RESULT.search(line):
+                    anchor_results[int(match[1])] += 1
+                if match := _LOG_LEVEL.search(line):
+                    message = line.split(" ", 5)[-1]
+                    problems[
+                        f"{match[1]} {re.sub(r'0x[0-9a-fA-F]+|[0-9a-f-]{36}', '…', message)}"
+                    ] += 1
+        return {
+            "task_outcomes": dict(outcomes),
+            "retry_reasons": dict(retries),
+            "records_anchor_runs": sum(anchor_results.values()),
+            "records_anchor_runs_anchoring_nothing": anchor_results.get(0, 0),
+            "warnings_and_errors": dict(problems.most_common(10)),
+        }
+
+
+def _owners_register(configuration: Configuration, stack: _Stack) -> list[tuple[Any, bytes]]:
+    """K owners with one robot each, registered on chain by the workers; (robot, sm4 key)."""
+    from accounts.models import ChainState, Owner
+    from accounts.services import owner_create, robot_create
+
+    robots = []
+    for number in range(configuration.owners):
+        key = sm4.generate_key()
+        owner = owner_create(
+            username=f"bench-owner-{number}", password=secrets.token_urlsafe(18), sm4_key=key
+        )
+        robot, _token = robot_create(owner=owner, name="bench-robot")
+        robots.append((robot, key))
+    deadline = time.monotonic() + REGISTRATION_TIMEOUT
+    with progress_bar(configuration.owners, "owners registered", unit="owner") as progress:
+        while True:
+            confirmed = Owner.objects.filter(chain_state=ChainState.CONFIRMED).count()
+            progress.update(confirmed - progress.n)
+            if confirmed == configuration.owners:
+                return robots
+            stack.check_alive()
+            if time.monotonic() > deadline:
+                raise RuntimeError(
+                    f"owners not registered after {REGISTRATION_TIMEOUT:.0f}s:\n{stack.log_tail()}"
+                )
+            time.sleep(POLL_INTERVAL)
+
+
+def _upload(configuration: Configuration, robots: list[tuple[Any, bytes]]) -> None:
+    """Upload the records round-robin over the robots, paced if --rate is given."""
+    from sharing.services import record_create
+
+    started = time.monotonic()
+    with progress_bar(configuration.records, "uploaded", unit="rec") as progress:
+        for number in range(configuration.records):
+            if configuration.rate:
+                time.sleep(max(started + number / configuration.rate - time.monotonic(), 0))
+            robot, key = robots[number % len(robots)]
+            seq = number // len(robots) + 1
+            record_create(robot=robot, data=seal_record(robot, key, seq=seq))
+            progress.update(1)
+
+
+def seal_record(
+    robot: Any, key: bytes, *, seq: int, plaintext_bytes: int = PLAINTEXT_BYTES
+) -> bytes:
+    """Fig. 4's JSON record padded to plaintext_bytes, sealed as the robot's agent seals it."""
+    now = datetime.now(tz=UTC).isoformat().replace("+00:00", "Z")
+    header = {
+        "owner": robot.owner.username,
+        "robot": str(robot.id),
+        "topic": "/robot/odom",
+        "type": "nav_msgs/Odometry",
+        "seq": seq,
+        "time": now,
+    }
+    record = {"K": {"seq": seq, "pad": ""}, "Owner": robot.owner.username, "Time": now}
+    record.update(Type=header["type"], Topic=header["topic"])
+    filler = max(plaintext_bytes - len(json.dumps(record).encode()), 0)
+    record["K"]["pad"] = secrets.token_hex(filler // 2 + 1)[:filler]
+    return envelope.seal(key, header, json.dumps(record).encode())
+
+
+def _await_anchoring(configuration: Configuration, stack: _Stack) -> None:
+    """Until every record is anchored or failed, or the timeout."""
+    from sharing.models import Record
+
+    deadline = time.monotonic() + configuration.timeout
+    with progress_bar(configuration.records, "anchored", unit="rec") as progress:
+        while True:
+            settled = Record.objects.exclude(status=Record.Status.PENDING).count()
+            progress.update(settled - progress.n)
+            if settled >= configuration.records:
+                return
+            stack.check_alive()
+            if time.monotonic() > deadline:
+                print(
+                    f"timed out after {configuration.timeout:.0f}s with "
+                    f"{configuration.records - settled} records pending",
+                    file=sys.stderr,
+                )
+                return
+            time.sleep(POLL_INTERVAL)
+
+
+def _statistics(configuration: Configuration) -> dict[str, Any]:
+    from sharing.models import Record
+
+    rows = list(Record.objects.values("owner_id", "created_at", "anchored_at", "tx_hash", "status"))
+    anchored = [row for row in rows if row["status"] == Record.Status.ANCHORED]
+    statuses = Counter(row["status"] for row in rows)
+    first_upload = min(row["created_at"] for row in rows)
+    last_upload = max(row["created_at"] for row in rows)
+    result: dict[str, Any] = {
+        "mode": configuration.mode,
+        "block_time_s": configuration.block_time,
+        "batch_max": configuration.batch_max,
+        "records": len(rows),
+        "owners": configuration.owners,
+        "workers": configuration.workers,
+        "anchored": len(anchored),
+        "pending": statuses.get(Record.Status.PENDING, 0),
+        "failed": statuses.get(Record.Status.FAILED, 0),
+        "upload_seconds": (last_upload - first_upload).total_seconds(),
+        "upload_rps": (len(rows) - 1) / (last_upload - first_upload).total_seconds()
+        if last_upload > first_upload
+        else None,
+    }
+    if not anchored:
+        return {**result, "throughput_rps": 0.0, "transactions": 0}
+    last_anchored = max(row["anchored_at"] for row in anchored)
+    latencies_ms = [
+        (row["anchored_at"] - row["created_at"]).total_seconds() * 1000 for row in anchored
+    ]
+    latency = summarize(latencies_ms)
+    per_transaction = Counter(row["tx_hash"] for row in anchored)
+    return {
+        **result,
+        "elapsed_seconds": (last_anchored - first_upload).total_seconds(),
+        "throughput_rps": len(anchored) / (last_anchored - first_upload).total_seconds(),
+        "latency_p50_s": latency["median_ms"] / 1000,
+        "latency_p95_s": latency["p95_ms"] / 1000,
+        "latency_mean_s": latency["mean_ms"] / 1000,
+        "latency_max_s": latency["max_ms"] / 1000,
+        "transactions": len(per_transaction),
+        "records_per_transaction_mean": len(anchored) / len(per_transaction),
+        "records_per_transaction_max": max(per_transaction.values()),
+        "per_owner": _per_owner(anchored, first_upload),
+    }
+
+
+def _per_owner(anchored: list[dict[str, Any]], start: datetime) -> list[dict[str, Any]]:
+    """When each owner's records were anchored, in seconds after the first upload."""
+    owners = sorted({row["owner_id"] for row in anchored})
+    summary = []
+    for owner_id in owners:
+        own = [row for row in anchored if row["owner_id"] == owner_id]
+        times = [(row["anchored_at"] - start).total_seconds() for row in own]
+        summary.append(
+            {
+                "records": len(own),
+                "transactions": len({row["tx_hash"] for row in own}),
+                "first_anchored_s": min(times),
+                "last_anchored_s": max(times),
+            }
+        )
+    return summary
+
+
+# --- reporting ---------------------------------------------------------------------------------
+
+
+def _add_ratios(rows: list[dict[str, Any]]) -> None:
+    """Each row against batch size 1 of the same block mode, measured in this run."""
+    baselines = {row["mode"]: row for row in rows if row["batch_max"] == 1}
+    for row in rows:
+        baseline = baselines.get(row["mode"])
+        for name, key in (
+            ("throughput_ratio_vs_batch1", "throughput_rps"),
+            ("latency_p50_ratio_vs_batch1", "latency_p50_s"),
+            ("latency_p95_ratio_vs_batch1", "latency_p95_s"),
+        ):
+            ours, theirs = row.get(key), baseline.get(key) if baseline else None
+            row[name] = ours / theirs if ours is not None and theirs else None
+
+
+def _anvil_version() -> str:
+    from tests.anvil import anvil_binary
+
+    try:
+        done = subprocess.run(
+            [str(anvil_binary()), "--version"], capture_output=True, text=True, timeout=10
+        )
+    except (OSError, subprocess.TimeoutExpired) as exc:
+        return f"unknown ({exc})"
+    return done.stdout.strip().splitlines()[0] if done.stdout.strip() else "unknown"
+
+
+def _ratio(value: float | None) -> str:
+    return f"{value:.2f}x" if value is not None else "-"
+
+
+def _print_table(report: dict[str, Any]) -> None:
+    machine, settings = report["machine"], report["settings"]
+    print(
+        f"pipeline benchmark, {report['date']}: {machine['cpu_model']}, "
+        f"{machine['logical_cores']} cores, {machine['memory_bytes'] / 2**30:.1f} GiB, "
+        f"{machine['python']}, {report['anvil']}"
+    )
+    print(
+        f"  {settings['records']} records, {settings['owners']} owners, "
+        f"{settings['workers']} workers, ANCHOR_MAX_WAIT {settings['anchor_max_wait_s']:g}s; "
+        f"load average at start {report['load_average_at_start']}"
+    )
+    for note in report["notes"]:
+        print(f"  note: {note}")
+    header = (
+        f"{'mode':<15} {'batch':>5} {'anchored':>8} {'txs':>5} {'rec/tx':>6} {'upl/s':>6} "
+        f"{'rec/s':>7} {'x b1':>7} {'p50 s':>7} {'p95 s':>7} {'p50 x b1':>8} {'p95 x b1':>8}"
+    )
+    print(header)
+    print("-" * len(header))
+    for row in report["results"]:
+        if not row["anchored"]:
+            print(f"{row['mode']:<15} {row['batch_max']:>5} {0:>8}  nothing anchored")
+            continue
+        print(
+            f"{row['mode']:<15} {row['batch_max']:>5} {row['anchored']:>5}/{row['records']:<3}"
+            f"{row['transactions']:>5} {row['records_per_transaction_mean']:>6.1f} "
+            f"{row['upload_rps'] or 0:>6.1f} {row['throughput_rps']:>7.1f} "
+            f"{_ratio(row['throughput_ratio_vs_batch1']):>7} {row['latency_p50_s']:>7.2f} "
+            f"{row['latency_p95_s']:>7.2f} {_ratio(row['latency_p50_ratio_vs_batch1']):>8} "
+            f"{_ratio(row['latency_p95_ratio_vs_batch1']):>8}"
+        )
+
+
+CSV_FIELDS = (
+    "mode",
+    "block_time_s",
+    "batch_max",
+    "records",
+    "owners",
+    "workers",
+    "anchored",
+    "pending",
+    "failed",
+    "transactions",
+    "records_per_transaction_mean",
+    "records_per_transaction_max",
+    "upload_seconds",
+    "upload_rps",
+    "elapsed_seconds",
+    "throughput_rps",
+    "throughput_ratio_vs_batch1",
+    "latency_p50_s",
+    "latency_p95_s",
+    "latency_mean_s",
+    "latency_max_s",
+    "latency_p50_ratio_vs_batch1",
+    "latency_p95_ratio_vs_batch1",
+)
+
+
+def _write_csv(rows: list[dict[str, Any]], path: Path) -> None:
+    with path.open("w", newline="") as handle:
+        writer = csv.writer(handle)
+        writer.writerow(CSV_FIELDS)
+        for row in rows:
+            writer.writerow(
+                [
+                    f"{value:.6f}" if isinstance(value, float) else value
+                    for value in (row.get(field) for field in CSV_FIELDS)
+                ]
+            )
+
+
+def _plot(report: dict[str, Any], path: Path) -> None:
+    rows = [row for row in report["results"] if row["anchored"]]
+    figure, (left, right) = plt.subplots(1, 2, figsize=(12, 5))
+    colours = {"automine": "tab:blue"}
+    for mode in dict.fromkeys(row["mode"] for row in rows):
+        measured = [row for row in rows if row["mode"] == mode]
+        batches = [row["batch_max"] for row in measured]
+        colour = colours.get(mode, "tab:red")
+        throughput = [row["throughput_rps"] for row in measured]
+        left.plot(batches, throughput, "o-", color=colour, label=f"{mode}: anchored")
+        left.plot(
+            batches,
+            [row["upload_rps"] for row in measured],
+            "x:",
+            color=colour,
+            alpha=0.6,
+            label=f"{mode}: upload rate (ceiling)",
+        )
+        for row, value in zip(measured, throughput, strict=True):
+            ratio = row["throughput_ratio_vs_batch1"]
+            left.annotate(
+                f"{value:.1f}/s" + (f" ({ratio:.1f}x)" if ratio and row["batch_max"] != 1 else ""),
+                (row["batch_max"], value),
+                textcoords="offset points",
+                xytext=(4, 6),
+                fontsize=8,
+                color=colour,
+            )
+        right.plot(
+            batches,
+            [row["latency_p50_s"] for row in measured],
+            "o-",
+            color=colour,
+            label=f"{mode} p50",
+        )
+        right.plot(
+            batches,
+            [row["latency_p95_s"] for row in measured],
+            "s--",
+            color=colour,
+            label=f"{mode} p95",
+        )
+    for axis in (left, right):
+        axis.set_xscale("log")
+        axis.set_xticks(list(BATCH_SIZES), [str(size) for size in BATCH_SIZES])
+        axis.set_xlim(BATCH_SIZES[0] / 1.5, BATCH_SIZES[-1] * 2.5)
+        axis.set_xlabel("ANCHOR_BATCH_MAX (records per dataUploadBatch)")
+        axis.grid(True, which="both", alpha=0.3)
+        axis.legend(fontsize=8)
+    left.set_yscale("log")
+    left.set_ylabel("anchored records per second (log)")
+    left.set_title("throughput")
+    right.set_yscale("log")
+    right.set_ylabel("upload-to-anchored latency, s (log)")
+    right.set_title("latency p50 / p95")
+    settings, machine = report["settings"], report["machine"]
+    figure.suptitle(
+        f"anchoring pipeline: {settings['records']} records, {settings['owners']} owners, "
+        f"{settings['workers']} workers, ANCHOR_MAX_WAIT {settings['anchor_max_wait_s']:g}s; "
+        f"{machine['cpu_model']}, {machine['logical_cores']} cores, {report['date']}",
+        fontsize=9,
+    )
+    figure.tight_layout()
+    figure.savefig(path, dpi=120)
+    plt.close(figure)
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))

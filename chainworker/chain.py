@@ -1,0 +1,797 @@
+"""The one web3 client for the AuthROS contract.
+
+`AuthROSChain` connects to a node by URL (``http(s)://`` for a real node, ``eth-tester://NAME``
+for the in-process EVM used by fast tests), deploys or loads the contract, and wraps each
+contract function as a typed method. Transactions are signed locally by the sending account;
+nonces come from `RedisNonceManager`, so any number of processes may send. This module does not
+import Django: `chainworker.services.chain_client()` builds the client from settings.
+"""
+
+from __future__ import annotations
+
+import ast
+import json
+import logging
+import re
+import threading
+import time
+import uuid
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from datetime import UTC, datetime
+from functools import cached_property
+from pathlib import Path
+from typing import Any
+
+import redis
+import requests
+from eth_abi import decode as abi_decode
+from eth_account.signers.local import LocalAccount
+from eth_utils import ValidationError as EthValidationError
+from eth_utils import event_abi_to_log_topic, function_abi_to_4byte_selector, keccak
+from hexbytes import HexBytes
+from web3 import Web3
+from web3.exceptions import (
+    ContractLogicError,
+    ContractPanicError,
+    ProviderConnectionError,
+    TimeExhausted,
+    TransactionNotFound,
+    Web3RPCError,
+)
+from web3.middleware import ExtraDataToPOAMiddleware
+from web3.types import TxReceipt
+
+from chainworker.nonces import NonceLockTimeout, NonceStoreUnavailable, RedisNonceManager
+
+try:
+    from eth_tester.exceptions import TransactionFailed as _EthTesterReverted
+except ImportError:  # eth-tester is only needed for eth-tester:// URLs
+    _EthTesterReverted = ContractLogicError
+# What a refused call raises: web3's errors for real nodes, eth-tester's for in-process.
+_REVERTS: tuple[type[Exception], ...] = (ContractLogicError, _EthTesterReverted)
+
+logger = logging.getLogger(__name__)
+
+ARTIFACT_PATH = Path(__file__).resolve().parent.parent / "contracts" / "build" / "AuthROS.json"
+IN_PROCESS_SCHEME = "eth-tester://"
+ZERO_ADDRESS = "0x" + "00" * 20
+ZERO_BYTES32 = b"\x00" * 32
+# Gas estimates are taken against the pending state; a margin absorbs small state changes.
+GAS_MARGIN = 1.2
+_INSUFFICIENT_FUNDS = re.compile(
+    r"insufficient funds|cannot afford|not have enough balance", re.IGNORECASE
+)
+_NONCE_ERROR = re.compile(
+    r"nonce too low|nonce too high|invalid (transaction )?nonce|already known|"
+    r"replacement transaction underpriced|known transaction",
+    re.IGNORECASE,
+)
+
+
+# --- errors ------------------------------------------------------------------------------
+
+
+class ChainError(Exception):
+    """Base of everything this client raises."""
+
+
+class ChainUnavailable(ChainError):
+    """The node (or the nonce store) cannot be reached; retry later."""
+
+
+class ContractNotDeployed(ChainError):
+    """No AuthROS contract is known for this chain (run `manage.py chain_deploy`)."""
+
+
+class TransactionReverted(ChainError):
+    """The contract refused the call; `error_name` is its custom error (e.g. NotRegistered)."""
+
+    def __init__(
+        self,
+        error_name: str,
+        error_args: dict[str, Any] | None = None,
+        *,
+        tx_hash: str | None = None,
+        function: str | None = None,
+    ) -> None:
+        self.error_name = error_name
+        self.error_args = error_args or {}
+        self.tx_hash = tx_hash
+        self.function = function
+        args = ", ".join(f"{k}={_display(v)}" for k, v in self.error_args.items())
+        where = f" in {function}" if function else ""
+        super().__init__(f"contract refused{where}: {error_name}({args})")
+
+
+class TransactionTimeout(ChainError):
+    """The transaction was sent but no receipt (or not enough confirmations) came in time."""
+
+    def __init__(self, tx_hash: str, timeout: float) -> None:
+        self.tx_hash = tx_hash
+        super().__init__(f"no receipt for {tx_hash} within {timeout:.0f}s")
+
+
+class NonceError(ChainError):
+    """The node kept refusing our nonce even after resyncing from it."""
+
+
+class InsufficientFunds(ChainError):
+    """The sender cannot pay for gas (fund the EOA from the operator)."""
+
+
+def _revert_data_from_eth_tester(exc: Exception) -> bytes | None:
+    """eth-tester reports a custom error as the text "execution reverted: b'...'"."""
+    match = re.fullmatch(r"execution reverted: (b(['\"]).*\2)", str(exc), re.DOTALL)
+    if match is None:
+        return None
+    try:
+        value = ast.literal_eval(match.group(1))
+    except (ValueError, SyntaxError):
+        return None
+    return value if isinstance(value, bytes) else None
+
+
+def _display(value: Any) -> str:
+    if isinstance(value, bytes | bytearray):
+        return "0x" + bytes(value).hex()
+    return str(value)
+
+
+# --- value conversions ---------------------------------------------------------------------
+
+
+def record_id_to_bytes32(record_id: uuid.UUID | str) -> bytes:
+    """A record id on chain: the 16 UUID bytes, left-aligned, zero-padded to 32."""
+    value = record_id if isinstance(record_id, uuid.UUID) else uuid.UUID(str(record_id))
+    return value.bytes + b"\x00" * 16
+
+
+def bytes32_to_record_id(value: bytes) -> uuid.UUID:
+    return uuid.UUID(bytes=bytes(value[:16]))
+
+
+def data_type_to_bytes32(data_type: str) -> bytes:
+    """A ROS type on chain: UTF-8 left-aligned if it fits in 32 bytes, else its keccak hash."""
+    raw = data_type.encode("utf-8")
+    if not raw or b"\x00" in raw:
+        raise ValueError("data type must be a non-empty string without NUL characters")
+    if len(raw) <= 32:
+        return raw.ljust(32, b"\x00")
+    return keccak(raw)
+
+
+def bytes32_to_data_type(value: bytes) -> str:
+    """Inverse of `data_type_to_bytes32` where possible; a hashed type is shown as hex."""
+    stripped = bytes(value).rstrip(b"\x00")
+    try:
+        text = stripped.decode("utf-8")
+    except UnicodeDecodeError:
+        return "0x" + bytes(value).hex()
+    return text if text.isprintable() and b"\x00" not in stripped else "0x" + bytes(value).hex()
+
+
+def datetime_to_chain_time(moment: datetime) -> int:
+    """Times on chain are microseconds since the Unix epoch (UTC)."""
+    if moment.tzinfo is None:
+        raise ValueError("capture time must be timezone-aware")
+    delta = moment - datetime(1970, 1, 1, tzinfo=UTC)
+    return (delta.days * 86_400 + delta.seconds) * 1_000_000 + delta.microseconds
+
+
+def chain_time_to_datetime(value: int) -> datetime:
+    seconds, micros = divmod(int(value), 1_000_000)
+    return datetime.fromtimestamp(seconds, tz=UTC).replace(microsecond=micros)
+
+
+# --- results -------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class ChainEvent:
+    name: str
+    args: dict[str, Any]
+    block_number: int
+    tx_hash: str
+    log_index: int
+
+
+@dataclass(frozen=True)
+class TxResult:
+    tx_hash: str
+    block_number: int
+    gas_used: int
+    events: list[ChainEvent] = field(default_factory=list)
+
+
+@dataclass(frozen=True)
+class OnChainRecord:
+    record_id: uuid.UUID
+    owner: str
+    digest: bytes
+    time: datetime
+    data_type: str
+
+
+@dataclass(frozen=True)
+class AnchorItem:
+    """One record to anchor: what `dataUpload` and `dataUploadBatch` take per record."""
+
+    record_id: uuid.UUID
+    digest: bytes
+    time: datetime
+    data_type: str
+
+    def as_args(self) -> tuple[bytes, bytes, int, bytes]:
+        if len(self.digest) != 32:
+            raise ValueError("digest must be 32 bytes (SM3)")
+        return (
+            record_id_to_bytes32(self.record_id),
+            bytes(self.digest),
+            datetime_to_chain_time(self.time),
+            data_type_to_bytes32(self.data_type),
+        )
+
+
+@dataclass(frozen=True)
+class ContractArtifact:
+    abi: list[dict[str, Any]]
+    bytecode: str
+    compiler_version: str
+    source_keccak: str
+
+    @classmethod
+    def load(cls, path: Path = ARTIFACT_PATH) -> ContractArtifact:
+        data = json.loads(Path(path).read_text())
+        return cls(
+            abi=data["abi"],
+            bytecode=data["bytecode"],
+            compiler_version=data["compiler"]["version"],
+            source_keccak=data["source"]["keccak256"],
+        )
+
+    @cached_property
+    def errors_by_selector(self) -> dict[bytes, dict[str, Any]]:
+        return {
+            function_abi_to_4byte_selector(entry): entry
+            for entry in self.abi
+            if entry.get("type") == "error"
+        }
+
+    def decode_error(self, data: str | bytes | None) -> tuple[str, dict[str, Any]]:
+        """Name and arguments of a revert, from its raw return data."""
+        raw = HexBytes(data) if data else HexBytes(b"")
+        entry = self.errors_by_selector.get(bytes(raw[:4]))
+        if entry is None:
+            return ("UnknownRevert", {"data": bytes(raw)}) if raw else ("Reverted", {})
+        types = [arg["type"] for arg in entry["inputs"]]
+        values = abi_decode(types, bytes(raw[4:])) if types else ()
+        args = {
+            arg["name"]: Web3.to_checksum_address(v) if arg["type"] == "address" else v
+            for arg, v in zip(entry["inputs"], values, strict=True)
+        }
+        return entry["name"], args
+
+
+# --- connections ---------------------------------------------------------------------------
+
+_in_process_chains: dict[str, Web3] = {}
+_in_process_lock = threading.Lock()
+
+
+def connect(url: str, *, timeout: float = 10.0) -> Web3:
+    """A Web3 connection for `url`; in-process chains are shared per URL within a process."""
+    if url.startswith(IN_PROCESS_SCHEME):
+        with _in_process_lock:
+            if url not in _in_process_chains:
+                from eth_tester import EthereumTester, PyEVMBackend
+                from web3 import EthereumTesterProvider
+
+                tester = EthereumTester(PyEVMBackend())
+                _in_process_chains[url] = Web3(EthereumTesterProvider(tester))
+            return _in_process_chains[url]
+    if url.startswith(("http://", "https://")):
+        w3 = Web3(Web3.HTTPProvider(url, request_kwargs={"timeout": timeout}))
+        # Proof-of-authority networks (geth clique) carry signer data in extraData.
+        w3.middleware_onion.inject(ExtraDataToPOAMiddleware, layer=0)
+        return w3
+    raise ValueError(f"unsupported chain URL {url!r}: use http(s)://host:port or eth-tester://name")
+
+
+def forget_in_process_chain(url: str) -> None:
+    """Drop an in-process chain (tests call this to free memory)."""
+    with _in_process_lock:
+        _in_process_chains.pop(url, None)
+
+
+@contextmanager
+def _translated_errors(function: str | None = None) -> Iterator[None]:
+    """Turn transport failures into ChainUnavailable, for every call into web3."""
+    try:
+        yield
+    except (requests.ConnectionError, requests.Timeout, ProviderConnectionError) as exc:
+        raise ChainUnavailable(f"chain node unreachable: {exc}") from exc
+    except (NonceStoreUnavailable, NonceLockTimeout) as exc:
+        raise ChainUnavailable(str(exc)) from exc
+
+
+# --- the client ----------------------------------------------------------------------------
+
+
+class AuthROSChain:
+    """Typed access to one AuthROS contract on one chain."""
+
+    def __init__(
+        self,
+        url: str,
+        *,
+        redis_client: redis.Redis,
+        contract_address: str | None = None,
+        artifact: ContractArtifact | None = None,
+        receipt_timeout: float = 120.0,
+        rpc_timeout: float = 10.0,
+        confirmations: int = 0,
+        poll_interval: float = 0.1,
+        redis_prefix: str = "authros",
+        nonce_lock_timeout: float = 15.0,
+    ) -> None:
+        self.url = url
+        self.w3 = connect(url, timeout=rpc_timeout)
+        self.artifact = artifact or ContractArtifact.load()
+        self.receipt_timeout = receipt_timeout
+        self.confirmations = confirmations
+        self.poll_interval = poll_interval
+        self._redis = redis_client
+        self._redis_prefix = redis_prefix
+        self._nonce_lock_timeout = nonce_lock_timeout
+        self._address: str | None = None
+        self._contract: Any = None
+        if contract_address:
+            self.use_contract(contract_address)
+
+    # identity -------------------------------------------------------------------------
+
+    @cached_property
+    def chain_id(self) -> int:
+        with _translated_errors():
+            return int(self.w3.eth.chain_id)
+
+    @cached_property
+    def genesis_hash(self) -> str:
+        with _translated_errors():
+            return "0x" + bytes(self.w3.eth.get_block(0)["hash"]).hex()
+
+    @cached_property
+    def client_version(self) -> str:
+        with _translated_errors():
+            return str(self.w3.client_version)
+
+    @property
+    def is_in_process(self) -> bool:
+        return self.url.startswith(IN_PROCESS_SCHEME)
+
+    @cached_property
+    def chain_key(self) -> str:
+        """Identifies this chain across processes (in-process chains are private to one)."""
+        if self.is_in_process:
+            return f"in-process:{self.url}:{id(self.w3)}"
+        return f"{self.chain_id}:{self.genesis_hash[:18]}"
+
+    @cached_property
+    def nonces(self) -> RedisNonceManager:
+        return RedisNonceManager(
+            self._redis,
+            namespace=self.chain_key,
+            prefix=self._redis_prefix,
+            lock_timeout=self._nonce_lock_timeout,
+        )
+
+    def latest_block(self) -> int:
+        with _translated_errors():
+            return int(self.w3.eth.block_number)
+
+    def balance(self, address: str) -> int:
+        with _translated_errors():
+            return int(self.w3.eth.get_balance(Web3.to_checksum_address(address)))
+
+    def is_connected(self) -> bool:
+        try:
+            self.latest_block()
+        except ChainUnavailable:
+            return False
+        return True
+
+    # contract -------------------------------------------------------------------------
+
+    @property
+    def address(self) -> str:
+        if self._address is None:
+            raise ContractNotDeployed("no AuthROS contract address is set for this chain")
+        return self._address
+
+    @property
+    def contract(self) -> Any:
+        if self._contract is None:
+            raise ContractNotDeployed("no AuthROS contract address is set for this chain")
+        return self._contract
+
+    def use_contract(self, address: str) -> None:
+        self._address = Web3.to_checksum_address(address)
+        self._contract = self.w3.eth.contract(address=self._address, abi=self.artifact.abi)
+
+    def has_code(self, address: str) -> bool:
+        with _translated_errors():
+            return len(self.w3.eth.get_code(Web3.to_checksum_address(address))) > 0
+
+    def deploy(self, deployer: LocalAccount) -> TxResult:
+        """Deploy a new AuthROS contract (admin = deployer) and start using it."""
+        factory = self.w3.eth.contract(abi=self.artifact.abi, bytecode=self.artifact.bytecode)
+        tx_hash = self._send(deployer, factory.constructor(), label="deploy")
+        receipt = self.wait_for_receipt(tx_hash)
+        self.use_contract(receipt["contractAddress"])
+        return self._result(receipt)
+
+    def admin(self) -> str:
+        return self._call("admin")
+
+    # writes ---------------------------------------------------------------------------
+
+    def enroll(self, admin: LocalAccount, eoa: str, *, wait: bool = True) -> TxResult | str:
+        return self._transact(admin, "enroll", Web3.to_checksum_address(eoa), wait=wait)
+
+    def register(
+        self, owner: LocalAccount, commitment: bytes, *, wait: bool = True
+    ) -> TxResult | str:
+        return self._transact(owner, "register", _bytes32(commitment), wait=wait)
+
+    def rotate_key(
+        self, owner: LocalAccount, commitment: bytes, *, wait: bool = True
+    ) -> TxResult | str:
+        return self._transact(owner, "rotateKey", _bytes32(commitment), wait=wait)
+
+    def data_upload(
+        self, owner: LocalAccount, item: AnchorItem, *, wait: bool = True
+    ) -> TxResult | str:
+        return self._transact(owner, "dataUpload", *item.as_args(), wait=wait)
+
+    def data_upload_batch(
+        self, owner: LocalAccount, items: Sequence[AnchorItem], *, wait: bool = True
+    ) -> TxResult | str:
+        if not items:
+            raise ValueError("a batch needs at least one record")
+        columns = list(zip(*(item.as_args() for item in items), strict=True))
+        return self._transact(owner, "dataUploadBatch", *map(list, columns), wait=wait)
+
+    def authority_grant(
+        self, owner: LocalAccount, grantee: str, *, wait: bool = True
+    ) -> TxResult | str:
+        return self._transact(owner, "authorityGrant", Web3.to_checksum_address(grantee), wait=wait)
+
+    def authority_revoke(
+        self, owner: LocalAccount, grantee: str, *, wait: bool = True
+    ) -> TxResult | str:
+        return self._transact(
+            owner, "authorityRevoke", Web3.to_checksum_address(grantee), wait=wait
+        )
+
+    def transfer(
+        self, sender: LocalAccount, to: str, value_wei: int, *, wait: bool = True
+    ) -> TxResult | str:
+        """Plain value transfer, e.g. the operator funding a new custodial EOA."""
+        tx_hash = self._send(
+            sender, None, to=Web3.to_checksum_address(to), value=value_wei, label="transfer"
+        )
+        return self._result(self.wait_for_receipt(tx_hash)) if wait else tx_hash
+
+    # reads ----------------------------------------------------------------------------
+
+    def data_query(self, record_id: uuid.UUID | str) -> OnChainRecord | None:
+        """The anchored record, or None if nothing is anchored under this id yet."""
+        owner, digest, when, data_type = self._call("dataQuery", record_id_to_bytes32(record_id))
+        if int(owner, 16) == 0:
+            return None
+        return OnChainRecord(
+            record_id=uuid.UUID(str(record_id)),
+            owner=owner,
+            digest=bytes(digest),
+            time=chain_time_to_datetime(when),
+            data_type=bytes32_to_data_type(data_type),
+        )
+
+    def data_check(self, record_id: uuid.UUID | str, digest: bytes) -> bool:
+        return bool(self._call("dataCheck", record_id_to_bytes32(record_id), _bytes32(digest)))
+
+    def has_access(self, owner: str, viewer: str) -> bool:
+        return bool(
+            self._call(
+                "hasAccess", Web3.to_checksum_address(owner), Web3.to_checksum_address(viewer)
+            )
+        )
+
+    def is_enrolled(self, eoa: str) -> bool:
+        return bool(self._call("isEnrolled", Web3.to_checksum_address(eoa)))
+
+    def is_registered(self, eoa: str) -> bool:
+        return bool(self._call("isRegistered", Web3.to_checksum_address(eoa)))
+
+    def commitment_of(self, eoa: str) -> bytes:
+        return bytes(self._call("commitmentOf", Web3.to_checksum_address(eoa)))
+
+    def record_count(self) -> int:
+        return int(self._call("recordCount"))
+
+    # events ---------------------------------------------------------------------------
+
+    def events(
+        self,
+        from_block: int = 0,
+        to_block: int | str = "latest",
+        *,
+        names: Sequence[str] | None = None,
+    ) -> list[ChainEvent]:
+        """Decoded contract events in a block range, oldest first."""
+        with _translated_errors():
+            logs = self.w3.eth.get_logs(
+                {"address": self.address, "fromBlock": from_block, "toBlock": to_block}
+            )
+        decoded = [event for log in logs if (event := self._decode_log(log)) is not None]
+        return [e for e in decoded if names is None or e.name in names]
+
+    def upload_event(self, record_id: uuid.UUID | str) -> ChainEvent | None:
+        """The DataUploaded event of a record (its transaction and block), if anchored."""
+        topic = "0x" + bytes(self._topic_by_event["DataUploaded"]).hex()
+        with _translated_errors():
+            logs = self.w3.eth.get_logs(
+                {
+                    "address": self.address,
+                    "fromBlock": 0,
+                    "toBlock": "latest",
+                    "topics": [topic, "0x" + record_id_to_bytes32(record_id).hex()],
+                }
+            )
+        events = [event for log in logs if (event := self._decode_log(log)) is not None]
+        return events[0] if events else None
+
+    def receipt_events(self, receipt: TxReceipt) -> list[ChainEvent]:
+        if self._address is None:
+            return []
+        return [
+            event
+            for log in receipt["logs"]
+            if log["address"].lower() == self.address.lower()
+            and (event := self._decode_log(log)) is not None
+        ]
+
+    @cached_property
+    def _topic_by_event(self) -> dict[str, bytes]:
+        return {
+            entry["name"]: bytes(event_abi_to_log_topic(entry))
+            for entry in self.artifact.abi
+            if entry.get("type") == "event"
+        }
+
+    @cached_property
+    def _events_by_topic(self) -> dict[bytes, str]:
+        return {topic: name for name, topic in self._topic_by_event.items()}
+
+    def _decode_log(self, log: Any) -> ChainEvent | None:
+        if not log["topics"]:
+            return None
+        name = self._events_by_topic.get(bytes(log["topics"][0]))
+        if name is None:
+            return None
+        event = getattr(self.contract.events, name)().process_log(log)
+        return ChainEvent(
+            name=name,
+            args=dict(event["args"]),
+            block_number=int(log["blockNumber"]),
+            tx_hash="0x" + bytes(log["transactionHash"]).hex(),
+            log_index=int(log["logIndex"]),
+        )
+
+    # dev chains -----------------------------------------------------------------------
+
+    def dev_faucet(self, address: str, value_wei: int) -> bool:
+        """Give `address` at least `value_wei` on a development chain; False on a real one."""
+        address = Web3.to_checksum_address(address)
+        with _translated_errors():
+            if self.is_in_process:
+                source = self.w3.eth.accounts[0]
+                tx_hash = self.w3.eth.send_transaction(
+                    {"from": source, "to": address, "value": value_wei}
+                )
+                self.w3.eth.wait_for_transaction_receipt(tx_hash)
+                return True
+            if self.client_version.lower().startswith("anvil"):
+                target = self.balance(address) + value_wei
+                self.w3.provider.make_request("anvil_setBalance", [address, hex(target)])
+                return True
+        return False
+
+    # internals ------------------------------------------------------------------------
+
+    def _call(self, function: str, *args: Any) -> Any:
+        fn = getattr(self.contract.functions, function)(*args)
+        with _translated_errors(function):
+            try:
+                return fn.call()
+            except _REVERTS as exc:
+                raise self._reverted(exc, function) from exc
+
+    def _transact(
+        self, sender: LocalAccount, function: str, *args: Any, wait: bool
+    ) -> TxResult | str:
+        fn = getattr(self.contract.functions, function)(*args)
+        tx_hash = self._send(sender, fn, label=function)
+        if not wait:
+            return tx_hash
+        return self._result(self.wait_for_receipt(tx_hash, function=function))
+
+    def _reverted(
+        self, exc: Exception, function: str | None, tx_hash: str | None = None
+    ) -> TransactionReverted:
+        if not isinstance(exc, ContractLogicError):
+            name, args = self.artifact.decode_error(_revert_data_from_eth_tester(exc))
+            return TransactionReverted(name, args, tx_hash=tx_hash, function=function)
+        if isinstance(exc, ContractPanicError):
+            return TransactionReverted(
+                "Panic", {"detail": str(exc.message)}, tx_hash=tx_hash, function=function
+            )
+        data = exc.data if isinstance(exc.data, str) else None
+        name, args = self.artifact.decode_error(data)
+        if name == "Reverted" and exc.message:
+            args = {"reason": exc.message}
+        return TransactionReverted(name, args, tx_hash=tx_hash, function=function)
+
+    def _send(
+        self,
+        sender: LocalAccount,
+        fn: Any,
+        *,
+        label: str,
+        to: str | None = None,
+        value: int = 0,
+        attempts: int = 3,
+    ) -> str:
+        """Sign and submit one transaction under the sender's nonce lock; return its hash.
+
+        Gas is estimated before the lock is taken, so the lock is held only to choose the
+        nonce, sign and hand the transaction to the node.
+        """
+        with _translated_errors(label):
+            tx = self._build(sender, fn, to=to, value=value, label=label)
+        with (
+            _translated_errors(label),
+            self.nonces.reserve(sender.address, self._pending_nonce) as slot,
+        ):
+            for attempt in range(1, attempts + 1):
+                signed = sender.sign_transaction({**tx, "nonce": slot.nonce})
+                try:
+                    tx_hash = self.w3.eth.send_raw_transaction(signed.raw_transaction)
+                except (Web3RPCError, EthValidationError, ValueError) as exc:
+                    message = str(exc)
+                    if _INSUFFICIENT_FUNDS.search(message):
+                        raise InsufficientFunds(f"{sender.address} cannot pay for {label}") from exc
+                    if not _NONCE_ERROR.search(message):
+                        raise
+                    logger.warning(
+                        "nonce %s refused for %s (%s); resyncing from the node",
+                        slot.nonce,
+                        sender.address,
+                        message,
+                    )
+                    if attempt == attempts:
+                        raise NonceError(
+                            f"node kept refusing nonces for {sender.address}: {message}"
+                        ) from exc
+                    slot.resync()
+                    continue
+                slot.commit()
+                return "0x" + bytes(tx_hash).hex()
+        raise AssertionError("unreachable")
+
+    def _pending_nonce(self, address: str) -> int:
+        return int(self.w3.eth.get_transaction_count(address, "pending"))
+
+    def _build(
+        self, sender: LocalAccount, fn: Any, *, to: str | None, value: int, label: str
+    ) -> dict[str, Any]:
+        """The transaction without its nonce: gas estimated, fees filled."""
+        params: dict[str, Any] = {"from": sender.address, "chainId": self.chain_id}
+        if value:
+            params["value"] = value
+        try:
+            if fn is None:
+                params["to"] = to
+                params["gas"] = 21_000
+                tx = self._fill_fees(params)
+            else:
+                tx = fn.build_transaction(params)
+                tx["gas"] = int(tx["gas"] * GAS_MARGIN)
+        except _REVERTS as exc:
+            raise self._reverted(exc, label) from exc
+        except (Web3RPCError, EthValidationError, ValueError) as exc:
+            if _INSUFFICIENT_FUNDS.search(str(exc)):
+                raise InsufficientFunds(f"{sender.address} cannot pay for {label}") from exc
+            raise
+        return dict(tx)
+
+    def _fill_fees(self, params: dict[str, Any]) -> dict[str, Any]:
+        block = self.w3.eth.get_block("latest")
+        base_fee = block.get("baseFeePerGas")
+        if base_fee is None:
+            params["gasPrice"] = self.w3.eth.gas_price
+            return params
+        tip = self.w3.eth.max_priority_fee
+        params["maxPriorityFeePerGas"] = tip
+        params["maxFeePerGas"] = 2 * int(base_fee) + int(tip)
+        return params
+
+    def wait_for_receipt(
+        self, tx_hash: str, *, timeout: float | None = None, function: str | None = None
+    ) -> TxReceipt:
+        """Wait for the receipt and the configured confirmations; raise if it reverted."""
+        timeout = self.receipt_timeout if timeout is None else timeout
+        deadline = time.monotonic() + timeout
+        with _translated_errors(function):
+            try:
+                receipt = self.w3.eth.wait_for_transaction_receipt(
+                    HexBytes(tx_hash), timeout=timeout, poll_latency=self.poll_interval
+                )
+            except TimeExhausted as exc:
+                raise TransactionTimeout(tx_hash, timeout) from exc
+            if receipt["status"] != 1:
+                raise self._explain_failure(receipt, tx_hash, function)
+            self._await_confirmations(receipt, tx_hash, deadline, timeout)
+        return receipt
+
+    def _await_confirmations(
+        self, receipt: TxReceipt, tx_hash: str, deadline: float, timeout: float
+    ) -> None:
+        target = int(receipt["blockNumber"]) + self.confirmations
+        while self.confirmations and int(self.w3.eth.block_number) < target:
+            if time.monotonic() > deadline:
+                raise TransactionTimeout(tx_hash, timeout)
+            time.sleep(self.poll_interval)
+        if self.confirmations:
+            # A reorganisation may have dropped the transaction while we waited.
+            try:
+                again = self.w3.eth.get_transaction_receipt(HexBytes(tx_hash))
+            except TransactionNotFound as exc:
+                raise TransactionTimeout(tx_hash, timeout) from exc
+            if again["blockHash"] != receipt["blockHash"]:
+                raise TransactionTimeout(tx_hash, timeout)
+
+    def _explain_failure(
+        self, receipt: TxReceipt, tx_hash: str, function: str | None
+    ) -> TransactionReverted:
+        """Replay a failed transaction as a call to recover its custom error."""
+        tx = self.w3.eth.get_transaction(HexBytes(tx_hash))
+        call = {"from": tx["from"], "to": tx["to"], "data": tx["input"], "value": tx["value"]}
+        try:
+            self.w3.eth.call(call, block_identifier=int(receipt["blockNumber"]) - 1)
+        except _REVERTS as exc:
+            return self._reverted(exc, function, tx_hash)
+        except Web3RPCError:
+            pass
+        return TransactionReverted("Reverted", {}, tx_hash=tx_hash, function=function)
+
+    def _result(self, receipt: TxReceipt) -> TxResult:
+        return TxResult(
+            tx_hash="0x" + bytes(receipt["transactionHash"]).hex(),
+            block_number=int(receipt["blockNumber"]),
+            gas_used=int(receipt["gasUsed"]),
+            events=self.receipt_events(receipt),
+        )
+
+    def resync_nonce(self, address: str) -> None:
+        """Forget our nonce counter for `address` (after a timeout or a dropped transaction)."""
+        with _translated_errors():
+            self.nonces.forget(address)
+
+
+def _bytes32(value: bytes) -> bytes:
+    if not isinstance(value, bytes | bytearray) or len(value) != 32:
+        raise ValueError("expected 32 bytes")
+    return bytes(value)

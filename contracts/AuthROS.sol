@@ -1,0 +1,185 @@
+// SPDX-License-Identifier: UNLICENSED
+pragma solidity ^0.8.24;
+
+/// @title AuthROS: authority and integrity anchor for encrypted ROS data
+/// @notice Holds key commitments, record digests and owner-to-owner grants.
+/// Keys and ciphertexts never come here: only commitments and SM3 digests.
+contract AuthROS {
+    /// @dev Slot 0 packs owner (20 bytes) with time (8 bytes); owner == 0 means "no record".
+    struct Record {
+        address owner;
+        uint64 time;
+        bytes32 digest;
+        bytes32 dataType;
+    }
+
+    /// @notice Largest batch accepted by dataUploadBatch (keeps a full batch well under 30M gas).
+    uint256 public constant MAX_BATCH = 256;
+
+    /// @notice The deployer: the only account that may enroll EOAs.
+    address public immutable admin;
+
+    /// @notice Number of records anchored so far.
+    uint256 public recordCount;
+
+    /// @notice EOAs the admin has admitted to the private network.
+    mapping(address eoa => bool) public isEnrolled;
+
+    /// @notice Current key commitment of each registered EOA (zero until registered).
+    mapping(address eoa => bytes32) public commitmentOf;
+
+    mapping(bytes32 id => Record) private _records;
+    mapping(address owner => mapping(address grantee => bool)) private _granted;
+
+    event Enrolled(address indexed eoa);
+    event Registered(address indexed eoa, bytes32 commitment);
+    event KeyRotated(address indexed eoa, bytes32 oldCommitment, bytes32 newCommitment);
+    event DataUploaded(
+        bytes32 indexed id, address indexed owner, bytes32 digest, uint64 time, bytes32 dataType
+    );
+    event AuthorityGranted(address indexed owner, address indexed grantee);
+    event AuthorityRevoked(address indexed owner, address indexed grantee);
+
+    error NotAdmin(address caller);
+    error ZeroAddress();
+    error AlreadyEnrolled(address eoa);
+    error NotEnrolled(address caller);
+    error AlreadyRegistered(address caller);
+    error NotRegistered(address caller);
+    error EmptyCommitment();
+    error SameCommitment();
+    error EmptyId();
+    error EmptyDigest();
+    error RecordExists(bytes32 id);
+    error BatchLengthMismatch();
+    error EmptyBatch();
+    error BatchTooLarge(uint256 length, uint256 max);
+    error GranteeNotRegistered(address grantee);
+    error SelfGrant();
+    error AlreadyGranted(address grantee);
+    error NoGrant(address grantee);
+
+    modifier onlyRegistered() {
+        if (commitmentOf[msg.sender] == 0) revert NotRegistered(msg.sender);
+        _;
+    }
+
+    constructor() {
+        admin = msg.sender;
+    }
+
+    /// @notice Admit an EOA to the network so that it may register.
+    function enroll(address eoa) external {
+        if (msg.sender != admin) revert NotAdmin(msg.sender);
+        if (eoa == address(0)) revert ZeroAddress();
+        if (isEnrolled[eoa]) revert AlreadyEnrolled(eoa);
+        isEnrolled[eoa] = true;
+        emit Enrolled(eoa);
+    }
+
+    /// @notice Bind the caller to its SM4 key through a commitment (never the key itself).
+    function register(bytes32 commitment) external {
+        if (!isEnrolled[msg.sender]) revert NotEnrolled(msg.sender);
+        if (commitmentOf[msg.sender] != 0) revert AlreadyRegistered(msg.sender);
+        if (commitment == 0) revert EmptyCommitment();
+        commitmentOf[msg.sender] = commitment;
+        emit Registered(msg.sender, commitment);
+    }
+
+    /// @notice Replace the caller's key commitment after a key rotation.
+    function rotateKey(bytes32 commitment) external onlyRegistered {
+        bytes32 old = commitmentOf[msg.sender];
+        if (commitment == 0) revert EmptyCommitment();
+        if (commitment == old) revert SameCommitment();
+        commitmentOf[msg.sender] = commitment;
+        emit KeyRotated(msg.sender, old, commitment);
+    }
+
+    /// @notice Anchor the digest of one record; each id can be written once, by anyone.
+    function dataUpload(bytes32 id, bytes32 digest, uint64 time, bytes32 dataType)
+        external
+        onlyRegistered
+    {
+        _store(id, digest, time, dataType);
+        unchecked {
+            ++recordCount;
+        }
+    }
+
+    /// @notice Anchor several records at once: all of them, or none.
+    /// @dev Reverts with RecordExists naming the first taken id (earlier items of the same
+    /// batch included), so the caller can drop it and retry.
+    function dataUploadBatch(
+        bytes32[] calldata ids,
+        bytes32[] calldata digests,
+        uint64[] calldata times,
+        bytes32[] calldata types
+    ) external onlyRegistered {
+        uint256 n = ids.length;
+        if (digests.length != n || times.length != n || types.length != n) {
+            revert BatchLengthMismatch();
+        }
+        if (n == 0) revert EmptyBatch();
+        if (n > MAX_BATCH) revert BatchTooLarge(n, MAX_BATCH);
+        for (uint256 i; i < n; ) {
+            _store(ids[i], digests[i], times[i], types[i]);
+            unchecked {
+                ++i;
+            }
+        }
+        unchecked {
+            recordCount += n;
+        }
+    }
+
+    /// @notice Let a registered grantee read the caller's records.
+    function authorityGrant(address grantee) external onlyRegistered {
+        if (grantee == msg.sender) revert SelfGrant();
+        if (commitmentOf[grantee] == 0) revert GranteeNotRegistered(grantee);
+        if (_granted[msg.sender][grantee]) revert AlreadyGranted(grantee);
+        _granted[msg.sender][grantee] = true;
+        emit AuthorityGranted(msg.sender, grantee);
+    }
+
+    /// @notice Withdraw a grant made earlier by the caller.
+    function authorityRevoke(address grantee) external onlyRegistered {
+        if (!_granted[msg.sender][grantee]) revert NoGrant(grantee);
+        delete _granted[msg.sender][grantee];
+        emit AuthorityRevoked(msg.sender, grantee);
+    }
+
+    /// @notice The anchored record, or all zeros if the id is not anchored (yet).
+    function dataQuery(bytes32 id)
+        external
+        view
+        returns (address owner, bytes32 digest, uint64 time, bytes32 dataType)
+    {
+        Record storage r = _records[id];
+        return (r.owner, r.digest, r.time, r.dataType);
+    }
+
+    /// @notice True iff the record is anchored with exactly this digest.
+    function dataCheck(bytes32 id, bytes32 digest) external view returns (bool) {
+        Record storage r = _records[id];
+        return r.owner != address(0) && r.digest == digest;
+    }
+
+    /// @notice True iff viewer is the registered owner itself or holds a live grant from it.
+    function hasAccess(address owner, address viewer) external view returns (bool) {
+        if (owner == viewer) return commitmentOf[owner] != 0;
+        return _granted[owner][viewer];
+    }
+
+    /// @notice True iff the EOA has registered a key commitment.
+    function isRegistered(address eoa) external view returns (bool) {
+        return commitmentOf[eoa] != 0;
+    }
+
+    function _store(bytes32 id, bytes32 digest, uint64 time, bytes32 dataType) private {
+        if (id == 0) revert EmptyId();
+        if (digest == 0) revert EmptyDigest();
+        if (_records[id].owner != address(0)) revert RecordExists(id);
+        _records[id] = Record(msg.sender, time, digest, dataType);
+        emit DataUploaded(id, msg.sender, digest, time, dataType);
+    }
+}

@@ -1,0 +1,25 @@
+"""Routes of the REST API (`/api/`): v1 for agents and owners, the schema and its docs."""
+
+from django.urls import include, path, re_path
+from drf_spectacular.views import SpectacularAPIView, SpectacularSwaggerView
+
+from accounts.apis import Sm2PublicKeyApi
+from portal.api_errors import api_not_found
+from sharing.apis import GrantRevokeApi, GrantsApi, RecordContentApi, RecordDetailApi, RecordsApi
+
+v1 = [
+    path("sm2-public-key/", Sm2PublicKeyApi.as_view(), name="sm2-public-key"),
+    path("records/", RecordsApi.as_view(), name="records"),
+    path("records/<str:record_id>/", RecordDetailApi.as_view(), name="record-detail"),
+    path("records/<str:record_id>/content/", RecordContentApi.as_view(), name="record-content"),
+    path("grants/", GrantsApi.as_view(), name="grants"),
+    path("grants/<str:grantee>/", GrantRevokeApi.as_view(), name="grant-revoke"),
+]
+
+urlpatterns = [
+    path("v1/", include((v1, "api-v1"))),
+    path("schema/", SpectacularAPIView.as_view(), name="api-schema"),
+    path("docs/", SpectacularSwaggerView.as_view(url_name="api-schema"), name="api-docs"),
+    # Last: anything else under /api/ answers a JSON 404 (and is not redirected to a slash).
+    re_path(r"^.*$", api_not_found),
+]

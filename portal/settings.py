@@ -1,0 +1,286 @@
+"""Settings for the AuthROS portal: the one place that reads the environment.
+
+Every deployment knob is an environment variable (or a line in a `.env` file beside
+manage.py); docs/operations.md lists them. Secrets that are not given in the environment
+are created on first use as 0600 files under AUTHROS_VAR_DIR, never in the database.
+"""
+
+import os
+from pathlib import Path
+
+import environ
+
+from portal.secrets import load_or_create_secret
+
+BASE_DIR = Path(__file__).resolve().parent.parent
+
+env = environ.Env()
+environ.Env.read_env(BASE_DIR / ".env", overwrite=False)
+
+VAR_DIR = Path(env.str("AUTHROS_VAR_DIR", default=str(BASE_DIR / "var")))
+SECRETS_DIR = Path(env.str("AUTHROS_SECRETS_DIR", default=str(VAR_DIR / "secrets")))
+
+DEBUG = env.bool("DJANGO_DEBUG", default=False)
+SECRET_KEY = env.str("DJANGO_SECRET_KEY", default="") or (
+    load_or_create_secret(SECRETS_DIR / "django-secret-key", nbytes=32).hex()
+)
+ALLOWED_HOSTS = env.list("DJANGO_ALLOWED_HOSTS", default=["localhost", "127.0.0.1", "[::1]"])
+CSRF_TRUSTED_ORIGINS = env.list("DJANGO_CSRF_TRUSTED_ORIGINS", default=[])
+
+HTTPS = env.bool("AUTHROS_HTTPS", default=False)
+SESSION_COOKIE_SECURE = HTTPS
+CSRF_COOKIE_SECURE = HTTPS
+SECURE_SSL_REDIRECT = HTTPS
+SECURE_HSTS_SECONDS = 31536000 if HTTPS else 0
+SECURE_PROXY_SSL_HEADER = ("HTTP_X_FORWARDED_PROTO", "https") if HTTPS else None
+SESSION_COOKIE_HTTPONLY = True
+SESSION_COOKIE_SAMESITE = "Lax"
+CSRF_COOKIE_SAMESITE = "Lax"
+X_FRAME_OPTIONS = "DENY"
+SECURE_CONTENT_TYPE_NOSNIFF = True
+SECURE_REFERRER_POLICY = "same-origin"
+
+INSTALLED_APPS = [
+    "django.contrib.admin",
+    "django.contrib.auth",
+    "django.contrib.contenttypes",
+    "django.contrib.sessions",
+    "django.contrib.messages",
+    "django.contrib.staticfiles",
+    "rest_framework",
+    "drf_spectacular",
+    "axes",
+    "accounts",
+    "sharing",
+    "chainworker",
+]
+
+MIDDLEWARE = [
+    "django.middleware.security.SecurityMiddleware",
+    # Serves /static/ from gunicorn too, so pages work without DEBUG and without a web server.
+    "whitenoise.middleware.WhiteNoiseMiddleware",
+    "django.contrib.sessions.middleware.SessionMiddleware",
+    "django.middleware.common.CommonMiddleware",
+    "django.middleware.csrf.CsrfViewMiddleware",
+    "django.contrib.auth.middleware.AuthenticationMiddleware",
+    "django.contrib.messages.middleware.MessageMiddleware",
+    "django.middleware.clickjacking.XFrameOptionsMiddleware",
+    # Last, as django-axes asks: it locks out repeated failed logins.
+    "axes.middleware.AxesMiddleware",
+]
+
+AUTHENTICATION_BACKENDS = [
+    "axes.backends.AxesStandaloneBackend",
+    "django.contrib.auth.backends.ModelBackend",
+]
+
+ROOT_URLCONF = "portal.urls"
+WSGI_APPLICATION = "portal.wsgi.application"
+
+TEMPLATES = [
+    {
+        "BACKEND": "django.template.backends.django.DjangoTemplates",
+        "DIRS": [BASE_DIR / "templates"],
+        "APP_DIRS": True,
+        "OPTIONS": {
+            "context_processors": [
+                "django.template.context_processors.request",
+                "django.contrib.auth.context_processors.auth",
+                "django.contrib.messages.context_processors.messages",
+            ],
+        },
+    },
+]
+
+DATABASES = {
+    "default": env.db("DATABASE_URL", default=f"sqlite:///{VAR_DIR / 'db.sqlite3'}"),
+}
+DATABASES["default"]["CONN_MAX_AGE"] = env.int("DATABASE_CONN_MAX_AGE", default=0)
+if DATABASES["default"]["ENGINE"] == "django.db.backends.sqlite3":
+    # Several processes (web, workers) share the file: WAL, and take the write lock up front.
+    DATABASES["default"].setdefault("OPTIONS", {}).update(
+        {
+            "init_command": "PRAGMA journal_mode=WAL; PRAGMA synchronous=NORMAL;",
+            "transaction_mode": "IMMEDIATE",
+            "timeout": 30,
+        }
+    )
+# One test database per test run, so that two runs on one machine never share one; for
+# SQLite a file, not memory, so that worker processes started by the tests see the test data.
+if DATABASES["default"]["ENGINE"] == "django.db.backends.sqlite3":
+    DATABASES["default"]["TEST"] = {"NAME": str(VAR_DIR / f"test-db-{os.getpid()}.sqlite3")}
+else:
+    DATABASES["default"]["TEST"] = {"NAME": f"test_{DATABASES['default']['NAME']}_{os.getpid()}"}
+DEFAULT_AUTO_FIELD = "django.db.models.BigAutoField"
+
+REDIS_URL = env.str("REDIS_URL", default="redis://127.0.0.1:6379/0")
+# Every key the portal writes starts with this, so several portals can share one Redis.
+REDIS_KEY_PREFIX = env.str("REDIS_KEY_PREFIX", default="authros")
+CACHES = {
+    "default": {
+        "BACKEND": "django.core.cache.backends.redis.RedisCache",
+        "LOCATION": REDIS_URL,
+        "KEY_PREFIX": REDIS_KEY_PREFIX,
+    },
+}
+
+AUTH_PASSWORD_VALIDATORS = [
+    {"NAME": "django.contrib.auth.password_validation.UserAttributeSimilarityValidator"},
+    {"NAME": "django.contrib.auth.password_validation.MinimumLengthValidator"},
+    {"NAME": "django.contrib.auth.password_validation.CommonPasswordValidator"},
+    {"NAME": "django.contrib.auth.password_validation.NumericPasswordValidator"},
+]
+
+LANGUAGE_CODE = "en-us"
+TIME_ZONE = "UTC"
+USE_I18N = True
+USE_TZ = True
+
+STATIC_URL = "static/"
+# Only for `collectstatic` (e.g. to put the files behind a CDN); WhiteNoise serves the sources.
+STATIC_ROOT = env.str("STATIC_ROOT", default="") or None
+STATICFILES_DIRS = [BASE_DIR / "static"]
+# Serve straight from the source folders: no `collectstatic` step to forget.
+WHITENOISE_USE_FINDERS = True
+MEDIA_ROOT = Path(env.str("AUTHROS_MEDIA_ROOT", default=str(VAR_DIR / "media")))
+
+# --- Chain -------------------------------------------------------------------------------
+# http(s)://host:port for a node; eth-tester://NAME for an in-process EVM (tests only).
+CHAIN_RPC_URL = env.str("CHAIN_RPC_URL", default="http://127.0.0.1:8545")
+# Optional pin; otherwise the address recorded by `manage.py chain_deploy` is used.
+CHAIN_CONTRACT_ADDRESS = env.str("CHAIN_CONTRACT_ADDRESS", default="")
+# Hex private key of the operator (contract admin, funds new EOAs); else a 0600 file.
+CHAIN_OPERATOR_KEY = env.str("CHAIN_OPERATOR_KEY", default="")
+CHAIN_RECEIPT_TIMEOUT = env.float("CHAIN_RECEIPT_TIMEOUT", default=120.0)
+CHAIN_RPC_TIMEOUT = env.float("CHAIN_RPC_TIMEOUT", default=10.0)
+CHAIN_CONFIRMATIONS = env.int("CHAIN_CONFIRMATIONS", default=0)
+# Seconds a sender's nonce lock outlives a process that died holding it.
+CHAIN_NONCE_LOCK_TIMEOUT = env.float("CHAIN_NONCE_LOCK_TIMEOUT", default=15.0)
+# Wei sent to each new custodial EOA so it can pay for its own transactions.
+CHAIN_EOA_FUNDING_WEI = env.int("CHAIN_EOA_FUNDING_WEI", default=10**18)
+# On a development chain (anvil, eth-tester) the operator is topped up automatically.
+CHAIN_DEV_FAUCET = env.bool("CHAIN_DEV_FAUCET", default=True)
+
+# Portal master key (KEK, 32 hex digits = SM4 key) wrapping owner keys; else a 0600 file.
+AUTHROS_MASTER_KEY = env.str("AUTHROS_MASTER_KEY", default="")
+# The portal's SM2 private key (64 hex digits) for the key exchange; else a 0600 file.
+AUTHROS_SM2_PRIVATE_KEY = env.str("AUTHROS_SM2_PRIVATE_KEY", default="")
+
+LOGIN_URL = "login"
+LOGIN_REDIRECT_URL = "dashboard"
+LOGOUT_REDIRECT_URL = "login"
+
+# --- Login throttling (django-axes) -------------------------------------------------------
+AXES_ENABLED = env.bool("AXES_ENABLED", default=True)
+AXES_FAILURE_LIMIT = env.int("AXES_FAILURE_LIMIT", default=5)
+AXES_COOLOFF_TIME = env.float("AXES_COOLOFF_HOURS", default=0.25)
+AXES_LOCKOUT_PARAMETERS = [["username", "ip_address"]]
+AXES_RESET_ON_SUCCESS = True
+
+# --- REST API (DRF, drf-spectacular) ------------------------------------------------------
+REST_FRAMEWORK = {
+    "DEFAULT_AUTHENTICATION_CLASSES": [
+        "accounts.authentication.RobotTokenAuthentication",
+        "rest_framework.authentication.SessionAuthentication",
+    ],
+    "DEFAULT_PERMISSION_CLASSES": ["rest_framework.permissions.IsAuthenticated"],
+    "DEFAULT_PARSER_CLASSES": ["rest_framework.parsers.JSONParser"],
+    "DEFAULT_RENDERER_CLASSES": ["rest_framework.renderers.JSONRenderer"],
+    "DEFAULT_SCHEMA_CLASS": "drf_spectacular.openapi.AutoSchema",
+    "EXCEPTION_HANDLER": "portal.api_errors.exception_handler",
+    "DEFAULT_PAGINATION_CLASS": "rest_framework.pagination.LimitOffsetPagination",
+    "PAGE_SIZE": 50,
+    "DEFAULT_THROTTLE_CLASSES": [
+        "accounts.authentication.AnonRateThrottle",
+        "accounts.authentication.OwnerRateThrottle",
+    ],
+    "DEFAULT_THROTTLE_RATES": {
+        "anon": env.str("API_RATE_ANON", default="60/minute"),
+        "user": env.str("API_RATE_USER", default="6000/minute"),
+        # per robot, on uploads only
+        "upload": env.str("API_RATE_UPLOAD", default="1200/minute"),
+    },
+    # Proxies in front of the portal; 0 = rate limits per peer address, ignoring a
+    # client-supplied X-Forwarded-For. Behind one reverse proxy, 1.
+    "NUM_PROXIES": env.int("API_NUM_PROXIES", default=0),
+}
+SPECTACULAR_SETTINGS = {
+    "TITLE": "AuthROS portal API",
+    "DESCRIPTION": "For ROS agents and owners: records, grants, integrity-checked content.",
+    "VERSION": "1.0.0",
+    "SERVE_INCLUDE_SCHEMA": False,
+    "COMPONENT_SPLIT_REQUEST": True,
+    "ENUM_NAME_OVERRIDES": {
+        "RecordStatusEnum": "sharing.models.Record.Status",
+        "GrantStatusEnum": "sharing.models.Grant.Status",
+    },
+}
+# Request bodies: the envelope limit plus base64 and JSON overhead.
+DATA_UPLOAD_MAX_MEMORY_SIZE = env.int("DATA_UPLOAD_MAX_MEMORY_SIZE", default=12 * 1024 * 1024)
+
+LOGGING = {
+    "version": 1,
+    "disable_existing_loggers": False,
+    "formatters": {
+        "plain": {"format": "%(asctime)s %(levelname)s %(name)s %(process)d %(message)s"},
+    },
+    "handlers": {"console": {"class": "logging.StreamHandler", "formatter": "plain"}},
+    "root": {"handlers": ["console"], "level": env.str("LOG_LEVEL", default="INFO")},
+    "loggers": {
+        "web3": {"level": "WARNING"},
+        "urllib3": {"level": "WARNING"},
+    },
+}
+
+# --- Celery (broker and results in Redis) ------------------------------------------------
+CELERY_BROKER_URL = env.str("CELERY_BROKER_URL", default=REDIS_URL)
+CELERY_RESULT_BACKEND = env.str("CELERY_RESULT_BACKEND", default=REDIS_URL)
+CELERY_RESULT_EXPIRES = 3600
+CELERY_TASK_ACKS_LATE = True
+CELERY_TASK_REJECT_ON_WORKER_LOST = True
+CELERY_WORKER_PREFETCH_MULTIPLIER = 1
+CELERY_TASK_SERIALIZER = "json"
+CELERY_RESULT_SERIALIZER = "json"
+CELERY_ACCEPT_CONTENT = ["json"]
+# An unacknowledged message (worker killed) is delivered again after this many seconds.
+CELERY_BROKER_TRANSPORT_OPTIONS = {"visibility_timeout": env.int("CELERY_VISIBILITY_TIMEOUT", 900)}
+CELERY_BROKER_CONNECTION_RETRY_ON_STARTUP = True
+CELERY_TASK_ALWAYS_EAGER = env.bool("CELERY_TASK_ALWAYS_EAGER", default=False)
+CELERY_TASK_DEFAULT_QUEUE = env.str("CELERY_QUEUE", default="authros")
+CELERY_WORKER_HIJACK_ROOT_LOGGER = False
+CELERY_BEAT_SCHEDULE = {
+    "sweep-stale-chain-work": {
+        "task": "chainworker.tasks.sweep_stale",
+        "schedule": env.float("ANCHOR_SWEEP_INTERVAL", default=15.0),
+        # A sweep still queued when the next one is due is worthless: drop it.
+        "options": {"expires": env.float("ANCHOR_SWEEP_INTERVAL", default=15.0)},
+    },
+}
+
+# --- Anchoring and the ciphertext cache ---------------------------------------------------
+ANCHOR_BATCH_MAX = env.int("ANCHOR_BATCH_MAX", default=100)
+# Seconds a new record may wait for others of its owner to fill a batch.
+ANCHOR_MAX_WAIT = env.float("ANCHOR_MAX_WAIT", default=1.0)
+# Pending work older than this is queued again by the sweep (lost message, dead worker).
+ANCHOR_STALE_AFTER = env.float("ANCHOR_STALE_AFTER", default=60.0)
+ANCHOR_MAX_ATTEMPTS = env.int("ANCHOR_MAX_ATTEMPTS", default=20)
+# Batch transactions one owner may have in flight at once (consecutive nonces).
+ANCHOR_INFLIGHT = env.int("ANCHOR_INFLIGHT", default=4)
+# Seconds an anchoring lock outlives a worker that died holding it (renewed while alive).
+ANCHOR_LOCK_TTL = env.float("ANCHOR_LOCK_TTL", default=30.0)
+ENVELOPE_CACHE_TTL = env.int("ENVELOPE_CACHE_TTL", default=3600)
+ENVELOPE_CACHE_MAX_ITEM_BYTES = env.int("ENVELOPE_CACHE_MAX_ITEM_BYTES", default=2 * 1024 * 1024)
+ENVELOPE_MAX_BYTES = env.int("ENVELOPE_MAX_BYTES", default=8 * 1024 * 1024)
+# How long a web request waits for the worker's integrity verdict.
+VERIFY_TIMEOUT = env.float("VERIFY_TIMEOUT", default=30.0)
+
+STORAGES = {
+    "default": {"BACKEND": "django.core.files.storage.FileSystemStorage"},
+    "staticfiles": {"BACKEND": "django.contrib.staticfiles.storage.StaticFilesStorage"},
+    "envelopes": {
+        "BACKEND": env.str(
+            "ENVELOPE_STORAGE_BACKEND", default="sharing.storage.DurableFileSystemStorage"
+        ),
+        "OPTIONS": {"location": str(MEDIA_ROOT / "envelopes")},
+    },
+}

@@ -1,0 +1,14 @@
+"""URL routes of the portal: pages, the REST API, the admin console."""
+
+from django.contrib import admin
+from django.urls import include, path
+
+from portal import views
+
+urlpatterns = [
+    path("", views.home, name="home"),
+    path("", include("accounts.urls")),
+    path("", include("sharing.urls")),
+    path("admin/", admin.site.urls),
+    path("api/", include("portal.api_urls")),
+]

@@ -1,0 +1,355 @@
+"""Send the spool to the portal in order, in batches: nothing lost, nothing sent twice.
+
+`POST {portal}/api/v1/records/` with `Authorization: Token <token>` and
+`{"envelopes": [base64, ...]}`; the portal stores a batch all or nothing and answers 201 with
+one `{"id", "digest", "status"}` per envelope. What the uploader does with each answer:
+
+| answer                                | what happens                                          |
+|---------------------------------------|-------------------------------------------------------|
+| 201 with one result per envelope      | delivered: removed from the spool                     |
+| 409 replayed_sequence, one envelope   | delivered before (its 201 was lost): removed          |
+| 409 replayed_sequence, a batch        | the batch is sent again one by one, to see which      |
+| 400/403/413/other 4xx, one envelope   | refused for good: moved to rejected/, counted failed  |
+| 400/403/413/other 4xx, a batch        | sent again one by one, so only the bad one is refused |
+| 401, 404, 405                         | our token or URL is wrong: kept, retried with backoff |
+| 408, 429, 5xx, no answer, 201 without | kept, retried after an exponential backoff with       |
+| a result per envelope, anything else  | jitter, capped; Retry-After honoured up to that cap   |
+
+A later envelope is never sent before an earlier one: the head of the queue is retried until
+it is delivered or refused.
+"""
+
+import base64
+import enum
+import logging
+import random
+import threading
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+from datetime import UTC, datetime
+from email.utils import parsedate_to_datetime
+from typing import Any
+
+import requests
+
+from ros_agent import LOGGER_NAME
+from ros_agent.counters import AgentCounters, worth_logging
+from ros_agent.spool import Spool, SpoolItem
+
+logger = logging.getLogger(f"{LOGGER_NAME}.uploader")
+
+REPLAYED_SEQUENCE = "replayed_sequence"
+_OUR_MISTAKE = frozenset({401, 404, 405})
+_TRANSIENT = frozenset({408, 425, 429})
+BACKOFF_BASE = 0.5
+
+
+@dataclass(frozen=True)
+class PortalAnswer:
+    """The portal's answer to one upload; status None when there was no HTTP answer."""
+
+    status: int | None
+    body: Any = None
+    error: str = ""
+    detail: str = ""
+    retry_after: float | None = None
+
+    def describe(self) -> str:
+        if self.status is None:
+            return f"no answer ({self.detail})"
+        return f"HTTP {self.status} {self.error or ''}: {self.detail or ''}".strip(" :")
+
+
+class PortalClient:
+    """Uploads envelopes to the portal's records endpoint with the robot's token."""
+
+    def __init__(
+        self, *, records_url: str, token: str, tls_verify: bool | str = True, timeout: float = 10
+    ) -> None:
+        self.records_url = records_url
+        self._timeout = timeout
+        self._verify = tls_verify
+        self._session = requests.Session()
+        self._session.headers.update({"Authorization": f"Token {token}"})
+
+    def upload(self, envelopes: Sequence[bytes]) -> PortalAnswer:
+        body = {"envelopes": [base64.b64encode(data).decode("ascii") for data in envelopes]}
+        try:
+            response = self._session.post(
+                self.records_url,
+                json=body,
+                timeout=self._timeout,
+                verify=self._verify,
+                allow_redirects=False,
+            )
+        except requests.RequestException as exc:
+            return PortalAnswer(status=None, detail=f"{type(exc).__name__}: {exc}")
+        try:
+            payload = response.json()
+        except ValueError:
+            payload = None
+        error = detail = ""
+        if isinstance(payload, dict):
+            error = str(payload.get("error", ""))
+            detail = str(payload.get("detail", ""))
+        elif response.status_code != 201:
+            detail = response.text[:200]
+        return PortalAnswer(
+            status=response.status_code,
+            body=payload,
+            error=error,
+            detail=detail,
+            retry_after=_retry_after(response.headers.get("Retry-After")),
+        )
+
+    def close(self) -> None:
+        self._session.close()
+
+
+class Outcome(enum.Enum):
+    EMPTY = "nothing queued"
+    DELIVERED = "delivered"
+    SPLIT = "batch to be resent one by one"
+    REJECTED = "refused for good"
+    RETRY = "kept for a retry"
+
+
+class Uploader:
+    """Drains the spool to the portal from its own thread (or step by step, for tests)."""
+
+    def __init__(
+        self,
+        *,
+        spool: Spool,
+        client: PortalClient,
+        counters: AgentCounters,
+        batch_size: int = 50,
+        batch_max_bytes: int = 1024 * 1024,
+        flush_interval: float = 1.0,
+        backoff_max: float = 30.0,
+        backoff_base: float = BACKOFF_BASE,
+    ) -> None:
+        self._spool = spool
+        self._client = client
+        self._counters = counters
+        self._batch_size = batch_size
+        self._batch_max_bytes = batch_max_bytes
+        self._flush_interval = flush_interval
+        self._backoff_max = backoff_max
+        self._backoff_base = backoff_base
+        self._failures = 0
+        self._retry_after: float | None = None
+        self._one_by_one_through: int | None = None
+        self._wake = threading.Event()
+        self._stopping = threading.Event()
+        self._flush_deadline = 0.0
+        self._thread: threading.Thread | None = None
+
+    # --- the thread --------------------------------------------------------------------------
+
+    def start(self) -> None:
+        self._thread = threading.Thread(target=self._run, name="authros-uploader", daemon=True)
+        self._thread.start()
+
+    def notify(self) -> None:
+        """Something was spooled: look again whether a batch is ready."""
+        self._wake.set()
+
+    def stop(self, flush_timeout: float) -> None:
+        """Send what can be sent within flush_timeout seconds, then stop; the spool keeps the rest.
+
+        Called once, from the thread that started it.
+        """
+        self._flush_deadline = time.monotonic() + flush_timeout
+        self._stopping.set()
+        self._wake.set()
+        if self._thread is not None:
+            self._thread.join(flush_timeout + 1)
+            if self._thread.is_alive():
+                logger.warning("uploader still waiting for the portal at shutdown; leaving it")
+        self._client.close()
+
+    def _run(self) -> None:
+        waiting_since: float | None = None
+        while not self._stopping.is_set():
+            if not self._batch_ready():
+                now = time.monotonic()
+                if len(self._spool) == 0:
+                    waiting_since = None
+                    timeout = self._flush_interval
+                else:
+                    waiting_since = waiting_since or now
+                    timeout = self._flush_interval - (now - waiting_since)
+                if timeout > 0:
+                    self._wake.wait(timeout)
+                    self._wake.clear()
+                    continue
+            waiting_since = None
+            outcome = self.deliver_next()
+            if outcome is Outcome.RETRY:
+                self._stopping.wait(self.next_backoff())
+        self._flush_at_shutdown()
+
+    def _flush_at_shutdown(self) -> None:
+        while time.monotonic() < self._flush_deadline:
+            outcome = self.deliver_next()
+            if outcome in (Outcome.EMPTY, Outcome.RETRY):
+                break
+        left = len(self._spool)
+        if left:
+            logger.info(
+                "%d envelope(s) stay in the spool %s for later", left, self._spool.directory
+            )
+
+    def _batch_ready(self) -> bool:
+        return (
+            self._one_by_one_through is not None
+            or len(self._spool) >= self._batch_size
+            or self._spool.queued_bytes >= self._batch_max_bytes
+        )
+
+    # --- one step ----------------------------------------------------------------------------
+
+    def deliver_next(self) -> Outcome:
+        """Send the oldest queued batch once and act on the portal's answer."""
+        items = self._next_batch()
+        if not items:
+            return Outcome.EMPTY
+        answer = self._client.upload([item.envelope for item in items])
+        return self._settle(items, answer)
+
+    def drain(self) -> Outcome:
+        """Deliver until the queue is empty or the portal asks us to wait (for tests, tools)."""
+        while True:
+            outcome = self.deliver_next()
+            if outcome in (Outcome.EMPTY, Outcome.RETRY):
+                return outcome
+
+    def next_backoff(self) -> float:
+        """Seconds to wait before retrying after one more failure in a row."""
+        self._failures += 1
+        ceiling = min(self._backoff_max, self._backoff_base * 2 ** min(self._failures - 1, 30))
+        delay = random.uniform(ceiling / 2, ceiling)
+        if self._retry_after:
+            delay = max(delay, min(self._retry_after, self._backoff_max))
+        return delay
+
+    def _next_batch(self) -> list[SpoolItem]:
+        if self._one_by_one_through is not None:
+            head = self._spool.peek(1)
+            if head and head[0].seq <= self._one_by_one_through:
+                return head
+            self._one_by_one_through = None
+        return self._spool.peek(self._batch_size, max_bytes=self._batch_max_bytes)
+
+    def _settle(self, items: list[SpoolItem], answer: PortalAnswer) -> Outcome:
+        self._retry_after = answer.retry_after
+        outcome = self._act_on(items, answer)
+        if outcome is not Outcome.RETRY and self._failures:
+            logger.info(
+                "the portal answers again after %d failed attempt(s); %d queued",
+                self._failures,
+                len(self._spool),
+            )
+            self._failures = 0
+        return outcome
+
+    def _act_on(self, items: list[SpoolItem], answer: PortalAnswer) -> Outcome:
+        seqs = _seq_range(items)
+        status = answer.status
+        if status == 201 and _confirms(answer.body, len(items)):
+            self._delivered(items)
+            return Outcome.DELIVERED
+        if status == 409 and answer.error == REPLAYED_SEQUENCE:
+            if len(items) == 1:
+                logger.warning(
+                    "the portal already has seq %s (its confirmation was lost): "
+                    "counted as delivered, not sent again",
+                    seqs,
+                )
+                self._delivered(items)
+                return Outcome.DELIVERED
+            return self._split(items, answer)
+        if status is not None and 400 <= status < 500:
+            if status in _OUR_MISTAKE:
+                return self._retry(items, answer, level=logging.ERROR)
+            if status not in _TRANSIENT:
+                if len(items) > 1:
+                    return self._split(items, answer)
+                self._reject(items, answer)
+                return Outcome.REJECTED
+        return self._retry(items, answer, level=logging.WARNING)
+
+    def _delivered(self, items: list[SpoolItem]) -> None:
+        self._spool.ack(items)
+        self._counters.add("sent", len(items))
+
+    def _split(self, items: list[SpoolItem], answer: PortalAnswer) -> Outcome:
+        logger.info(
+            "the portal refused the batch %s (%s): sending it one by one",
+            _seq_range(items),
+            answer.describe(),
+        )
+        self._one_by_one_through = items[-1].seq
+        return Outcome.SPLIT
+
+    def _reject(self, items: list[SpoolItem], answer: PortalAnswer) -> None:
+        self._spool.reject(
+            items,
+            {
+                "status": answer.status,
+                "error": answer.error,
+                "detail": answer.detail,
+                "rejected_at": datetime.now(UTC).isoformat(),
+            },
+        )
+        failed = self._counters.add("failed", len(items))
+        logger.error(
+            "the portal refused seq %s for good (%s): moved to %s/rejected (%d failed so far)",
+            _seq_range(items),
+            answer.describe(),
+            self._spool.directory,
+            failed,
+        )
+
+    def _retry(self, items: list[SpoolItem], answer: PortalAnswer, *, level: int) -> Outcome:
+        if worth_logging(self._failures + 1):
+            logger.log(
+                level,
+                "could not deliver seq %s to %s: %s; %d queued, retrying (attempt %d)",
+                _seq_range(items),
+                self._client.records_url,
+                answer.describe(),
+                len(self._spool),
+                self._failures + 1,
+            )
+        return Outcome.RETRY
+
+
+def _confirms(body: Any, count: int) -> bool:
+    results = [body] if count == 1 and isinstance(body, dict) else body
+    return (
+        isinstance(results, list)
+        and len(results) == count
+        and all(isinstance(result, dict) and "id" in result for result in results)
+    )
+
+
+def _seq_range(items: Sequence[SpoolItem]) -> str:
+    first, last = items[0].seq, items[-1].seq
+    return str(first) if first == last else f"{first}..{last}"
+
+
+def _retry_after(value: str | None) -> float | None:
+    if not value:
+        return None
+    try:
+        return max(0.0, float(value))
+    except ValueError:
+        pass
+    try:
+        moment = parsedate_to_datetime(value)
+    except (TypeError, ValueError):
+        return None
+    return max(0.0, (moment - datetime.now(UTC)).total_seconds())

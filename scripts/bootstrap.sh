@@ -1,0 +1,59 @@
+#!/usr/bin/env bash
+# Install what is missing, idempotently: Debian packages, npm packages, the virtualenv.
+# Used by `make run`, `make test` and `make bench`; safe to run again at any time.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+
+APT_PACKAGES=(
+  python3-venv python3-dev redis-server postgresql-client
+  ros-core python3-rospy python3-rosmaster
+  python3-nav-msgs python3-sensor-msgs python3-std-msgs
+  chromium
+)
+VENV=.venv
+STAMP_DIR=$VENV/.stamps
+
+log() { printf '\033[1;34m[bootstrap]\033[0m %s\n' "$*" >&2; }
+
+as_root() {
+  if [ "$(id -u)" = 0 ]; then "$@"; elif command -v sudo >/dev/null; then sudo "$@"; else
+    log "need root for: $*"; exit 1; fi
+}
+
+install_debian_packages() {
+  local missing=()
+  for pkg in "${APT_PACKAGES[@]}"; do
+    dpkg-query -W -f='${Status}' "$pkg" 2>/dev/null | grep -q "ok installed" || missing+=("$pkg")
+  done
+  if [ ${#missing[@]} -gt 0 ]; then
+    log "installing Debian packages: ${missing[*]}"
+    as_root apt-get update -qq
+    as_root env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq "${missing[@]}" >/dev/null
+  fi
+}
+
+install_npm_packages() {
+  if ! command -v npm >/dev/null; then log "npm is required (apt-get install nodejs npm)"; exit 1; fi
+  if [ ! -f node_modules/.package-lock.json ] || [ package-lock.json -nt node_modules/.package-lock.json ]; then
+    log "installing npm packages (package-lock.json)"
+    npm ci --no-audit --no-fund --loglevel=error
+  fi
+}
+
+install_python_packages() {
+  if [ ! -x $VENV/bin/python ]; then
+    log "creating $VENV (sees Debian's rospy through --system-site-packages)"
+    /usr/bin/python3 -m venv --system-site-packages $VENV
+  fi
+  mkdir -p $STAMP_DIR
+  if [ ! -f $STAMP_DIR/requirements ] || [ requirements.txt -nt $STAMP_DIR/requirements ] \
+      || [ constraints.txt -nt $STAMP_DIR/requirements ]; then
+    log "installing Python packages (constraints.txt)"
+    $VENV/bin/python -m pip install -q --disable-pip-version-check -r requirements.txt -c constraints.txt
+    touch $STAMP_DIR/requirements
+  fi
+}
+
+install_debian_packages
+install_npm_packages
+install_python_packages

@@ -1,0 +1,179 @@
+"""Admin console for records, grants, verdicts and security events.
+
+Read-only like accounts.admin; the two actions repair anchoring and re-run the integrity
+check. Envelope bytes and keys are never shown.
+"""
+
+from collections import Counter
+
+from django.contrib import admin, messages
+from django.db.models import QuerySet
+from django.http import HttpRequest
+
+from accounts.admin import ReadOnlyAdmin
+from chainworker.chain import ChainError
+from chainworker.services import records_reanchor
+from sharing.models import Grant, Record, SecurityEvent, Verdict
+from sharing.services import record_verify
+
+# Re-verification runs in the admin's request: keep a selection small enough to answer.
+REVERIFY_MAX = 200
+
+
+class TamperedFilter(admin.SimpleListFilter):
+    title = "integrity"
+    parameter_name = "tampered"
+
+    def lookups(self, request: HttpRequest, model_admin: admin.ModelAdmin) -> list:
+        return [("yes", "tampered"), ("no", "never failed a check")]
+
+    def queryset(self, request: HttpRequest, queryset: QuerySet[Record]) -> QuerySet[Record]:
+        if self.value() == "yes":
+            return queryset.filter(tampered_at__isnull=False)
+        if self.value() == "no":
+            return queryset.filter(tampered_at__isnull=True)
+        return queryset
+
+
+@admin.register(Record)
+class RecordAdmin(ReadOnlyAdmin):
+    list_display = (
+        "id",
+        "owner",
+        "topic",
+        "data_type",
+        "seq",
+        "captured_at",
+        "status",
+        "block_number",
+        "anchor_attempts",
+        "tampered",
+    )
+    list_filter = ("status", TamperedFilter, "data_type", "captured_at")
+    search_fields = ("id", "topic", "digest", "tx_hash", "owner__user__username", "robot__name")
+    list_select_related = ("owner__user",)
+    date_hierarchy = "captured_at"
+    fields = (
+        "id",
+        "owner",
+        "robot",
+        "topic",
+        "data_type",
+        "seq",
+        "captured_at",
+        "key_id",
+        "digest",
+        "size",
+        "status",
+        "tx_hash",
+        "block_number",
+        "anchored_at",
+        "anchor_attempts",
+        "failure_reason",
+        "tampered_at",
+        "created_at",
+    )
+    readonly_fields = fields
+    actions = ("reanchor_failed", "reverify")
+
+    @admin.display(boolean=True, ordering="tampered_at")
+    def tampered(self, record: Record) -> bool:
+        return record.tampered_at is not None
+
+    def has_change_permission(self, request: HttpRequest, obj: object = None) -> bool:
+        # The actions need change permission; every field stays read-only.
+        return request.user.has_perm("sharing.change_record")
+
+    @admin.action(description="Re-anchor the selected failed records", permissions=["change"])
+    def reanchor_failed(self, request: HttpRequest, queryset: QuerySet[Record]) -> None:
+        count = records_reanchor(record_ids=list(queryset.values_list("pk", flat=True)))
+        skipped = queryset.count() - count
+        note = f"; {skipped} selected record(s) had not failed: left alone" if skipped else ""
+        self.message_user(
+            request,
+            f"{count} failed record(s) are pending again and their anchoring is queued{note}.",
+            messages.SUCCESS if count else messages.WARNING,
+        )
+
+    @admin.action(
+        description="Re-verify the selected records against the chain", permissions=["change"]
+    )
+    def reverify(self, request: HttpRequest, queryset: QuerySet[Record]) -> None:
+        records = list(queryset.order_by("captured_at")[: REVERIFY_MAX + 1])
+        if len(records) > REVERIFY_MAX:
+            self.message_user(
+                request,
+                f"Select at most {REVERIFY_MAX} records to re-verify at once.",
+                messages.ERROR,
+            )
+            return
+        outcomes: Counter[str] = Counter()
+        tampered = []
+        for record in records:
+            try:
+                verdict = record_verify(record_id=record.pk, viewer_id=record.owner_id).verdict
+            except ChainError as exc:
+                self.message_user(
+                    request,
+                    f"The chain is unavailable ({exc}); {sum(outcomes.values())} record(s) "
+                    "were checked before it failed.",
+                    messages.ERROR,
+                )
+                break
+            outcomes[verdict.outcome] += 1
+            if verdict.outcome == Verdict.Outcome.TAMPERED:
+                tampered.append(str(record.pk))
+        labels = dict(Verdict.Outcome.choices)
+        if outcomes:
+            summary = ", ".join(f"{count} {labels[outcome]}" for outcome, count in outcomes.items())
+            level = messages.ERROR if tampered else messages.SUCCESS
+            self.message_user(request, f"Re-verified as their owners: {summary}.", level)
+        if tampered:
+            self.message_user(request, f"TAMPERED: {', '.join(tampered)}", messages.ERROR)
+
+
+@admin.register(Grant)
+class GrantAdmin(ReadOnlyAdmin):
+    list_display = (
+        "owner",
+        "grantee",
+        "status",
+        "grant_block",
+        "revoke_block",
+        "created_at",
+        "updated_at",
+    )
+    list_filter = ("status", "created_at")
+    search_fields = (
+        "owner__user__username",
+        "grantee__user__username",
+        "owner__eoa_address",
+        "grantee__eoa_address",
+        "grant_tx",
+        "revoke_tx",
+    )
+    list_select_related = ("owner__user", "grantee__user")
+    readonly_fields = [f.name for f in Grant._meta.fields]
+
+
+@admin.register(Verdict)
+class VerdictAdmin(ReadOnlyAdmin):
+    list_display = ("record", "viewer", "outcome", "source", "block_number", "created_at")
+    list_filter = ("outcome", "source", "created_at")
+    search_fields = (
+        "record__id",
+        "viewer__user__username",
+        "computed_digest",
+        "chain_digest",
+    )
+    list_select_related = ("record__owner__user", "viewer__user")
+    readonly_fields = [f.name for f in Verdict._meta.fields]
+
+
+@admin.register(SecurityEvent)
+class SecurityEventAdmin(ReadOnlyAdmin):
+    list_display = ("kind", "record", "owner", "created_at")
+    list_filter = ("kind", "created_at")
+    search_fields = ("record__id", "owner__user__username")
+    list_select_related = ("record__owner__user", "owner__user")
+    readonly_fields = [f.name for f in SecurityEvent._meta.fields]

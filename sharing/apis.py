@@ -1,0 +1,548 @@
+"""REST API v1 of sharing: uploads from robots, records, integrity-checked content, grants.
+
+One view per route; each validates with its nested serializers, calls one service or
+selector, and answers. Refusals are `sharing.errors` (and DRF's), mapped to HTTP in
+`portal.api_errors`.
+"""
+
+import base64
+import binascii
+import uuid
+from typing import Any
+
+from django.core.validators import ProhibitNullCharactersValidator, RegexValidator
+from django.db.models import QuerySet
+from drf_spectacular.types import OpenApiTypes
+from drf_spectacular.utils import (
+    OpenApiParameter,
+    OpenApiResponse,
+    PolymorphicProxySerializer,
+    extend_schema,
+    extend_schema_field,
+)
+from rest_framework import serializers, status
+from rest_framework.pagination import LimitOffsetPagination
+from rest_framework.permissions import BasePermission, IsAuthenticated
+from rest_framework.request import Request
+from rest_framework.response import Response
+from rest_framework.throttling import BaseThrottle
+from rest_framework.views import APIView
+
+from accounts.authentication import RobotUploadRateThrottle, caller_owner, caller_robot
+from accounts.models import Owner
+from portal.api_errors import error_responses
+from sharing.errors import OwnerNotFound, RecordNotFound
+from sharing.models import Grant, Record
+from sharing.selectors import (
+    grant_list_given,
+    grant_list_received,
+    record_get_visible,
+    record_list_visible_to,
+)
+from sharing.services import (
+    grant_create,
+    grant_revoke,
+    owner_resolve,
+    record_create_batch,
+    record_open,
+    record_reseal_for,
+)
+
+# Envelopes in one upload at most; the body size limit (413) bounds the bytes.
+MAX_ENVELOPES_PER_UPLOAD = 1000
+# A username is at most 150 characters, an address 42.
+MAX_OWNER_IDENTIFIER = 150
+NO_NUL = "NUL characters are not allowed"
+
+ROBOT_ONLY = [{"robotToken": []}]
+_RECORD_ID = OpenApiParameter(
+    "record_id", OpenApiTypes.UUID, OpenApiParameter.PATH, description="the record's id"
+)
+
+
+# --- fields and serializers shared by the views ----------------------------------------------
+
+
+@extend_schema_field(
+    {
+        "type": "string",
+        "format": "byte",
+        "minLength": 1,
+        "pattern": r"^(?:[A-Za-z0-9+/]{4})*(?:[A-Za-z0-9+/]{2}==|[A-Za-z0-9+/]{3}=)?$",
+    }
+)
+class Base64EnvelopeField(serializers.Field):
+    """An envelope v1 as standard base64 (RFC 4648, with padding)."""
+
+    default_error_messages = {
+        "not_text": "an envelope is sent as a base64 string",
+        "blank": "an envelope cannot be empty",
+        "not_base64": "not valid base64",
+    }
+
+    def to_internal_value(self, data: Any) -> bytes:
+        if not isinstance(data, str):
+            self.fail("not_text")
+        if not data:
+            self.fail("blank")
+        try:
+            return base64.b64decode(data, validate=True)
+        except (binascii.Error, ValueError):
+            self.fail("not_base64")
+
+    def to_representation(self, value: bytes) -> str:
+        return base64.b64encode(value).decode("ascii")
+
+
+class TextField(serializers.CharField):
+    """A string and only a string (DRF's CharField takes 5 for "5"), without NUL characters,
+    which the schema says too (a database may refuse them)."""
+
+    def __init__(self, **kwargs: Any) -> None:
+        super().__init__(**kwargs)
+        self.validators = [
+            validator
+            for validator in self.validators
+            if not isinstance(validator, ProhibitNullCharactersValidator)
+        ]
+        self.validators.append(RegexValidator(r"^[^\x00]*$", message=NO_NUL))
+
+    def to_internal_value(self, data: Any) -> str:
+        if not isinstance(data, str):
+            self.fail("invalid")
+        return super().to_internal_value(data)
+
+
+class NullIfBlankCharField(serializers.CharField):
+    """A text attribute that is blank until something happens, shown as null until then."""
+
+    def __init__(self, **kwargs: Any) -> None:
+        super().__init__(allow_null=True, read_only=True, **kwargs)
+
+    def to_representation(self, value: Any) -> str | None:
+        return str(value) if value else None
+
+
+class RecordOutputSerializer(serializers.Serializer):
+    class Meta:
+        ref_name = "Record"
+
+    id = serializers.UUIDField()
+    owner = serializers.CharField(source="owner.user.username")
+    owner_address = serializers.CharField(source="owner.eoa_address")
+    robot = serializers.UUIDField(source="robot_id")
+    robot_name = serializers.CharField(source="robot.name")
+    topic = serializers.CharField()
+    type = serializers.CharField(source="data_type", help_text="ROS message type")
+    seq = serializers.IntegerField()
+    captured_at = serializers.DateTimeField()
+    size = serializers.IntegerField(help_text="envelope bytes")
+    digest = serializers.CharField(help_text="SM3 of the envelope as hex, as anchored on chain")
+    key_id = serializers.CharField(help_text="the owner key it is sealed under, hex")
+    status = serializers.ChoiceField(
+        choices=Record.Status.choices, help_text="anchoring: pending, anchored or failed"
+    )
+    tx_hash = NullIfBlankCharField(help_text="the anchoring transaction, once anchored")
+    block_number = serializers.IntegerField(allow_null=True)
+    anchored_at = serializers.DateTimeField(allow_null=True)
+    failure_reason = NullIfBlankCharField(help_text="why anchoring failed, if it did")
+    tampered_at = serializers.DateTimeField(
+        allow_null=True, help_text="when a view found the stored data changed, if ever"
+    )
+    created_at = serializers.DateTimeField(help_text="when the portal received it")
+
+
+class GrantOutputSerializer(serializers.Serializer):
+    class Meta:
+        ref_name = "Grant"
+
+    owner = serializers.CharField(source="owner.user.username")
+    owner_address = serializers.CharField(source="owner.eoa_address")
+    grantee = serializers.CharField(source="grantee.user.username")
+    grantee_address = serializers.CharField(source="grantee.eoa_address")
+    status = serializers.ChoiceField(
+        choices=Grant.Status.choices,
+        help_text="pending (on chain soon), active, revoking, revoked or failed",
+    )
+    grant_tx = NullIfBlankCharField()
+    grant_block = serializers.IntegerField(allow_null=True)
+    revoke_tx = NullIfBlankCharField()
+    revoke_block = serializers.IntegerField(allow_null=True)
+    created_at = serializers.DateTimeField()
+    updated_at = serializers.DateTimeField()
+
+
+class RecordPagination(LimitOffsetPagination):
+    """`?limit=&offset=`, refusing values out of range instead of guessing."""
+
+    default_limit = 50
+    max_limit = 500
+    max_offset = 10**9
+
+    def get_limit(self, request: Request) -> int:
+        return self._bounded(request, self.limit_query_param, 1, self.max_limit, self.default_limit)
+
+    def get_offset(self, request: Request) -> int:
+        return self._bounded(request, self.offset_query_param, 0, self.max_offset, 0)
+
+    @staticmethod
+    def _bounded(request: Request, name: str, lowest: int, highest: int, default: int) -> int:
+        raw = request.query_params.get(name)
+        if raw is None:
+            return default
+        if not (raw.isascii() and raw.isdigit() and len(raw) <= 10):
+            raise serializers.ValidationError({name: [f"must be an integer {lowest}..{highest}"]})
+        value = int(raw)
+        if not lowest <= value <= highest:
+            raise serializers.ValidationError({name: [f"must be an integer {lowest}..{highest}"]})
+        return value
+
+    def get_schema_operation_parameters(self, view: APIView) -> list[dict[str, Any]]:
+        return [
+            {
+                "name": self.limit_query_param,
+                "required": False,
+                "in": "query",
+                "description": "records per page",
+                "schema": {"type": "integer", "minimum": 1, "maximum": self.max_limit},
+            },
+            {
+                "name": self.offset_query_param,
+                "required": False,
+                "in": "query",
+                "description": "records to skip",
+                "schema": {"type": "integer", "minimum": 0, "maximum": self.max_offset},
+            },
+        ]
+
+
+class IsRobot(BasePermission):
+    message = "uploads need a robot token: `Authorization: Token <key>`"
+
+    def has_permission(self, request: Request, view: APIView) -> bool:
+        return caller_robot(request) is not None
+
+
+def _owner_named(identifier: str) -> Owner:
+    """The owner named by username or 0x address; OwnerNotFound for anything else."""
+    field = TextField(max_length=MAX_OWNER_IDENTIFIER)
+    try:
+        identifier = field.run_validation(identifier)
+    except serializers.ValidationError:
+        raise OwnerNotFound("no such owner") from None
+    return owner_resolve(identifier)
+
+
+# --- records ---------------------------------------------------------------------------------
+
+
+class RecordsApi(APIView):
+    """`GET /api/v1/records/`: what the caller may read; `POST`: a robot's upload."""
+
+    pagination_class = RecordPagination
+
+    class SingleInputSerializer(serializers.Serializer):
+        class Meta:
+            ref_name = "RecordUploadOne"
+
+        envelope = Base64EnvelopeField(help_text="one envelope v1, base64")
+
+    class BatchInputSerializer(serializers.Serializer):
+        class Meta:
+            ref_name = "RecordUploadBatch"
+
+        envelopes = serializers.ListField(
+            child=Base64EnvelopeField(),
+            min_length=1,
+            max_length=MAX_ENVELOPES_PER_UPLOAD,
+            help_text="envelopes v1, base64, in increasing seq order; stored all or none",
+        )
+
+    class UploadOutputSerializer(serializers.Serializer):
+        class Meta:
+            ref_name = "RecordUploaded"
+
+        id = serializers.UUIDField()
+        digest = serializers.CharField(help_text="SM3 of the envelope, hex")
+        status = serializers.ChoiceField(choices=Record.Status.choices)
+        seq = serializers.IntegerField()
+
+    class FilterSerializer(serializers.Serializer):
+        class Meta:
+            ref_name = "RecordFilter"
+
+        topic = TextField(required=False, max_length=255)
+        type = TextField(required=False, max_length=255, help_text="ROS type")
+        status = serializers.ChoiceField(choices=Record.Status.choices, required=False)
+        since = serializers.DateTimeField(
+            required=False, help_text="captured at or after (ISO 8601)"
+        )
+        until = serializers.DateTimeField(required=False, help_text="captured before (ISO 8601)")
+        owner = TextField(
+            required=False, max_length=MAX_OWNER_IDENTIFIER, help_text="owner's username"
+        )
+        robot = serializers.UUIDField(required=False, help_text="robot id")
+
+    def get_permissions(self) -> list[BasePermission]:
+        if self.request.method == "POST":
+            return [IsAuthenticated(), IsRobot()]
+        return super().get_permissions()
+
+    def get_throttles(self) -> list[BaseThrottle]:
+        return [*super().get_throttles(), RobotUploadRateThrottle()]
+
+    @extend_schema(
+        operation_id="records_list",
+        summary="Records the caller may read: its own and those shared with it",
+        parameters=[FilterSerializer],
+        responses={
+            200: RecordOutputSerializer(many=True),
+            **error_responses(400, 401, 403),
+        },
+    )
+    def get(self, request: Request) -> Response:
+        # A plain mapping, not form semantics: `?type=` is refused rather than ignored.
+        filters = self.FilterSerializer(data=request.query_params.dict())
+        filters.is_valid(raise_exception=True)
+        records = _filtered(record_list_visible_to(caller_owner(request)), filters.validated_data)
+        paginator = self.pagination_class()
+        page = paginator.paginate_queryset(records, request, view=self)
+        return paginator.get_paginated_response(RecordOutputSerializer(page, many=True).data)
+
+    @extend_schema(
+        operation_id="records_upload",
+        summary="Upload envelopes (robot token only)",
+        description=(
+            "Each envelope must parse, name this robot and its owner in its header, be sealed "
+            "under the owner's current key (or one rotated within the last hour), and carry a "
+            "seq above every earlier one of this robot. A batch is stored all or nothing. "
+            "`envelope` answers one result, `envelopes` a list in the same order."
+        ),
+        auth=ROBOT_ONLY,
+        request=PolymorphicProxySerializer(
+            component_name="RecordUpload",
+            serializers=[SingleInputSerializer, BatchInputSerializer],
+            resource_type_field_name=None,
+        ),
+        responses={
+            201: PolymorphicProxySerializer(
+                component_name="RecordUploadResult",
+                serializers=[UploadOutputSerializer, UploadOutputSerializer(many=True)],
+                resource_type_field_name=None,
+                many=False,
+            ),
+            **error_responses(
+                400,
+                401,
+                403,
+                409,
+                413,
+                415,
+                e400="`invalid_request` (not JSON, not base64, both or neither of "
+                "`envelope`/`envelopes`), `invalid_envelope` (does not parse, seq not "
+                "increasing within the batch)",
+                e403="`permission_denied` (not a robot token), `header_mismatch` (another "
+                "owner or robot), `unknown_key` (not the owner's current key), "
+                "`forged_envelope` (does not open under the owner's key)",
+                e409="`replayed_sequence`: a seq not above the robot's last one",
+            ),
+        },
+    )
+    def post(self, request: Request) -> Response:
+        robot = caller_robot(request)
+        batch = isinstance(request.data, dict) and "envelopes" in request.data
+        input_class = self.BatchInputSerializer if batch else self.SingleInputSerializer
+        if batch and "envelope" in request.data:
+            raise serializers.ValidationError("send either `envelope` or `envelopes`, not both")
+        upload = input_class(data=request.data)
+        upload.is_valid(raise_exception=True)
+        if batch:
+            envelopes = upload.validated_data["envelopes"]
+        else:
+            envelopes = [upload.validated_data["envelope"]]
+        records = record_create_batch(robot=robot, envelopes=envelopes)
+        results = self.UploadOutputSerializer(records, many=True).data
+        return Response(results if batch else results[0], status=status.HTTP_201_CREATED)
+
+
+def _filtered(records: QuerySet[Record], filters: dict[str, Any]) -> QuerySet[Record]:
+    lookups = {
+        "topic": "topic",
+        "type": "data_type",
+        "status": "status",
+        "since": "captured_at__gte",
+        "until": "captured_at__lt",
+        "owner": "owner__user__username",
+        "robot": "robot_id",
+    }
+    return records.filter(
+        **{lookup: filters[name] for name, lookup in lookups.items() if name in filters}
+    )
+
+
+def _record_uuid(record_id: str) -> uuid.UUID:
+    try:
+        return uuid.UUID(record_id)
+    except ValueError:
+        raise RecordNotFound("no such record") from None
+
+
+class RecordDetailApi(APIView):
+    """`GET /api/v1/records/{id}/`: metadata and anchoring status."""
+
+    @extend_schema(
+        operation_id="records_detail",
+        summary="A record's metadata and anchoring status",
+        parameters=[_RECORD_ID],
+        responses={200: RecordOutputSerializer, **error_responses(401, 403, 404)},
+    )
+    def get(self, request: Request, record_id: str) -> Response:
+        record = record_get_visible(caller_owner(request), _record_uuid(record_id))
+        if record is None:
+            raise RecordNotFound("no such record, or not shared with you")
+        return Response(RecordOutputSerializer(record).data)
+
+
+class RecordContentApi(APIView):
+    """`GET /api/v1/records/{id}/content/`: integrity-checked, re-sealed for the caller."""
+
+    class OutputSerializer(serializers.Serializer):
+        class Meta:
+            ref_name = "RecordContent"
+
+        id = serializers.UUIDField()
+        verified = serializers.BooleanField(help_text="always true: otherwise the answer is 409")
+        digest = serializers.CharField(help_text="SM3 of the stored envelope, equal on chain")
+        block_number = serializers.IntegerField(
+            allow_null=True, help_text="the block the check was made against"
+        )
+        envelope = Base64EnvelopeField(
+            help_text="the content re-sealed under the caller's own current key, base64"
+        )
+
+    @extend_schema(
+        operation_id="records_content",
+        summary="The record's content, after checking it against the chain",
+        description=(
+            "The stored envelope is hashed again and compared with the digest on chain; access "
+            "needs the owner, or a grant that is live in the portal and on chain. The content "
+            "comes back sealed under the caller's own current key, with the same header."
+        ),
+        parameters=[_RECORD_ID],
+        responses={
+            200: OutputSerializer,
+            **error_responses(
+                401,
+                403,
+                404,
+                409,
+                503,
+                e403="`access_denied`: no live grant from the record's owner",
+                e409="`integrity_check_failed`: the stored data differs from the chain; "
+                "`not_anchored_yet`: try again shortly",
+            ),
+        },
+    )
+    def get(self, request: Request, record_id: str) -> Response:
+        viewer = caller_owner(request)
+        opened = record_open(record_id=_record_uuid(record_id), viewer=viewer)
+        resealed = record_reseal_for(opened=opened, viewer=viewer)
+        data = {
+            "id": opened.record.id,
+            "verified": True,
+            "digest": opened.verdict.chain_digest,
+            "block_number": opened.verdict.block_number,
+            "envelope": resealed,
+        }
+        return Response(self.OutputSerializer(data).data)
+
+
+# --- grants ----------------------------------------------------------------------------------
+
+
+class GrantsApi(APIView):
+    """`GET /api/v1/grants/`: grants given and received; `POST`: grant access."""
+
+    class ListOutputSerializer(serializers.Serializer):
+        class Meta:
+            ref_name = "GrantList"
+
+        given = GrantOutputSerializer(many=True, help_text="by the caller's owner, newest first")
+        received = GrantOutputSerializer(many=True, help_text="to the caller's owner")
+
+    class InputSerializer(serializers.Serializer):
+        class Meta:
+            ref_name = "GrantRequest"
+
+        grantee = TextField(
+            max_length=MAX_OWNER_IDENTIFIER, help_text="the grantee's username or 0x address"
+        )
+
+    @extend_schema(
+        operation_id="grants_list",
+        summary="Grants given and received",
+        responses={200: ListOutputSerializer, **error_responses(401, 403)},
+    )
+    def get(self, request: Request) -> Response:
+        owner = caller_owner(request)
+        data = {"given": grant_list_given(owner), "received": grant_list_received(owner)}
+        return Response(self.ListOutputSerializer(data).data)
+
+    @extend_schema(
+        operation_id="grants_create",
+        summary="Let another owner read your records",
+        description="Takes effect in the portal once `authorityGrant` is confirmed on chain.",
+        request=InputSerializer,
+        responses={
+            201: GrantOutputSerializer,
+            **error_responses(
+                400,
+                401,
+                403,
+                404,
+                409,
+                415,
+                e400="`invalid_request`, or `self_grant`",
+                e404="`owner_not_found`: no owner with that username or address",
+                e409="`already_granted`, `not_registered_yet` (you), `grantee_not_registered`",
+            ),
+        },
+    )
+    def post(self, request: Request) -> Response:
+        owner = caller_owner(request)
+        payload = self.InputSerializer(data=request.data)
+        payload.is_valid(raise_exception=True)
+        grantee = owner_resolve(payload.validated_data["grantee"])
+        grant = grant_create(owner=owner, grantee=grantee)
+        return Response(GrantOutputSerializer(grant).data, status=status.HTTP_201_CREATED)
+
+
+class GrantRevokeApi(APIView):
+    """`DELETE /api/v1/grants/{grantee}/`: take access away at once."""
+
+    @extend_schema(
+        operation_id="grants_revoke",
+        summary="Revoke a grant",
+        description="Refused by the portal at once; `authorityRevoke` follows on chain.",
+        parameters=[
+            OpenApiParameter(
+                "grantee",
+                OpenApiTypes.STR,
+                OpenApiParameter.PATH,
+                description="the grantee's username or 0x address",
+            )
+        ],
+        responses={
+            200: OpenApiResponse(GrantOutputSerializer, description="now `revoking`"),
+            **error_responses(
+                401,
+                403,
+                404,
+                e404="`owner_not_found`, or `no_grant`: nothing live to revoke",
+            ),
+        },
+    )
+    def delete(self, request: Request, grantee: str) -> Response:
+        owner = caller_owner(request)
+        grant = grant_revoke(owner=owner, grantee=_owner_named(grantee))
+        return Response(GrantOutputSerializer(grant).data)

@@ -1,0 +1,91 @@
+"""What the sharing services refuse. `http_status` is the one mapping to HTTP codes."""
+
+
+class SharingError(Exception):
+    code = "sharing_error"
+    http_status = 400
+
+
+class InvalidEnvelope(SharingError):
+    code = "invalid_envelope"
+
+
+class EnvelopeTooLarge(SharingError):
+    code = "envelope_too_large"
+    http_status = 413
+
+
+class HeaderMismatch(SharingError):
+    code = "header_mismatch"
+    http_status = 403
+
+
+class UnknownKey(SharingError):
+    code = "unknown_key"
+    http_status = 403
+
+
+class ForgedEnvelope(SharingError):
+    code = "forged_envelope"
+    http_status = 403
+
+
+class ReplayedSequence(SharingError):
+    code = "replayed_sequence"
+    http_status = 409
+
+
+class OwnerNotFound(SharingError):
+    code = "owner_not_found"
+    http_status = 404
+
+
+class SelfGrant(SharingError):
+    code = "self_grant"
+
+
+class GranteeNotRegistered(SharingError):
+    code = "grantee_not_registered"
+    http_status = 409
+
+
+class NotRegisteredYet(SharingError):
+    code = "not_registered_yet"
+    http_status = 409
+
+
+class AlreadyGranted(SharingError):
+    code = "already_granted"
+    http_status = 409
+
+
+class NoGrant(SharingError):
+    code = "no_grant"
+    http_status = 404
+
+
+class AccessDenied(SharingError):
+    code = "access_denied"
+    http_status = 403
+
+
+class IntegrityCheckFailed(SharingError):
+    code = "integrity_check_failed"
+    http_status = 409
+
+
+class NotAnchoredYet(SharingError):
+    code = "not_anchored_yet"
+    http_status = 409
+
+
+class RecordNotFound(SharingError):
+    code = "not_found"
+    http_status = 404
+
+
+class VerificationUnavailable(SharingError):
+    """The worker did not answer in time (chain or worker down): nothing is shown."""
+
+    code = "verification_unavailable"
+    http_status = 503

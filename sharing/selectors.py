@@ -1,0 +1,115 @@
+"""Reads: which records and grants an owner may see."""
+
+import uuid
+
+from django.db.models import Q, QuerySet
+
+from accounts.models import Owner
+from chainworker.chain import ChainEvent
+from chainworker.selectors import deployment_active
+from chainworker.services import chain_client
+from sharing.models import Grant, Record, Verdict
+
+# Contract events about an owner, and the argument that names the owner in each.
+OWNER_EVENT_ARGS = {
+    "Enrolled": ("eoa",),
+    "Registered": ("eoa",),
+    "KeyRotated": ("eoa",),
+    "DataUploaded": ("owner",),
+    "AuthorityGranted": ("owner", "grantee"),
+    "AuthorityRevoked": ("owner", "grantee"),
+}
+
+
+def owners_granting(viewer: Owner) -> QuerySet[Owner]:
+    """Owners whose grant to `viewer` is active in the portal."""
+    return Owner.objects.filter(
+        grants_given__grantee=viewer, grants_given__status=Grant.Status.ACTIVE
+    )
+
+
+def record_list_visible_to(viewer: Owner) -> QuerySet[Record]:
+    """The viewer's own records and those of owners with an active grant to the viewer.
+
+    Listing is the portal's view; every read of content is checked on chain again.
+    """
+    granting = Grant.objects.filter(grantee=viewer, status=Grant.Status.ACTIVE).values("owner_id")
+    return (
+        Record.objects.filter(Q(owner=viewer) | Q(owner_id__in=granting))
+        .select_related("owner__user", "robot")
+        .order_by("-captured_at", "-seq")
+    )
+
+
+def record_list_owned(owner: Owner) -> QuerySet[Record]:
+    return record_list_visible_to(owner).filter(owner=owner)
+
+
+def record_list_shared_with(viewer: Owner) -> QuerySet[Record]:
+    return record_list_visible_to(viewer).exclude(owner=viewer)
+
+
+def record_get_visible(viewer: Owner, record_id: uuid.UUID | str) -> Record | None:
+    try:
+        record_uuid = uuid.UUID(str(record_id))
+    except ValueError:
+        return None
+    return record_list_visible_to(viewer).filter(pk=record_uuid).first()
+
+
+def grant_list_given(owner: Owner) -> QuerySet[Grant]:
+    return Grant.objects.filter(owner=owner).select_related("grantee__user")
+
+
+def grant_list_received(owner: Owner) -> QuerySet[Grant]:
+    return Grant.objects.filter(grantee=owner).select_related("owner__user")
+
+
+def verdict_list_for_record(record: Record) -> QuerySet[Verdict]:
+    return record.verdicts.select_related("viewer__user")
+
+
+def verdict_latest(record: Record, viewer: Owner) -> Verdict | None:
+    """The viewer's most recent integrity verdict on the record."""
+    return record.verdicts.filter(viewer=viewer).order_by("-created_at", "-pk").first()
+
+
+def record_topic_history(record: Record, *, limit: int) -> list[Record]:
+    """Up to `limit` records of the record's owner and topic, up to and with it, oldest first."""
+    earlier = (
+        Record.objects.filter(
+            owner_id=record.owner_id,
+            topic=record.topic,
+            data_type=record.data_type,
+            captured_at__lte=record.captured_at,
+        )
+        .exclude(pk=record.pk)
+        .order_by("-captured_at", "-seq")[: max(limit - 1, 0)]
+    )
+    return [*reversed(list(earlier)), record]
+
+
+def owners_by_address(addresses: list[str]) -> dict[str, Owner]:
+    """Owners by lower-case EOA address."""
+    lowered = {address.lower() for address in addresses}
+    owners = Owner.objects.select_related("user").filter(
+        Q(eoa_address__in=addresses) | Q(eoa_address__in=lowered)
+    )
+    return {owner.eoa_address.lower(): owner for owner in owners}
+
+
+def chain_events_of_owner(owner: Owner) -> list[ChainEvent]:
+    """The owner's history read from the contract's logs, oldest first.
+
+    Enrolment, registration, key rotations, uploads, and grants given and received.
+    Raises chainworker.chain.ChainError when the node is down or nothing is deployed.
+    """
+    client = chain_client()
+    deployment = deployment_active(chain_id=client.chain_id, genesis_hash=client.genesis_hash)
+    from_block = deployment.block_number if deployment else 0
+    address = owner.eoa_address.lower()
+    return [
+        event
+        for event in client.events(from_block, names=list(OWNER_EVENT_ARGS))
+        if any(str(event.args[arg]).lower() == address for arg in OWNER_EVENT_ARGS[event.name])
+    ]

@@ -1,0 +1,29 @@
+"""Exceptions raised by smcrypto: every one is a CryptoError (and so a ValueError)."""
+
+
+class CryptoError(ValueError):
+    """Base of everything smcrypto raises for bad keys, bytes or signatures."""
+
+
+class InvalidKey(CryptoError):
+    """A key, nonce or IV has the wrong type or length, or an SM2 key is not valid."""
+
+
+class MalformedEnvelope(CryptoError):
+    """The bytes are not a well-formed envelope, or a header is not acceptable."""
+
+
+class UnsupportedEnvelope(CryptoError):
+    """The envelope has a version or algorithm this code does not know."""
+
+
+class WrongKey(CryptoError):
+    """The envelope was sealed under a different key than the one given."""
+
+
+class AuthenticationFailed(CryptoError):
+    """The SM4-GCM tag does not match: the data or its header was changed."""
+
+
+class DecryptionError(CryptoError):
+    """SM2 or SM4-CBC decryption failed (wrong key, corrupted data or bad padding)."""

@@ -1,0 +1,97 @@
+"""The OpenAPI schema: valid, served, and describing exactly the API that DESIGN.md fixes."""
+
+from io import StringIO
+from pathlib import Path
+
+import pytest
+import yaml
+from django.core.management import call_command
+
+from accounts.keyexchange import portal_sm2_public_key, sm4_key_from_submission
+from smcrypto import sm2, sm4
+
+pytestmark = pytest.mark.django_db
+
+# DESIGN.md, "REST API for agents (fixed)"
+FIXED_OPERATIONS = {
+    ("/api/v1/sm2-public-key/", "get"),
+    ("/api/v1/records/", "get"),
+    ("/api/v1/records/", "post"),
+    ("/api/v1/records/{record_id}/", "get"),
+    ("/api/v1/records/{record_id}/content/", "get"),
+    ("/api/v1/grants/", "get"),
+    ("/api/v1/grants/", "post"),
+    ("/api/v1/grants/{grantee}/", "delete"),
+}
+
+
+def test_the_schema_validates_without_warnings(tmp_path: Path):
+    out = tmp_path / "schema.yaml"
+    call_command(
+        "spectacular", "--validate", "--fail-on-warn", "--file", str(out), stderr=StringIO()
+    )
+    assert yaml.safe_load(out.read_text())["openapi"].startswith("3.")
+
+
+def test_the_served_schema_lists_exactly_the_fixed_endpoints(client):
+    answer = client.get("/api/schema/", HTTP_ACCEPT="application/vnd.oai.openapi+json")
+    assert answer.status_code == 200
+    schema = answer.json()
+    operations = {
+        (path, method)
+        for path, item in schema["paths"].items()
+        for method in item
+        if method in {"get", "post", "put", "patch", "delete"}
+    }
+    assert operations == FIXED_OPERATIONS
+    error = {"$ref": "#/components/schemas/Error"}
+    for path, method in operations:
+        responses = schema["paths"][path][method]["responses"]
+        errors = {code for code in responses if code.startswith(("4", "5"))}
+        assert "429" in errors, (path, method)
+        for code in errors:
+            assert responses[code]["content"]["application/json"]["schema"] == error
+    upload = schema["paths"]["/api/v1/records/"]["post"]
+    assert upload["security"] == [{"robotToken": []}]
+    assert {"400", "401", "403", "409", "413"} <= set(upload["responses"])
+    assert schema["components"]["securitySchemes"]["robotToken"]["name"] == "Authorization"
+    assert set(schema["components"]["schemas"]["Error"]["required"]) == {"error", "detail"}
+
+
+def test_swagger_ui_is_served(client):
+    answer = client.get("/api/docs/")
+    assert answer.status_code == 200
+    assert b"swagger" in answer.content.lower()
+
+
+def test_the_sm2_public_key_needs_no_credentials_and_works_for_the_key_exchange(client):
+    answer = client.get("/api/v1/sm2-public-key/")
+    assert answer.status_code == 200
+    body = answer.json()
+    assert body == {"public_key": portal_sm2_public_key(), "mode": "C1C3C2"}
+    key = sm4.generate_key()
+    assert sm4_key_from_submission(sm2.encrypt(body["public_key"], key)) == key
+
+
+def test_anything_else_under_api_is_a_json_404(client):
+    for path in ("/api/", "/api/v1/", "/api/v2/records/", "/api/v1/records", "/api/v1/robots/"):
+        for method in ("get", "post", "delete"):
+            answer = getattr(client, method)(path)
+            assert answer.status_code == 404, (method, path)
+            assert answer.json()["error"] == "not_found"
+    assert "slash" in client.post("/api/v1/records").json()["detail"]
+
+
+def test_methods_the_api_does_not_have_get_405(client, make_robot):
+    setup = make_robot()
+    auth = {"HTTP_AUTHORIZATION": f"Token {setup.token}"}
+    for method, path in [
+        ("put", "/api/v1/records/"),
+        ("delete", "/api/v1/records/"),
+        ("post", "/api/v1/sm2-public-key/"),
+        ("patch", "/api/v1/grants/"),
+        ("get", "/api/v1/grants/bob/"),
+    ]:
+        answer = getattr(client, method)(path, **auth)
+        assert answer.status_code == 405, (method, path)
+        assert answer.json()["error"] == "method_not_allowed"

@@ -1,0 +1,152 @@
+"""The chain client against a real anvil node: several processes sending at once."""
+
+import multiprocessing
+import uuid
+from datetime import UTC, datetime
+
+import pytest
+import redis
+from eth_account import Account
+from web3 import Web3
+
+from chainworker.chain import (
+    AnchorItem,
+    AuthROSChain,
+    ChainUnavailable,
+    TransactionReverted,
+    TransactionTimeout,
+)
+from smcrypto import key_commitment, sm3, sm4
+from tests.anvil import start_anvil
+
+pytestmark = pytest.mark.anvil
+
+SENDER_PROCESSES = 4
+UPLOADS_PER_PROCESS = 15
+
+
+def _item() -> AnchorItem:
+    return AnchorItem(
+        record_id=uuid.uuid4(),
+        digest=sm3.sm3_digest(uuid.uuid4().bytes),
+        time=datetime.now(tz=UTC),
+        data_type="std_msgs/String",
+    )
+
+
+def _deployed(url: str, redis_client: redis.Redis) -> tuple[AuthROSChain, Account]:
+    client = AuthROSChain(url, redis_client=redis_client, receipt_timeout=30)
+    operator = Account.create()
+    assert client.dev_faucet(operator.address, 10**21)
+    client.deploy(operator)
+    return client, operator
+
+
+def _registered(client: AuthROSChain, operator: Account) -> Account:
+    owner = Account.create()
+    client.transfer(operator, owner.address, 10**18)
+    client.enroll(operator, owner.address)
+    client.register(owner, key_commitment(owner.address, sm4.generate_key()))
+    return owner
+
+
+def _upload_from_another_process(url, redis_url, address, owner_key, count, queue) -> None:
+    """Runs in a child process: its own client, the same EOA as the other children."""
+    client = AuthROSChain(
+        url, redis_client=redis.Redis.from_url(redis_url), contract_address=address
+    )
+    owner = Account.from_key(owner_key)
+    sent = []
+    try:
+        for _ in range(count):
+            item = _item()
+            sent.append((str(item.record_id), client.data_upload(owner, item, wait=False)))
+        for _, tx_hash in sent:
+            client.wait_for_receipt(tx_hash)
+        queue.put(("ok", [record_id for record_id, _ in sent]))
+    except Exception as exc:  # report any failure to the parent, whatever it is
+        queue.put(("error", f"{type(exc).__name__}: {exc}"))
+
+
+def test_full_contract_flow_over_http(anvil, redis_client):
+    client, operator = _deployed(anvil.url, redis_client)
+    owner = _registered(client, operator)
+    viewer = _registered(client, operator)
+    item = _item()
+    result = client.data_upload(owner, item)
+    assert result.events[0].name == "DataUploaded"
+    assert client.data_query(item.record_id).digest == item.digest
+    client.authority_grant(owner, viewer.address)
+    assert client.has_access(owner.address, viewer.address)
+    with pytest.raises(TransactionReverted) as refused:
+        client.authority_grant(owner, viewer.address)
+    assert refused.value.error_name == "AlreadyGranted"
+    assert client.client_version.lower().startswith("anvil")
+
+
+def test_concurrent_senders_in_several_processes_share_nonces(anvil, redis_client, settings):
+    client, operator = _deployed(anvil.url, redis_client)
+    owner = _registered(client, operator)
+    context = multiprocessing.get_context("spawn")
+    queue = context.Queue()
+    workers = [
+        context.Process(
+            target=_upload_from_another_process,
+            args=(
+                anvil.url,
+                settings.REDIS_URL,
+                client.address,
+                owner.key.hex(),
+                UPLOADS_PER_PROCESS,
+                queue,
+            ),
+        )
+        for _ in range(SENDER_PROCESSES)
+    ]
+    for worker in workers:
+        worker.start()
+    outcomes = [queue.get(timeout=120) for _ in workers]
+    for worker in workers:
+        worker.join(timeout=30)
+    errors = [detail for status, detail in outcomes if status == "error"]
+    assert errors == []
+    record_ids = [record_id for _, ids in outcomes for record_id in ids]
+    assert len(set(record_ids)) == SENDER_PROCESSES * UPLOADS_PER_PROCESS
+    assert client.record_count() == SENDER_PROCESSES * UPLOADS_PER_PROCESS
+    assert all(client.data_query(record_id) is not None for record_id in record_ids)
+    uploads = client.events(names=["DataUploaded"])
+    assert sorted(str(e.args["id"][:16].hex()) for e in uploads) == sorted(
+        uuid.UUID(r).hex for r in record_ids
+    )
+
+
+def test_receipt_timeout_when_nothing_is_mined(redis_client, tmp_path):
+    with start_anvil() as node:
+        client, operator = _deployed(node.url, redis_client)
+        owner = _registered(client, operator)
+        client.w3.provider.make_request("evm_setAutomine", [False])
+        tx_hash = client.data_upload(owner, _item(), wait=False)
+        with pytest.raises(TransactionTimeout) as timed_out:
+            client.wait_for_receipt(tx_hash, timeout=1)
+        assert timed_out.value.tx_hash == tx_hash
+        client.w3.provider.make_request("evm_mine", [])
+        assert client.wait_for_receipt(tx_hash, timeout=5)["status"] == 1
+
+
+def test_confirmations_are_awaited(redis_client):
+    with start_anvil(block_time=0.5) as node:
+        client, operator = _deployed(node.url, redis_client)
+        owner = _registered(client, operator)
+        client.confirmations = 2
+        result = client.data_upload(owner, _item())
+        assert client.latest_block() >= result.block_number + 2
+
+
+def test_node_going_away_raises_chain_unavailable(redis_client):
+    node = start_anvil()
+    client, _operator = _deployed(node.url, redis_client)
+    node.stop()
+    with pytest.raises(ChainUnavailable):
+        client.record_count()
+    assert not client.is_connected()
+    assert Web3.is_checksum_address(client.address)

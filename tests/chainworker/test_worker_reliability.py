@@ -1,0 +1,270 @@
+"""Real Celery workers, Redis and anvil: everything is anchored exactly once, whatever fails.
+
+These tests start worker and beat processes (tests/stack.py) that share the test database,
+a Redis database of their own and an anvil node, then break things: kill -9 a worker in the
+middle of a batch, stop the chain for 20 s, flush Redis, change stored ciphertext.
+"""
+
+import threading
+import time
+import uuid
+from collections import Counter
+
+import pytest
+import redis
+
+from accounts.models import ChainState, Owner
+from accounts.services import owner_create, robot_create
+from chainworker import services as chain_services
+from chainworker.chain import record_id_to_bytes32
+from sharing.cache import _key as cache_key
+from sharing.models import Grant, Record
+from sharing.services import grant_create, grant_revoke, record_create, record_create_batch
+from sharing.storage import envelope_storage
+from sharing.tasks import record_verify
+from smcrypto import sm4
+from tests.conftest import TEST_PASSWORD, RobotSetup
+from tests.stack import WorkerStack, wait_for
+
+pytestmark = [
+    pytest.mark.worker,
+    pytest.mark.anvil,
+    pytest.mark.slow,
+    pytest.mark.django_db(transaction=True),
+]
+
+
+def _stack(
+    tmp_path,
+    settings,
+    *,
+    workers: int,
+    block_time: float | None = None,
+    env_overrides: dict[str, str] | None = None,
+) -> WorkerStack:
+    stack = WorkerStack(tmp_path, block_time=block_time, env_overrides=env_overrides)
+    stack.configure_test_process(settings)
+    redis.Redis.from_url(stack.redis_url).flushdb()
+    chain_services._clients.clear()
+    chain_services.contract_deploy()
+    for index in range(workers):
+        stack.start_worker(f"w{index}")
+    stack.start_beat()
+    return stack
+
+
+@pytest.fixture
+def stack_factory(tmp_path, settings):
+    stacks = []
+
+    def make(**kwargs) -> WorkerStack:
+        stacks.append(_stack(tmp_path, settings, **kwargs))
+        return stacks[-1]
+
+    yield make
+    for stack in stacks:
+        stack.stop()
+
+
+def _robots(count: int) -> list[RobotSetup]:
+    setups = []
+    for _ in range(count):
+        key = sm4.generate_key()
+        owner = owner_create(
+            username=f"owner-{uuid.uuid4().hex[:8]}", password=TEST_PASSWORD, sm4_key=key
+        )
+        robot, token = robot_create(owner=owner, name="robot")
+        setups.append(RobotSetup(owner, key, robot, token))
+    ids = [s.owner.pk for s in setups]
+    wait_for(
+        lambda: Owner.objects.filter(pk__in=ids, chain_state=ChainState.CONFIRMED).count() == count,
+        timeout=120,
+        what=f"{count} owners registered on chain by the workers",
+    )
+    for setup in setups:
+        setup.owner.refresh_from_db()
+    return setups
+
+
+def _all_anchored(count: int, *, timeout: float) -> None:
+    wait_for(
+        lambda: Record.objects.filter(status=Record.Status.ANCHORED).count() == count,
+        timeout=timeout,
+        what=f"{count} records anchored",
+        interval=0.5,
+    )
+
+
+def _assert_each_anchored_exactly_once(stack: WorkerStack) -> None:
+    client = chain_services.chain_client()
+    uploads = Counter(bytes(e.args["id"]) for e in client.events(names=["DataUploaded"]))
+    expected = {record_id_to_bytes32(pk) for pk in Record.objects.values_list("pk", flat=True)}
+    assert set(uploads) == expected
+    assert max(uploads.values()) == 1
+    assert client.record_count() == len(expected)
+    assert not Record.objects.exclude(status=Record.Status.ANCHORED).exists()
+    logs = stack.worker_logs()
+    assert "NonceError" not in logs
+    assert "nonce" not in logs.lower() or "refused for" not in logs
+
+
+def test_thousand_uploads_from_ten_owners_with_two_workers(stack_factory):
+    stack = stack_factory(workers=2)
+    setups = _robots(10)
+    next_seq = dict.fromkeys(range(10), 1)
+    for round_number in range(10):
+        for index, setup in enumerate(setups):
+            seq = next_seq[index]
+            if round_number % 2:
+                record_create_batch(
+                    robot=setup.robot, envelopes=[setup.seal(s) for s in range(seq, seq + 10)]
+                )
+            else:
+                for s in range(seq, seq + 10):
+                    record_create(robot=setup.robot, data=setup.seal(s))
+            next_seq[index] = seq + 10
+    assert Record.objects.count() == 1000
+    _all_anchored(1000, timeout=300)
+    _assert_each_anchored_exactly_once(stack)
+    # Records of one owner share transactions: far fewer transactions than records.
+    transactions = Record.objects.values("tx_hash").distinct().count()
+    assert transactions < 500
+
+
+def test_worker_killed_in_the_middle_of_a_batch(stack_factory):
+    stack = stack_factory(workers=1, block_time=2)
+    (setup,) = _robots(1)
+    record_create_batch(robot=setup.robot, envelopes=[setup.seal(s) for s in range(1, 51)])
+    # The batch is sent and the worker waits for its block: kill it there.
+    wait_for(
+        lambda: Record.objects.filter(anchor_attempts__gte=1).exists(),
+        timeout=60,
+        what="the worker to send the batch",
+        interval=0.05,
+    )
+    stack.kill_worker("w0")
+    assert Record.objects.filter(status=Record.Status.PENDING).exists()
+    record_create_batch(robot=setup.robot, envelopes=[setup.seal(s) for s in range(51, 61)])
+    stack.start_worker("w0-restarted")
+    _all_anchored(60, timeout=180)
+    _assert_each_anchored_exactly_once(stack)
+
+
+def test_chain_down_for_twenty_seconds(stack_factory):
+    stack = stack_factory(workers=1)
+    (setup,) = _robots(1)
+    stop_uploading = threading.Event()
+    uploaded = []
+
+    def upload() -> None:
+        seq = 1
+        while not stop_uploading.is_set():
+            uploaded.append(record_create(robot=setup.robot, data=setup.seal(seq)))
+            seq += 1
+            time.sleep(0.2)
+
+    uploader = threading.Thread(target=upload)
+    uploader.start()
+    try:
+        time.sleep(3)
+        stack.stop_anvil()
+        time.sleep(20)
+        assert Record.objects.filter(status=Record.Status.PENDING).exists()
+        stack.restart_anvil()
+        time.sleep(3)
+    finally:
+        stop_uploading.set()
+        uploader.join()
+    _all_anchored(len(uploaded), timeout=180)
+    _assert_each_anchored_exactly_once(stack)
+
+
+def test_redis_flushed_during_uploads(stack_factory):
+    stack = stack_factory(workers=2)
+    setups = _robots(2)
+    broker = redis.Redis.from_url(stack.redis_url)
+    for seq in range(1, 101):
+        for setup in setups:
+            record_create(robot=setup.robot, data=setup.seal(seq))
+        if seq == 50:
+            broker.flushdb()
+    _all_anchored(200, timeout=180)
+    _assert_each_anchored_exactly_once(stack)
+
+
+def test_tampered_cache_and_durable_copy_are_refused(stack_factory):
+    stack = stack_factory(workers=1)
+    (setup,) = _robots(1)
+    first = record_create(robot=setup.robot, data=setup.seal(1))
+    second = record_create(robot=setup.robot, data=setup.seal(2))
+    _all_anchored(2, timeout=60)
+
+    def verdict(record: Record) -> str:
+        return record_verify.delay(str(record.pk), setup.owner.pk).get(timeout=60)["outcome"]
+
+    assert verdict(first) == "verified"
+    cache = redis.Redis.from_url(stack.redis_url)
+    changed = bytearray(cache.get(cache_key(first.pk)))
+    changed[-1] ^= 0x01
+    cache.set(cache_key(first.pk), bytes(changed))
+    assert verdict(first) == "tampered"
+
+    cache.delete(cache_key(second.pk))
+    path = envelope_storage().path(second.storage_name)
+    with open(path, "r+b") as handle:
+        data = bytearray(handle.read())
+        data[30] ^= 0x01
+        handle.seek(0)
+        handle.write(bytes(data))
+    assert verdict(second) == "tampered"
+    assert verdict(second) == "tampered"
+
+
+def test_revoked_viewer_is_refused_at_the_next_view(stack_factory):
+    stack_factory(workers=1)
+    alice, bob = _robots(2)
+    record = record_create(robot=alice.robot, data=alice.seal(1))
+    _all_anchored(1, timeout=60)
+    grant = grant_create(owner=alice.owner, grantee=bob.owner)
+    wait_for(
+        lambda: Grant.objects.get(pk=grant.pk).status == Grant.Status.ACTIVE,
+        timeout=60,
+        what="the grant on chain",
+    )
+    view = record_verify.delay(str(record.pk), bob.owner.pk).get(timeout=60)
+    assert view["outcome"] == "verified"
+    grant_revoke(owner=alice.owner, grantee=bob.owner)
+    view = record_verify.delay(str(record.pk), bob.owner.pk).get(timeout=60)
+    assert view["outcome"] == "no_access"
+    wait_for(
+        lambda: Grant.objects.get(pk=grant.pk).status == Grant.Status.REVOKED,
+        timeout=60,
+        what="the revocation on chain",
+    )
+    client = chain_services.chain_client()
+    assert not client.has_access(alice.owner.eoa_address, bob.owner.eoa_address)
+
+
+def test_owners_take_turns_and_transactions_share_blocks(stack_factory):
+    """A long backlog of one owner does not hold up another, and one owner has several
+    batch transactions in flight at once (so they share blocks)."""
+    stack_factory(
+        workers=1,
+        block_time=1,
+        env_overrides={"ANCHOR_BATCH_MAX": "5", "ANCHOR_INFLIGHT": "4"},
+    )
+    busy, quiet = _robots(2)
+    record_create_batch(robot=busy.robot, envelopes=[busy.seal(s) for s in range(1, 101)])
+    late = record_create(robot=quiet.robot, data=quiet.seal(1))
+    _all_anchored(101, timeout=180)
+    late.refresh_from_db()
+    last_of_busy = Record.objects.filter(owner=busy.owner).order_by("-anchored_at").first()
+    assert late.anchored_at < last_of_busy.anchored_at
+    busy_blocks = set(
+        Record.objects.filter(owner=busy.owner).values_list("block_number", flat=True)
+    )
+    busy_transactions = set(
+        Record.objects.filter(owner=busy.owner).values_list("tx_hash", flat=True)
+    )
+    assert len(busy_transactions) == 20
+    assert len(busy_blocks) < len(busy_transactions)

@@ -1,0 +1,200 @@
+"""Fixtures shared by the whole suite: real Redis, an in-process EVM, a real anvil."""
+
+import json
+import uuid
+from collections.abc import Iterator
+from dataclasses import dataclass
+from datetime import UTC, datetime
+
+import pytest
+import redis
+from django.conf import settings as django_settings
+from eth_account import Account
+from eth_account.signers.local import LocalAccount
+
+from accounts.models import Owner, Robot
+from accounts.services import owner_create, robot_create
+from chainworker import services as chain_services
+from chainworker.chain import AuthROSChain, forget_in_process_chain
+from portal.celery import app as celery_app
+from smcrypto import envelope, key_commitment, sm4
+from tests.anvil import AnvilProcess, start_anvil
+
+TEST_PASSWORD = "correct horse battery staple 42"
+
+
+@pytest.fixture(scope="session")
+def redis_client() -> redis.Redis:
+    client = redis.Redis.from_url(django_settings.REDIS_URL)
+    try:
+        client.ping()
+    except redis.ConnectionError as exc:
+        pytest.exit(f"the suite needs a real Redis at {django_settings.REDIS_URL}: {exc}", 1)
+    return client
+
+
+@pytest.fixture(autouse=True)
+def isolated_portal(settings, tmp_path, redis_client, request) -> Iterator[str]:
+    """Each test gets its own secrets, storage, Redis namespace and in-process chain.
+
+    Celery runs tasks eagerly (inline) unless the test is marked `worker`: those start real
+    worker processes because they are about the queue.
+    """
+    url = f"eth-tester://test-{uuid.uuid4().hex}"
+    settings.SECRETS_DIR = tmp_path / "secrets"
+    settings.MEDIA_ROOT = tmp_path / "media"
+    settings.STORAGES = {
+        **settings.STORAGES,
+        "envelopes": {
+            "BACKEND": "sharing.storage.DurableFileSystemStorage",
+            "OPTIONS": {"location": str(tmp_path / "media" / "envelopes")},
+        },
+    }
+    settings.REDIS_KEY_PREFIX = f"authros-test-{uuid.uuid4().hex[:12]}"
+    settings.CHAIN_RPC_URL = url
+    settings.CHAIN_CONTRACT_ADDRESS = ""
+    settings.CHAIN_OPERATOR_KEY = ""
+    settings.AUTHROS_MASTER_KEY = ""
+    settings.ANCHOR_MAX_WAIT = 0
+    eager = request.node.get_closest_marker("worker") is None
+    celery_app.conf.task_always_eager = eager
+    celery_app.conf.task_eager_propagates = eager
+    chain_services._clients.clear()
+    yield url
+    chain_services._clients.clear()
+    forget_in_process_chain(url)
+    for key in redis_client.scan_iter(f"{settings.REDIS_KEY_PREFIX}:*"):
+        redis_client.delete(key)
+
+
+@pytest.fixture
+def deployed(db, isolated_portal) -> AuthROSChain:
+    """The portal's own chain client, with the contract deployed and recorded."""
+    chain_services.contract_deploy()
+    return chain_services.chain_client()
+
+
+@pytest.fixture
+def make_owner(deployed, django_capture_on_commit_callbacks):
+    """Create owners through the service; their on-chain registration runs inline."""
+
+    def make(username: str | None = None, *, key: bytes | None = None) -> Owner:
+        with django_capture_on_commit_callbacks(execute=True):
+            owner = owner_create(
+                username=username or f"owner-{uuid.uuid4().hex[:8]}",
+                password=TEST_PASSWORD,
+                sm4_key=key or sm4.generate_key(),
+            )
+        owner.refresh_from_db()
+        return owner
+
+    return make
+
+
+@pytest.fixture
+def operator() -> LocalAccount:
+    return chain_services.operator_account()
+
+
+@pytest.fixture
+def chain(isolated_portal, redis_client, operator) -> AuthROSChain:
+    """A fresh in-process chain with the AuthROS contract deployed by the operator."""
+    client = AuthROSChain(isolated_portal, redis_client=redis_client, receipt_timeout=30)
+    client.dev_faucet(operator.address, 10**21)
+    client.deploy(operator)
+    return client
+
+
+def make_registered_owner(
+    client: AuthROSChain, admin: LocalAccount, *, key: bytes | None = None
+) -> LocalAccount:
+    """A new EOA, funded, enrolled by the admin and registered with a key commitment."""
+    account = Account.create()
+    client.transfer(admin, account.address, 10**18)
+    client.enroll(admin, account.address)
+    client.register(account, key_commitment(account.address, key or sm4.generate_key()))
+    return account
+
+
+@pytest.fixture
+def registered_owner(chain, operator) -> LocalAccount:
+    return make_registered_owner(chain, operator)
+
+
+@pytest.fixture(scope="module")
+def anvil() -> Iterator[AnvilProcess]:
+    """A real anvil node for the module's integration tests (automine)."""
+    with start_anvil() as node:
+        yield node
+
+
+def seal_for(
+    robot: Robot,
+    key: bytes,
+    *,
+    seq: int,
+    topic: str = "/robot/odom",
+    data_type: str = "nav_msgs/Odometry",
+    plaintext: bytes | None = None,
+    owner: str | None = None,
+    robot_id: str | None = None,
+    time: str | None = None,
+) -> bytes:
+    """An envelope as the robot's agent would seal it."""
+    header = {
+        "owner": owner or robot.owner.username,
+        "robot": robot_id or str(robot.id),
+        "topic": topic,
+        "type": data_type,
+        "seq": seq,
+        "time": time or datetime.now(tz=UTC).isoformat().replace("+00:00", "Z"),
+    }
+    body = plaintext if plaintext is not None else json.dumps({"K": {"seq": seq}}).encode()
+    return envelope.seal(key, header, body)
+
+
+@dataclass
+class RobotSetup:
+    owner: Owner
+    key: bytes
+    robot: Robot
+    token: str
+
+    def seal(self, seq: int, **kwargs: object) -> bytes:
+        return seal_for(self.robot, self.key, seq=seq, **kwargs)
+
+
+@pytest.fixture
+def make_robot(make_owner):
+    """An owner (registered on chain) with one robot, and the owner's SM4 key."""
+
+    def make(username: str | None = None) -> RobotSetup:
+        key = sm4.generate_key()
+        owner = make_owner(username, key=key)
+        robot, token = robot_create(owner=owner, name=f"robot-{uuid.uuid4().hex[:6]}")
+        return RobotSetup(owner, key, robot, token)
+
+    return make
+
+
+# Tests that never touch the database: `make test` runs them once, not again on PostgreSQL.
+_NO_DATABASE = (
+    "tests/smcrypto/",
+    "tests/contracts/",
+    "tests/chainworker/test_chain.py",
+    "tests/chainworker/test_chain_anvil.py",
+    "tests/ros_agent/test_config.py",
+    "tests/ros_agent/test_extractors.py",
+    "tests/ros_agent/test_node.py",
+    "tests/ros_agent/test_sim.py",
+    "tests/ros_agent/test_spool.py",
+    "tests/ros_agent/test_uploader.py",
+    "tests/ros_agent/test_wrapping.py",
+)
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    root = str(config.rootpath) + "/"
+    for item in items:
+        if str(item.path).removeprefix(root).startswith(_NO_DATABASE):
+            item.add_marker(pytest.mark.nodb)

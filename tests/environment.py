@@ -1,0 +1,13 @@
+"""Loaded by pytest before Django's settings (`-p tests.environment` in pyproject.toml).
+
+The suite uses a Redis database of its own (TEST_REDIS_URL, default db 14), so that tests
+which flush Redis never touch a developer's data, and a Celery queue of its own per test run,
+so that the workers of two runs on one machine never take each other's messages.
+"""
+
+import os
+
+os.environ["REDIS_URL"] = os.environ.get("TEST_REDIS_URL", "redis://127.0.0.1:6379/14")
+os.environ["CELERY_QUEUE"] = f"authros-test-{os.getpid()}"
+os.environ.pop("CELERY_BROKER_URL", None)
+os.environ.pop("CELERY_RESULT_BACKEND", None)

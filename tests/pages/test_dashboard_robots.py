@@ -1,0 +1,193 @@
+"""The dashboard, and robots: a token shown once, the agent config, revocation."""
+
+import os
+import re
+
+import pytest
+import yaml
+from django.test import Client
+from django.urls import reverse
+
+from accounts.models import Robot
+from accounts.selectors import owner_key_current, robot_by_token
+from ros_agent.config import config_from_mapping
+from sharing.services import grant_create
+from tests.anvil import free_port
+
+pytestmark = pytest.mark.django_db
+
+
+def test_dashboard_shows_identity_and_counts(
+    client, make_robot, make_owner, upload, django_capture_on_commit_callbacks
+):
+    alice = make_robot("alice")
+    bob = make_owner("bob")
+    upload(alice, 1)
+    upload(alice, 2)
+    with django_capture_on_commit_callbacks(execute=True):
+        grant_create(owner=alice.owner, grantee=bob)
+    client.force_login(alice.owner.user)
+    page = client.get(reverse("dashboard"))
+    html = page.content.decode()
+    assert page.status_code == 200
+    owner = alice.owner
+    assert owner.eoa_address in html
+    assert owner.register_tx in html
+    assert owner.fund_tx in html
+    assert owner_key_current(owner).key_id in html
+    assert re.search(r'data-testid="eoa-balance">\d+\.\d{6} ETH<', html)
+    assert re.search(r'data-testid="record-count">2<', html)
+    assert re.search(r'data-testid="grants-given-count">1<', html)
+    assert re.search(r'data-testid="grants-received-count">0<', html)
+    assert alice.key.hex() not in html
+
+    client.force_login(bob.user)
+    html = client.get(reverse("dashboard")).content.decode()
+    assert re.search(r'data-testid="record-count">0<', html)
+    assert re.search(r'data-testid="grants-received-count">1<', html)
+
+
+def test_dashboard_without_the_chain(client, pending_owner, settings):
+    owner = pending_owner()
+    settings.CHAIN_RPC_URL = f"http://127.0.0.1:{free_port()}"
+    client.force_login(owner.user)
+    page = client.get(reverse("dashboard"))
+    html = page.content.decode()
+    assert page.status_code == 200
+    assert "not reachable right now" in html
+    assert "unavailable" in html
+    assert owner.eoa_address in html
+    assert "still being registered" in html
+
+
+# --- robots -------------------------------------------------------------------------------
+
+
+def test_add_a_robot_shows_its_token_once(client, pending_owner, tmp_path):
+    owner = pending_owner("hal")
+    client.force_login(owner.user)
+    assert client.get(reverse("robots")).status_code == 200
+    page = client.post(
+        reverse("robots"),
+        {
+            "name": "turtle-1",
+            "topics": "/robot/odom nav_msgs/Odometry\n/scan sensor_msgs/LaserScan",
+        },
+    )
+    assert page.status_code == 201
+    assert "no-store" in page["Cache-Control"]
+    html = page.content.decode()
+    token = re.search(r'id="robot-token" data-testid="robot-token">([^<]+)<', html).group(1)
+    robot = Robot.objects.get(owner=owner, name="turtle-1")
+    assert robot_by_token(token) == robot
+    assert str(robot.id) in html
+    assert "shown only this once" in html
+
+    config_text = re.search(r'<pre class="config"[^>]*>(.*?)</pre>', html, re.S).group(1)
+    config_text = config_text.replace("&#x27;", "'").replace("&quot;", '"').replace("&amp;", "&")
+    data = yaml.safe_load(config_text)
+    assert data["token"] == token
+    assert data["robot"] == str(robot.id)
+    assert data["owner"] == "hal"
+    assert data["portal_url"] == "http://testserver"
+    assert data["topics"] == [
+        {"name": "/robot/odom", "type": "nav_msgs/Odometry"},
+        {"name": "/scan", "type": "sensor_msgs/LaserScan"},
+    ]
+    key_file = tmp_path / data["key_file"]
+    key_file.write_text("00112233445566778899aabbccddeeff\n")
+    os.chmod(key_file, 0o600)
+    config = config_from_mapping(data, source="agent.yaml", base_dir=tmp_path)
+    assert config.records_url == "http://testserver/api/v1/records/"
+    assert "download-config" in html
+    assert 'download="agent-turtle-1.yaml"' in html
+    assert "00112233445566778899aabbccddeeff" not in html
+
+    listing = client.get(reverse("robots")).content.decode()
+    assert "turtle-1" in listing
+    assert token not in listing
+    assert robot.token_prefix in listing
+
+
+def test_agent_config_download_names_a_token_file(client, pending_owner, tmp_path):
+    owner = pending_owner("ida")
+    client.force_login(owner.user)
+    client.post(reverse("robots"), {"name": "r2", "topics": "/robot/odom nav_msgs/Odometry"})
+    robot = Robot.objects.get(owner=owner)
+    page = client.get(reverse("robot-config", args=[robot.id]))
+    assert page.status_code == 200
+    assert page["Content-Disposition"] == 'attachment; filename="agent-r2.yaml"'
+    data = yaml.safe_load(page.content)
+    assert data["token_file"] == "robot.token"
+    assert "token" not in data
+    (tmp_path / "robot.token").write_text("secret-token")
+    (tmp_path / data["key_file"]).write_text("00112233445566778899aabbccddeeff")
+    for name in ("robot.token", data["key_file"]):
+        os.chmod(tmp_path / name, 0o600)
+    assert config_from_mapping(data, source="agent.yaml", base_dir=tmp_path).robot == str(robot.id)
+
+
+@pytest.mark.parametrize(
+    ("form", "message"),
+    [
+        ({"name": "", "topics": "/a std_msgs/String"}, "This field is required"),
+        ({"name": "r", "topics": ""}, "This field is required"),
+        ({"name": "r", "topics": "/robot/odom"}, "write the topic name and its type"),
+        ({"name": "r", "topics": "/robot/odom Odometry"}, "must be package/Message"),
+        ({"name": "taken", "topics": "/a std_msgs/String"}, "already has a robot named"),
+    ],
+)
+def test_add_robot_refusals_change_nothing(client, pending_owner, form, message):
+    owner = pending_owner()
+    client.force_login(owner.user)
+    client.post(reverse("robots"), {"name": "taken", "topics": "/a std_msgs/String"})
+    page = client.post(reverse("robots"), form)
+    assert page.status_code == 400
+    assert message in page.content.decode()
+    assert Robot.objects.filter(owner=owner).count() == 1
+
+
+def test_revoke_a_robot_token(client, pending_owner):
+    owner = pending_owner()
+    client.force_login(owner.user)
+    client.post(reverse("robots"), {"name": "r1", "topics": "/a std_msgs/String"})
+    robot = Robot.objects.get(owner=owner)
+    url = reverse("robot-revoke", args=[robot.id])
+    assert client.get(url).status_code == 405
+    page = client.post(url, follow=True)
+    assert "is revoked" in page.content.decode()
+    robot.refresh_from_db()
+    assert not robot.is_active
+    assert robot.revoked_at is not None
+
+
+def test_robots_of_another_owner_are_out_of_reach(client, pending_owner):
+    mallory = pending_owner("mallory")
+    victim = pending_owner("victim")
+    client.force_login(victim.user)
+    client.post(reverse("robots"), {"name": "r1", "topics": "/a std_msgs/String"})
+    robot = Robot.objects.get(owner=victim)
+    client.force_login(mallory.user)
+    assert client.post(reverse("robot-revoke", args=[robot.id])).status_code == 404
+    assert client.get(reverse("robot-config", args=[robot.id])).status_code == 404
+    assert "r1" not in client.get(reverse("robots")).content.decode()
+    robot.refresh_from_db()
+    assert robot.is_active
+
+
+def test_robot_forms_need_csrf(pending_owner):
+    owner = pending_owner()
+    client = Client(enforce_csrf_checks=True)
+    client.force_login(owner.user)
+    page = client.post(reverse("robots"), {"name": "r1", "topics": "/a std_msgs/String"})
+    assert page.status_code == 403
+    assert "security token (CSRF)" in page.content.decode()
+    assert not Robot.objects.exists()
+    # With the token from the page, the same form goes through.
+    form_page = client.get(reverse("robots"))
+    token = form_page.cookies["csrftoken"].value
+    page = client.post(
+        reverse("robots"),
+        {"name": "r1", "topics": "/a std_msgs/String", "csrfmiddlewaretoken": token},
+    )
+    assert page.status_code == 201

@@ -1,0 +1,259 @@
+"""My data, shared with me, and the record page: the verdict first, content only if verified."""
+
+import json
+import re
+import uuid
+from datetime import timedelta
+
+import pytest
+from django.urls import reverse
+from django.utils import timezone
+
+from sharing.models import Record, Verdict
+from sharing.services import grant_create, grant_revoke
+from tests.anvil import free_port
+from tests.pages.conftest import image, odometry, tamper
+
+pytestmark = pytest.mark.django_db
+
+
+@pytest.fixture
+def alice(make_robot):
+    return make_robot("alice")
+
+
+@pytest.fixture
+def bob(make_owner):
+    return make_owner("bob")
+
+
+@pytest.fixture
+def granted(alice, bob, django_capture_on_commit_callbacks):
+    with django_capture_on_commit_callbacks(execute=True):
+        grant_create(owner=alice.owner, grantee=bob)
+
+
+def _rows(html: str) -> list[str]:
+    return re.findall(r'data-record-id="([0-9a-f-]+)" data-testid="record-row"', html)
+
+
+# --- lists --------------------------------------------------------------------------------
+
+
+def test_my_data_lists_filters_and_pages(client, alice, make_robot, upload):
+    odom = [upload(alice, seq, plaintext=odometry("alice", seq, 0)) for seq in (1, 2, 3)]
+    img = upload(alice, 4, plaintext=image("alice"), topic="/cam", data_type="sensor_msgs/Image")
+    pending = upload(alice, 5, anchor=False, topic="/cam", data_type="sensor_msgs/Image")
+    other = make_robot("zed")
+    foreign = upload(other, 1)
+    client.force_login(alice.owner.user)
+    url = reverse("records")
+
+    page = client.get(url)
+    html = page.content.decode()
+    assert page.status_code == 200
+    assert set(_rows(html)) == {str(r.id) for r in [*odom, img, pending]}
+    assert str(foreign.id) not in html
+    assert odom[0].tx_hash in html
+    assert f"<td>{odom[0].block_number}</td>" in html
+    assert "5 of 5 records" in html
+
+    assert set(_rows(client.get(url, {"topic": "/cam"}).content.decode())) == {
+        str(img.id),
+        str(pending.id),
+    }
+    by_type = client.get(url, {"data_type": "nav_msgs/Odometry"}).content.decode()
+    assert set(_rows(by_type)) == {str(r.id) for r in odom}
+    assert _rows(client.get(url, {"status": "pending"}).content.decode()) == [str(pending.id)]
+    assert len(_rows(client.get(url, {"status": "anchored"}).content.decode())) == 4
+
+    Record.objects.filter(pk=odom[0].pk).update(captured_at=timezone.now() - timedelta(days=3))
+    since = (timezone.now() - timedelta(days=1)).strftime("%Y-%m-%dT%H:%M")
+    until = (timezone.now() - timedelta(days=2)).strftime("%Y-%m-%dT%H:%M")
+    assert str(odom[0].id) not in _rows(client.get(url, {"since": since}).content.decode())
+    assert _rows(client.get(url, {"until": until}).content.decode()) == [str(odom[0].id)]
+    bad_range = client.get(url, {"since": since, "until": until}).content.decode()
+    assert "after its end" in bad_range
+
+    paged = client.get(url, {"page": 2})
+    assert paged.status_code == 200  # past the last page: the last page
+
+
+def test_my_data_pagination(client, alice, upload, monkeypatch):
+    monkeypatch.setattr("sharing.views.RECORDS_PER_PAGE", 2)
+    for seq in (1, 2, 3):
+        upload(alice, seq, anchor=False)
+    client.force_login(alice.owner.user)
+    first = client.get(reverse("records")).content.decode()
+    assert len(_rows(first)) == 2
+    assert "Page 1 of 2" in first
+    second = client.get(reverse("records"), {"page": 2}).content.decode()
+    assert len(_rows(second)) == 1
+    assert set(_rows(first)).isdisjoint(_rows(second))
+
+
+def test_shared_with_me(client, alice, bob, upload, django_capture_on_commit_callbacks):
+    record = upload(alice, 1)
+    client.force_login(bob.user)
+    assert _rows(client.get(reverse("shared")).content.decode()) == []
+    with django_capture_on_commit_callbacks(execute=True):
+        grant_create(owner=alice.owner, grantee=bob)
+    html = client.get(reverse("shared")).content.decode()
+    assert _rows(html) == [str(record.id)]
+    assert "Owners sharing with you: <strong>alice</strong>" in html
+    assert _rows(client.get(reverse("shared"), {"owner": "alice"}).content.decode()) == [
+        str(record.id)
+    ]
+    assert _rows(client.get(reverse("records")).content.decode()) == []
+    grant_revoke(owner=alice.owner, grantee=bob)
+    assert _rows(client.get(reverse("shared")).content.decode()) == []
+
+
+# --- the record page ----------------------------------------------------------------------
+
+
+def test_verified_odometry_record(client, alice, upload):
+    earlier = [upload(alice, seq, plaintext=odometry("alice", seq, seq / 2)) for seq in (1, 2)]
+    record = upload(alice, 3, plaintext=odometry("alice", 3.0, 1.5, marker="frame-xyz"))
+    client.force_login(alice.owner.user)
+    page = client.get(reverse("record-detail", args=[record.id]))
+    html = page.content.decode()
+    assert page.status_code == 200
+    assert "no-store" in page["Cache-Control"]
+    assert 'data-verdict="verified"' in html
+    assert html.index('id="verdict"') < html.index("frame-xyz")  # the verdict comes first
+    verdict = Verdict.objects.filter(record=record).latest("created_at")
+    assert verdict.outcome == "verified"
+    assert verdict.chain_digest == record.digest
+    assert record.digest in html
+    assert f'data-testid="verified-block">{verdict.block_number}<' in html
+    assert "odometry-table" in html
+    assert "x 3.0000, y 1.5000, z 0.0000" in html
+    assert "45.0°" in html  # yaw of the quaternion
+    assert reverse("record-trajectory", args=[record.id]) in html
+    assert reverse("record-raw", args=[record.id]) in html
+
+    plot = client.get(reverse("record-trajectory", args=[record.id]))
+    assert plot.status_code == 200
+    assert plot["Content-Type"] == "image/svg+xml"
+    svg = plot.content.decode()
+    assert "<polyline" in svg
+    assert "3 positions" in svg
+    # Each plotted neighbour went through its own integrity check.
+    assert all(Verdict.objects.filter(record=r, outcome="verified").exists() for r in earlier)
+
+
+def test_trajectory_leaves_out_records_that_fail_their_check(client, alice, upload):
+    first = upload(alice, 1, plaintext=odometry("alice", 0, 0))
+    record = upload(alice, 2, plaintext=odometry("alice", 1, 1))
+    tamper(first)
+    client.force_login(alice.owner.user)
+    svg = client.get(reverse("record-trajectory", args=[record.id])).content.decode()
+    assert "1 position," in svg
+    assert "1 record left out (not verified)" in svg
+
+
+def test_verified_image_record_shows_the_image(client, alice, upload):
+    record = upload(alice, 1, plaintext=image("alice"), topic="/cam", data_type="sensor_msgs/Image")
+    client.force_login(alice.owner.user)
+    html = client.get(reverse("record-detail", args=[record.id])).content.decode()
+    assert 'data-verdict="verified"' in html
+    assert re.search(r'<img src="data:image/png;base64,iVBORw0KGgo[A-Za-z0-9+/=]+"', html)
+    assert 'width="4" height="3"' in html
+    assert "base64 characters, above" in html
+    assert "record-trajectory" not in html
+    plot = client.get(reverse("record-trajectory", args=[record.id]))
+    assert plot.status_code == 404
+
+
+def test_raw_json_download(client, alice, upload):
+    plaintext = odometry("alice", 1, 2)
+    record = upload(alice, 1, plaintext=plaintext)
+    client.force_login(alice.owner.user)
+    page = client.get(reverse("record-raw", args=[record.id]))
+    assert page.status_code == 200
+    assert page.content == plaintext
+    assert page["Content-Type"] == "application/json"
+    assert page["Content-Disposition"].startswith('attachment; filename="robot_odom-1-')
+    assert Verdict.objects.filter(record=record, outcome="verified").count() == 1
+
+
+def test_tampered_record_says_so_and_shows_nothing(client, alice, bob, granted, upload):
+    record = upload(alice, 1, plaintext=odometry("alice", 7.25, 0, marker="secret-frame"))
+    tamper(record)
+    for viewer in (alice.owner, bob):
+        client.force_login(viewer.user)
+        page = client.get(reverse("record-detail", args=[record.id]))
+        html = page.content.decode()
+        assert page.status_code == 409
+        assert 'data-verdict="tampered"' in html
+        assert "<h1>TAMPERED</h1>" in html
+        assert "secret-frame" not in html
+        assert "7.25" not in html
+        verdict = Verdict.objects.filter(record=record, viewer=viewer).latest("created_at")
+        assert verdict.outcome == "tampered"
+        assert verdict.computed_digest in html
+        assert verdict.chain_digest in html
+        assert verdict.computed_digest != verdict.chain_digest
+        raw = client.get(reverse("record-raw", args=[record.id]))
+        assert raw.status_code == 409
+        assert raw.json()["error"] == "tampered"
+        assert b"secret-frame" not in raw.content
+        assert client.get(reverse("record-trajectory", args=[record.id])).status_code == 409
+    client.force_login(alice.owner.user)
+    assert "TAMPERED" in client.get(reverse("records")).content.decode()
+    assert "TAMPERED" in client.get(reverse("records"), {"status": "tampered"}).content.decode()
+
+
+def test_record_not_anchored_yet(client, alice, upload):
+    record = upload(alice, 1, anchor=False, plaintext=odometry("alice", 0, 0, marker="frame-zq9"))
+    client.force_login(alice.owner.user)
+    page = client.get(reverse("record-detail", args=[record.id]))
+    html = page.content.decode()
+    assert page.status_code == 409
+    assert 'data-verdict="not_anchored_yet"' in html
+    assert "Not anchored yet" in html
+    assert "frame-zq9" not in html
+    assert client.get(reverse("record-raw", args=[record.id])).status_code == 409
+
+
+def test_records_of_others_are_out_of_reach(client, alice, bob, upload):
+    record = upload(alice, 1, plaintext=odometry("alice", 0, 0, marker="private-frame"))
+    client.force_login(bob.user)
+    for name in ("record-detail", "record-raw", "record-trajectory"):
+        page = client.get(reverse(name, args=[record.id]))
+        assert page.status_code == 403, name
+        assert b"private-frame" not in page.content
+    html = client.get(reverse("record-detail", args=[record.id])).content.decode()
+    assert 'data-verdict="no_access"' in html
+    assert str(record.digest) not in html
+    assert Verdict.objects.filter(record=record, viewer=bob, outcome="no_access").exists()
+    missing = client.get(reverse("record-detail", args=[uuid.uuid4()]))
+    assert missing.status_code == 404
+    assert 'data-verdict="not_found"' in missing.content.decode()
+    assert client.get("/records/not-a-uuid/").status_code == 404
+
+
+def test_grantee_sees_until_revoked(client, alice, bob, granted, upload):
+    record = upload(alice, 1, plaintext=image("alice"), topic="/cam", data_type="sensor_msgs/Image")
+    client.force_login(bob.user)
+    page = client.get(reverse("record-detail", args=[record.id]))
+    assert page.status_code == 200
+    assert "data:image/png;base64," in page.content.decode()
+    grant_revoke(owner=alice.owner, grantee=bob)  # its chain call is still pending
+    page = client.get(reverse("record-detail", args=[record.id]))
+    assert page.status_code == 403
+    assert "data:image/png" not in page.content.decode()
+
+
+def test_verification_unavailable(client, alice, upload, settings):
+    record = upload(alice, 1)
+    settings.CHAIN_RPC_URL = f"http://127.0.0.1:{free_port()}"
+    settings.VERIFY_TIMEOUT = 5
+    client.force_login(alice.owner.user)
+    page = client.get(reverse("record-detail", args=[record.id]))
+    assert page.status_code == 503
+    assert 'data-verdict="unavailable"' in page.content.decode()
+    raw = client.get(reverse("record-raw", args=[record.id]))
+    assert raw.status_code == 503
+    assert json.loads(raw.content)["error"] == "unavailable"

@@ -1,0 +1,145 @@
+"""Fixtures for the agent: its owner's key, an in-test records endpoint, a real ROS master.
+
+rospy allows one init_node per process, so every node under test (agent, simulator,
+`rostopic pub`) runs in a subprocess against a `rosmaster --core` on a free port, with
+ROS_HOME and ROS_LOG_DIR in the test's temporary folder.
+"""
+
+import contextlib
+import os
+import signal
+import subprocess
+import sys
+import time
+import xmlrpc.client
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import pytest
+
+from smcrypto import sm4
+from tests.anvil import free_port
+from tests.ros_agent.records_server import RecordsServer
+
+REPO_ROOT = Path(__file__).resolve().parents[2]
+OWNER = "alice"
+ROBOT = "7c9e6679-7425-40de-944b-e07fc1f90ae7"
+TOKEN = "robot-token-3f1c9a0d"
+MASTER_STARTUP = 15.0
+STOP_TIMEOUT = 10.0
+
+
+@pytest.fixture
+def owner_key() -> bytes:
+    return sm4.generate_key()
+
+
+@pytest.fixture
+def key_file(tmp_path: Path, owner_key: bytes) -> Path:
+    return write_key_file(tmp_path / "alice.sm4", owner_key)
+
+
+@pytest.fixture
+def portal(owner_key: bytes) -> Iterator[RecordsServer]:
+    server = RecordsServer(token=TOKEN, key=owner_key, owner=OWNER, robot=ROBOT)
+    server.start()
+    yield server
+    server.stop()
+
+
+def write_key_file(path: Path, key: bytes, mode: int = 0o600) -> Path:
+    path.write_text(key.hex() + "\n")
+    path.chmod(mode)
+    return path
+
+
+def chatter_record(text: str, time: str) -> dict:
+    """The Fig. 4 record the agent makes of a std_msgs/String `text` on /chatter."""
+    return {
+        "K": {"data": text},
+        "Owner": OWNER,
+        "Time": time,
+        "Type": "std_msgs/String",
+        "Topic": "/chatter",
+    }
+
+
+def wait_until(condition: Callable[[], object], timeout: float, what: str) -> None:
+    deadline = time.monotonic() + timeout
+    while not condition():
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out after {timeout} s waiting for {what}")
+        time.sleep(0.05)
+
+
+@dataclass(frozen=True)
+class RosMaster:
+    uri: str
+    env: dict[str, str]
+    home: Path
+
+
+@pytest.fixture(scope="module")
+def ros_master(tmp_path_factory: pytest.TempPathFactory) -> Iterator[RosMaster]:
+    home = tmp_path_factory.mktemp("ros_home")
+    port = free_port()
+    uri = f"http://127.0.0.1:{port}/"
+    env = {
+        **os.environ,
+        "ROS_MASTER_URI": uri,
+        "ROS_HOME": str(home),
+        "ROS_LOG_DIR": str(home / "log"),
+        "ROS_IP": "127.0.0.1",
+        "PYTHONUNBUFFERED": "1",
+    }
+    env.pop("ROS_HOSTNAME", None)
+    env.pop("ROS_NAMESPACE", None)
+    with running(
+        ["rosmaster", "--core", "-p", str(port)], env=env, log=home / "master.log"
+    ) as master:
+        deadline = time.monotonic() + MASTER_STARTUP
+        while not _master_answers(uri):
+            if master.poll() is not None or time.monotonic() > deadline:
+                log = (home / "master.log").read_text()
+                pytest.fail(f"rosmaster did not come up on port {port}:\n{log}")
+            time.sleep(0.1)
+        yield RosMaster(uri=uri, env=env, home=home)
+
+
+@contextlib.contextmanager
+def running(
+    command: list[str], *, env: dict[str, str], log: Path, stop_signal: int = signal.SIGINT
+) -> Iterator[subprocess.Popen]:
+    """Run a command for the duration of the block; stop it (then kill it) on the way out."""
+    with log.open("wb") as output:
+        process = subprocess.Popen(
+            command, env=env, cwd=REPO_ROOT, stdout=output, stderr=subprocess.STDOUT
+        )
+        try:
+            yield process
+        finally:
+            stop_process(process, stop_signal)
+
+
+def stop_process(process: subprocess.Popen, stop_signal: int = signal.SIGINT) -> int:
+    if process.poll() is None:
+        process.send_signal(stop_signal)
+        try:
+            process.wait(STOP_TIMEOUT)
+        except subprocess.TimeoutExpired:
+            process.kill()
+            process.wait()
+    return process.returncode
+
+
+def python_module(module: str, *args: str) -> list[str]:
+    return [sys.executable, "-m", module, *args]
+
+
+def _master_answers(uri: str) -> bool:
+    try:
+        code, _, _ = xmlrpc.client.ServerProxy(uri).getSystemState("/pytest")
+    except OSError:
+        return False
+    return code == 1

@@ -1,0 +1,221 @@
+"""The agent against the real portal: a ROS master, gunicorn, a Celery worker and beat, anvil.
+
+Messages published by `rostopic pub` and by the simulated robot reach the portal, are anchored
+on chain, and open (through the worker's integrity check) to exactly what was published. Then
+the portal goes down for a while: the agent spools, and when the portal is back everything
+arrives exactly once, in order, without a gap, and is anchored.
+"""
+
+import base64
+import json
+import re
+import signal
+import uuid
+import xmlrpc.client
+from collections import Counter
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import requests
+import yaml
+
+from accounts.models import ChainState
+from accounts.services import owner_create, robot_create
+from chainworker import services as chain_services
+from chainworker.chain import record_id_to_bytes32
+from ros_agent import sim
+from sharing.models import Record
+from sharing.services import record_open
+from smcrypto import sm4
+from tests.conftest import TEST_PASSWORD
+from tests.ros_agent.conftest import (
+    OWNER,
+    RosMaster,
+    chatter_record,
+    python_module,
+    running,
+    stop_process,
+    wait_until,
+    write_key_file,
+)
+from tests.stack import WorkerStack, wait_for
+
+pytestmark = [
+    pytest.mark.worker,
+    pytest.mark.anvil,
+    pytest.mark.slow,
+    pytest.mark.django_db(transaction=True),
+    pytest.mark.timeout(300),
+]
+
+CHATTER = "/chatter"
+_FINAL_STATS = re.compile(
+    r"sent=(?P<sent>\d+) spooled=(?P<spooled>\d+) failed=(?P<failed>\d+) "
+    r"dropped=(?P<dropped>\d+) queued=(?P<queued>\d+)"
+)
+
+
+@pytest.fixture
+def stack(tmp_path, settings):
+    stack = WorkerStack(tmp_path)
+    stack.configure_test_process(settings)
+    chain_services._clients.clear()
+    chain_services.contract_deploy()
+    stack.start_worker("w0")
+    stack.start_beat()
+    stack.start_web()
+    yield stack
+    stack.stop()
+
+
+def _agent_config(folder: Path, stack: WorkerStack) -> Path:
+    """An owner and robot made through the services, and the agent's yaml for them."""
+    key = sm4.generate_key()
+    owner = owner_create(username=OWNER, password=TEST_PASSWORD, sm4_key=key)
+    robot, token = robot_create(owner=owner, name=f"sim-{uuid.uuid4().hex[:6]}")
+    wait_for(
+        lambda: type(owner).objects.get(pk=owner.pk).chain_state == ChainState.CONFIRMED,
+        timeout=60,
+        what="the owner's registration on chain by the worker",
+    )
+    write_key_file(folder / "owner.sm4", key)
+    token_file = folder / "robot.token"
+    token_file.write_text(token)
+    token_file.chmod(0o600)
+    topics = [
+        (CHATTER, "std_msgs/String"),
+        (sim.ODOM_TOPIC, "nav_msgs/Odometry"),
+        (sim.IMAGE_TOPIC, "sensor_msgs/Image"),
+    ]
+    config = {
+        "portal_url": stack.web_url,
+        "token_file": "robot.token",
+        "robot": str(robot.id),
+        "owner": OWNER,
+        "key_file": "owner.sm4",
+        "topics": [{"name": name, "type": ros_type} for name, ros_type in topics],
+        "spool_dir": "spool",
+        "batch_size": 20,
+        "flush_interval": 0.2,
+        "backoff_max": 1.0,
+        "stats_interval": 1.0,
+        "shutdown_flush": 10.0,
+    }
+    path = folder / "agent.yaml"
+    path.write_text(yaml.safe_dump(config))
+    return path
+
+
+def _subscribed(master: RosMaster, *topics: str) -> bool:
+    _, _, (_, subscribers, _) = xmlrpc.client.ServerProxy(master.uri).getSystemState("/pytest")
+    ours = {
+        name for name, nodes in subscribers if any(n.startswith("/authros_agent") for n in nodes)
+    }
+    return set(topics) <= ours
+
+
+def _queued(spool: Path) -> int:
+    return len(list((spool / "queue").glob("*.env")))
+
+
+def _stored(topic: str | None = None) -> int:
+    records = Record.objects.all()
+    return (records.filter(topic=topic) if topic else records).count()
+
+
+def _final_stats(log: Path) -> dict[str, int]:
+    matches = list(_FINAL_STATS.finditer(log.read_text()))
+    assert matches, f"no counters logged by the agent:\n{log.read_text()[-3000:]}"
+    return {name: int(value) for name, value in matches[-1].groupdict().items()}
+
+
+def test_the_agent_delivers_to_the_real_portal_exactly_once_across_an_outage(
+    ros_master, stack, tmp_path
+):
+    config = _agent_config(tmp_path, stack)
+    spool = tmp_path / "spool"
+    env, agent_log = ros_master.env, tmp_path / "agent.log"
+    publisher = ["rostopic", "pub", "-r", "5", CHATTER, "std_msgs/String", "data: hello"]
+
+    with running(
+        python_module("ros_agent", "--config", str(config)), env=env, log=agent_log
+    ) as agent:
+        wait_until(
+            lambda: _subscribed(ros_master, CHATTER, sim.ODOM_TOPIC, sim.IMAGE_TOPIC),
+            30,
+            "the agent's subscriptions",
+        )
+        with running(publisher, env=env, log=tmp_path / "rostopic.log"):
+            with running(
+                python_module("ros_agent.sim", "--duration", "3"), env=env, log=tmp_path / "sim.log"
+            ) as robot:
+                assert robot.wait(60) == 0
+            wait_until(lambda: _stored(CHATTER) >= 5, 30, "chatter reaching the portal")
+            wait_until(lambda: _queued(spool) == 0, 30, "the simulator's data reaching the portal")
+
+            stack.stop_web()  # the portal goes down; the robot keeps publishing
+            before_outage = _stored()
+            wait_until(lambda: _queued(spool) >= 25, 30, "the agent spooling while offline")
+            assert _stored() == before_outage
+            stack.start_web()
+            wait_until(lambda: _queued(spool) == 0, 60, "the spool draining to the portal")
+            wait_until(lambda: _stored() >= before_outage + 25, 30, "delivery after the outage")
+        assert stop_process(agent, signal.SIGINT) == 0  # Ctrl-C flushes what is left
+
+    assert "could not deliver" in agent_log.read_text()  # it did notice the outage
+    stats = _final_stats(agent_log)
+    assert (stats["failed"], stats["dropped"], stats["queued"]) == (0, 0, 0), stats
+    records = list(Record.objects.order_by("seq"))
+    seqs = [record.seq for record in records]
+    # Exactly once: every envelope the agent made is stored once, with no gap and no repeat.
+    assert stats["sent"] == stats["spooled"] == len(records)
+    assert seqs == list(range(seqs[0], seqs[0] + len(seqs)))
+
+    wait_for(
+        lambda: Record.objects.filter(status=Record.Status.ANCHORED).count() == len(records),
+        timeout=90,
+        what=f"all {len(records)} records anchored",
+        interval=0.5,
+    )
+    client = chain_services.chain_client()
+    anchored = Counter(bytes(e.args["id"]) for e in client.events(names=["DataUploaded"]))
+    assert set(anchored) == {record_id_to_bytes32(record.id) for record in records}
+    assert max(anchored.values()) == 1
+
+    owner = records[0].owner
+    kinds = Counter()
+    for record in records:
+        opened = record_open(record_id=record.id, viewer=owner)
+        content = json.loads(opened.plaintext)
+        assert content["Topic"] == opened.header["topic"] == record.topic
+        assert content["Type"] == opened.header["type"] == record.data_type
+        kinds[record.topic] += 1
+        if record.topic == CHATTER:
+            assert content == chatter_record("hello", opened.header["time"])
+        elif record.topic == sim.IMAGE_TOPIC:
+            _check_image(content["K"])
+        else:
+            assert content["K"]["header"]["frame_id"] == "odom"
+            assert abs(content["K"]["position"]["x"]) <= sim.HALF_WIDTH
+    assert kinds[sim.ODOM_TOPIC] >= 20
+    assert kinds[sim.IMAGE_TOPIC] >= 2
+    assert kinds[CHATTER] >= 20
+
+    # A body above the limit gets the API's JSON 413 from gunicorn too, and changes nothing.
+    token = (tmp_path / "robot.token").read_text()
+    oversized = requests.post(
+        f"{stack.web_url}/api/v1/records/",
+        data=b'{"envelope": "' + b"A" * (13 * 1024 * 1024) + b'"}',
+        headers={"Authorization": f"Token {token}", "Content-Type": "application/json"},
+        timeout=60,
+    )
+    assert (oversized.status_code, oversized.json()["error"]) == (413, "request_too_large")
+    assert Record.objects.count() == len(records)
+
+
+def _check_image(image: dict) -> None:
+    assert (image["width"], image["height"], image["encoding"]) == (320, 240, "bgr8")
+    pixels = cv2.imdecode(np.frombuffer(base64.b64decode(image["data"]), np.uint8), -1)
+    assert any(np.array_equal(pixels, sim.draw_scene(frame)) for frame in range(10))

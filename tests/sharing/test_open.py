@@ -1,0 +1,74 @@
+"""Reading content: only after a `verified` verdict, re-sealed under the reader's own key."""
+
+import pytest
+
+from accounts.selectors import owner_key_bytes, owner_key_current
+from portal.redis_client import get_redis
+from sharing import errors
+from sharing.cache import _key as cache_key
+from sharing.selectors import record_get_visible, record_list_visible_to
+from sharing.services import (
+    grant_create,
+    grant_revoke,
+    record_create,
+    record_open,
+    record_reseal_for,
+)
+from smcrypto import CryptoError, envelope
+
+pytestmark = pytest.mark.django_db
+
+
+@pytest.fixture
+def shared(make_robot, make_owner, django_capture_on_commit_callbacks):
+    alice = make_robot("alice")
+    bob = make_owner("bob")
+    with django_capture_on_commit_callbacks(execute=True):
+        record = record_create(robot=alice.robot, data=alice.seal(1, plaintext=b'{"K": "odom"}'))
+    return alice, bob, record
+
+
+def test_owner_opens_own_record(shared):
+    alice, _bob, record = shared
+    opened = record_open(record_id=record.pk, viewer=alice.owner)
+    assert opened.plaintext == b'{"K": "odom"}'
+    assert opened.verdict.outcome == "verified"
+    assert opened.header["seq"] == 1
+
+
+def test_grantee_gets_it_resealed_under_own_key(shared, django_capture_on_commit_callbacks):
+    alice, bob, record = shared
+    with pytest.raises(errors.AccessDenied):
+        record_open(record_id=record.pk, viewer=bob)
+    assert record_get_visible(bob, record.pk) is None
+    with django_capture_on_commit_callbacks(execute=True):
+        grant_create(owner=alice.owner, grantee=bob)
+    assert list(record_list_visible_to(bob)) == [record]
+    opened = record_open(record_id=record.pk, viewer=bob)
+    resealed = record_reseal_for(opened=opened, viewer=bob)
+    header, plaintext = envelope.open(owner_key_bytes(owner_key_current(bob)), resealed)
+    assert plaintext == b'{"K": "odom"}'
+    assert header == opened.header
+    with pytest.raises(CryptoError):
+        envelope.open(alice.key, resealed)
+    grant_revoke(owner=alice.owner, grantee=bob)
+    with pytest.raises(errors.AccessDenied):
+        record_open(record_id=record.pk, viewer=bob)
+    assert list(record_list_visible_to(bob)) == []
+
+
+def test_tampered_content_is_never_decrypted(shared):
+    alice, _bob, record = shared
+    cached = bytearray(get_redis().get(cache_key(record.pk)))
+    cached[-3] ^= 0x10
+    get_redis().set(cache_key(record.pk), bytes(cached))
+    with pytest.raises(errors.IntegrityCheckFailed) as refused:
+        record_open(record_id=record.pk, viewer=alice.owner)
+    assert refused.value.http_status == 409
+
+
+def test_unknown_record(shared):
+    alice, _bob, _record = shared
+    with pytest.raises(errors.RecordNotFound):
+        record_open(record_id="not-a-uuid", viewer=alice.owner)
+    assert record_get_visible(alice.owner, "not-a-uuid") is None

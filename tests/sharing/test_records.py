@@ -1,0 +1,140 @@
+"""Uploading records: what is stored and anchored, and what is refused without a trace."""
+
+from datetime import timedelta
+
+import pytest
+from django.utils import timezone
+
+from accounts.services import key_rotate
+from sharing import errors
+from sharing.cache import envelope_cache_get
+from sharing.models import Record, SecurityEvent
+from sharing.services import record_create, record_create_batch
+from sharing.storage import envelope_storage
+from smcrypto import envelope, sm3, sm4
+from tests.conftest import seal_for
+
+pytestmark = pytest.mark.django_db
+
+
+def _nothing_stored() -> bool:
+    storage = envelope_storage()
+    stored_files = storage.exists("") and any(storage.listdir("")[0])
+    return Record.objects.count() == 0 and not stored_files
+
+
+def test_upload_is_stored_cached_and_anchored(
+    make_robot, deployed, django_capture_on_commit_callbacks
+):
+    setup = make_robot()
+    data = setup.seal(1, plaintext=b'{"K": 1}')
+    with django_capture_on_commit_callbacks(execute=True):
+        record = record_create(robot=setup.robot, data=data)
+    record.refresh_from_db()
+    assert record.digest == sm3.sm3_hex(data)
+    assert record.size == len(data)
+    assert record.seq == 1
+    assert record.topic == "/robot/odom"
+    assert record.data_type == "nav_msgs/Odometry"
+    with envelope_storage().open(record.storage_name, "rb") as handle:
+        assert handle.read() == data
+    assert envelope_cache_get(record.id) == data
+    assert record.status == Record.Status.ANCHORED
+    assert record.tx_hash.startswith("0x")
+    assert record.block_number > 0
+    on_chain = deployed.data_query(record.id)
+    assert on_chain.digest.hex() == record.digest
+    assert on_chain.owner == setup.owner.eoa_address
+    assert on_chain.time == record.captured_at
+    setup.robot.refresh_from_db()
+    assert setup.robot.last_seq == 1
+
+
+def test_batch_goes_in_one_transaction(make_robot, deployed, django_capture_on_commit_callbacks):
+    setup = make_robot()
+    with django_capture_on_commit_callbacks(execute=True):
+        records = record_create_batch(
+            robot=setup.robot, envelopes=[setup.seal(seq) for seq in range(1, 11)]
+        )
+    tx_hashes = set(Record.objects.values_list("tx_hash", flat=True))
+    assert len(records) == 10
+    assert len(tx_hashes) == 1
+    assert len(deployed.events(names=["DataUploaded"])) == 10
+
+
+def test_bad_uploads_are_refused_and_change_nothing(make_robot):
+    setup = make_robot()
+    other = make_robot()
+    good = setup.seal(5)
+    tampered = bytearray(good)
+    tampered[-1] ^= 0x01
+    key_id_forged = bytearray(
+        other.seal(5, owner=setup.owner.username, robot_id=str(setup.robot.id))
+    )
+    key_id_forged[4:12] = envelope.key_id(setup.key)
+    cases = [
+        (b"not an envelope", errors.InvalidEnvelope),
+        (good[:30], errors.InvalidEnvelope),
+        (setup.seal(5, owner=other.owner.username), errors.HeaderMismatch),
+        (setup.seal(5, robot_id=str(other.robot.id)), errors.HeaderMismatch),
+        (
+            other.seal(5, owner=setup.owner.username, robot_id=str(setup.robot.id)),
+            errors.UnknownKey,
+        ),
+        (bytes(tampered), errors.ForgedEnvelope),
+        (bytes(key_id_forged), errors.ForgedEnvelope),
+        (setup.seal(5, topic="/" + "x" * 300), errors.InvalidEnvelope),
+        (setup.seal(5, topic="/odom\x00"), errors.InvalidEnvelope),
+        (
+            seal_for(setup.robot, setup.key, seq=5, time="1969-12-31T23:59:59Z"),
+            errors.InvalidEnvelope,
+        ),
+    ]
+    for data, error in cases:
+        with pytest.raises(error):
+            record_create(robot=setup.robot, data=data)
+    assert _nothing_stored()
+    setup.robot.refresh_from_db()
+    assert setup.robot.last_seq == -1
+    assert SecurityEvent.objects.filter(kind=SecurityEvent.Kind.FORGED_UPLOAD).count() == 2
+
+
+def test_too_large_is_refused(make_robot, settings):
+    setup = make_robot()
+    settings.ENVELOPE_MAX_BYTES = 1000
+    with pytest.raises(errors.EnvelopeTooLarge) as refused:
+        record_create(robot=setup.robot, data=setup.seal(1, plaintext=b"x" * 2000))
+    assert refused.value.http_status == 413
+    assert _nothing_stored()
+
+
+def test_replayed_or_stale_sequence_is_refused(make_robot):
+    setup = make_robot()
+    record_create(robot=setup.robot, data=setup.seal(7))
+    for seq in (7, 3):
+        with pytest.raises(errors.ReplayedSequence):
+            record_create(robot=setup.robot, data=setup.seal(seq))
+    assert Record.objects.count() == 1
+
+
+def test_batch_is_all_or_nothing(make_robot):
+    setup = make_robot()
+    with pytest.raises(errors.InvalidEnvelope):
+        record_create_batch(robot=setup.robot, envelopes=[setup.seal(1), b"garbage"])
+    with pytest.raises(errors.InvalidEnvelope):
+        record_create_batch(robot=setup.robot, envelopes=[setup.seal(2), setup.seal(2)])
+    with pytest.raises(errors.InvalidEnvelope):
+        record_create_batch(robot=setup.robot, envelopes=[])
+    assert _nothing_stored()
+
+
+def test_recently_rotated_key_is_accepted_then_expires(
+    make_robot, django_capture_on_commit_callbacks
+):
+    setup = make_robot()
+    with django_capture_on_commit_callbacks(execute=True):
+        key_rotate(owner=setup.owner, sm4_key=sm4.generate_key())
+    record_create(robot=setup.robot, data=setup.seal(1))
+    setup.owner.keys.filter(is_current=False).update(retired_at=timezone.now() - timedelta(days=1))
+    with pytest.raises(errors.UnknownKey):
+        record_create(robot=setup.robot, data=setup.seal(2))

@@ -1,0 +1,327 @@
+"""SM2: GM/T 0003.5 examples, agreement with gmssl and sm-crypto, gmssl's key-stripping bug."""
+
+import json
+import random
+import shutil
+import subprocess
+from pathlib import Path
+
+import pytest
+from gmssl.sm2 import CryptSM2, default_ecc_table
+
+from smcrypto import sm2
+from smcrypto.errors import CryptoError, DecryptionError, InvalidKey
+
+REPO = Path(__file__).resolve().parents[2]
+P = int(default_ecc_table["p"], 16)
+N = int(default_ecc_table["n"], 16)
+G = (int(default_ecc_table["g"][:64], 16), int(default_ecc_table["g"][64:], 16))
+
+# GM/T 0003.5-2012 = GB/T 32918.5, examples on the recommended curve (also in OpenSSL's tests)
+KAT_PRIVATE = "3945208F7B2144B13F36E38AC6D39F95889393692860B51A42FB81EF4DF7C5B8"
+KAT_PUBLIC = (
+    "04"
+    "09F9DF311E5421A150DD7D161E4BC5C672179FAD1833FC076BB08FF356F35020"
+    "CCEA490CE26775A52DC6EA718CC1AA600AED05FBF35E084A6632F6072DA9AD13"
+).lower()
+KAT_K = "59276E27D506861A16680F3AD9C02DCCEF3CC1FA3CDBE4CE6D54B80DEAC1BC21"
+KAT_SIGNATURE = (
+    "F5A03B0648D2C4630EEAC513E1BB81A15944DA3827D5B74143AC7EACEEE720B3"
+    "B1B6AA29DF212FD8763182BC0D421CA1BB9038FD1F7F42D4840B69C485BBC1AA"
+).lower()
+# C1 (x||y; x happens to start with 04) || C3 || C2 of "encryption standard" with KAT_K
+KAT_CIPHERTEXT = (
+    "04EBFC718E8D1798620432268E77FEB6415E2EDE0E073C0F4F640ECD2E149A73"
+    "E858F9D81E5430A57B36DAAB8F950A3C64E6EE6A63094D99283AFF767E124DF0"
+    "59983C18F809E262923C53AEC295D30383B54E39D609D160AFCB1908D0BD8766"
+    "21886CA989CA9C7D58087307CA93092D651EFA"
+).lower()
+
+
+def _gmssl(private_key: str, public_key_hex: str) -> CryptSM2:
+    """A gmssl CryptSM2 in C1C3C2 mode with the public key set past its lstrip bug."""
+    crypt = CryptSM2(private_key=private_key, public_key="", mode=1)
+    crypt.public_key = public_key_hex[-128:]
+    return crypt
+
+
+def _affine_add(a: tuple[int, int], b: tuple[int, int]) -> tuple[int, int]:
+    """Textbook affine point addition (a != ±b), independent of gmssl."""
+    slope = (b[1] - a[1]) * pow(b[0] - a[0], -1, P) % P
+    x = (slope * slope - a[0] - b[0]) % P
+    return x, (slope * (a[0] - x) - a[1]) % P
+
+
+def _affine_double(a: tuple[int, int]) -> tuple[int, int]:
+    a_coefficient = int(default_ecc_table["a"], 16)
+    slope = (3 * a[0] * a[0] + a_coefficient) * pow(2 * a[1], -1, P) % P
+    x = (slope * slope - 2 * a[0]) % P
+    return x, (slope * (a[0] - x) - a[1]) % P
+
+
+def _private_keys_with_x_prefixes(prefixes: tuple[str, ...]) -> dict[str, int]:
+    """Walk d = 3, 4, 5... (point += G) until each prefix starts the hex of some x(dG)."""
+    found: dict[str, int] = {}
+    point, secret = _affine_double(G), 2
+    while len(found) < len(prefixes):
+        point, secret = _affine_add(point, G), secret + 1
+        x_hex = f"{point[0]:064x}"
+        for prefix in prefixes:
+            if prefix not in found and x_hex.startswith(prefix):
+                found[prefix] = secret
+    return found
+
+
+def test_kat_public_key() -> None:
+    assert sm2.public_key_from_private(KAT_PRIVATE) == KAT_PUBLIC
+    assert sm2.public_key_from_private(KAT_PRIVATE.lower()) == KAT_PUBLIC
+
+
+def test_kat_signature_verifies() -> None:
+    assert sm2.verify(KAT_PUBLIC, b"message digest", KAT_SIGNATURE)
+    assert sm2.verify(KAT_PUBLIC[2:], b"message digest", KAT_SIGNATURE.upper())
+    assert not sm2.verify(KAT_PUBLIC, b"message digesT", KAT_SIGNATURE)
+
+
+def test_kat_signature_from_the_fixed_nonce() -> None:
+    signer = sm2._GmsslSM2(private_key=KAT_PRIVATE, public_key_xy=KAT_PUBLIC[2:])
+    assert signer.sign_with_sm3(b"message digest", KAT_K) == KAT_SIGNATURE
+
+
+def test_kat_encryption_from_the_fixed_nonce() -> None:
+    ciphertext = sm2._encrypt_with_ephemeral(KAT_PUBLIC[2:], b"encryption standard", int(KAT_K, 16))
+    assert ciphertext == KAT_CIPHERTEXT
+
+
+def test_kat_decryption_with_and_without_04_prefix() -> None:
+    assert KAT_CIPHERTEXT.startswith("04")  # x itself starts with 04: the ambiguous case
+    assert sm2.decrypt(KAT_PRIVATE, KAT_CIPHERTEXT) == b"encryption standard"
+    assert sm2.decrypt(KAT_PRIVATE, "04" + KAT_CIPHERTEXT) == b"encryption standard"
+    assert sm2.decrypt(KAT_PRIVATE, KAT_CIPHERTEXT.upper()) == b"encryption standard"
+
+
+def test_generate_keypair_format() -> None:
+    private, public = sm2.generate_keypair()
+    assert len(private) == 64
+    assert len(public) == 130
+    assert public.startswith("04")
+    assert int(private, 16) != 0
+    assert sm2.public_key_from_private(private) == public
+
+
+def test_many_keypairs_round_trip() -> None:
+    """64 keys: about 1 in 8 has an x that gmssl's lstrip would corrupt."""
+    strippable = 0
+    for index in range(64):
+        private, public = sm2.generate_keypair()
+        strippable += public[2] in "04"
+        message = f"message {index}".encode()
+        assert sm2.decrypt(private, sm2.encrypt(public, message)) == message
+        if index % 4 == 0:
+            assert sm2.verify(public, message, sm2.sign(private, message))
+
+
+def test_keys_whose_x_starts_with_04_40_00() -> None:
+    found = _private_keys_with_x_prefixes(("04", "40", "00"))
+    for prefix, secret in found.items():
+        private = f"{secret:064x}"
+        public = sm2.public_key_from_private(private)
+        assert public[2:4] == prefix
+        # the bug being worked around: gmssl strips digits of x from "04"-prefixed keys
+        assert CryptSM2(private_key=private, public_key=public).public_key != public[2:]
+        if prefix == "04":  # even without the "04" marker
+            assert CryptSM2(private_key=private, public_key=public[2:]).public_key != public[2:]
+        for key in (public, public[2:]):
+            signature = sm2.sign(private, b"data")
+            assert sm2.verify(key, b"data", signature)
+            assert _gmssl(private, public).verify_with_sm3(signature, b"data")
+            ciphertext = sm2.encrypt(key, b"secret")
+            assert sm2.decrypt(private, ciphertext) == b"secret"
+            assert _gmssl(private, public).decrypt(bytes.fromhex(ciphertext)) == b"secret"
+
+
+def test_gmssl_decrypts_ours_and_we_decrypt_gmssl() -> None:
+    rng = random.Random(32918)
+    for _ in range(6):
+        private, public = sm2.generate_keypair()
+        message = rng.randbytes(rng.randint(1, 300))
+        ours = sm2.encrypt(public, message)
+        assert len(ours) == 2 * (64 + 32 + len(message))
+        assert _gmssl(private, public).decrypt(bytes.fromhex(ours)) == message
+        theirs = _gmssl(private, public).encrypt(message).hex()
+        assert sm2.decrypt(private, theirs) == message
+
+
+def test_gmssl_verifies_ours_and_we_verify_gmssl() -> None:
+    for index in range(4):
+        private, public = sm2.generate_keypair()
+        message = bytes([index]) * (index * 40)
+        assert _gmssl(private, public).verify_with_sm3(sm2.sign(private, message), message)
+        theirs = _gmssl(private, public).sign_with_sm3(message)
+        assert sm2.verify(public, message, theirs)
+
+
+def test_tampered_ciphertext_is_decryption_error_where_gmssl_returns_garbage() -> None:
+    private, public = sm2.generate_keypair()
+    ciphertext = bytearray.fromhex(sm2.encrypt(public, b"attack at dawn"))
+    for index in (0, 63, 64, 95, 96, len(ciphertext) - 1):
+        tampered = bytearray(ciphertext)
+        tampered[index] ^= 0x01
+        with pytest.raises(DecryptionError, match="SM2 decryption failed"):
+            sm2.decrypt(private, tampered.hex())
+    tampered_c3 = bytearray(ciphertext)
+    tampered_c3[70] ^= 0x01
+    # gmssl computes C3 but never compares it: this is why decryption is done here
+    assert _gmssl(private, public).decrypt(bytes(tampered_c3)) == b"attack at dawn"
+
+
+def test_wrong_private_key_is_decryption_error() -> None:
+    _, public = sm2.generate_keypair()
+    other_private, _ = sm2.generate_keypair()
+    with pytest.raises(DecryptionError, match="C3 check failed"):
+        sm2.decrypt(other_private, sm2.encrypt(public, b"x"))
+
+
+@pytest.mark.parametrize(
+    "ciphertext",
+    ["", "0", "zz" * 100, "04", KAT_CIPHERTEXT[:-1], KAT_CIPHERTEXT[:192], " " + KAT_CIPHERTEXT],
+)
+def test_malformed_ciphertext_is_decryption_error(ciphertext: str) -> None:
+    with pytest.raises(DecryptionError):
+        sm2.decrypt(KAT_PRIVATE, ciphertext)
+
+
+def test_non_string_ciphertext_is_decryption_error() -> None:
+    with pytest.raises(DecryptionError):
+        sm2.decrypt(KAT_PRIVATE, bytes.fromhex(KAT_CIPHERTEXT))
+
+
+def test_c1_off_the_curve_is_decryption_error() -> None:
+    raw = bytearray.fromhex(KAT_CIPHERTEXT)
+    raw[10] ^= 0x80
+    with pytest.raises(DecryptionError, match="not a point on the SM2 curve"):
+        sm2.decrypt(KAT_PRIVATE, raw.hex())
+
+
+def test_encrypt_empty_message_refused() -> None:
+    with pytest.raises(CryptoError, match="empty"):
+        sm2.encrypt(KAT_PUBLIC, b"")
+
+
+def test_sign_and_verify_empty_message() -> None:
+    assert sm2.verify(KAT_PUBLIC, b"", sm2.sign(KAT_PRIVATE, b""))
+
+
+@pytest.mark.parametrize(
+    "private_key",
+    ["", "00" * 32, f"{N - 1:064x}", f"{N:064x}", "f" * 64, "g" * 64, "1" * 63, "1" * 65, 5],
+)
+def test_invalid_private_key(private_key: str) -> None:
+    for call in (
+        lambda: sm2.public_key_from_private(private_key),
+        lambda: sm2.sign(private_key, b"x"),
+        lambda: sm2.decrypt(private_key, KAT_CIPHERTEXT),
+    ):
+        with pytest.raises(InvalidKey, match="SM2 private key"):
+            call()
+
+
+@pytest.mark.parametrize(
+    "public_key",
+    [
+        "",
+        KAT_PUBLIC[:-2],
+        "05" + KAT_PUBLIC[2:],
+        "04" + KAT_PUBLIC,
+        KAT_PUBLIC[:-1] + "0",
+        "04" + "00" * 64,
+        "04" + "ff" * 64,
+        "x" * 130,
+        b"\x04" * 65,
+    ],
+)
+def test_invalid_public_key(public_key: str) -> None:
+    for call in (
+        lambda: sm2.encrypt(public_key, b"x"),
+        lambda: sm2.verify(public_key, b"x", KAT_SIGNATURE),
+    ):
+        with pytest.raises(InvalidKey, match="SM2 public key"):
+            call()
+
+
+@pytest.mark.parametrize(
+    "signature",
+    [
+        "",
+        KAT_SIGNATURE[:-2],
+        KAT_SIGNATURE + "00",
+        "zz" + KAT_SIGNATURE[2:],
+        "00" * 32 + KAT_SIGNATURE[64:],
+        KAT_SIGNATURE[:64] + "00" * 32,
+        f"{N:064x}" + KAT_SIGNATURE[64:],
+        KAT_SIGNATURE[:64] + f"{N:064x}",
+        f"{1:064x}{N - 1:064x}",
+        "ff" * 64,
+        None,
+    ],
+)
+def test_malformed_signature_is_false(signature: str) -> None:
+    assert sm2.verify(KAT_PUBLIC, b"message digest", signature) is False
+
+
+def test_signature_flips_are_false() -> None:
+    raw = bytearray.fromhex(KAT_SIGNATURE)
+    for index in (0, 31, 32, 63):
+        tampered = bytearray(raw)
+        tampered[index] ^= 0x04
+        assert sm2.verify(KAT_PUBLIC, b"message digest", tampered.hex()) is False
+
+
+SM_CRYPTO_SCRIPT = """
+const sm2 = require('sm-crypto').sm2;
+const input = JSON.parse(require('fs').readFileSync(0, 'utf8'));
+const message = Array.from(Buffer.from(input.message, 'hex'));
+const mine = sm2.generateKeyPairHex();
+const fromUs = sm2.doDecrypt(input.ciphertext, input.private_key, 1, {output: 'array'});
+console.log(JSON.stringify({
+  private_key: mine.privateKey,
+  public_key: mine.publicKey,
+  public_from_private: sm2.getPublicKeyFromPrivateKey(input.private_key),
+  decrypted: Buffer.from(fromUs).toString('hex'),
+  ciphertext: sm2.doEncrypt(message, input.public_key, 1),
+  signature: sm2.doSignature(message, mine.privateKey, {hash: true}),
+  verified: sm2.doVerifySignature(message, input.signature, input.public_key, {hash: true}),
+}));
+"""
+
+
+@pytest.mark.skipif(
+    shutil.which("node") is None or not (REPO / "node_modules" / "sm-crypto").is_dir(),
+    reason="needs node and the pinned npm sm-crypto (npm ci)",
+)
+def test_interoperates_with_browser_sm_crypto() -> None:
+    private, public = sm2.generate_keypair()
+    message = bytes(range(256)) * 2
+    request = {
+        "private_key": private,
+        "public_key": public,
+        "message": message.hex(),
+        "ciphertext": sm2.encrypt(public, message),
+        "signature": sm2.sign(private, message),
+    }
+    result = subprocess.run(
+        ["node", "-e", SM_CRYPTO_SCRIPT],
+        input=json.dumps(request),
+        capture_output=True,
+        text=True,
+        cwd=REPO,
+        check=True,
+        timeout=60,
+    )
+    answer = json.loads(result.stdout)
+    assert answer["public_from_private"] == public
+    assert answer["decrypted"] == message.hex()
+    assert answer["verified"] is True
+    assert sm2.decrypt(private, answer["ciphertext"]) == message
+    assert sm2.public_key_from_private(answer["private_key"]) == answer["public_key"]
+    assert sm2.verify(answer["public_key"], message, answer["signature"])

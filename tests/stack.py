@@ -1,0 +1,256 @@
+"""Real Celery worker and beat processes, sharing the test's database, Redis and anvil,
+and the portal itself (gunicorn) for clients that talk to it over HTTP.
+
+The tests that use this are about the queue, so nothing runs eagerly: the test process only
+writes rows and queues messages, exactly like the web processes do in production.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+import uuid
+from collections.abc import Callable
+from pathlib import Path
+
+import requests
+from django.conf import settings
+from django.db import connection
+
+from portal.celery import app as celery_app
+from tests.anvil import AnvilProcess, free_port, start_anvil
+
+REPO_ROOT = Path(__file__).resolve().parent.parent
+
+
+def database_url() -> str:
+    """The URL of the database the test is using (the test database, not the dev one)."""
+    conf = connection.settings_dict
+    if conf["ENGINE"].endswith("sqlite3"):
+        return f"sqlite:///{conf['NAME']}"
+    password = f":{conf['PASSWORD']}" if conf.get("PASSWORD") else ""
+    port = f":{conf['PORT']}" if conf.get("PORT") else ""
+    return f"postgres://{conf['USER']}{password}@{conf['HOST'] or '127.0.0.1'}{port}/{conf['NAME']}"
+
+
+def wait_for(
+    predicate: Callable[[], bool], *, timeout: float, what: str, interval: float = 0.25
+) -> None:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if predicate():
+            return
+        time.sleep(interval)
+    if not predicate():
+        raise AssertionError(f"timed out after {timeout:.0f}s waiting for {what}")
+
+
+class WorkerStack:
+    """anvil + N Celery workers (+ beat), configured like the test process."""
+
+    def __init__(
+        self,
+        tmp_path: Path,
+        *,
+        block_time: float | None = None,
+        env_overrides: dict[str, str] | None = None,
+    ) -> None:
+        self.tmp_path = tmp_path
+        self.env_overrides = env_overrides or {}
+        self.state_path = tmp_path / "anvil-state.json"
+        self.block_time = block_time
+        self.anvil: AnvilProcess = start_anvil(
+            block_time=block_time, state_path=str(self.state_path)
+        )
+        self.port = self.anvil.port
+        self.redis_url = settings.REDIS_URL
+        self.workers: dict[str, subprocess.Popen] = {}
+        self.beat: subprocess.Popen | None = None
+        self.web: subprocess.Popen | None = None
+        self.web_port: int | None = None
+        # A queue of its own: test runs sharing this Redis must not take each other's tasks.
+        self.queue = f"authros-test-{uuid.uuid4().hex[:12]}"
+        self._queue_before: str | None = None
+        self.logs = tmp_path / "logs"
+        self.logs.mkdir(exist_ok=True)
+
+    def configure_test_process(self, django_settings) -> None:
+        """Point the test process at this stack's chain, with the stack's short timings."""
+        django_settings.CHAIN_RPC_URL = self.anvil.url
+        django_settings.ANCHOR_STALE_AFTER = 5
+        django_settings.ANCHOR_MAX_WAIT = 0.5
+        self._queue_before = celery_app.conf.task_default_queue
+        celery_app.conf.task_default_queue = self.queue
+
+    def env(self) -> dict[str, str]:
+        return {
+            **os.environ,
+            "DJANGO_SETTINGS_MODULE": "portal.settings",
+            "DATABASE_URL": database_url(),
+            "REDIS_URL": self.redis_url,
+            "REDIS_KEY_PREFIX": settings.REDIS_KEY_PREFIX,
+            "CELERY_QUEUE": self.queue,
+            "CHAIN_RPC_URL": self.anvil.url,
+            "CHAIN_RECEIPT_TIMEOUT": "60",
+            "AUTHROS_VAR_DIR": str(self.tmp_path / "var"),
+            "AUTHROS_SECRETS_DIR": str(settings.SECRETS_DIR),
+            "AUTHROS_MEDIA_ROOT": str(settings.MEDIA_ROOT),
+            "ANCHOR_MAX_WAIT": "0.5",
+            "ANCHOR_STALE_AFTER": "5",
+            "ANCHOR_SWEEP_INTERVAL": "2",
+            "ANCHOR_LOCK_TTL": "6",
+            "CHAIN_NONCE_LOCK_TIMEOUT": "5",
+            "LOG_LEVEL": "INFO",
+            **self.env_overrides,
+        }
+
+    # processes -------------------------------------------------------------------------
+
+    def start_worker(self, name: str) -> None:
+        log = open(self.logs / f"{name}.log", "ab")  # noqa: SIM115 (owned by the process)
+        self.workers[name] = subprocess.Popen(
+            [
+                sys.executable,
+                "-m",
+                "celery",
+                "-A",
+                "portal",
+                "worker",
+                "-n",
+                f"{name}@%h",
+                "-c",
+                "1",
+                "--pool",
+                "prefork",
+                "--without-gossip",
+                "--without-mingle",
+                "--without-heartbeat",
+                "-l",
+                "INFO",
+            ],
+            cwd=REPO_ROOT,
+            env=self.env(),
+            stdout=log,
+            stderr=subprocess.STDOUT,
+            start_new_session=True,
+        )
+
+    def start_beat(self) -> None:
+        log = open(self.logs / "beat.log", "ab")  # noqa: SIM115
+        self.beat = subprocess.Popen(
+            [
+                sys.executable,
+                "-m",
+                "celery",
+                "-A",
+                "portal",
+                "beat",
+                "-l",
+                "INFO",
+                "-s",
+                str(self.tmp_path / "celerybeat-schedule"),
+            ],
+            cwd=REPO_ROOT,
+            env=self.env(),
+            stdout=log,
+            stderr=subprocess.STDOUT,
+            start_new_session=True,
+        )
+
+    def start_web(self, *, workers: int = 2, timeout: float = 60) -> str:
+        """The portal under gunicorn on 127.0.0.1 (the same port again after a stop_web);
+        returns its URL once it answers."""
+        self.web_port = self.web_port or free_port()
+        log = open(self.logs / "web.log", "ab")  # noqa: SIM115
+        self.web = subprocess.Popen(
+            [
+                sys.executable,
+                "-m",
+                "gunicorn",
+                "portal.wsgi:application",
+                "--bind",
+                f"127.0.0.1:{self.web_port}",
+                "--workers",
+                str(workers),
+                "--timeout",
+                "60",
+                "--graceful-timeout",
+                "5",
+                "--access-logfile",
+                "-",
+            ],
+            cwd=REPO_ROOT,
+            env=self.env(),
+            stdout=log,
+            stderr=subprocess.STDOUT,
+            start_new_session=True,
+        )
+        wait_for(self._web_answers, timeout=timeout, what="the portal (gunicorn) to answer")
+        return self.web_url
+
+    @property
+    def web_url(self) -> str:
+        return f"http://127.0.0.1:{self.web_port}"
+
+    def _web_answers(self) -> bool:
+        if self.web is None or self.web.poll() is not None:
+            raise AssertionError(f"the portal exited:\n{self.worker_logs()[-3000:]}")
+        try:
+            # Any JSON answer from Django will do; this path is not rate limited.
+            return requests.get(f"{self.web_url}/api/", timeout=2).status_code == 404
+        except requests.RequestException:
+            return False
+
+    def stop_web(self) -> None:
+        """Stop the portal (its port refuses connections until start_web)."""
+        if self.web is not None:
+            _terminate(self.web)
+            self.web = None
+
+    def kill_worker(self, name: str) -> None:
+        """kill -9 the worker and its pool processes, as a crash or an OOM kill would."""
+        process = self.workers.pop(name)
+        os.killpg(process.pid, signal.SIGKILL)
+        process.wait(timeout=10)
+
+    def stop_anvil(self) -> None:
+        self.anvil.stop()
+
+    def restart_anvil(self) -> None:
+        self.anvil = start_anvil(
+            block_time=self.block_time, state_path=str(self.state_path), port=self.port
+        )
+
+    def worker_logs(self) -> str:
+        return "\n".join(path.read_text(errors="replace") for path in self.logs.glob("*.log"))
+
+    def stop(self) -> None:
+        self.stop_web()
+        processes = list(self.workers.values()) + ([self.beat] if self.beat else [])
+        for process in processes:
+            if process.poll() is None:
+                os.killpg(process.pid, signal.SIGTERM)
+        for process in processes:
+            try:
+                process.wait(timeout=15)
+            except subprocess.TimeoutExpired:
+                os.killpg(process.pid, signal.SIGKILL)
+                process.wait()
+        self.workers.clear()
+        self.beat = None
+        self.anvil.stop()
+        if self._queue_before is not None:
+            celery_app.conf.task_default_queue = self._queue_before
+
+
+def _terminate(process: subprocess.Popen, timeout: float = 15) -> None:
+    if process.poll() is None:
+        os.killpg(process.pid, signal.SIGTERM)
+    try:
+        process.wait(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        os.killpg(process.pid, signal.SIGKILL)
+        process.wait()
