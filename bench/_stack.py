@@ -42,6 +42,7 @@ from bench import RESULTS_DIR, machine_info, progress_bar, summarize
 from bench.pipeline import (
     BENCH_REDIS_URL,
     POLL_INTERVAL,
+    WORKER_OPTIONS,
     Configuration,
     _anvil_version,
     _owners_register,
@@ -167,7 +168,8 @@ def report_header(name: str, args: argparse.Namespace, started: str) -> dict[str
             "agents": "one thread per agent, requests.Session each, released by a barrier; "
             "one POST /api/v1/records/ each (Authorization: Token), one robot per agent",
             "web_command": f"gunicorn portal.wsgi:application --workers {args.web_workers} (sync)",
-            "worker_command": "celery -A portal worker -c 1 --pool prefork, plus one beat",
+            "worker_command": "celery -A portal worker -c 1 --pool prefork (each consumes both "
+            "queues), plus one more for the verify queue alone (-Q <queue>-verify) and one beat",
         },
         "notes": [
             "response = POST sent to 201 received; total response = first POST sent to last "
@@ -246,7 +248,15 @@ def add_ratios(rows: list[dict[str, Any]], same: tuple[str, ...], keys: tuple[st
 
 
 class _WebStack(_Stack):
-    """The pipeline benchmark's stack plus the portal under gunicorn."""
+    """The pipeline benchmark's stack plus, as `make run` has them, a worker for the verify
+    queue alone (views' integrity checks) and the portal under gunicorn."""
+
+    def start(self) -> None:
+        super().start()
+        from django.conf import settings
+
+        verify_queue = settings.CELERY_TASK_DEFAULT_QUEUE + settings.CELERY_VERIFY_QUEUE_SUFFIX
+        self._spawn("verify", ["worker", "-n", "verify@%h", "-Q", verify_queue, *WORKER_OPTIONS])
 
     def web_start(self, workers: int) -> str:
         port = free_port()
@@ -278,6 +288,7 @@ class _WebStack(_Stack):
         finally:
             log.close()
         self.processes.append(process)
+        self.roles["web"] = [process]
         url = f"http://127.0.0.1:{port}"
         deadline = time.monotonic() + WEB_START_TIMEOUT
         while time.monotonic() < deadline:

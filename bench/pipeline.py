@@ -264,6 +264,7 @@ class _Stack:
         self.logs = workdir / "logs"
         self.anvil: AnvilProcess | None = None
         self.processes: list[subprocess.Popen[bytes]] = []
+        self.roles: dict[str, list[subprocess.Popen[bytes]]] = {}  # workers, beat, web
         self.portal_settings: dict[str, Any] = {}
 
     def start(self) -> None:
@@ -298,7 +299,7 @@ class _Stack:
         self.logs.mkdir()
         for number in range(configuration.workers):
             self._spawn(f"w{number}", ["worker", "-n", f"bench{number}@%h", *WORKER_OPTIONS])
-        self._spawn("beat", ["beat", "-s", str(self.workdir / "celerybeat-schedule")])
+        self._spawn("beat", ["beat", "-s", str(self.workdir / "celerybeat-schedule")], role="beat")
 
     def _environment(self, *, log_level: str) -> dict[str, str]:
         configuration = self.configuration
@@ -326,7 +327,7 @@ class _Stack:
             "LOG_LEVEL": log_level,
         }
 
-    def _spawn(self, name: str, celery_args: list[str]) -> None:
+    def _spawn(self, name: str, celery_args: list[str], *, role: str = "workers") -> None:
         log = (self.logs / f"{name}.log").open("ab")
         try:
             process = subprocess.Popen(
@@ -340,6 +341,7 @@ class _Stack:
         finally:
             log.close()
         self.processes.append(process)
+        self.roles.setdefault(role, []).append(process)
 
     def check_alive(self) -> None:
         for process in self.processes:

@@ -206,6 +206,7 @@ def main(argv: list[str]) -> int:
         with ProcessPoolExecutor(max_workers=1, mp_context=context) as pool:
             rows.append(pool.submit(_measure, run).result())
     _add_ratios(rows)
+    del report["settings"]["timeout_s"]  # --drain bounds the wait here
     report["settings"] |= {
         "agents": f"{args.agents} robots, one thread and requests.Session each, each with its "
         f"own robot token; {args.rate:g} records/s per robot, one batch POST every "
@@ -278,10 +279,10 @@ class _Sampler(threading.Thread):
         self.started = started
         self.samples: list[dict[str, Any]] = []
         self._processes: dict[int, psutil.Process] = {}
-        self._stop = threading.Event()
+        self._done = threading.Event()
 
     def run(self) -> None:
-        while not self._stop.wait(SAMPLE_INTERVAL):
+        while not self._done.wait(SAMPLE_INTERVAL):
             sample: dict[str, Any] = {"t": time.time() - self.started}
             for group, pids in self.roots.items():
                 cpu = rss = 0.0
@@ -295,7 +296,7 @@ class _Sampler(threading.Thread):
             self.samples.append(sample)
 
     def stop(self) -> None:
-        self._stop.set()
+        self._done.set()
         self.join()
 
     def _members(self, pids: list[int]) -> list[psutil.Process]:
@@ -337,12 +338,8 @@ def _measure(run: SustainedRun) -> dict[str, Any]:
         stack.start()
         base = stack.web_start(run.web_workers)
         robots = _robots_create(run, configuration, stack)
-        roots = {
-            "web": [stack.processes[-1].pid],
-            "workers": [p.pid for p in stack.processes[: run.workers]],
-            "beat": [stack.processes[run.workers].pid],
-            "anvil": [stack.anvil.process.pid],
-        }
+        roots = {role: [p.pid for p in stack.roles[role]] for role in ("web", "workers", "beat")}
+        roots["anvil"] = [stack.anvil.process.pid]
         started = time.time()
         sampler = _Sampler(roots, started)
         sampler.start()
@@ -382,14 +379,15 @@ def _robots_create(run: SustainedRun, configuration: Configuration, stack: Any) 
 def _upload_for(run: SustainedRun, base: str, robots: list[_Robot], started: float) -> None:
     """Every robot in its own thread for run.duration seconds, starts spread over one interval."""
     url = f"{base}/api/v1/records/"
-    offered = round(run.agents * run.rate * run.duration)
+    offsets = [run.flush_interval * number / run.agents for number in range(run.agents)]
+    offered = sum(math.floor((run.duration - offset) * run.rate) for offset in offsets)
     progress = progress_bar(offered, "records sent", unit="rec")
     lock = threading.Lock()
 
     def robot_loop(number: int, robot: _Robot) -> None:
         session = requests.Session()
         session.headers["Authorization"] = f"Token {robot.token}"
-        offset = run.flush_interval * number / run.agents
+        offset = offsets[number]
         recorded = 0
         tick = 1
         try:
@@ -514,9 +512,9 @@ class _Watcher:
                         if status == Record.Status.FAILED:
                             self.failed.add(record_id)
                         elif status == Record.Status.ANCHORED:
+                            if _sampled(record_id, self.run.view_every):  # queued first: see
+                                self._views.put((record_id, accepted[record_id][1]))  # finish()
                             self.anchored[record_id] = anchored_at.timestamp()
-                            if _sampled(record_id, self.run.view_every):
-                                self._views.put((record_id, accepted[record_id][1]))
         except BaseException as exc:  # the main thread raises it from finish()
             self.error = exc
         finally:

@@ -9,6 +9,7 @@ import os
 from pathlib import Path
 
 import environ
+from kombu import Queue
 
 from portal.secrets import load_or_create_secret
 
@@ -247,6 +248,14 @@ CELERY_BROKER_TRANSPORT_OPTIONS = {"visibility_timeout": env.int("CELERY_VISIBIL
 CELERY_BROKER_CONNECTION_RETRY_ON_STARTUP = True
 CELERY_TASK_ALWAYS_EAGER = env.bool("CELERY_TASK_ALWAYS_EAGER", default=False)
 CELERY_TASK_DEFAULT_QUEUE = env.str("CELERY_QUEUE", default="authros")
+# Integrity checks for views go to "<queue>-verify" (portal/celery.py routes them), so a view
+# never waits behind chain work that blocks on receipts. Workers started without -Q consume
+# both queues; `make run` adds a worker for the verify queue alone.
+CELERY_VERIFY_QUEUE_SUFFIX = "-verify"
+CELERY_TASK_QUEUES = (
+    Queue(CELERY_TASK_DEFAULT_QUEUE),
+    Queue(CELERY_TASK_DEFAULT_QUEUE + CELERY_VERIFY_QUEUE_SUFFIX),
+)
 CELERY_WORKER_HIJACK_ROOT_LOGGER = False
 CELERY_BEAT_SCHEDULE = {
     "sweep-stale-chain-work": {

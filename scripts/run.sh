@@ -54,8 +54,12 @@ fi
 .venv/bin/python manage.py chain_deploy
 .venv/bin/python manage.py chain_status
 
-say "starting the Celery worker and beat (logs in $LOG_DIR/worker.log, beat.log)"
+say "starting the Celery workers and beat (logs in $LOG_DIR/worker.log, verify.log, beat.log)"
 .venv/bin/celery -A portal worker -l INFO -c 2 -n "authros-worker-$$@%h" >"$LOG_DIR/worker.log" 2>&1 &
+PIDS+=($!)
+# Views' integrity checks have a worker of their own: they never wait behind chain receipts.
+.venv/bin/celery -A portal worker -l INFO -c 1 -n "authros-verify-$$@%h" \
+  -Q "${CELERY_QUEUE:-authros}-verify" >"$LOG_DIR/verify.log" 2>&1 &
 PIDS+=($!)
 .venv/bin/celery -A portal beat -l INFO -s var/celerybeat-schedule >"$LOG_DIR/beat.log" 2>&1 &
 PIDS+=($!)
