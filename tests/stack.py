@@ -109,7 +109,8 @@ class WorkerStack:
 
     # processes -------------------------------------------------------------------------
 
-    def start_worker(self, name: str) -> None:
+    def start_worker(self, name: str, *, queues: list[str] | None = None) -> None:
+        """A worker with one pool process; on both of the stack's queues unless told."""
         log = open(self.logs / f"{name}.log", "ab")  # noqa: SIM115 (owned by the process)
         self.workers[name] = subprocess.Popen(
             [
@@ -130,6 +131,7 @@ class WorkerStack:
                 "--without-heartbeat",
                 "-l",
                 "INFO",
+                *(["-Q", ",".join(queues)] if queues else []),
             ],
             cwd=REPO_ROOT,
             env=self.env(),

@@ -220,6 +220,26 @@ def test_tampered_cache_and_durable_copy_are_refused(stack_factory):
     assert verdict(second) == "tampered"
 
 
+def test_views_are_checked_on_their_own_queue_with_no_chain_worker_left(stack_factory):
+    """A worker on the verify queue alone answers views; chain work never reaches it."""
+    stack = stack_factory(workers=1)
+    stack.start_worker("verifier", queues=[f"{stack.queue}-verify"])
+    (setup,) = _robots(1)
+    record = record_create(robot=setup.robot, data=setup.seal(1))
+    _all_anchored(1, timeout=60)
+    stack.kill_worker("w0")  # the only worker for chain work
+
+    later = record_create(robot=setup.robot, data=setup.seal(2))
+    view = record_verify.delay(str(record.pk), setup.owner.pk).get(timeout=60)
+
+    assert view["outcome"] == "verified"
+    verifier_log = (stack.logs / "verifier.log").read_text()
+    assert "Task sharing.tasks.record_verify[" in verifier_log
+    assert "records_anchor" not in verifier_log
+    assert "owner_register" not in verifier_log
+    assert Record.objects.get(pk=later.pk).status == Record.Status.PENDING
+
+
 def test_revoked_viewer_is_refused_at_the_next_view(stack_factory):
     stack_factory(workers=1)
     alice, bob = _robots(2)
