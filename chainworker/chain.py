@@ -538,6 +538,42 @@ class AuthROSChain:
         decoded = [event for log in logs if (event := self._decode_log(log)) is not None]
         return [e for e in decoded if names is None or e.name in names]
 
+    def events_naming(
+        self,
+        address: str,
+        arguments: dict[str, Sequence[str]],
+        from_block: int = 0,
+        to_block: int | str = "latest",
+    ) -> list[ChainEvent]:
+        """Events whose indexed `arguments` (event name -> argument names) hold `address`,
+        oldest first. The node filters by topic: one query per topic position, not a scan
+        of every log of the contract."""
+        word = "0x" + address.lower().removeprefix("0x").rjust(64, "0")
+        by_position: dict[int, list[str]] = {}
+        for name, names in arguments.items():
+            indexed = self._indexed_arguments[name]
+            for argument in names:
+                if argument not in indexed:
+                    raise ValueError(f"{name}.{argument} is not an indexed argument")
+                topic = "0x" + self._topic_by_event[name].hex()
+                by_position.setdefault(indexed.index(argument) + 1, []).append(topic)
+        logs: dict[tuple[int, int], Any] = {}
+        with _translated_errors():
+            for position, signatures in sorted(by_position.items()):
+                topics: list[Any] = [signatures, *[None] * (position - 1), word]
+                for log in self.w3.eth.get_logs(
+                    {
+                        "address": self.address,
+                        "fromBlock": from_block,
+                        "toBlock": to_block,
+                        "topics": topics,
+                    }
+                ):
+                    logs[(int(log["blockNumber"]), int(log["logIndex"]))] = log
+        return [
+            event for _, log in sorted(logs.items()) if (event := self._decode_log(log)) is not None
+        ]
+
     def upload_event(self, record_id: uuid.UUID | str) -> ChainEvent | None:
         """The DataUploaded event of a record (its transaction and block), if anchored."""
         topic = "0x" + bytes(self._topic_by_event["DataUploaded"]).hex()
@@ -567,6 +603,15 @@ class AuthROSChain:
     def _topic_by_event(self) -> dict[str, bytes]:
         return {
             entry["name"]: bytes(event_abi_to_log_topic(entry))
+            for entry in self.artifact.abi
+            if entry.get("type") == "event"
+        }
+
+    @cached_property
+    def _indexed_arguments(self) -> dict[str, list[str]]:
+        """Each event's indexed argument names, in topic order (topic 0 is the signature)."""
+        return {
+            entry["name"]: [arg["name"] for arg in entry["inputs"] if arg.get("indexed")]
             for entry in self.artifact.abi
             if entry.get("type") == "event"
         }

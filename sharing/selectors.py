@@ -107,9 +107,4 @@ def chain_events_of_owner(owner: Owner) -> list[ChainEvent]:
     client = chain_client()
     deployment = deployment_active(chain_id=client.chain_id, genesis_hash=client.genesis_hash)
     from_block = deployment.block_number if deployment else 0
-    address = owner.eoa_address.lower()
-    return [
-        event
-        for event in client.events(from_block, names=list(OWNER_EVENT_ARGS))
-        if any(str(event.args[arg]).lower() == address for arg in OWNER_EVENT_ARGS[event.name])
-    ]
+    return client.events_naming(owner.eoa_address, OWNER_EVENT_ARGS, from_block)

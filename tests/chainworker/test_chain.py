@@ -185,6 +185,37 @@ def test_events_reads_the_whole_history_in_order(chain, operator, registered_own
     assert blocks == sorted(blocks)
 
 
+def test_events_naming_an_address_are_filtered_by_the_node(chain, operator, registered_owner):
+    viewer = make_registered_owner(chain, operator)
+    other = make_registered_owner(chain, operator)
+    chain.authority_grant(registered_owner, viewer.address)
+    chain.authority_grant(other, registered_owner.address)
+    chain.data_upload(registered_owner, _item())
+    chain.data_upload(other, _item())
+    chain.authority_revoke(registered_owner, viewer.address)
+    arguments = {
+        "Registered": ("eoa",),
+        "DataUploaded": ("owner",),
+        "AuthorityGranted": ("owner", "grantee"),
+        "AuthorityRevoked": ("owner", "grantee"),
+    }
+
+    mine = chain.events_naming(registered_owner.address, arguments)
+
+    assert [(e.name, e.args.get("owner"), e.args.get("grantee")) for e in mine] == [
+        ("Registered", None, None),
+        ("AuthorityGranted", registered_owner.address, viewer.address),
+        ("AuthorityGranted", other.address, registered_owner.address),
+        ("DataUploaded", registered_owner.address, None),
+        ("AuthorityRevoked", registered_owner.address, viewer.address),
+    ]
+    theirs = chain.events_naming(viewer.address.lower(), arguments)
+    assert [e.name for e in theirs] == ["Registered", "AuthorityGranted", "AuthorityRevoked"]
+    assert chain.events_naming(Account.create().address, arguments) == []
+    with pytest.raises(ValueError, match="not an indexed argument"):
+        chain.events_naming(viewer.address, {"Registered": ("commitment",)})
+
+
 def test_send_without_waiting_then_wait(chain, registered_owner):
     items = [_item() for _ in range(5)]
     hashes = [chain.data_upload(registered_owner, i, wait=False) for i in items]
