@@ -235,8 +235,8 @@ def test_views_are_checked_on_their_own_queue_with_no_chain_worker_left(stack_fa
     assert view["outcome"] == "verified"
     verifier_log = (stack.logs / "verifier.log").read_text()
     assert "Task sharing.tasks.record_verify[" in verifier_log
-    assert "records_anchor" not in verifier_log
-    assert "owner_register" not in verifier_log
+    assert "Task chainworker.tasks.records_anchor[" not in verifier_log
+    assert "Task chainworker.tasks.owner_register[" not in verifier_log
     assert Record.objects.get(pk=later.pk).status == Record.Status.PENDING
 
 
