@@ -3,10 +3,13 @@
 Messages published by `rostopic pub` and by the simulated robot reach the portal, are anchored
 on chain, and open (through the worker's integrity check) to exactly what was published. Then
 the portal goes down for a while: the agent spools, and when the portal is back everything
-arrives exactly once, in order, without a gap, and is anchored.
+arrives exactly once, in order, without a gap, and is anchored. Forged nodes listening on
+the robot's topic (no key, a wrong key, a stale sequence number, another robot's token) are
+refused and nothing of theirs is stored.
 """
 
 import base64
+import contextlib
 import json
 import re
 import signal
@@ -21,7 +24,7 @@ import pytest
 import requests
 import yaml
 
-from accounts.models import ChainState
+from accounts.models import ChainState, Owner
 from accounts.services import owner_create, robot_create
 from chainworker import services as chain_services
 from chainworker.chain import record_id_to_bytes32
@@ -71,7 +74,10 @@ def stack(tmp_path, settings):
 
 
 def _agent_config(folder: Path, stack: WorkerStack) -> Path:
-    """An owner and robot made through the services, and the agent's yaml for them."""
+    """An owner and robot made through the services, and the agent's yaml for them.
+
+    The owner's key is in `owner.sm4` and the robot's token in `robot.token`, in `folder`.
+    """
     key = sm4.generate_key()
     owner = owner_create(username=OWNER, password=TEST_PASSWORD, sm4_key=key)
     robot, token = robot_create(owner=owner, name=f"sim-{uuid.uuid4().hex[:6]}")
@@ -219,3 +225,74 @@ def _check_image(image: dict) -> None:
     assert (image["width"], image["height"], image["encoding"]) == (320, 240, "bgr8")
     pixels = cv2.imdecode(np.frombuffer(base64.b64decode(image["data"]), np.uint8), -1)
     assert any(np.array_equal(pixels, sim.draw_scene(frame)) for frame in range(10))
+
+
+FORGERIES = {
+    # mode of tests/ros_agent/forged_node.py: (status, error) the portal must answer
+    "no_key": (400, "invalid_envelope"),
+    "wrong_key": (403, "unknown_key"),
+    "stale_seq": (409, "replayed_sequence"),
+    "other_token": (403, "header_mismatch"),
+}
+
+
+def test_forged_nodes_on_the_robots_topic_are_refused_and_nothing_of_theirs_is_stored(
+    ros_master, stack, tmp_path
+):
+    config = _agent_config(tmp_path, stack)
+    settings = yaml.safe_load(config.read_text())
+    owner = Owner.objects.get(user__username=OWNER)
+    sibling, sibling_token = robot_create(owner=owner, name="sibling")
+    victim_token = (tmp_path / "robot.token").read_text()
+    env, agent_log = ros_master.env, tmp_path / "agent.log"
+    publisher = ["rostopic", "pub", "-r", "5", CHATTER, "std_msgs/String", "data: hello"]
+
+    with contextlib.ExitStack() as nodes:
+        agent = nodes.enter_context(
+            running(python_module("ros_agent", "--config", str(config)), env=env, log=agent_log)
+        )
+        nodes.enter_context(running(publisher, env=env, log=tmp_path / "rostopic.log"))
+        wait_until(lambda: _stored(CHATTER) >= 3, 60, "the robot's own data reaching the portal")
+        for mode in FORGERIES:
+            forged = python_module(
+                "tests.ros_agent.forged_node",
+                f"--mode={mode}",
+                f"--portal={stack.web_url}",
+                f"--token={sibling_token if mode == 'other_token' else victim_token}",
+                f"--owner={OWNER}",
+                f"--robot={settings['robot']}",
+                f"--topic={CHATTER}",
+                f"--answers={tmp_path / mode}.jsonl",
+                *(
+                    []
+                    if mode in ("no_key", "wrong_key")
+                    else [f"--key-file={tmp_path / 'owner.sm4'}"]
+                ),
+            )
+            nodes.enter_context(running(forged, env=env, log=tmp_path / f"{mode}.log"))
+        wait_until(
+            lambda: all(len(_answers(tmp_path / f"{mode}.jsonl")) >= 5 for mode in FORGERIES),
+            60,
+            "every forged node hearing the topic and uploading",
+        )
+        assert stop_process(agent, signal.SIGINT) == 0
+
+    for mode, expected in FORGERIES.items():
+        answers = _answers(tmp_path / f"{mode}.jsonl")
+        assert {(a["status"], a["error"]) for a in answers} == {expected}, (mode, answers)
+    # What is stored is exactly what the robot's own agent sent: the forgers added nothing.
+    stats = _final_stats(agent_log)
+    assert (stats["failed"], stats["dropped"], stats["queued"]) == (0, 0, 0), stats
+    records = list(Record.objects.order_by("seq"))
+    assert len(records) == stats["sent"]
+    assert {record.robot_id for record in records} == {uuid.UUID(settings["robot"])}
+    assert not sibling.records.exists()
+    for record in records[:3]:
+        opened = record_open(record_id=record.id, viewer=owner)
+        assert json.loads(opened.plaintext) == chatter_record("hello", opened.header["time"])
+
+
+def _answers(path: Path) -> list[dict]:
+    if not path.exists():
+        return []
+    return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
