@@ -20,6 +20,7 @@ mkdir -p "$LOG_DIR" var/anvil
 
 say() { printf '\033[1;32m[run]\033[0m %s\n' "$*"; }
 PIDS=()
+OWN_REDIS=
 cleanup() {
   trap - INT TERM EXIT
   if [ ${#PIDS[@]} -gt 0 ]; then
@@ -27,6 +28,14 @@ cleanup() {
     kill "${PIDS[@]}" 2>/dev/null || true
     wait "${PIDS[@]}" 2>/dev/null || true
   fi
+  if [ -n "$OWN_REDIS" ]; then
+    say "stopping the redis-server started by make run"
+    redis-cli -u "$REDIS_URL" shutdown nosave >/dev/null 2>&1 || true
+  fi
+}
+fail() {
+  echo "make run: $*" >&2
+  exit 1
 }
 trap 'cleanup; exit 0' INT TERM
 trap cleanup EXIT
@@ -36,8 +45,13 @@ rpc_answers() {
     -d '{"jsonrpc":"2.0","id":1,"method":"eth_chainId","params":[]}' "$1" >/dev/null 2>&1
 }
 
-bash scripts/redis.sh
-say "Redis answers at $REDIS_URL"
+if redis-cli -u "$REDIS_URL" ping >/dev/null 2>&1; then
+  say "reusing the Redis at $REDIS_URL"
+else
+  OWN_REDIS=1
+  bash scripts/redis.sh
+  say "started Redis at $REDIS_URL (stopped again on Ctrl-C)"
+fi
 
 if rpc_answers "$CHAIN_RPC_URL"; then
   say "reusing the chain node at $CHAIN_RPC_URL"
@@ -47,7 +61,7 @@ else
     --state-interval 5 >"$LOG_DIR/anvil.log" 2>&1 &
   PIDS+=($!)
   for _ in $(seq 100); do rpc_answers "$CHAIN_RPC_URL" && break; sleep 0.1; done
-  rpc_answers "$CHAIN_RPC_URL" || { echo "anvil did not start; see $LOG_DIR/anvil.log" >&2; exit 1; }
+  rpc_answers "$CHAIN_RPC_URL" || fail "anvil did not start; see $LOG_DIR/anvil.log"
 fi
 
 .venv/bin/python manage.py migrate --noinput >/dev/null
@@ -69,7 +83,9 @@ say "starting the portal on http://$PORTAL_HOST:$PORTAL_PORT/"
   >"$LOG_DIR/portal.log" 2>&1 &
 PIDS+=($!)
 
-for _ in $(seq 100); do curl -sf -o /dev/null "http://$PORTAL_HOST:$PORTAL_PORT/admin/login/" && break; sleep 0.2; done
+portal_answers() { curl -sf -o /dev/null "http://$PORTAL_HOST:$PORTAL_PORT/admin/login/"; }
+for _ in $(seq 150); do portal_answers && break; sleep 0.2; done
+portal_answers || fail "the portal did not answer on $PORTAL_HOST:$PORTAL_PORT; see $LOG_DIR/portal.log"
 
 # --- the ROS side: a master, the simulated robot and an agent for a demo owner ----------
 export ROS_MASTER_URI=${ROS_MASTER_URI:-http://127.0.0.1:11311}
@@ -85,6 +101,7 @@ else
   roscore -p "$ros_port" >"$LOG_DIR/roscore.log" 2>&1 &
   PIDS+=($!)
   for _ in $(seq 100); do timeout 5 rostopic list >/dev/null 2>&1 && break; sleep 0.2; done
+  timeout 5 rostopic list >/dev/null 2>&1 || fail "roscore did not start; see $LOG_DIR/roscore.log"
 fi
 
 DEMO=$(.venv/bin/python manage.py demo_setup --dir var/demo --portal-url "http://$PORTAL_HOST:$PORTAL_PORT")

@@ -5,7 +5,12 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 
 bash scripts/bootstrap.sh
-bash scripts/redis.sh
+export REDIS_URL=${REDIS_URL:-redis://127.0.0.1:6379/0}
+if ! redis-cli -u "$REDIS_URL" ping >/dev/null 2>&1; then
+  bash scripts/redis.sh
+  # Ours: stop it again when the suite is done, whatever its outcome.
+  trap 'redis-cli -u "$REDIS_URL" shutdown nosave >/dev/null 2>&1 || true' EXIT
+fi
 
 say() { printf '\n\033[1;32m== %s\033[0m\n' "$*"; }
 
