@@ -64,10 +64,13 @@ _INSUFFICIENT_FUNDS = re.compile(
     r"insufficient funds|cannot afford|not have enough balance", re.IGNORECASE
 )
 _NONCE_ERROR = re.compile(
-    r"nonce too low|nonce too high|invalid (transaction )?nonce|already known|"
-    r"replacement transaction underpriced|known transaction",
+    r"nonce too low|nonce too high|invalid (transaction )?nonce|"
+    r"replacement transaction underpriced",
     re.IGNORECASE,
 )
+# The node has this very transaction already (an earlier send that timed out did arrive):
+# it is sent, and signing it again with another nonce would send it twice.
+_ALREADY_KNOWN = re.compile(r"already known|known transaction|already imported", re.IGNORECASE)
 
 
 # --- errors ------------------------------------------------------------------------------
@@ -312,6 +315,9 @@ def _translated_errors(function: str | None = None) -> Iterator[None]:
         yield
     except (requests.ConnectionError, requests.Timeout, ProviderConnectionError) as exc:
         raise ChainUnavailable(f"chain node unreachable: {exc}") from exc
+    except requests.HTTPError as exc:
+        # A proxy or load balancer in front of the node answering 429 or 5xx: try later.
+        raise ChainUnavailable(f"chain node answered HTTP error: {exc}") from exc
     except (NonceStoreUnavailable, NonceLockTimeout) as exc:
         raise ChainUnavailable(str(exc)) from exc
 
@@ -712,10 +718,14 @@ class AuthROSChain:
         ):
             for attempt in range(1, attempts + 1):
                 signed = sender.sign_transaction({**tx, "nonce": slot.nonce})
+                slot.hold()
                 try:
                     tx_hash = self.w3.eth.send_raw_transaction(signed.raw_transaction)
                 except (Web3RPCError, EthValidationError, ValueError) as exc:
                     message = str(exc)
+                    if _ALREADY_KNOWN.search(message):
+                        slot.commit()
+                        return "0x" + bytes(signed.hash).hex()
                     if _INSUFFICIENT_FUNDS.search(message):
                         raise InsufficientFunds(f"{sender.address} cannot pay for {label}") from exc
                     if not _NONCE_ERROR.search(message):

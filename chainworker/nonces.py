@@ -1,7 +1,8 @@
 """Nonces for locally signed transactions, safe across processes and hosts.
 
 One sender per EOA at a time: a Redis lock is held while a nonce is chosen, the transaction
-signed and handed to the node. The next nonce is the larger of the Redis counter (covers
+signed and handed to the node; it is renewed before every send, and a send whose lock expired
+meanwhile does not happen. The next nonce is the larger of the Redis counter (covers
 nodes behind a load balancer whose pending count lags) and the node's pending count (covers
 transactions sent by anyone else). A counter ahead of the node for longer than any plausible
 lag means transactions were dropped (a node restarted without its mempool): the node wins.
@@ -16,12 +17,18 @@ from dataclasses import dataclass
 
 import redis
 from redis.exceptions import LockError, RedisError
+from redis.lock import Lock
 
 logger = logging.getLogger(__name__)
 
 
 class NonceLockTimeout(RuntimeError):
     """Another process held the sender's lock for longer than we were willing to wait."""
+
+
+class NonceLockLost(NonceLockTimeout):
+    """Our hold on the sender's lock expired before we sent: another process may be using
+    the nonce, so nothing may be sent with it."""
 
 
 class NonceStoreUnavailable(RuntimeError):
@@ -36,6 +43,19 @@ class NonceReservation:
     nonce: int
     _manager: "RedisNonceManager"
     _fetch_from_node: Callable[[str], int]
+    _lock: Lock
+
+    def hold(self) -> None:
+        """Renew the sender's lock for another full timeout; call before each send.
+
+        Raises NonceLockLost when it expired meanwhile (a slow node): the nonce may be taken.
+        """
+        try:
+            self._lock.reacquire()
+        except LockError as exc:
+            raise NonceLockLost(f"lost the nonce lock of {self.address}: {exc}") from exc
+        except RedisError as exc:
+            raise NonceStoreUnavailable(f"cannot renew the nonce lock in Redis: {exc}") from exc
 
     def commit(self) -> None:
         self._manager._store(self.address, self.nonce + 1)
@@ -100,7 +120,7 @@ class RedisNonceManager:
             except RedisError as exc:
                 raise NonceStoreUnavailable(f"cannot read nonce from Redis: {exc}") from exc
             nonce = self._choose(address, stored, fetch_from_node(address))
-            yield NonceReservation(address, nonce, self, fetch_from_node)
+            yield NonceReservation(address, nonce, self, fetch_from_node, lock)
         finally:
             # Expired or unreachable: the lock's own timeout frees it for the next sender.
             with suppress(LockError, RedisError):

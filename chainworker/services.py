@@ -24,11 +24,11 @@ from accounts.selectors import owner_eoa_account
 from chainworker.chain import (
     AnchorItem,
     AuthROSChain,
+    ChainUnavailable,
     ContractNotDeployed,
     TransactionReverted,
     TransactionTimeout,
     TxResult,
-    bytes32_to_record_id,
 )
 from chainworker.models import Deployment
 from chainworker.outbox import enqueue
@@ -42,6 +42,9 @@ security_log = logging.getLogger("authros.security")
 
 # The operator pays for deployment and funds new EOAs; keep it topped up on dev chains.
 DEV_OPERATOR_FLOAT_WEI = 10_000 * 10**18
+
+# How long records on chain but not yet CHAIN_CONFIRMATIONS deep wait before a new look.
+ANCHOR_RECHECK_DELAY = 2.0
 
 _clients: dict[str, AuthROSChain] = {}
 _clients_lock = threading.Lock()
@@ -251,34 +254,50 @@ def key_rotate_on_chain(*, owner_key_id: int) -> OwnerKey:
 def grant_sync_on_chain(*, grant_id: int) -> Grant:
     """Make the chain agree with the portal's grant: authorityGrant or authorityRevoke."""
     grant = Grant.objects.select_related("owner", "grantee").get(pk=grant_id)
+    for party in (grant.owner, grant.grantee):
+        if party.chain_state != ChainState.CONFIRMED:
+            raise ChainWorkNotReady(f"{party} is not registered on chain yet")
     pair = f"grant:{grant.owner_id}:{grant.grantee_id}"
     with _exclusive(pair, timeout=settings.CHAIN_RECEIPT_TIMEOUT + 30):
         grant.refresh_from_db()
-        client = chain_client()
-        owner, grantee = grant.owner, grant.grantee
-        has_access = client.has_access(owner.eoa_address, grantee.eoa_address)
-        if grant.status == Grant.Status.PENDING:
-            fields: dict[str, object] = {"status": Grant.Status.ACTIVE}
-            if not has_access:
-                result = _tolerating(
-                    "AlreadyGranted",
-                    lambda: client.authority_grant(owner_eoa_account(owner), grantee.eoa_address),
-                )
-                if result is not None:
-                    fields.update(grant_tx=result.tx_hash, grant_block=result.block_number)
-            Grant.objects.filter(pk=grant.pk, status=Grant.Status.PENDING).update(**fields)
-        elif grant.status == Grant.Status.REVOKING:
-            fields = {"status": Grant.Status.REVOKED}
-            if has_access:
-                result = _tolerating(
-                    "NoGrant",
-                    lambda: client.authority_revoke(owner_eoa_account(owner), grantee.eoa_address),
-                )
-                if result is not None:
-                    fields.update(revoke_tx=result.tx_hash, revoke_block=result.block_number)
-            Grant.objects.filter(pk=grant.pk, status=Grant.Status.REVOKING).update(**fields)
+        try:
+            _grant_sync(grant)
+        except TransactionReverted as exc:
+            if grant.status != Grant.Status.PENDING:
+                raise  # a revocation is never given up: it fails loudly and the sweep retries
+            # The contract will refuse this grant every time: say so, do not retry forever.
+            Grant.objects.filter(pk=grant.pk, status=Grant.Status.PENDING).update(
+                status=Grant.Status.FAILED, failure_reason=str(exc)[:300]
+            )
+            logger.error("grant %s refused on chain: %s", grant.pk, exc)
     grant.refresh_from_db()
     return grant
+
+
+def _grant_sync(grant: Grant) -> None:
+    client = chain_client()
+    owner, grantee = grant.owner, grant.grantee
+    has_access = client.has_access(owner.eoa_address, grantee.eoa_address)
+    if grant.status == Grant.Status.PENDING:
+        fields: dict[str, object] = {"status": Grant.Status.ACTIVE}
+        if not has_access:
+            result = _tolerating(
+                "AlreadyGranted",
+                lambda: client.authority_grant(owner_eoa_account(owner), grantee.eoa_address),
+            )
+            if result is not None:
+                fields.update(grant_tx=result.tx_hash, grant_block=result.block_number)
+        Grant.objects.filter(pk=grant.pk, status=Grant.Status.PENDING).update(**fields)
+    elif grant.status == Grant.Status.REVOKING:
+        fields = {"status": Grant.Status.REVOKED}
+        if has_access:
+            result = _tolerating(
+                "NoGrant",
+                lambda: client.authority_revoke(owner_eoa_account(owner), grantee.eoa_address),
+            )
+            if result is not None:
+                fields.update(revoke_tx=result.tx_hash, revoke_block=result.block_number)
+        Grant.objects.filter(pk=grant.pk, status=Grant.Status.REVOKING).update(**fields)
 
 
 def _tolerating(error_name: str, send: Callable[[], TxResult]) -> TxResult | None:
@@ -291,15 +310,15 @@ def _tolerating(error_name: str, send: Callable[[], TxResult]) -> TxResult | Non
         raise
 
 
-def anchor_schedule(*, owner_id: int) -> None:
+def anchor_schedule(*, owner_id: int, countdown: float | None = None) -> None:
     """Queue a run of `records_anchor` for an owner, unless one is queued already."""
-    flag_ttl = max(30, int(settings.ANCHOR_MAX_WAIT * 4))
+    flag_ttl = max(30, int(settings.ANCHOR_MAX_WAIT * 4 + (countdown or 0)))
     try:
         first = get_redis().set(redis_key("anchor-scheduled", owner_id), 1, nx=True, ex=flag_ttl)
     except RedisError:
         first = True
     if first:
-        enqueue("chainworker.tasks.records_anchor", owner_id)
+        enqueue("chainworker.tasks.records_anchor", owner_id, countdown=countdown)
 
 
 def records_anchor(*, owner_id: int) -> int:
@@ -332,12 +351,14 @@ def records_anchor(*, owner_id: int) -> int:
         raise ChainWorkNotReady(f"cannot lock owner {owner_id} in Redis: {exc}") from exc
     try:
         _wait_for_batch_to_fill(owner_id)
-        anchored = _anchor_round(chain_client(), owner, lock)
+        anchored, sent = _anchor_round(chain_client(), owner, lock)
     finally:
         with suppress(LockError, RedisError):
             lock.release()
     if Record.objects.filter(owner_id=owner_id, status=Record.Status.PENDING).exists():
-        anchor_schedule(owner_id=owner_id)
+        # Nothing sent: what is left is on chain awaiting confirmations, so look again after
+        # about a block rather than at once.
+        anchor_schedule(owner_id=owner_id, countdown=None if sent else ANCHOR_RECHECK_DELAY)
     return anchored
 
 
@@ -364,29 +385,41 @@ def _wait_for_batch_to_fill(owner_id: int) -> None:
         time.sleep(min(remaining, settings.ANCHOR_MAX_WAIT))
 
 
-def _anchor_round(client: AuthROSChain, owner: Owner, lock: Lock) -> int:
+def _anchor_round(client: AuthROSChain, owner: Owner, lock: Lock) -> tuple[int, int]:
+    """One run's sends and receipts; returns (records anchored, transactions sent)."""
     account = owner_eoa_account(owner)
     in_flight: list[tuple[list[Record], str]] = []
     refusal: TransactionReverted | None = None
     for _ in range(settings.ANCHOR_INFLIGHT):
+        # "One sender per EOA": stop if our hold on the owner lapsed (a long wait before).
+        if not _renew(lock):
+            break
         sent_ids = [r.pk for batch, _tx in in_flight for r in batch]
         batch = _settle_attempted(client, owner, _next_batch(owner.pk, exclude=sent_ids))
         if not batch:
             break
-        Record.objects.filter(pk__in=[r.pk for r in batch]).update(
-            anchor_attempts=F("anchor_attempts") + 1
-        )
+        batch_ids = [r.pk for r in batch]
+        # Counted before sending: a run that dies after the send must look on chain first.
+        Record.objects.filter(pk__in=batch_ids).update(anchor_attempts=F("anchor_attempts") + 1)
         try:
             tx_hash = client.data_upload_batch(
                 account, [_anchor_item(r) for r in batch], wait=False
             )
+        except ChainUnavailable:
+            # The node (or Redis) is away: that is not the records' fault, so it does not
+            # count towards ANCHOR_MAX_ATTEMPTS; an outage of any length loses nothing. If the
+            # send did reach the node, the next send is refused with RecordExists and settled.
+            Record.objects.filter(pk__in=batch_ids, anchor_attempts__gt=0).update(
+                anchor_attempts=F("anchor_attempts") - 1
+            )
+            raise
         except TransactionReverted as exc:
             if exc.error_name != "RecordExists":
                 refusal = exc
                 break
-            # Someone anchored one of these already: settle it; the rest go in the next run.
-            taken = bytes32_to_record_id(exc.error_args["id"])
-            _settle_attempted(client, owner, [r for r in batch if r.pk == taken], force=True)
+            # Someone anchored some of these already: settle them all from the chain; the
+            # rest go in the next run.
+            _settle_attempted(client, owner, batch, force=True)
             break
         in_flight.append((batch, tx_hash))
     anchored = 0
@@ -401,7 +434,7 @@ def _anchor_round(client: AuthROSChain, owner: Owner, lock: Lock) -> int:
         anchored += len(batch)
     if refusal is not None:
         raise refusal
-    return anchored
+    return anchored, len(in_flight)
 
 
 def _renew(lock: Lock) -> bool:
@@ -456,6 +489,7 @@ def _settle_attempted(
 ) -> list[Record]:
     """Look up records a previous attempt may have anchored; return those still to send."""
     still_pending = []
+    latest = None
     for record in batch:
         if record.anchor_attempts == 0 and not force:
             still_pending.append(record)
@@ -467,6 +501,10 @@ def _settle_attempted(
             on_chain.owner.lower() == owner.eoa_address.lower()
         ):
             event = client.upload_event(record.id)
+            if client.confirmations:
+                latest = client.latest_block() if latest is None else latest
+                if event is None or latest - event.block_number < client.confirmations:
+                    continue  # on chain, not deep enough yet: neither anchored nor resent
             Record.objects.filter(pk=record.pk, status=Record.Status.PENDING).update(
                 status=Record.Status.ANCHORED,
                 tx_hash=event.tx_hash if event else "",

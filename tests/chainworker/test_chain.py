@@ -1,7 +1,9 @@
 """The chain client against the in-process EVM (eth-tester)."""
 
+import threading
 import uuid
 from datetime import UTC, datetime
+from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 
 import pytest
 from eth_account import Account
@@ -249,6 +251,69 @@ def test_lagging_node_is_covered_by_the_counter(chain, registered_owner):
         slot.commit()
     with chain.nonces.reserve(registered_owner.address, lambda _addr: 0) as slot:
         assert slot.nonce == next_nonce  # counter is fresh and ahead of a lagging node
+
+
+def test_a_send_the_node_already_has_is_not_signed_again(chain, registered_owner, monkeypatch):
+    """The node accepted the transaction but its answer was lost; our retry hears "already
+    known". That transaction is sent: signing it again with the next nonce would send it twice.
+    """
+    real_send = chain.w3.eth.send_raw_transaction
+    sent: list[bytes] = []
+
+    def accepted_then_already_known(raw):
+        sent.append(bytes(raw))
+        if len(sent) == 1:
+            real_send(raw)
+            raise ValueError("already known")
+        return real_send(raw)
+
+    monkeypatch.setattr(chain.w3.eth, "send_raw_transaction", accepted_then_already_known)
+    nonce = chain._pending_nonce(registered_owner.address)
+    tx_hash = chain.data_upload(registered_owner, _item(), wait=False)
+    assert chain.wait_for_receipt(tx_hash)["status"] == 1
+    assert chain.w3.eth.get_transaction(tx_hash)["nonce"] == nonce
+    chain.data_upload(registered_owner, _item())  # the next send takes the next nonce
+    assert len(sent) == 2
+    assert chain.record_count() == 2
+    assert chain._pending_nonce(registered_owner.address) == nonce + 2
+
+
+def test_a_send_whose_nonce_lock_expired_does_not_happen(
+    chain, registered_owner, monkeypatch, redis_client
+):
+    """Another process may have taken the sender's lock and the nonce: sending would collide."""
+    key = chain.nonces._key(registered_owner.address) + ":lock"
+    real_sign = registered_owner.sign_transaction
+
+    def slow_sign(tx):
+        redis_client.delete(key)  # our lock expired while we were slow
+        return real_sign(tx)
+
+    monkeypatch.setattr(registered_owner, "sign_transaction", slow_sign)
+    with pytest.raises(ChainUnavailable, match="lost the nonce lock"):
+        chain.data_upload(registered_owner, _item())
+    assert chain.record_count() == 0
+
+
+def test_a_node_behind_a_proxy_answering_503_is_unavailable(redis_client):
+    class Overloaded(BaseHTTPRequestHandler):
+        def do_POST(self):
+            self.send_response(503)
+            self.send_header("Content-Length", "0")
+            self.end_headers()
+
+        def log_message(self, *args):
+            pass
+
+    server = ThreadingHTTPServer(("127.0.0.1", 0), Overloaded)
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    try:
+        client = AuthROSChain(f"http://127.0.0.1:{server.server_port}", redis_client=redis_client)
+        with pytest.raises(ChainUnavailable, match="HTTP error"):
+            client.latest_block()
+    finally:
+        server.shutdown()
+        server.server_close()
 
 
 def test_unfunded_sender_gets_insufficient_funds(chain):

@@ -1,5 +1,6 @@
 """The chain client against a real anvil node: several processes sending at once."""
 
+import logging
 import multiprocessing
 import uuid
 from datetime import UTC, datetime
@@ -57,15 +58,30 @@ def _upload_from_another_process(url, redis_url, address, owner_key, count, queu
     )
     owner = Account.from_key(owner_key)
     sent = []
+    refusals = _NonceRefusals()
+    logging.getLogger("chainworker.chain").addHandler(refusals)
     try:
         for _ in range(count):
             item = _item()
             sent.append((str(item.record_id), client.data_upload(owner, item, wait=False)))
         for _, tx_hash in sent:
             client.wait_for_receipt(tx_hash)
-        queue.put(("ok", [record_id for record_id, _ in sent]))
+        queue.put(("ok", [record_id for record_id, _ in sent], refusals.count))
     except Exception as exc:  # report any failure to the parent, whatever it is
-        queue.put(("error", f"{type(exc).__name__}: {exc}"))
+        queue.put(("error", f"{type(exc).__name__}: {exc}", refusals.count))
+
+
+class _NonceRefusals(logging.Handler):
+    """Counts the node's refusals of a nonce, which the client survives by resyncing: with
+    the shared counter and lock there should be none at all."""
+
+    def __init__(self) -> None:
+        super().__init__(logging.WARNING)
+        self.count = 0
+
+    def emit(self, record: logging.LogRecord) -> None:
+        if record.getMessage().startswith("nonce "):
+            self.count += 1
 
 
 def test_full_contract_flow_over_http(anvil, redis_client):
@@ -108,9 +124,10 @@ def test_concurrent_senders_in_several_processes_share_nonces(anvil, redis_clien
     outcomes = [queue.get(timeout=120) for _ in workers]
     for worker in workers:
         worker.join(timeout=30)
-    errors = [detail for status, detail in outcomes if status == "error"]
+    errors = [detail for status, detail, _ in outcomes if status == "error"]
     assert errors == []
-    record_ids = [record_id for _, ids in outcomes for record_id in ids]
+    assert [refusals for _, _, refusals in outcomes] == [0] * SENDER_PROCESSES
+    record_ids = [record_id for _, ids, _ in outcomes for record_id in ids]
     assert len(set(record_ids)) == SENDER_PROCESSES * UPLOADS_PER_PROCESS
     assert client.record_count() == SENDER_PROCESSES * UPLOADS_PER_PROCESS
     assert all(client.data_query(record_id) is not None for record_id in record_ids)
