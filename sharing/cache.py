@@ -1,7 +1,19 @@
 """The Redis cache of envelopes. Durable storage holds the copy that counts; a Redis that is
-down, flushed or full only makes reads slower."""
+down, flushed or full only makes reads slower.
+
+Bounded two ways: each entry lives ENVELOPE_CACHE_TTL seconds, and all entries together hold
+at most ENVELOPE_CACHE_MAX_BYTES; past that the oldest entries are evicted first. The bound is
+kept by the cache itself (a Lua script, atomic across every web and worker process), not by
+Redis's maxmemory, because the same Redis holds the Celery queues, nonces and locks, which
+must never be evicted. Beside each entry `<prefix>:envelope:<id>`:
+
+    <prefix>:envelope-index   sorted set: record id -> time it was cached (ms)
+    <prefix>:envelope-sizes   hash: record id -> bytes
+    <prefix>:envelope-bytes   the total of those sizes
+"""
 
 import logging
+import time
 import uuid
 
 from django.conf import settings
@@ -18,13 +30,88 @@ def _key(record_id: uuid.UUID | str) -> str:
     return redis_key("envelope", record_id)
 
 
-def envelope_cache_put(record_id: uuid.UUID | str, data: bytes) -> None:
-    if len(data) > settings.ENVELOPE_CACHE_MAX_ITEM_BYTES:
+# KEYS: index, sizes, total. ARGV: entry key prefix, now (ms), ttl (s), max bytes, then
+# for a put: id, data; for an evict: id only.
+_FORGET = """
+local function forget(id)
+  redis.call('DEL', ARGV[1] .. id)
+  local size = tonumber(redis.call('HGET', KEYS[2], id) or '0')
+  redis.call('HDEL', KEYS[2], id)
+  redis.call('ZREM', KEYS[1], id)
+  if size > 0 then redis.call('DECRBY', KEYS[3], size) end
+end
+"""
+_PUT = (
+    _FORGET
+    + """
+local now, ttl, max = tonumber(ARGV[2]), tonumber(ARGV[3]), tonumber(ARGV[4])
+local id, data = ARGV[5], ARGV[6]
+local expired = redis.call('ZRANGEBYSCORE', KEYS[1], '-inf', now - ttl * 1000, 'LIMIT', 0, 1000)
+for _, old in ipairs(expired) do
+  forget(old)
+end
+forget(id)
+redis.call('SET', ARGV[1] .. id, data, 'EX', ttl)
+redis.call('ZADD', KEYS[1], now, id)
+redis.call('HSET', KEYS[2], id, #data)
+local total = redis.call('INCRBY', KEYS[3], #data)
+local evicted = 0
+while total > max do
+  local oldest = redis.call('ZRANGE', KEYS[1], 0, 0)[1]
+  if oldest == nil or oldest == id then break end
+  forget(oldest)
+  evicted = evicted + 1
+  total = tonumber(redis.call('GET', KEYS[3]) or '0')
+end
+return evicted
+"""
+)
+_EVICT = _FORGET + "forget(ARGV[5])\nreturn 0\n"
+
+
+def _bookkeeping() -> list[str]:
+    return [
+        redis_key("envelope-index"),
+        redis_key("envelope-sizes"),
+        redis_key("envelope-bytes"),
+    ]
+
+
+def _run(script: str, *args: object, now_ms: int | None = None) -> int:
+    now = int(time.time() * 1000) if now_ms is None else now_ms
+    client = get_redis()
+    return client.register_script(script)(
+        keys=_bookkeeping(),
+        args=[
+            redis_key("envelope", ""),
+            now,
+            settings.ENVELOPE_CACHE_TTL,
+            settings.ENVELOPE_CACHE_MAX_BYTES,
+            *args,
+        ],
+    )
+
+
+def envelope_cache_put(
+    record_id: uuid.UUID | str, data: bytes, *, now_ms: int | None = None
+) -> None:
+    if len(data) > min(settings.ENVELOPE_CACHE_MAX_ITEM_BYTES, settings.ENVELOPE_CACHE_MAX_BYTES):
         return
     try:
-        get_redis().set(_key(record_id), data, ex=settings.ENVELOPE_CACHE_TTL)
+        evicted = _run(_PUT, str(record_id), data, now_ms=now_ms)
     except RedisError as exc:
         logger.warning("envelope cache unavailable (put %s): %s", record_id, exc)
+        return
+    if evicted:
+        logger.debug("envelope cache full: evicted the %d oldest entries", evicted)
+
+
+def envelope_cache_bytes() -> int:
+    """What the cached envelopes hold together, by the cache's own count."""
+    try:
+        return int(get_redis().get(redis_key("envelope-bytes")) or 0)
+    except RedisError:
+        return 0
 
 
 def envelope_cache_get(record_id: uuid.UUID | str) -> bytes | None:
@@ -37,7 +124,7 @@ def envelope_cache_get(record_id: uuid.UUID | str) -> bytes | None:
 
 def envelope_cache_evict(record_id: uuid.UUID | str) -> None:
     try:
-        get_redis().delete(_key(record_id))
+        _run(_EVICT, str(record_id))
     except RedisError as exc:
         logger.warning("envelope cache unavailable (evict %s): %s", record_id, exc)
 
