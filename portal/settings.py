@@ -279,6 +279,8 @@ ANCHOR_INFLIGHT = env.int("ANCHOR_INFLIGHT", default=4)
 ANCHOR_LOCK_TTL = env.float("ANCHOR_LOCK_TTL", default=30.0)
 ENVELOPE_CACHE_TTL = env.int("ENVELOPE_CACHE_TTL", default=3600)
 ENVELOPE_CACHE_MAX_ITEM_BYTES = env.int("ENVELOPE_CACHE_MAX_ITEM_BYTES", default=2 * 1024 * 1024)
+# All cached envelopes together; the oldest go first past it (sharing/cache.py).
+ENVELOPE_CACHE_MAX_BYTES = env.int("ENVELOPE_CACHE_MAX_BYTES", default=256 * 1024 * 1024)
 ENVELOPE_MAX_BYTES = env.int("ENVELOPE_MAX_BYTES", default=8 * 1024 * 1024)
 # How long a web request waits for the worker's integrity verdict.
 VERIFY_TIMEOUT = env.float("VERIFY_TIMEOUT", default=30.0)
