@@ -317,8 +317,10 @@ def anchor_schedule(*, owner_id: int, countdown: float | None = None) -> None:
         first = get_redis().set(redis_key("anchor-scheduled", owner_id), 1, nx=True, ex=flag_ttl)
     except RedisError:
         first = True
-    if first:
-        enqueue("chainworker.tasks.records_anchor", owner_id, countdown=countdown)
+    if first and not enqueue("chainworker.tasks.records_anchor", owner_id, countdown=countdown):
+        # Not queued: do not let the flag keep the sweep from queueing it again.
+        with suppress(RedisError):
+            get_redis().delete(redis_key("anchor-scheduled", owner_id))
 
 
 def records_anchor(*, owner_id: int) -> int:

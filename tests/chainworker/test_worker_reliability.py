@@ -13,10 +13,12 @@ from collections import Counter
 import pytest
 import redis
 
+from accounts import services as accounts_services
 from accounts.models import ChainState, Owner
 from accounts.services import owner_create, robot_create
 from chainworker import services as chain_services
 from chainworker.chain import record_id_to_bytes32
+from sharing import services as sharing_services
 from sharing.cache import _key as cache_key
 from sharing.models import Grant, Record
 from sharing.services import grant_create, grant_revoke, record_create, record_create_batch
@@ -288,3 +290,38 @@ def test_owners_take_turns_and_transactions_share_blocks(stack_factory):
     )
     assert len(busy_transactions) == 20
     assert len(busy_blocks) < len(busy_transactions)
+
+
+def test_work_whose_messages_the_broker_lost_is_queued_again_by_the_beat_sweep(
+    stack_factory, monkeypatch
+):
+    stack = stack_factory(workers=1)
+    alice, bob = _robots(2)
+    lost: list[str] = []
+
+    def broker_lost(task_path, *args, countdown=None):
+        lost.append(task_path.rpartition(".")[2])
+        return False
+
+    for module in (sharing_services, chain_services, accounts_services):
+        monkeypatch.setattr(module, "enqueue", broker_lost)
+    for seq in range(1, 6):
+        record_create(robot=alice.robot, data=alice.seal(seq))
+    grant = grant_create(owner=alice.owner, grantee=bob.owner)
+    new_key = accounts_services.key_rotate(owner=bob.owner, sm4_key=sm4.generate_key())
+    assert set(lost) == {"records_anchor", "grant_sync", "key_rotate"}
+
+    # Only the beat's sweep (every 2 s, for work pending over 5 s) can queue them now.
+    _all_anchored(5, timeout=90)
+    wait_for(
+        lambda: Grant.objects.get(pk=grant.pk).status == Grant.Status.ACTIVE,
+        timeout=60,
+        what="the grant on chain",
+    )
+    wait_for(
+        lambda: type(new_key).objects.get(pk=new_key.pk).chain_state == ChainState.CONFIRMED,
+        timeout=60,
+        what="the rotated key on chain",
+    )
+    assert "sweep_stale" in (stack.logs / "beat.log").read_text()
+    _assert_each_anchored_exactly_once(stack)
