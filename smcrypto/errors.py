@@ -9,6 +9,10 @@ class InvalidKey(CryptoError):
     """A key, nonce or IV has the wrong type or length, or an SM2 key is not valid."""
 
 
+class InvalidData(CryptoError):
+    """A plaintext, ciphertext or associated data is not bytes."""
+
+
 class MalformedEnvelope(CryptoError):
     """The bytes are not a well-formed envelope, or a header is not acceptable."""
 

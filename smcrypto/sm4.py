@@ -6,7 +6,7 @@ from cryptography.exceptions import InvalidTag
 from cryptography.hazmat.primitives import padding
 from cryptography.hazmat.primitives.ciphers import Cipher, algorithms, modes
 
-from smcrypto.errors import AuthenticationFailed, DecryptionError, InvalidKey
+from smcrypto.errors import AuthenticationFailed, DecryptionError, InvalidData, InvalidKey
 
 KEY_SIZE = 16
 BLOCK_SIZE = 16
@@ -23,8 +23,10 @@ def generate_key() -> bytes:
 def gcm_encrypt(key: bytes, nonce: bytes, plaintext: bytes, aad: bytes = b"") -> bytes:
     """Encrypt with SM4-GCM; return ciphertext followed by the 16-byte tag."""
     encryptor = Cipher(algorithms.SM4(_check_key(key)), modes.GCM(_check_nonce(nonce))).encryptor()
-    encryptor.authenticate_additional_data(aad)
-    ciphertext = encryptor.update(plaintext) + encryptor.finalize()
+    encryptor.authenticate_additional_data(_check_data(aad, "SM4-GCM associated data"))
+    ciphertext = (
+        encryptor.update(_check_data(plaintext, "SM4-GCM plaintext")) + encryptor.finalize()
+    )
     return ciphertext + encryptor.tag
 
 
@@ -32,6 +34,8 @@ def gcm_decrypt(key: bytes, nonce: bytes, data: bytes, aad: bytes = b"") -> byte
     """Decrypt ciphertext||tag from gcm_encrypt; raise AuthenticationFailed if it was changed."""
     key = _check_key(key)
     nonce = _check_nonce(nonce)
+    data = _check_data(data, "SM4-GCM data")
+    aad = _check_data(aad, "SM4-GCM associated data")
     if len(data) < GCM_TAG_SIZE:
         raise AuthenticationFailed(
             f"SM4-GCM data is {len(data)} bytes, shorter than the {GCM_TAG_SIZE}-byte tag"
@@ -51,7 +55,7 @@ def gcm_decrypt(key: bytes, nonce: bytes, data: bytes, aad: bytes = b"") -> byte
 def cbc_encrypt(key: bytes, iv: bytes, plaintext: bytes) -> bytes:
     """Encrypt with SM4-CBC and PKCS#7 padding (unauthenticated: for interoperability only)."""
     padder = padding.PKCS7(BLOCK_SIZE * 8).padder()
-    padded = padder.update(plaintext) + padder.finalize()
+    padded = padder.update(_check_data(plaintext, "SM4-CBC plaintext")) + padder.finalize()
     encryptor = Cipher(algorithms.SM4(_check_key(key)), modes.CBC(_check_iv(iv))).encryptor()
     return encryptor.update(padded) + encryptor.finalize()
 
@@ -60,6 +64,7 @@ def cbc_decrypt(key: bytes, iv: bytes, ciphertext: bytes) -> bytes:
     """Decrypt SM4-CBC and strip PKCS#7 padding; raise DecryptionError on bad length or padding."""
     key = _check_key(key)
     iv = _check_iv(iv)
+    ciphertext = _check_data(ciphertext, "SM4-CBC ciphertext")
     if not ciphertext or len(ciphertext) % BLOCK_SIZE:
         raise DecryptionError(
             f"SM4-CBC ciphertext must be a non-zero multiple of {BLOCK_SIZE} bytes, "
@@ -95,3 +100,9 @@ def _check_length(value: bytes, size: int, what: str) -> bytes:
     if len(value) != size:
         raise InvalidKey(f"{what} must be {size} bytes, got {len(value)}")
     return value
+
+
+def _check_data(value: bytes, what: str) -> bytes:
+    if not isinstance(value, bytes | bytearray | memoryview):
+        raise InvalidData(f"{what} must be bytes, got {type(value).__name__}")
+    return bytes(value)

@@ -8,7 +8,13 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from smcrypto import sm4
-from smcrypto.errors import AuthenticationFailed, CryptoError, DecryptionError, InvalidKey
+from smcrypto.errors import (
+    AuthenticationFailed,
+    CryptoError,
+    DecryptionError,
+    InvalidData,
+    InvalidKey,
+)
 
 # RFC 8998, Appendix A.1 (same values in nettle, GmSSL and Go's sm4 test suites)
 RFC8998_KEY = bytes.fromhex("0123456789ABCDEFFEDCBA9876543210")
@@ -145,3 +151,19 @@ def test_generate_key() -> None:
     keys = {sm4.generate_key() for _ in range(100)}
     assert len(keys) == 100
     assert all(len(key) == sm4.KEY_SIZE == 16 for key in keys)
+
+
+@pytest.mark.parametrize(
+    "call",
+    [
+        lambda: sm4.gcm_encrypt(RFC8998_KEY, bytes(12), "text"),
+        lambda: sm4.gcm_encrypt(RFC8998_KEY, bytes(12), b"text", aad="header"),
+        lambda: sm4.gcm_decrypt(RFC8998_KEY, bytes(12), "x" * 32),
+        lambda: sm4.gcm_decrypt(RFC8998_KEY, bytes(12), bytes(32), aad=None),
+        lambda: sm4.cbc_encrypt(RFC8998_KEY, bytes(16), 42),
+        lambda: sm4.cbc_decrypt(RFC8998_KEY, bytes(16), "x" * 16),
+    ],
+)
+def test_data_that_is_not_bytes_is_a_crypto_error(call) -> None:
+    with pytest.raises(InvalidData, match="must be bytes"):
+        call()
