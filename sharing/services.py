@@ -8,6 +8,7 @@ at once and are mirrored on chain by the worker.
 import logging
 import uuid
 from collections.abc import Sequence
+from contextlib import suppress
 from dataclasses import dataclass
 from datetime import UTC, datetime, timedelta
 
@@ -87,34 +88,43 @@ def record_create_batch(*, robot: Robot, envelopes: Sequence[bytes]) -> list[Rec
     if seqs != sorted(set(seqs)):
         raise InvalidEnvelope("sequence numbers in one upload must strictly increase")
     storage = envelope_storage()
-    with transaction.atomic():
-        locked = Robot.objects.select_for_update().get(pk=robot.pk)
-        if seqs[0] <= locked.last_seq:
-            raise ReplayedSequence(
-                f"seq {seqs[0]} is not above {locked.last_seq}, the last one of this robot"
-            )
-        records = []
-        for upload in checked:
-            name = storage.save(
-                f"{robot.owner_id}/{upload.record_id}.env", ContentFile(upload.data)
-            )
-            records.append(
-                Record.objects.create(
-                    id=upload.record_id,
-                    owner_id=robot.owner_id,
-                    robot=robot,
-                    topic=upload.header["topic"],
-                    data_type=upload.header["type"],
-                    seq=upload.header["seq"],
-                    captured_at=upload.captured_at,
-                    key_id=upload.key.key_id,
-                    digest=sm3.sm3_hex(upload.data),
-                    size=len(upload.data),
-                    storage_name=name,
+    saved: list[str] = []
+    try:
+        with transaction.atomic():
+            locked = Robot.objects.select_for_update().get(pk=robot.pk)
+            if seqs[0] <= locked.last_seq:
+                raise ReplayedSequence(
+                    f"seq {seqs[0]} is not above {locked.last_seq}, the last one of this robot"
                 )
-            )
-        Robot.objects.filter(pk=robot.pk).update(last_seq=seqs[-1])
-        transaction.on_commit(lambda: _after_upload(robot.owner_id, checked))
+            records = []
+            for upload in checked:
+                name = storage.save(
+                    f"{robot.owner_id}/{upload.record_id}.env", ContentFile(upload.data)
+                )
+                saved.append(name)
+                records.append(
+                    Record.objects.create(
+                        id=upload.record_id,
+                        owner_id=robot.owner_id,
+                        robot=robot,
+                        topic=upload.header["topic"],
+                        data_type=upload.header["type"],
+                        seq=upload.header["seq"],
+                        captured_at=upload.captured_at,
+                        key_id=upload.key.key_id,
+                        digest=sm3.sm3_hex(upload.data),
+                        size=len(upload.data),
+                        storage_name=name,
+                    )
+                )
+            Robot.objects.filter(pk=robot.pk).update(last_seq=seqs[-1])
+            transaction.on_commit(lambda: _after_upload(robot.owner_id, checked))
+    except BaseException:
+        # Nothing of a refused or failed upload stays behind, not even its files.
+        for name in saved:
+            with suppress(OSError):
+                storage.delete(name)
+        raise
     return records
 
 

@@ -1,8 +1,10 @@
 """Uploading records: what is stored and anchored, and what is refused without a trace."""
 
 from datetime import timedelta
+from pathlib import Path
 
 import pytest
+from django.db import DatabaseError
 from django.utils import timezone
 
 from accounts.services import key_rotate
@@ -138,3 +140,24 @@ def test_recently_rotated_key_is_accepted_then_expires(
     setup.owner.keys.filter(is_current=False).update(retired_at=timezone.now() - timedelta(days=1))
     with pytest.raises(errors.UnknownKey):
         record_create(robot=setup.robot, data=setup.seal(2))
+
+
+def test_a_batch_that_fails_half_way_leaves_no_file_behind(make_robot, monkeypatch):
+    setup = make_robot()
+    real_create = Record.objects.create
+    created = []
+
+    def fails_on_the_third(**fields):
+        if len(created) == 2:
+            raise DatabaseError("disk full")
+        created.append(fields["id"])
+        return real_create(**fields)
+
+    monkeypatch.setattr(Record.objects, "create", fails_on_the_third)
+    with pytest.raises(DatabaseError):
+        record_create_batch(robot=setup.robot, envelopes=[setup.seal(seq) for seq in (1, 2, 3)])
+    root = Path(envelope_storage().location)
+    assert [path for path in root.rglob("*") if path.is_file()] == []
+    assert Record.objects.count() == 0
+    setup.robot.refresh_from_db()
+    assert setup.robot.last_seq == -1  # unchanged: nothing was accepted
