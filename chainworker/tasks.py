@@ -1,6 +1,7 @@
 """Celery tasks for chain work: each loads by id, calls one service and declares its retries."""
 
 from celery import shared_task
+from celery.exceptions import SoftTimeLimitExceeded
 
 from chainworker import services
 from chainworker.chain import ChainUnavailable, InsufficientFunds, NonceError, TransactionTimeout
@@ -12,6 +13,9 @@ TRANSIENT = (
     NonceError,
     InsufficientFunds,
     services.ChainWorkNotReady,
+    # A run cut short by the soft limit (a very slow node): what it sent is settled from the
+    # chain by the next run, so running again is safe.
+    SoftTimeLimitExceeded,
 )
 CHAIN_TASK = {
     "autoretry_for": TRANSIENT,

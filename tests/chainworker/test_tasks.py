@@ -1,0 +1,28 @@
+"""Chain tasks declare how they survive failures (the behaviour is tested with real workers)."""
+
+import pytest
+from celery.exceptions import SoftTimeLimitExceeded
+
+from chainworker import tasks
+from chainworker.chain import ChainUnavailable, NonceError, TransactionTimeout
+from chainworker.services import ChainWorkNotReady
+from portal.celery import app
+
+
+@pytest.mark.parametrize(
+    "task", [tasks.owner_register, tasks.key_rotate, tasks.grant_sync, tasks.records_anchor]
+)
+def test_chain_tasks_retry_transient_failures_late_acked_and_time_limited(task):
+    assert set(task.autoretry_for) >= {
+        ChainUnavailable,
+        TransactionTimeout,
+        NonceError,
+        ChainWorkNotReady,
+        SoftTimeLimitExceeded,
+    }
+    assert task.retry_backoff
+    assert task.retry_jitter
+    assert task.max_retries >= 10
+    assert task.acks_late
+    assert 0 < task.soft_time_limit < task.time_limit
+    assert app.conf.worker_prefetch_multiplier == 1
