@@ -15,16 +15,12 @@ from django.core.exceptions import ValidationError
 
 from accounts.errors import InvalidKeyMaterial
 from accounts.keyexchange import sm4_key_from_submission
-from ros_agent.config import ConfigError, TopicConfig, parse_topics
+from accounts.models import DEFAULT_TOPICS, validate_robot_topics
+from ros_agent.config import TopicConfig
 
 NO_SCRIPT_KEY = (
     "Your key was not encrypted in the browser, so it was not sent. This page needs "
     "JavaScript to encrypt the key before it leaves your computer: enable it and try again."
-)
-# The topics of ros_agent.sim (and of the paper): odometry and a camera.
-DEFAULT_TOPICS = (
-    TopicConfig(name="/robot/odom", type="nav_msgs/Odometry"),
-    TopicConfig(name="/robot/complicatedImage", type="sensor_msgs/Image"),
 )
 
 
@@ -115,8 +111,8 @@ class RobotCreateForm(forms.Form):
         widget=forms.Textarea(attrs={"rows": 3, "spellcheck": "false"}),
         initial="\n".join(f"{topic.name} {topic.type}" for topic in DEFAULT_TOPICS),
         help_text=(
-            "For the agent's config file: one topic per line, its name then its ROS type, "
-            "e.g. /robot/odom nav_msgs/Odometry."
+            "What the robot's agent records, kept with the robot for its config file: one topic "
+            "per line, its name then its ROS type, e.g. /robot/odom nav_msgs/Odometry."
         ),
     )
 
@@ -138,9 +134,5 @@ class RobotCreateForm(forms.Form):
                     code="invalid_topic",
                 )
             entries.append({"name": parts[0], "type": parts[1]})
-        if not entries:
-            raise ValidationError("List at least one topic.", code="required")
-        try:
-            return list(parse_topics(entries, "topics"))
-        except ConfigError as exc:
-            raise ValidationError(str(exc).removeprefix("topics: "), code="invalid_topic") from None
+        validate_robot_topics(entries)
+        return [TopicConfig(name=entry["name"], type=entry["type"]) for entry in entries]

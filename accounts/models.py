@@ -3,7 +3,32 @@
 import uuid
 
 from django.conf import settings
+from django.core.exceptions import ValidationError
 from django.db import models
+
+from ros_agent.config import ConfigError, TopicConfig, parse_topics
+
+# The topics of ros_agent.sim (and of the paper): odometry and a camera.
+DEFAULT_TOPICS = (
+    TopicConfig(name="/robot/odom", type="nav_msgs/Odometry"),
+    TopicConfig(name="/robot/complicatedImage", type="sensor_msgs/Image"),
+)
+
+
+def default_robot_topics() -> list[dict[str, str]]:
+    """What a robot records unless told otherwise (also what robots made before topics were
+    stored were given)."""
+    return [{"name": topic.name, "type": topic.type} for topic in DEFAULT_TOPICS]
+
+
+def validate_robot_topics(value: object) -> None:
+    """A robot's topics: a non-empty list of {name, type}, as the agent's config takes them."""
+    if isinstance(value, list) and not value:
+        raise ValidationError("List at least one topic.", code="required")
+    try:
+        parse_topics(value, "topics")
+    except ConfigError as exc:
+        raise ValidationError(str(exc).removeprefix("topics: "), code="invalid_topic") from None
 
 
 class ChainState(models.TextChoices):
@@ -87,6 +112,8 @@ class Robot(models.Model):
         max_length=8, help_text="first characters, to tell tokens apart"
     )
     last_seq = models.BigIntegerField(default=-1)
+    # What the robot's agent subscribes to: [{"name": "/robot/odom", "type": "nav_msgs/..."}].
+    topics = models.JSONField(default=default_robot_topics, validators=[validate_robot_topics])
     is_active = models.BooleanField(default=True)
     created_at = models.DateTimeField(auto_now_add=True)
     revoked_at = models.DateTimeField(null=True, blank=True)

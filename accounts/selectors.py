@@ -7,6 +7,7 @@ from eth_account.signers.local import LocalAccount
 
 from accounts import keywrap
 from accounts.models import Owner, OwnerKey, Robot
+from ros_agent.config import TopicConfig
 
 
 def owner_eoa_account(owner: Owner) -> LocalAccount:
@@ -72,3 +73,8 @@ def owner_keys(owner: Owner) -> list[OwnerKey]:
 def robot_list_of(owner: Owner) -> list[Robot]:
     """An owner's robots: active ones first, then by name."""
     return list(owner.robots.order_by("-is_active", "name"))
+
+
+def robot_topics(robot: Robot) -> tuple[TopicConfig, ...]:
+    """The topics kept with the robot when it was added: what its agent config lists."""
+    return tuple(TopicConfig(name=entry["name"], type=entry["type"]) for entry in robot.topics)

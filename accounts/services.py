@@ -2,6 +2,7 @@
 on commit (outbox) and carried out by the chain worker."""
 
 import secrets
+from collections.abc import Sequence
 
 from django.contrib.auth import get_user_model
 from django.contrib.auth.password_validation import validate_password
@@ -21,9 +22,17 @@ from accounts.errors import (
     UsernameTaken,
     WeakPassword,
 )
-from accounts.models import ChainState, Owner, OwnerKey, Robot
+from accounts.models import (
+    DEFAULT_TOPICS,
+    ChainState,
+    Owner,
+    OwnerKey,
+    Robot,
+    validate_robot_topics,
+)
 from accounts.selectors import eoa_purpose, robot_token_hash, sm4_key_purpose
 from chainworker.outbox import enqueue
+from ros_agent.config import TopicConfig
 from smcrypto import key_commitment, key_id, sm4
 
 ROBOT_TOKEN_BYTES = 32
@@ -71,16 +80,29 @@ def key_rotate(*, owner: Owner, sm4_key: bytes) -> OwnerKey:
     return new_key
 
 
-def robot_create(*, owner: Owner, name: str) -> tuple[Robot, str]:
-    """A robot and its API token; the token is returned once and only its hash is kept."""
+def robot_create(
+    *, owner: Owner, name: str, topics: Sequence[TopicConfig] | None = None
+) -> tuple[Robot, str]:
+    """A robot and its API token; the token is returned once and only its hash is kept.
+
+    `topics` (default: DEFAULT_TOPICS) are kept for the robot's agent config; topics that
+    are not a valid list of {name, type} raise django.core.exceptions.ValidationError.
+    """
     name = name.strip()
     if not name or len(name) > 100:
         raise InvalidRobotName("a robot name has 1 to 100 characters")
+    chosen = DEFAULT_TOPICS if topics is None else topics
+    topic_list = [{"name": topic.name, "type": topic.type} for topic in chosen]
+    validate_robot_topics(topic_list)
     token = secrets.token_urlsafe(ROBOT_TOKEN_BYTES)
     try:
         with transaction.atomic():
             robot = Robot.objects.create(
-                owner=owner, name=name, token_hash=robot_token_hash(token), token_prefix=token[:8]
+                owner=owner,
+                name=name,
+                topics=topic_list,
+                token_hash=robot_token_hash(token),
+                token_prefix=token[:8],
             )
     except IntegrityError:
         raise RobotNameTaken(f"{owner} already has a robot named {name!r}") from None

@@ -4,7 +4,7 @@ Views validate, call one service and answer; reads go through the selectors. Eve
 but registration and sign-in needs a logged-in owner (`owner_required`).
 """
 
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from decimal import Decimal
 from functools import wraps
 
@@ -19,9 +19,11 @@ from django.http import HttpRequest, HttpResponse, JsonResponse
 from django.shortcuts import get_object_or_404, redirect, render
 from django.urls import reverse_lazy
 from django.utils import timezone
+from django.utils.decorators import method_decorator
 from django.utils.text import slugify
 from django.views.decorators.cache import never_cache
 from django.views.decorators.http import require_GET, require_http_methods, require_POST
+from rest_framework.throttling import BaseThrottle
 
 from accounts.errors import (
     InvalidKeyMaterial,
@@ -31,14 +33,19 @@ from accounts.errors import (
     UsernameTaken,
     WeakPassword,
 )
-from accounts.forms import DEFAULT_TOPICS, KeyRotateForm, RegisterForm, RobotCreateForm
+from accounts.forms import KeyRotateForm, RegisterForm, RobotCreateForm
 from accounts.keyexchange import portal_sm2_public_key
 from accounts.models import ChainState, Owner, Robot
-from accounts.selectors import owner_for_user, owner_key_current, owner_keys, robot_list_of
+from accounts.selectors import (
+    owner_for_user,
+    owner_key_current,
+    owner_keys,
+    robot_list_of,
+    robot_topics,
+)
 from accounts.services import key_rotate, owner_create, robot_create, robot_token_revoke
 from chainworker.chain import ChainError
 from chainworker.services import chain_client
-from ros_agent.config import TopicConfig
 from sharing.models import Grant
 from sharing.selectors import grant_list_given, grant_list_received, record_list_owned
 
@@ -179,7 +186,19 @@ class LoginView(auth_views.LoginView):
         return response
 
 
+def client_ip_address(request: HttpRequest) -> str | None:
+    """The address django-axes counts failed sign-ins against (AXES_CLIENT_IP_CALLABLE).
+
+    The API throttles' rule, so both honour API_NUM_PROXIES: with 0 the peer address, else
+    the X-Forwarded-For entry that many proxies from the right, the one our proxy appended.
+    """
+    return BaseThrottle().get_ident(request)
+
+
+@method_decorator(owner_required, name="dispatch")
 class PasswordChangeView(auth_views.PasswordChangeView):
+    """An owner's password; operators change theirs in the admin console."""
+
     template_name = "accounts/password_change.html"
     success_url = reverse_lazy("dashboard")
 
@@ -189,6 +208,10 @@ class PasswordChangeView(auth_views.PasswordChangeView):
 
 
 # --- dashboard and key ---------------------------------------------------------------------
+
+# What the dashboard counts as a grant, on both sides alike: active, or being granted on
+# chain. A grant being revoked is not counted: its owner has taken it back.
+GRANTS_COUNTED = (Grant.Status.ACTIVE, Grant.Status.PENDING)
 
 
 @owner_required
@@ -206,9 +229,9 @@ def dashboard(request: HttpRequest) -> HttpResponse:
         "balance": balance,
         "chain_problem": chain_problem,
         "record_count": record_list_owned(owner).count(),
-        "grants_given_count": grant_list_given(owner).filter(status__in=Grant.LIVE).count(),
+        "grants_given_count": grant_list_given(owner).filter(status__in=GRANTS_COUNTED).count(),
         "grants_received_count": grant_list_received(owner)
-        .filter(status=Grant.Status.ACTIVE)
+        .filter(status__in=GRANTS_COUNTED)
         .count(),
         "robot_count": owner.robots.filter(is_active=True).count(),
         **_steps(request),
@@ -256,12 +279,13 @@ def robots(request: HttpRequest) -> HttpResponse:
     form = RobotCreateForm(request.POST or None)
     if request.method == "POST" and form.is_valid():
         try:
-            robot, token = robot_create(owner=owner, name=form.cleaned_data["name"])
+            robot, token = robot_create(
+                owner=owner, name=form.cleaned_data["name"], topics=form.cleaned_data["topics"]
+            )
         except (RobotNameTaken, InvalidUsername) as exc:
             form.add_error("name", str(exc))
         else:
-            topics = form.cleaned_data["topics"]
-            config = agent_config_yaml(request, robot, topics=topics, token=token)
+            config = agent_config_yaml(request, robot, token=token)
             context = {
                 "robot": robot,
                 "token": token,
@@ -292,20 +316,15 @@ def robot_revoke(request: HttpRequest, robot_id: str) -> HttpResponse:
 def robot_config(request: HttpRequest, robot_id: str) -> HttpResponse:
     """The agent config again, without the token (shown once): it names a token file."""
     robot = get_object_or_404(Robot, pk=robot_id, owner=request.owner)
-    text = agent_config_yaml(request, robot, topics=None, token=None)
+    text = agent_config_yaml(request, robot, token=None)
     response = HttpResponse(text, content_type="application/yaml; charset=utf-8")
     response["Content-Disposition"] = f'attachment; filename="{_config_filename(robot)}"'
     return no_store(response)
 
 
-def agent_config_yaml(
-    request: HttpRequest,
-    robot: Robot,
-    *,
-    topics: Sequence[TopicConfig] | None,
-    token: str | None,
-) -> str:
-    """An agent.yaml for ros_agent (see ros_agent/config.py); never the SM4 key itself."""
+def agent_config_yaml(request: HttpRequest, robot: Robot, *, token: str | None) -> str:
+    """An agent.yaml for ros_agent (see ros_agent/config.py) with the topics kept with the
+    robot; never the SM4 key itself."""
     owner = robot.owner
     key_file = _key_filename(owner)
     settings_map: dict[str, object] = {
@@ -319,7 +338,7 @@ def agent_config_yaml(
         settings_map["token"] = token
     settings_map["key_file"] = key_file
     settings_map["topics"] = [
-        {"name": topic.name, "type": topic.type} for topic in (topics or DEFAULT_TOPICS)
+        {"name": topic.name, "type": topic.type} for topic in robot_topics(robot)
     ]
     token_line = (
         "# It holds the robot's API token: keep it private too (chmod 600 this file)."

@@ -114,10 +114,7 @@ def contract_deploy(*, force: bool = False) -> DeployOutcome:
     """
     client = chain_client()
     operator = operator_account()
-    lock = get_redis().lock(
-        redis_key("deploy", client.chain_key), timeout=300, blocking_timeout=300
-    )
-    with lock:
+    with _exclusive(f"deploy:{client.chain_key}", timeout=300, wait=300):
         current = deployment_active(chain_id=client.chain_id, genesis_hash=client.genesis_hash)
         if current and not force:
             if client.has_code(current.address):

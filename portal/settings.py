@@ -50,6 +50,7 @@ INSTALLED_APPS = [
     "django.contrib.staticfiles",
     "rest_framework",
     "drf_spectacular",
+    "drf_spectacular_sidecar",
     "axes",
     "accounts",
     "sharing",
@@ -177,6 +178,12 @@ AXES_FAILURE_LIMIT = env.int("AXES_FAILURE_LIMIT", default=5)
 AXES_COOLOFF_TIME = env.float("AXES_COOLOFF_HOURS", default=0.25)
 AXES_LOCKOUT_PARAMETERS = [["username", "ip_address"]]
 AXES_RESET_ON_SUCCESS = True
+# Whose address a failed sign-in counts against: the one the API throttles use, with the same
+# proxy count (REST_FRAMEWORK NUM_PROXIES, from API_NUM_PROXIES). With 0 only the peer address
+# counts, so a client cannot pick another address by sending X-Forwarded-For; behind a proxy
+# it is the address that proxy appended. (django-axes' own AXES_IPWARE_* settings need
+# django-ipware, which is not installed: without it axes would see only the proxy's address.)
+AXES_CLIENT_IP_CALLABLE = "accounts.views.client_ip_address"
 
 # --- REST API (DRF, drf-spectacular) ------------------------------------------------------
 REST_FRAMEWORK = {
@@ -215,6 +222,11 @@ SPECTACULAR_SETTINGS = {
         "RecordStatusEnum": "sharing.models.Record.Status",
         "GrantStatusEnum": "sharing.models.Grant.Status",
     },
+    # Swagger UI and Redoc from drf-spectacular-sidecar's static files, not from a CDN:
+    # /api/docs/ works offline and loads nothing from another origin.
+    "SWAGGER_UI_DIST": "SIDECAR",
+    "SWAGGER_UI_FAVICON_HREF": "SIDECAR",
+    "REDOC_DIST": "SIDECAR",
 }
 # Request bodies: the envelope limit plus base64 and JSON overhead.
 DATA_UPLOAD_MAX_MEMORY_SIZE = env.int("DATA_UPLOAD_MAX_MEMORY_SIZE", default=12 * 1024 * 1024)

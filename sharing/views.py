@@ -63,6 +63,9 @@ TRAJECTORY_POINTS = 20
 ODOMETRY = "nav_msgs/Odometry"
 IMAGE_TYPES = {"sensor_msgs/Image", "sensor_msgs/CompressedImage"}
 MISSING = "-"
+# A record page's refusal for a record whose anchoring failed (the worker's verdict says only
+# "not anchored yet").
+ANCHORING_FAILED = "anchoring_failed"
 _IMAGE_MAGIC = {b"\x89PNG\r\n\x1a\n": "image/png", b"\xff\xd8\xff": "image/jpeg"}
 
 
@@ -124,6 +127,10 @@ def _open_or_refuse(request: HttpRequest, record_id: str) -> OpenedRecord | Refu
     except NotAnchoredYet as exc:
         record = record_get_visible(viewer, record_id)
         verdict = verdict_latest(record, viewer) if record else None
+        if record is not None and record.status == Record.Status.FAILED:
+            # Not worth waiting for: it stays unanchored until an operator anchors it again.
+            message = f"anchoring this record failed: {record.failure_reason or 'no reason given'}"
+            return Refusal(ANCHORING_FAILED, 409, message, record, verdict)
         return Refusal(Verdict.Outcome.NOT_ANCHORED_YET, 409, str(exc), record, verdict)
     except VerificationUnavailable as exc:
         return Refusal("unavailable", 503, str(exc))

@@ -2,6 +2,7 @@
 
 import pytest
 from django.contrib.auth import get_user_model
+from django.core.exceptions import ValidationError
 from django.db import connection
 
 from accounts import keywrap
@@ -13,14 +14,16 @@ from accounts.errors import (
     UsernameTaken,
     WeakPassword,
 )
-from accounts.models import ChainState, Owner, OwnerKey, Robot
+from accounts.models import DEFAULT_TOPICS, ChainState, Owner, OwnerKey, Robot
 from accounts.selectors import (
     owner_eoa_account,
     owner_key_bytes,
     owner_key_current,
     robot_by_token,
+    robot_topics,
 )
 from accounts.services import key_rotate, owner_create, robot_create, robot_token_revoke
+from ros_agent.config import TopicConfig
 from smcrypto import key_commitment, key_id, sm4
 from tests.conftest import TEST_PASSWORD
 
@@ -148,3 +151,58 @@ def test_robot_token_is_shown_once_and_stored_hashed(make_owner):
         robot_create(owner=owner, name="turtlebot")
     robot_token_revoke(robot=robot)
     assert robot_by_token(token) is None
+
+
+@pytest.fixture
+def unregistered_owner(db) -> Owner:
+    """An owner whose chain work never runs: enough for robots."""
+    return owner_create(username="rita", password=TEST_PASSWORD, sm4_key=sm4.generate_key())
+
+
+def test_robot_keeps_the_topics_it_was_created_with(unregistered_owner):
+    owner = unregistered_owner
+    topics = [
+        TopicConfig("/scan", "sensor_msgs/LaserScan"),
+        TopicConfig("~odom", "nav_msgs/Odometry"),
+    ]
+    robot, _token = robot_create(owner=owner, name="lidar", topics=topics)
+    stored = Robot.objects.get(pk=robot.pk)
+    assert stored.topics == [
+        {"name": "/scan", "type": "sensor_msgs/LaserScan"},
+        {"name": "~odom", "type": "nav_msgs/Odometry"},
+    ]
+    assert robot_topics(stored) == tuple(topics)
+    default, _token = robot_create(owner=owner, name="sim")
+    assert robot_topics(default) == DEFAULT_TOPICS
+
+
+@pytest.mark.parametrize(
+    ("topics", "message"),
+    [
+        ([], "at least one topic"),
+        ([TopicConfig("/a", "String")], "must be package/Message"),
+        ([TopicConfig("not a topic", "std_msgs/String")], "not a valid ROS topic name"),
+        ([TopicConfig("/a", "std_msgs/String")] * 2, "topics listed twice"),
+    ],
+)
+def test_robot_with_invalid_topics_is_refused(unregistered_owner, topics, message):
+    with pytest.raises(ValidationError, match=message):
+        robot_create(owner=unregistered_owner, name="r", topics=topics)
+    assert not Robot.objects.exists()
+
+
+@pytest.mark.parametrize(
+    "value",
+    [
+        "/robot/odom nav_msgs/Odometry",
+        [{"name": "/a"}],
+        [{"name": "/a", "type": "std_msgs/String", "rate": 10}],
+        [["/a", "std_msgs/String"]],
+    ],
+)
+def test_robot_topics_field_takes_only_a_list_of_name_and_type(unregistered_owner, value):
+    robot, _token = robot_create(owner=unregistered_owner, name="r")
+    robot.topics = value
+    with pytest.raises(ValidationError) as refused:
+        robot.full_clean()
+    assert "topics" in refused.value.message_dict

@@ -56,7 +56,29 @@ def test_operator_without_owner_is_pointed_to_the_admin(client):
     assert page.status_code == 403
     assert "not an owner account" in page.content.decode()
     assert reverse("admin:index") in page.content.decode()
-    assert client.get("/").status_code == 200
+    assert client.get("/")["Location"] == reverse("admin:index")
+
+
+@pytest.mark.parametrize(("name", "kwargs"), OWNER_PAGES)
+def test_operator_without_owner_gets_403_on_every_owner_page(client, name, kwargs):
+    client.force_login(get_user_model().objects.create_superuser("root", password=TEST_PASSWORD))
+    page = client.get(reverse(name, kwargs=kwargs))
+    assert page.status_code == 403
+    assert "not an owner account" in page.content.decode()
+
+
+@pytest.mark.parametrize(
+    ("name", "kwargs", "form"),
+    [
+        ("robot-revoke", {"robot_id": "7c9e6679-7425-40de-944b-e07fc1f90ae7"}, {}),
+        ("grants", {}, {"grantee": "bob"}),
+        ("grant-revoke", {}, {"grantee": "bob"}),
+        ("key-rotation", {}, {"password": TEST_PASSWORD}),
+    ],
+)
+def test_operator_without_owner_gets_403_on_every_owner_form(client, name, kwargs, form):
+    client.force_login(get_user_model().objects.create_superuser("root", password=TEST_PASSWORD))
+    assert client.post(reverse(name, kwargs=kwargs), form).status_code == 403
 
 
 # --- registration -----------------------------------------------------------------------
@@ -318,7 +340,7 @@ def test_key_rotation_refusals_change_nothing(client, pending_owner, form, messa
 
 
 def test_landing_page_sends_owners_to_their_dashboard(client, pending_owner):
-    assert client.get("/").status_code == 200
+    assert client.get("/")["Location"] == reverse("login")
     client.force_login(pending_owner().user)
     page = client.get("/")
     assert page.status_code == 302

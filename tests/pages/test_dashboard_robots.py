@@ -8,10 +8,11 @@ import yaml
 from django.test import Client
 from django.urls import reverse
 
-from accounts.models import Robot
+from accounts.models import DEFAULT_TOPICS, Robot
 from accounts.selectors import owner_key_current, robot_by_token
 from ros_agent.config import config_from_mapping
-from sharing.services import grant_create
+from sharing.models import Grant
+from sharing.services import grant_create, grant_revoke
 from tests.anvil import free_port
 
 pytestmark = pytest.mark.django_db
@@ -45,6 +46,39 @@ def test_dashboard_shows_identity_and_counts(
     html = client.get(reverse("dashboard")).content.decode()
     assert re.search(r'data-testid="record-count">0<', html)
     assert re.search(r'data-testid="grants-received-count">1<', html)
+
+
+def test_dashboard_counts_agree_on_both_sides_of_a_revoked_grant(
+    client, make_owner, django_capture_on_commit_callbacks
+):
+    alice, bob = make_owner("alice"), make_owner("bob")
+
+    def counts(owner: object) -> tuple[str, str]:
+        client.force_login(owner.user)
+        html = client.get(reverse("dashboard")).content.decode()
+        given = re.search(r'data-testid="grants-given-count">(\d+)<', html).group(1)
+        received = re.search(r'data-testid="grants-received-count">(\d+)<', html).group(1)
+        return given, received
+
+    # Granted, the chain call not yet made: both sides count it.
+    with django_capture_on_commit_callbacks() as chain_work:
+        grant = grant_create(owner=alice, grantee=bob)
+    assert grant.status == Grant.Status.PENDING
+    assert counts(alice) == ("1", "0")
+    assert counts(bob) == ("0", "1")
+    for callback in chain_work:
+        callback()
+    grant.refresh_from_db()
+    assert grant.status == Grant.Status.ACTIVE
+    assert counts(alice) == ("1", "0")
+    assert counts(bob) == ("0", "1")
+
+    # Revoked, the chain call still pending: neither side counts it any more.
+    grant = grant_revoke(owner=alice, grantee=bob)
+    assert grant.status == Grant.Status.REVOKING
+    assert counts(alice) == ("0", "0")
+    assert counts(bob) == ("0", "0")
+    assert "still being written on chain" in client.get(reverse("dashboard")).content.decode()
 
 
 def test_dashboard_without_the_chain(client, pending_owner, settings):
@@ -147,6 +181,31 @@ def test_add_robot_refusals_change_nothing(client, pending_owner, form, message)
     assert Robot.objects.filter(owner=owner).count() == 1
 
 
+def test_config_downloaded_again_has_the_topics_given_when_the_robot_was_added(
+    client, pending_owner
+):
+    owner = pending_owner("ida")
+    client.force_login(owner.user)
+    topics = "/scan sensor_msgs/LaserScan\n/front_camera/image_raw sensor_msgs/Image"
+    created = client.post(reverse("robots"), {"name": "lidar-1", "topics": topics})
+    assert created.status_code == 201
+    robot = Robot.objects.get(owner=owner)
+    expected = [
+        {"name": "/scan", "type": "sensor_msgs/LaserScan"},
+        {"name": "/front_camera/image_raw", "type": "sensor_msgs/Image"},
+    ]
+    assert robot.topics == expected
+    for _ in range(2):
+        again = yaml.safe_load(client.get(reverse("robot-config", args=[robot.id])).content)
+        assert again["topics"] == expected
+
+    listing = client.get(reverse("robots")).content.decode()
+    cell = re.search(r'data-testid="robot-topics">(.*?)</td>', listing, re.S).group(1)
+    assert "<code>/scan</code> sensor_msgs/LaserScan" in cell
+    assert "<code>/front_camera/image_raw</code> sensor_msgs/Image" in cell
+    assert DEFAULT_TOPICS[0].name not in cell
+
+
 def test_revoke_a_robot_token(client, pending_owner):
     owner = pending_owner()
     client.force_login(owner.user)
@@ -159,6 +218,25 @@ def test_revoke_a_robot_token(client, pending_owner):
     robot.refresh_from_db()
     assert not robot.is_active
     assert robot.revoked_at is not None
+
+
+def test_revoking_an_already_revoked_token_changes_nothing(client, pending_owner):
+    owner = pending_owner()
+    client.force_login(owner.user)
+    client.post(reverse("robots"), {"name": "r1", "topics": "/a std_msgs/String"})
+    robot = Robot.objects.get(owner=owner)
+    url = reverse("robot-revoke", args=[robot.id])
+    assert "is revoked" in client.post(url, follow=True).content.decode()
+    robot.refresh_from_db()
+    revoked_at = robot.revoked_at
+    page = client.post(url, follow=True)
+    assert page.status_code == 200
+    html = page.content.decode()
+    assert "The token of r1 was already revoked" in html
+    assert "is revoked: its uploads now fail" not in html
+    robot.refresh_from_db()
+    assert not robot.is_active
+    assert robot.revoked_at == revoked_at
 
 
 def test_robots_of_another_owner_are_out_of_reach(client, pending_owner):

@@ -9,6 +9,7 @@ import pytest
 from django.urls import reverse
 from django.utils import timezone
 
+from chainworker.services import records_reanchor
 from sharing.models import Record, Verdict
 from sharing.services import grant_create, grant_revoke
 from tests.anvil import free_port
@@ -215,6 +216,41 @@ def test_record_not_anchored_yet(client, alice, upload):
     assert "Not anchored yet" in html
     assert "frame-zq9" not in html
     assert client.get(reverse("record-raw", args=[record.id])).status_code == 409
+
+
+def test_record_whose_anchoring_failed_says_so(
+    client, alice, bob, granted, upload, settings, django_capture_on_commit_callbacks
+):
+    settings.ANCHOR_MAX_ATTEMPTS = 0  # the worker gives up on the record at once
+    record = upload(alice, 1, plaintext=odometry("alice", 0, 0, marker="frame-fx3"))
+    assert record.status == Record.Status.FAILED
+    assert record.failure_reason == "not anchored after 0 attempts"
+    for viewer in (alice.owner, bob):
+        client.force_login(viewer.user)
+        page = client.get(reverse("record-detail", args=[record.id]))
+        html = page.content.decode()
+        assert page.status_code == 409
+        assert 'data-verdict="anchoring_failed"' in html
+        assert "<title>Anchoring failed" in html
+        assert "<h1>Anchoring failed</h1>" in html
+        assert "not anchored after 0 attempts" in html
+        assert "operator of the portal can re-anchor it" in html
+        assert "Not anchored yet" not in html
+        assert "try again shortly" not in html
+        assert "frame-fx3" not in html
+        raw = client.get(reverse("record-raw", args=[record.id]))
+        assert raw.status_code == 409
+        assert raw.json()["error"] == "anchoring_failed"
+
+    # Once an operator re-anchors it, it is checked and shown like any other record.
+    settings.ANCHOR_MAX_ATTEMPTS = 20
+    with django_capture_on_commit_callbacks(execute=True):
+        assert records_reanchor(record_ids=[record.pk]) == 1
+    record.refresh_from_db()
+    assert record.status == Record.Status.ANCHORED
+    page = client.get(reverse("record-detail", args=[record.id]))
+    assert page.status_code == 200
+    assert "frame-fx3" in page.content.decode()
 
 
 def test_records_of_others_are_out_of_reach(client, alice, bob, upload):

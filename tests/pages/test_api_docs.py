@@ -1,0 +1,28 @@
+"""The API docs (Swagger UI at /api/docs/) load only the portal's own static files: no CDN,
+so they work offline and behind a strict firewall."""
+
+import re
+
+import pytest
+from django.test import override_settings
+
+pytestmark = pytest.mark.django_db
+
+
+@override_settings(DEBUG=False)
+def test_swagger_ui_loads_only_same_origin_static_files_and_they_are_served(client):
+    page = client.get("/api/docs/")
+    assert page.status_code == 200
+    html = page.content.decode()
+    assert "cdn" not in html.lower()
+    assets = re.findall(r'<(?:script|link)\b[^>]*\b(?:src|href)="([^"]+)"', html)
+    assert any(asset.endswith("swagger-ui-bundle.js") for asset in assets), assets
+    assert any(asset.endswith("swagger-ui.css") for asset in assets), assets
+    for asset in assets:
+        assert asset.startswith("/static/"), asset
+        response = client.get(asset)
+        assert response.status_code == 200, asset
+        body = b"".join(response.streaming_content if response.streaming else [response.content])
+        assert body, asset
+    assert 'url: "/api/schema/"' in html
+    assert client.get("/api/schema/").status_code == 200
