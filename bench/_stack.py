@@ -3,15 +3,19 @@
 One measured run: a fresh anvil, SQLite database, Redis DB 13 (flushed), W Celery workers and a
 beat (the pipeline benchmark's stack) plus the portal under gunicorn. N robots are created
 through the services before the timed part, spread round-robin over K owners (registered on
-chain first), and one envelope each is sealed in advance. Then N agent threads, each with its
-own requests.Session, are released together by a barrier and each POSTs its envelope to
-`/api/v1/records/` (Authorization: Token). The bench process watches the database for anchored
-records and opens each one as soon as it is anchored with `sharing.services.record_open`, which
-has a worker check the digest on chain: a record that opens is *verified*.
+chain first), and M envelopes each (seq 1..M, M = uploads_per_agent, 1 unless a benchmark asks
+for more) are sealed in advance. Then N agent threads, each with its own requests.Session, are
+released together by a barrier and each POSTs its envelopes to `/api/v1/records/`
+(Authorization: Token) one after another, each once the previous one was answered: N agents
+with M = 1 is N concurrent uploads, one agent with M = 300 is 300 calls in a row. The bench
+process then watches the database for anchored records and opens each one as soon as it is
+anchored with `sharing.services.record_open`, which has a worker check the digest on chain: a
+record that opens is *verified*.
 
 Times are wall-clock (time.time()) on this one machine, so they compare with the database's
 anchored_at: response = POST sent to 201 received; to anchored = POST sent to anchored_at; to
-verified = POST sent to record_open returning.
+verified = POST sent to record_open returning. With M > 1 records are opened only after the
+agents' last POST, so time to verified is not reported for such runs (the count is).
 
 Every run happens in its own spawned interpreter (Django reads its settings once).
 """
@@ -23,6 +27,7 @@ import multiprocessing
 import os
 import shutil
 import signal
+import statistics
 import subprocess
 import sys
 import tempfile
@@ -71,10 +76,26 @@ class UploadRun:
     timeout: float
     redis_url: str
     keep_logs: bool
+    uploads_per_agent: int = 1
 
     @property
     def mode(self) -> str:
         return "automine" if self.block_time is None else f"block-time {self.block_time:g}s"
+
+    @property
+    def uploads(self) -> int:
+        return self.agents * self.uploads_per_agent
+
+    @property
+    def pattern(self) -> str:
+        """How the uploads are sent: "concurrent" (one each, all at once) or "sequential"."""
+        return "concurrent" if self.uploads_per_agent == 1 else "sequential"
+
+    def describe(self) -> str:
+        if self.uploads_per_agent == 1:
+            return f"{self.agents} agents at once"
+        agents = "1 agent" if self.agents == 1 else f"{self.agents} agents"
+        return f"{agents} x {self.uploads_per_agent} uploads in a row"
 
     def settings(self) -> dict[str, Any]:
         return {key: value for key, value in asdict(self).items() if key != "keep_logs"}
@@ -119,7 +140,9 @@ def upload_run(
     batch_max: int,
     agents: int,
     plaintext_bytes: int,
+    uploads_per_agent: int = 1,
 ) -> UploadRun:
+    """One configuration: `agents` agents, each POSTing `uploads_per_agent` envelopes in a row."""
     return UploadRun(
         block_time=block_time,
         batch_max=batch_max,
@@ -133,19 +156,24 @@ def upload_run(
         timeout=args.timeout,
         redis_url=args.redis_url,
         keep_logs=args.keep_logs,
+        uploads_per_agent=uploads_per_agent,
     )
 
 
 def measure_all(runs: list[UploadRun]) -> list[dict[str, Any]]:
-    """Each run in its own child process, in order, with a header line per run."""
+    """Each run in its own child process, in order, with a header line per run; each row gets
+    run_wall_s, the seconds the run took from starting its stack to stopping it."""
     rows = []
     for number, run in enumerate(runs, 1):
         print(
             f"== [{number}/{len(runs)}] {run.mode}, ANCHOR_BATCH_MAX={run.batch_max}, "
-            f"{run.agents} agents, {run.plaintext_bytes} B",
+            f"{run.describe()}, {run.plaintext_bytes} B",
             file=sys.stderr,
         )
-        rows.append(measure_in_child(run))
+        started = time.monotonic()
+        row = measure_in_child(run)
+        row["run_wall_s"] = time.monotonic() - started
+        rows.append(row)
     return rows
 
 
@@ -302,7 +330,9 @@ class _WebStack(_Stack):
 
 
 @dataclass
-class _Agent:
+class _Upload:
+    """One envelope of one agent (robot) and what became of it."""
+
     robot: Any
     token: str
     body: dict[str, str]
@@ -321,7 +351,7 @@ def _measure(run: UploadRun) -> dict[str, Any]:
     configuration = Configuration(
         block_time=run.block_time,
         batch_max=run.batch_max,
-        records=run.agents,
+        records=run.uploads,
         owners=run.owners,
         workers=run.workers,
         max_wait=run.max_wait,
@@ -335,9 +365,10 @@ def _measure(run: UploadRun) -> dict[str, Any]:
         stack.start()
         url = stack.web_start(run.web_workers) + "/api/v1/records/"
         agents = _agents_create(run, configuration, stack)
-        _post_concurrently(url, agents)
-        _await_verified(run, stack, agents)
-        row = _statistics(run, agents)
+        _post(url, agents)
+        uploads = [upload for agent in agents for upload in agent]
+        _await_verified(run, stack, uploads)
+        row = _statistics(run, uploads)
     finally:
         stack.stop()
     row["worker_logs"] = stack.log_summary()
@@ -349,9 +380,11 @@ def _measure(run: UploadRun) -> dict[str, Any]:
     return row
 
 
-def _agents_create(run: UploadRun, configuration: Configuration, stack: _Stack) -> list[_Agent]:
-    """K owners registered on chain, then N robots round-robin over them, one sealed envelope
-    each (sealing is not timed)."""
+def _agents_create(
+    run: UploadRun, configuration: Configuration, stack: _Stack
+) -> list[list[_Upload]]:
+    """K owners registered on chain, then N robots round-robin over them, each with its M
+    sealed envelopes, seq 1..M (sealing is not timed)."""
     import base64
 
     from accounts.services import robot_create
@@ -361,35 +394,32 @@ def _agents_create(run: UploadRun, configuration: Configuration, stack: _Stack) 
     for number in range(run.agents):
         owner_robot, key = owners[number % len(owners)]
         robot, token = robot_create(owner=owner_robot.owner, name=f"agent-{number}")
-        data = seal_record(robot, key, seq=1, plaintext_bytes=run.plaintext_bytes)
-        agents.append(_Agent(robot, token, {"envelope": base64.b64encode(data).decode()}))
+        uploads = []
+        for seq in range(1, run.uploads_per_agent + 1):
+            data = seal_record(robot, key, seq=seq, plaintext_bytes=run.plaintext_bytes)
+            uploads.append(_Upload(robot, token, {"envelope": base64.b64encode(data).decode()}))
+        agents.append(uploads)
     return agents
 
 
-def _post_concurrently(url: str, agents: list[_Agent]) -> None:
-    """One thread per agent, released together; each POSTs once on its own session."""
+def _post(url: str, agents: list[list[_Upload]]) -> None:
+    """One thread per agent, released together; each POSTs its envelopes on its own session,
+    one after another (the next once the previous one was answered)."""
     barrier = threading.Barrier(len(agents) + 1)
-    progress = progress_bar(len(agents), "201 received", unit="req")
+    progress = progress_bar(sum(len(agent) for agent in agents), "201 received", unit="req")
     lock = threading.Lock()
 
-    def agent_post(agent: _Agent) -> None:
+    def agent_post(uploads: list[_Upload]) -> None:
         session = requests.Session()
-        session.headers["Authorization"] = f"Token {agent.token}"
+        session.headers["Authorization"] = f"Token {uploads[0].token}"
         barrier.wait()
-        agent.sent_at = time.time()
         try:
-            response = session.post(url, json=agent.body, timeout=REQUEST_TIMEOUT)
-            agent.answered_at = time.time()
-            agent.status = str(response.status_code)
-            if response.status_code == 201:
-                agent.record_id = response.json()["id"]
-        except requests.RequestException as exc:
-            agent.answered_at = time.time()
-            agent.status = type(exc).__name__
+            for upload in uploads:
+                _post_one(session, url, upload)
+                with lock:
+                    progress.update(1)
         finally:
             session.close()
-            with lock:
-                progress.update(1)
 
     threading.stack_size(512 * 1024)
     threads = [threading.Thread(target=agent_post, args=(agent,)) for agent in agents]
@@ -401,11 +431,24 @@ def _post_concurrently(url: str, agents: list[_Agent]) -> None:
     progress.close()
 
 
-def _await_verified(run: UploadRun, stack: _Stack, agents: list[_Agent]) -> None:
+def _post_one(session: requests.Session, url: str, upload: _Upload) -> None:
+    upload.sent_at = time.time()
+    try:
+        response = session.post(url, json=upload.body, timeout=REQUEST_TIMEOUT)
+        upload.answered_at = time.time()
+        upload.status = str(response.status_code)
+        if response.status_code == 201:
+            upload.record_id = response.json()["id"]
+    except requests.RequestException as exc:
+        upload.answered_at = time.time()
+        upload.status = type(exc).__name__
+
+
+def _await_verified(run: UploadRun, stack: _Stack, uploads: list[_Upload]) -> None:
     """Watch for anchored records and open each as soon as it is; until all are settled."""
     from sharing.models import Record
 
-    by_id = {agent.record_id: agent for agent in agents if agent.record_id}
+    by_id = {upload.record_id: upload for upload in uploads if upload.record_id}
     anchoring = progress_bar(len(by_id), "anchored", unit="rec")
     verifying = progress_bar(len(by_id), "verified", unit="rec")
     pending: list[Future[None]] = []
@@ -417,10 +460,10 @@ def _await_verified(run: UploadRun, stack: _Stack, agents: list[_Agent]) -> None
                 pk__in=[a.record_id for a in waiting], status=Record.Status.ANCHORED
             ).values_list("pk", "anchored_at")
             for pk, anchored_at in newly:
-                agent = by_id[str(pk)]
-                agent.anchored_at = anchored_at.timestamp()
+                upload = by_id[str(pk)]
+                upload.anchored_at = anchored_at.timestamp()
                 anchoring.update(1)
-                pending.append(verifiers.submit(_verify, agent, verifying))
+                pending.append(verifiers.submit(_verify, upload, verifying))
             failed = Record.objects.filter(
                 pk__in=[a.record_id for a in waiting], status=Record.Status.FAILED
             ).count()
@@ -437,29 +480,30 @@ def _await_verified(run: UploadRun, stack: _Stack, agents: list[_Agent]) -> None
     verifying.close()
 
 
-def _verify(agent: _Agent, progress: Any) -> None:
+def _verify(upload: _Upload, progress: Any) -> None:
     from django.db import connections
 
     from sharing.services import record_open
 
     try:
-        record_open(record_id=agent.record_id, viewer=agent.robot.owner)
-        agent.verified_at = time.time()
+        record_open(record_id=upload.record_id, viewer=upload.robot.owner)
+        upload.verified_at = time.time()
         progress.update(1)
     except Exception as exc:  # every failure is a result: counted, not raised
-        agent.verify_error = f"{type(exc).__name__}: {exc}"
+        upload.verify_error = f"{type(exc).__name__}: {exc}"
     finally:
         connections.close_all()
 
 
-def _statistics(run: UploadRun, agents: list[_Agent]) -> dict[str, Any]:
+def _statistics(run: UploadRun, uploads: list[_Upload]) -> dict[str, Any]:
+    """The row of one run, from every upload (one per agent unless M > 1)."""
     from sharing.models import Record
 
-    first_sent = min(agent.sent_at for agent in agents)
-    answered = [a for a in agents if a.record_id]
+    first_sent = min(upload.sent_at for upload in uploads)
+    answered = [a for a in uploads if a.record_id]
     anchored = [a for a in answered if a.anchored_at is not None]
     verified = [a for a in anchored if a.verified_at is not None]
-    envelope_bytes = [len(a.body["envelope"]) * 3 // 4 for a in agents]
+    envelope_bytes = [len(a.body["envelope"]) * 3 // 4 for a in uploads]
     transactions = set(
         Record.objects.filter(pk__in=[a.record_id for a in anchored]).values_list(
             "tx_hash", flat=True
@@ -470,40 +514,49 @@ def _statistics(run: UploadRun, agents: list[_Agent]) -> dict[str, Any]:
         "block_time_s": run.block_time,
         "batch_max": run.batch_max,
         "agents": run.agents,
+        "uploads_per_agent": run.uploads_per_agent,
+        "uploads": run.uploads,
+        "pattern": run.pattern,
         "plaintext_bytes": run.plaintext_bytes,
         "envelope_bytes_mean": sum(envelope_bytes) / len(envelope_bytes),
         "owners": run.owners,
         "workers": run.workers,
         "web_workers": run.web_workers,
-        "sent": len(agents),
+        "sent": len(uploads),
         "http_201": len(answered),
-        "http_statuses": dict(Counter(a.status for a in agents)),
+        "http_statuses": dict(Counter(a.status for a in uploads)),
         "anchored": len(anchored),
         "verified": len(verified),
-        "success_rate": len(verified) / len(agents),
+        "success_rate": len(verified) / len(uploads),
         "verify_errors": dict(Counter(a.verify_error for a in anchored if a.verify_error)),
         "transactions": len(transactions),
     }
-    responses = [a for a in agents if a.answered_at is not None]
+    responses = [a for a in uploads if a.answered_at is not None]
     if responses:
-        response = summarize([(a.answered_at - a.sent_at) * 1000 for a in responses])
+        response_ms = [(a.answered_at - a.sent_at) * 1000 for a in responses]
+        response = summarize(response_ms)
         row |= {
             "response_mean_s": response["mean_ms"] / 1000,
+            "response_stdev_s": statistics.stdev(response_ms) / 1000
+            if len(response_ms) > 1
+            else None,
             "response_p50_s": response["median_ms"] / 1000,
             "response_p95_s": response["p95_ms"] / 1000,
             "response_max_s": response["max_ms"] / 1000,
             "total_response_s": max(a.answered_at for a in responses) - first_sent,
         }
         row["uploads_per_s"] = len(answered) / row["total_response_s"]
-    for name, done, attribute in (
-        ("anchored", anchored, "anchored_at"),
-        ("verified", verified, "verified_at"),
-    ):
+    timed = [("anchored", anchored, "anchored_at")]
+    if run.uploads_per_agent == 1:  # otherwise opened only after the last POST: not a latency
+        timed.append(("verified", verified, "verified_at"))
+    for name, done, attribute in timed:
         if not done:
             continue
-        latency = summarize([(getattr(a, attribute) - a.sent_at) * 1000 for a in done])
+        samples = [(getattr(a, attribute) - a.sent_at) * 1000 for a in done]
+        latency = summarize(samples)
         row |= {
             f"to_{name}_mean_s": latency["mean_ms"] / 1000,
+            f"to_{name}_stdev_s": statistics.stdev(samples) / 1000 if len(samples) > 1 else None,
             f"to_{name}_p50_s": latency["median_ms"] / 1000,
             f"to_{name}_p95_s": latency["p95_ms"] / 1000,
             f"total_to_{name}_s": max(getattr(a, attribute) for a in done) - first_sent,

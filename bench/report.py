@@ -9,6 +9,7 @@ Run: `python -m bench report [--results-dir DIR] [--output FILE]`.
 """
 
 import argparse
+import itertools
 import json
 import sys
 from collections.abc import Callable
@@ -21,6 +22,9 @@ if not __package__:  # run as `python bench/report.py`: make the repository impo
 from bench import RESULTS_DIR, now_iso
 
 REPORT_PATH = Path(__file__).resolve().parent / "REPORT.md"
+# quoted, not measured: the paper's PoA time per Data_upload as issue 6 reads it, and its repeats
+PAPER_POA_UPLOAD_MS = 15.5
+PAPER_REPEATS = 300
 
 Column = tuple[str, Callable[[dict[str, Any]], Any]]
 
@@ -105,7 +109,10 @@ def _section_concurrency(results: Path) -> str | None:
             ),
         ),
         plot="concurrency.png",
-        comparison=_success_summary(rows),
+        comparison=_join(
+            _success_summary(rows),
+            _prefixed("From the message-size benchmark: ", _single_upload_summary(results)),
+        ),
     )
 
 
@@ -113,6 +120,8 @@ def _section_message_size(results: Path) -> str | None:
     report = _load(results, "message_size")
     if report is None:
         return None
+    rows = report["results"]
+    groups = _groups(rows)
     return _section(
         "Message size (paper Fig. 15)",
         report,
@@ -122,26 +131,169 @@ def _section_message_size(results: Path) -> str | None:
             "average time. [...] the response time always increases with the increase of "
             "message size."
         ),
-        ours=(
-            "N concurrent agents per size (automine, ANCHOR_BATCH_MAX 100); the average "
-            "response time is POST to 201 (the record is stored and queued for anchoring); "
-            "the ratio divides by the 1 KB run of the same benchmark run."
-        ),
+        ours=_message_size_method(rows),
         table=_table(
-            report["results"],
+            rows,
             (
+                ("uploads", _pattern_label),
                 ("plaintext bytes", lambda r: r["plaintext_bytes"]),
                 ("envelope bytes", lambda r: _num(r.get("envelope_bytes_mean"), 0)),
-                ("uploads", lambda r: r["sent"]),
+                ("batch max", lambda r: r["batch_max"]),
                 ("success", lambda r: _pct(r["success_rate"])),
-                ("mean response s", lambda r: _num(r.get("response_mean_s"), 3)),
-                ("p95 response s", lambda r: _num(r.get("response_p95_s"), 3)),
+                ("transactions", lambda r: r["transactions"]),
+                ("mean response ms", lambda r: _ms(r.get("response_mean_s"))),
+                ("p50 response ms", lambda r: _ms(r.get("response_p50_s"))),
+                ("p95 response ms", lambda r: _ms(r.get("response_p95_s"))),
                 ("response x 1 KB", lambda r: _ratio(r.get("response_mean_s_ratio_vs_1kb"))),
-                ("mean to anchored s", lambda r: _num(r.get("to_anchored_mean_s"), 2)),
-                ("mean to verified s", lambda r: _num(r.get("to_verified_mean_s"), 2)),
+                ("mean to anchored s", lambda r: _num(r.get("to_anchored_mean_s"), 3)),
+                ("p95 to anchored s", lambda r: _num(r.get("to_anchored_p95_s"), 3)),
+                (
+                    "to anchored x batch 1",
+                    lambda r: _ratio(r.get("to_anchored_mean_s_ratio_vs_batch1")),
+                ),
             ),
         ),
         plot="message_size.png",
+        comparison=_join(
+            *(_size_trend(group) for group in groups),
+            _batching_summary(groups),
+            _single_upload_summary(results),
+        ),
+    )
+
+
+def _message_size_method(rows: list[dict[str, Any]]) -> str:
+    """What the run did, from what its rows say (older result files had concurrent rows only)."""
+    parts = []
+    sequential = [r for r in rows if _pattern(r) == "sequential"]
+    concurrent = [r for r in rows if _pattern(r) == "concurrent"]
+    if sequential:
+        parts.append(
+            f"For each size one agent (one robot, one HTTP session) POSTs "
+            f"{sequential[0]['uploads_per_agent']} envelopes to `/api/v1/records/` one after "
+            "another, each once the previous one was answered: the paper's 300 calls through "
+            "the simulated process, with no queueing in front of them. Response = POST to 201 "
+            "(the record is stored and queued for anchoring); to anchored = POST to the "
+            f"record's transaction mined ({sequential[0]['mode']})."
+        )
+    if concurrent:
+        parts.append(
+            f"{'As a second view, ' if sequential else ''}{concurrent[0]['agents']} agents "
+            f"per size each POST one envelope at once ({concurrent[0]['mode']}), where "
+            "queueing in the portal dominates the response time."
+        )
+    batches = sorted({r["batch_max"] for r in rows})
+    if 1 in batches and len(batches) > 1:
+        parts.append(
+            "Every configuration runs with ANCHOR_BATCH_MAX=1 (one transaction per record, as "
+            f"the paper's Data_upload: the baseline) and with {', '.join(map(str, batches[1:]))} "
+            "(batching), each on a fresh stack; `x batch 1` divides by batch size 1 of the same "
+            "size and pattern, `x 1 KB` by 1 KB of the same pattern and batch size, all "
+            "measured in this run."
+        )
+    else:
+        parts.append(
+            f"ANCHOR_BATCH_MAX {', '.join(map(str, batches))} only: no one-transaction-per-record "
+            "baseline in this run. `x 1 KB` divides by 1 KB of the same run."
+        )
+    return " ".join(parts)
+
+
+def _size_trend(rows: list[dict[str, Any]]) -> str | None:
+    """Whether the mean response time of one pattern and batch size increases with size, said
+    from the numbers: every step, its direction, and whether it exceeds two standard errors."""
+    ordered = sorted(
+        (r for r in rows if r.get("response_mean_s") is not None),
+        key=lambda r: r["plaintext_bytes"],
+    )
+    if len(ordered) < 2:
+        return None
+    values = ", ".join(f"{_ms(r['response_mean_s'])} ms ({_kb(r)})" for r in ordered)
+    steps = list(itertools.pairwise(ordered))
+    falls = [(a, b) for a, b in steps if b["response_mean_s"] <= a["response_mean_s"]]
+    if falls:
+        verdict = (
+            "does not increase with size at every step ("
+            + "; ".join(f"{_kb(b)} is not above {_kb(a)}" for a, b in falls)
+            + '), unlike the paper\'s "always increases"'
+        )
+    else:
+        verdict = "increases with size at every step, as the paper reports"
+    first, last = ordered[0], ordered[-1]
+    text = (
+        f"Mean response time, {_pattern_label(first)}, ANCHOR_BATCH_MAX {first['batch_max']}: "
+        f"{values}. It {verdict}; {_kb(last)} against {_kb(first)}: "
+        f"{_ratio(last['response_mean_s'] / first['response_mean_s'])}."
+    )
+    if all(r.get("response_stdev_s") is not None for r in ordered):
+        unclear = [
+            f"{_kb(a)} to {_kb(b)}"
+            for a, b in steps
+            if abs(b["response_mean_s"] - a["response_mean_s"]) <= 2 * _stderr(a, b)
+        ]
+        if unclear:
+            text += (
+                " Steps within two standard errors of the means, so not clearly different: "
+                f"{', '.join(unclear)}."
+            )
+        else:
+            text += " Every step is larger than two standard errors of the means."
+    return text
+
+
+def _batching_summary(groups: list[list[dict[str, Any]]]) -> str | None:
+    """Batching's mean time to anchored against batch size 1, per size, from the rows."""
+    parts = []
+    for group in groups:
+        if group[0]["batch_max"] == 1:
+            continue
+        ratios = [
+            f"{_kb(r)} {_ratio(r['to_anchored_mean_s_ratio_vs_batch1'])}"
+            for r in sorted(group, key=lambda r: r["plaintext_bytes"])
+            if r.get("to_anchored_mean_s_ratio_vs_batch1") is not None
+        ]
+        if ratios:
+            parts.append(
+                f"{_pattern_label(group[0])}, ANCHOR_BATCH_MAX {group[0]['batch_max']}: "
+                + ", ".join(ratios)
+            )
+    if not parts:
+        return None
+    return (
+        "Mean time to anchored with batching, as a ratio of one transaction per record "
+        "(same size, same run; below 1 is faster): " + "; ".join(parts) + "."
+    )
+
+
+def _single_upload_summary(results: Path) -> str | None:
+    """One agent's sequential 1 KB uploads with one transaction per record, beside the paper's
+    per-call PoA time (from message_size.json, if it has such a run)."""
+    report = _load(results, "message_size")
+    if report is None:
+        return None
+    rows = [
+        r
+        for r in report["results"]
+        if _pattern(r) == "sequential" and r["batch_max"] == 1 and r.get("response_mean_s")
+    ]
+    if not rows:
+        return None
+    row = min(rows, key=lambda r: r["plaintext_bytes"])
+    anchored = (
+        f"; it was on chain (its own transaction, {row['mode']}) a mean "
+        f"{_ms(row['to_anchored_mean_s'])} ms after the POST was sent"
+        if row.get("to_anchored_mean_s") is not None
+        else ""
+    )
+    return (
+        f"Single uploads one after another through REST ({row['sent']} x {_kb(row)} from one "
+        f"agent, ANCHOR_BATCH_MAX 1; run of {report.get('date', 'unknown date')}): mean "
+        f"response {_ms(row['response_mean_s'])} ms (median {_ms(row.get('response_p50_s'))} ms,"
+        f" p95 {_ms(row.get('response_p95_s'))} ms; {_num(row.get('uploads_per_s'), 1)} uploads "
+        f"per second), {_ratio(row['response_mean_s'] * 1000 / PAPER_POA_UPLOAD_MS)} the paper's "
+        f"{PAPER_POA_UPLOAD_MS:g} ms per Data_upload on PoA (issue 6's reading of Fig. 16). Not "
+        "the same operation: the paper's call sends a transaction to the chain, our 201 means "
+        f"the record is stored and queued for anchoring{anchored}."
     )
 
 
@@ -205,7 +357,7 @@ def _section_crypto(results: Path) -> str | None:
         ours=(
             "smcrypto (this project) against pure-Python gmssl, measured in the same run; the "
             "ratio is gmssl median over smcrypto median. See the benchmark's notes for what "
-            "each row compares."
+            f"each row compares. {_crypto_repeats(report)}"
         ),
         table=_table(
             report["results"],
@@ -213,6 +365,7 @@ def _section_crypto(results: Path) -> str | None:
                 ("operation", lambda r: r["operation"]),
                 ("bytes", lambda r: r["size_bytes"]),
                 ("smcrypto", lambda r: r["smcrypto"]["what"]),
+                ("smcrypto runs", lambda r: r["smcrypto"]["repeats"]),
                 ("smcrypto median ms", lambda r: _num(r["smcrypto"]["median_ms"], 4)),
                 ("smcrypto p95 ms", lambda r: _num(r["smcrypto"]["p95_ms"], 4)),
                 ("gmssl", lambda r: r["gmssl"]["what"]),
@@ -335,6 +488,88 @@ def _section_sustained(results: Path) -> str | None:
 
 
 # --- helpers --------------------------------------------------------------------------------
+
+
+def _crypto_repeats(report: dict[str, Any]) -> str:
+    """How many timed runs each implementation had, read from the rows, beside the paper's."""
+    rows = report["results"]
+    parts = []
+    for implementation in ("smcrypto", "gmssl"):
+        counts = sorted({r[implementation]["repeats"] for r in rows})
+        if len(counts) == 1:
+            parts.append(f"{implementation} {counts[0]} for every measurement")
+        else:
+            parts.append(
+                f"{implementation} {counts[0]} to {counts[-1]} ("
+                + ", ".join(
+                    f"{r['operation']} {_kb(r, 'size_bytes')}: {r[implementation]['repeats']}"
+                    for r in rows
+                    if r[implementation]["repeats"] != counts[-1]
+                )
+                + f", {counts[-1]} for the rest)"
+            )
+    text = "Timed runs per measurement, from the results: " + "; ".join(parts) + ". "
+    short = [
+        implementation
+        for implementation in ("smcrypto", "gmssl")
+        if min(r[implementation]["repeats"] for r in rows) < PAPER_REPEATS
+    ]
+    if not short:
+        return text + f"As the paper's {PAPER_REPEATS} times, for both."
+    settings = report.get("settings", {})
+    reasons = []
+    if settings.get("repeat", PAPER_REPEATS) < PAPER_REPEATS:
+        reasons.append(f"--repeat {settings['repeat']}")
+    if settings.get("gmssl_budget_seconds") is not None:
+        reasons.append(f"gmssl capped by a {settings['gmssl_budget_seconds']:g} s time budget")
+    reason = f" ({'; '.join(reasons)})" if reasons else ""
+    return text + f"Fewer than the paper's {PAPER_REPEATS} for {' and '.join(short)}{reason}."
+
+
+def _groups(rows: list[dict[str, Any]]) -> list[list[dict[str, Any]]]:
+    """Rows by (pattern, batch size): sequential first, then batch size; each in run order."""
+    keys = sorted(
+        {(_pattern(r), r["batch_max"]) for r in rows},
+        key=lambda key: (key[0] != "sequential", key[1]),
+    )
+    return [[r for r in rows if (_pattern(r), r["batch_max"]) == key] for key in keys]
+
+
+def _pattern(row: dict[str, Any]) -> str:
+    """sequential or concurrent (rows from before sequential runs existed were concurrent)."""
+    return row.get("pattern", "concurrent")
+
+
+def _pattern_label(row: dict[str, Any]) -> str:
+    if _pattern(row) == "sequential":
+        agents = "1 agent" if row["agents"] == 1 else f"{row['agents']} agents"
+        return f"{agents}, {row['uploads_per_agent']} in a row"
+    return f"{row['agents']} agents at once"
+
+
+def _stderr(a: dict[str, Any], b: dict[str, Any]) -> float:
+    """Standard error of the difference of two rows' mean response times."""
+    return sum(r["response_stdev_s"] ** 2 / max(r["sent"], 1) for r in (a, b)) ** 0.5
+
+
+def _kb(row: dict[str, Any], key: str = "plaintext_bytes") -> str:
+    size = row[key]
+    return f"{size / 1024:g} KB" if size % 1024 == 0 else f"{size} B"
+
+
+def _ms(seconds: float | None) -> str:
+    return "-" if seconds is None else f"{seconds * 1000:.1f}"
+
+
+def _join(*sentences: str | None) -> str | None:
+    """Paragraphs, leaving out the missing ones; None when there are none."""
+    present = [sentence for sentence in sentences if sentence]
+    return "\n\n".join(present) if present else None
+
+
+def _prefixed(prefix: str, text: str | None) -> str | None:
+    """prefix + text with its first letter in lower case; None without text."""
+    return f"{prefix}{text[:1].lower()}{text[1:]}" if text else None
 
 
 def _load(results: Path, name: str) -> dict[str, Any] | None:

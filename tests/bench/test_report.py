@@ -4,12 +4,16 @@ No benchmark runs here (they take minutes and measure time); these check that wh
 benchmarks write is read back faithfully, and that nothing in the report is invented.
 """
 
+import itertools
 import json
 import math
+import threading
+from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 
 import pytest
+from tqdm import tqdm
 
-from bench import available, report, sustained
+from bench import _stack, available, crypto, message_size, report, sustained
 from bench.__main__ import main as bench_main
 
 
@@ -132,4 +136,315 @@ def test_every_benchmark_is_listed_and_an_unknown_one_is_refused(capsys):
 def test_sustained_refuses_nonsense_arguments(argv):
     with pytest.raises(SystemExit) as exit_info:
         sustained.main(argv)
+    assert exit_info.value.code == 2
+
+
+# --- message size ---------------------------------------------------------------------------
+
+
+def _size_row(pattern: str, size: int, batch_max: int, response_ms: float, **extra) -> dict:
+    agents, per_agent = (1, 300) if pattern == "sequential" else (300, 1)
+    return {
+        "pattern": pattern,
+        "agents": agents,
+        "uploads_per_agent": per_agent,
+        "mode": "automine",
+        "batch_max": batch_max,
+        "plaintext_bytes": size,
+        "envelope_bytes_mean": size + 212.0,
+        "sent": 300,
+        "success_rate": 1.0,
+        "transactions": 300 if batch_max == 1 else 12,
+        "response_mean_s": response_ms / 1000,
+        "response_stdev_s": 0.001,
+        "response_p50_s": response_ms / 1000 - 0.0005,
+        "response_p95_s": response_ms / 1000 + 0.004,
+        "uploads_per_s": 1000 / response_ms,
+        "to_anchored_mean_s": 0.25 if batch_max == 1 else 0.125,
+        "to_anchored_p95_s": 0.5,
+        **extra,
+    }
+
+
+def _message_size_report(rows: list[dict]) -> dict:
+    return {
+        "benchmark": "message_size",
+        "date": "2031-05-06T07:08:09Z",
+        "machine": _machine(),
+        "settings": {"uploads_per_size": 300, "quick": False},
+        "notes": [],
+        "results": rows,
+    }
+
+
+def test_message_size_rows_get_ratios_against_batch_one_and_one_kilobyte():
+    rows = [
+        _size_row("sequential", 1024, 1, 12.0),
+        _size_row("sequential", 1024, 100, 10.0),
+        _size_row("sequential", 2048, 1, 15.0),
+        _size_row("sequential", 2048, 100, 12.5),
+        _size_row("concurrent", 2048, 100, 900.0),  # no batch-1 or 1 KB row of its own
+    ]
+    _stack.add_ratios(rows, ("pattern", "plaintext_bytes"), message_size.RATIO_KEYS)
+    message_size._add_size_ratios(rows)
+    assert rows[1]["to_anchored_mean_s_ratio_vs_batch1"] == 0.5
+    assert rows[3]["response_mean_s_ratio_vs_batch1"] == 12.5 / 15.0
+    assert rows[2]["response_mean_s_ratio_vs_1kb"] == 1.25
+    assert rows[3]["response_mean_s_ratio_vs_1kb"] == 1.25
+    assert rows[4]["to_anchored_mean_s_ratio_vs_batch1"] is None
+    assert rows[4]["response_mean_s_ratio_vs_1kb"] is None
+
+
+def test_the_message_size_section_says_from_the_data_whether_response_grows_with_size(tmp_path):
+    results = tmp_path / "results"
+    results.mkdir()
+    rows = [
+        # batch 1: clear increase at every step (steps of 2 ms, standard error about 0.08 ms)
+        *(_size_row("sequential", kb * 1024, 1, ms) for kb, ms in ((1, 12), (2, 14), (4, 16))),
+        # batch 100: falls from 2 KB to 4 KB, and 1 KB to 2 KB is within the noise
+        *(
+            _size_row("sequential", kb * 1024, 100, ms)
+            for kb, ms in ((1, 10.0), (2, 10.1), (4, 9.0))
+        ),
+        _size_row("concurrent", 1024, 100, 2000.0),
+    ]
+    _stack.add_ratios(rows, ("pattern", "plaintext_bytes"), message_size.RATIO_KEYS)
+    message_size._add_size_ratios(rows)
+    (results / "message_size.json").write_text(json.dumps(_message_size_report(rows)))
+    output = tmp_path / "REPORT.md"
+
+    assert report.main(["--results-dir", str(results), "--output", str(output)]) == 0
+
+    text = output.read_text()
+    assert "2031-05-06T07:08:09Z" in text
+    assert (
+        "| 1 agent, 300 in a row | 2048 | 2260 | 1 | 100.0% | 300 | 14.0 | 13.5 | 18.0 | 1.17x "
+        "| 0.250 | 0.500 | 1.00x |"
+    ) in text
+    assert "| 300 agents at once | 1024 | 1236 | 100 | 100.0% | 12 | 2000.0 |" in text
+    assert (
+        "Mean response time, 1 agent, 300 in a row, ANCHOR_BATCH_MAX 1: 12.0 ms (1 KB), "
+        "14.0 ms (2 KB), 16.0 ms (4 KB). It increases with size at every step, as the paper "
+        "reports; 4 KB against 1 KB: 1.33x. Every step is larger than two standard errors"
+    ) in text
+    assert (
+        "ANCHOR_BATCH_MAX 100: 10.0 ms (1 KB), 10.1 ms (2 KB), 9.0 ms (4 KB). It does not "
+        "increase with size at every step (4 KB is not above 2 KB), unlike the paper's \"always "
+        'increases"; 4 KB against 1 KB: 0.90x. Steps within two standard errors of the means, '
+        "so not clearly different: 1 KB to 2 KB."
+    ) in text
+    assert "1 agent, 300 in a row, ANCHOR_BATCH_MAX 100: 1 KB 0.50x, 2 KB 0.50x, 4 KB 0.50x" in text
+    assert (
+        "single uploads one after another through REST (300 x 1 KB from one agent, "
+        "ANCHOR_BATCH_MAX 1; run of 2031-05-06T07:08:09Z): mean response 12.0 ms (median 11.5 "
+        "ms, p95 16.0 ms; 83.3 uploads per second), 0.77x the paper's 15.5 ms per Data_upload"
+    ) in text.replace("Single", "single")
+    assert "a mean 250.0 ms after the POST was sent" in text
+
+
+def test_the_concurrency_section_sets_the_sequential_upload_beside_the_paper(tmp_path):
+    results = tmp_path / "results"
+    results.mkdir()
+    concurrency_row = {
+        "mode": "automine",
+        "batch_max": 1,
+        "agents": 300,
+        "success_rate": 1.0,
+        "http_201": 300,
+        "sent": 300,
+        "transactions": 300,
+    }
+    (results / "concurrency.json").write_text(
+        json.dumps({**_message_size_report([concurrency_row]), "benchmark": "concurrency"})
+    )
+    (results / "message_size.json").write_text(
+        json.dumps(_message_size_report([_size_row("sequential", 1024, 1, 31.0)]))
+    )
+    output = tmp_path / "REPORT.md"
+
+    assert report.main(["--results-dir", str(results), "--output", str(output)]) == 0
+
+    concurrency = output.read_text().split("## Message size")[0]
+    assert "Success rate above 99% (the paper's figure) in 1 of 1 configurations" in concurrency
+    assert (
+        "From the message-size benchmark: single uploads one after another through REST"
+    ) in concurrency
+    assert "mean response 31.0 ms" in concurrency
+    assert "2.00x the paper's 15.5 ms per Data_upload on PoA" in concurrency
+
+
+def test_an_older_message_size_file_without_a_baseline_is_reported_as_such(tmp_path):
+    results = tmp_path / "results"
+    results.mkdir()
+    old = _size_row("concurrent", 1024, 100, 2000.0)
+    for key in ("pattern", "uploads_per_agent", "response_stdev_s"):
+        del old[key]
+    (results / "message_size.json").write_text(json.dumps(_message_size_report([old])))
+    output = tmp_path / "REPORT.md"
+
+    assert report.main(["--results-dir", str(results), "--output", str(output)]) == 0
+
+    text = output.read_text()
+    assert "no one-transaction-per-record baseline in this run" in text
+    assert "single uploads one after another" not in text.lower()
+
+
+def _post_server(record_ids: list[str], concurrent: list[int]) -> ThreadingHTTPServer:
+    """A server answering every POST with 201 and the envelope's seq, counting overlaps."""
+    lock = threading.Lock()
+    active = [0]
+
+    class Handler(BaseHTTPRequestHandler):
+        def do_POST(self):
+            with lock:
+                active[0] += 1
+                concurrent.append(active[0])
+            body = json.loads(self.rfile.read(int(self.headers["Content-Length"])))
+            record_ids.append(body["envelope"])
+            payload = json.dumps({"id": body["envelope"]}).encode()
+            self.send_response(201)
+            self.send_header("Content-Type", "application/json")
+            self.send_header("Content-Length", str(len(payload)))
+            self.end_headers()
+            self.wfile.write(payload)
+            with lock:
+                active[0] -= 1
+
+        def log_message(self, *args):
+            pass
+
+    return ThreadingHTTPServer(("127.0.0.1", 0), Handler)
+
+
+def test_one_agent_posts_its_uploads_in_order_one_at_a_time():
+    received: list[str] = []
+    concurrent: list[int] = []
+    server = _post_server(received, concurrent)
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    try:
+        uploads = [_stack._Upload(None, "token", {"envelope": f"seq-{n}"}) for n in range(1, 6)]
+        _stack._post(f"http://127.0.0.1:{server.server_port}/", [uploads])
+    finally:
+        server.shutdown()
+        server.server_close()
+    assert received == [f"seq-{n}" for n in range(1, 6)]
+    assert max(concurrent) == 1  # never two of them in flight at once
+    assert [u.record_id for u in uploads] == received
+    assert all(u.status == "201" for u in uploads)
+    assert all(a.answered_at <= b.sent_at for a, b in itertools.pairwise(uploads))
+
+
+def test_upload_runs_describe_their_pattern():
+    args = type(
+        "Args",
+        (),
+        {
+            "owners": 1,
+            "workers": 1,
+            "web_workers": 1,
+            "verifiers": 1,
+            "max_wait": 0.2,
+            "timeout": 1.0,
+            "redis_url": "redis://127.0.0.1:6379/13",
+            "keep_logs": False,
+        },
+    )()
+    sequential = _stack.upload_run(
+        args, block_time=None, batch_max=1, agents=1, plaintext_bytes=1024, uploads_per_agent=300
+    )
+    concurrent = _stack.upload_run(
+        args, block_time=None, batch_max=1, agents=300, plaintext_bytes=1024
+    )
+    assert (sequential.pattern, sequential.uploads) == ("sequential", 300)
+    assert (concurrent.pattern, concurrent.uploads) == ("concurrent", 300)
+    assert sequential.describe() == "1 agent x 300 uploads in a row"
+    assert concurrent.describe() == "300 agents at once"
+
+
+# --- crypto ---------------------------------------------------------------------------------
+
+
+def _crypto_row(operation: str, size: int, smcrypto_runs: int, gmssl_runs: int) -> dict:
+    def measured(what: str, runs: int, median: float) -> dict:
+        return {"what": what, "repeats": runs, "median_ms": median, "p95_ms": median * 1.5}
+
+    return {
+        "operation": operation,
+        "size_bytes": size,
+        "smcrypto": measured("SM3", smcrypto_runs, 2.0),
+        "gmssl": measured("SM3", gmssl_runs, 3000.0),
+        "ratio_gmssl_over_smcrypto": 1500.0,
+    }
+
+
+@pytest.mark.parametrize(
+    ("gmssl_sm3_runs", "budget", "expected"),
+    [
+        (
+            300,
+            None,
+            "Timed runs per measurement, from the results: smcrypto 300 for every measurement; "
+            "gmssl 300 for every measurement. As the paper's 300 times, for both.",
+        ),
+        (
+            20,
+            60.0,
+            "Timed runs per measurement, from the results: smcrypto 300 for every measurement; "
+            "gmssl 20 to 300 (sm3 800 KB: 20, 300 for the rest). Fewer than the paper's 300 "
+            "for gmssl (gmssl capped by a 60 s time budget).",
+        ),
+    ],
+)
+def test_the_crypto_section_states_the_repeat_counts_from_the_results(
+    tmp_path, gmssl_sm3_runs, budget, expected
+):
+    results = tmp_path / "results"
+    results.mkdir()
+    (results / "crypto.json").write_text(
+        json.dumps(
+            {
+                "benchmark": "crypto",
+                "date": "2031-07-08T09:10:11Z",
+                "machine": _machine(),
+                "settings": {"repeat": 300, "gmssl_budget_seconds": budget, "quick": False},
+                "notes": [],
+                "results": [
+                    _crypto_row("seal", 1024, 300, 300),
+                    _crypto_row("sm3", 800 * 1024, 300, gmssl_sm3_runs),
+                ],
+            }
+        )
+    )
+    output = tmp_path / "REPORT.md"
+
+    assert report.main(["--results-dir", str(results), "--output", str(output)]) == 0
+
+    text = output.read_text()
+    assert expected in text
+    assert f"| sm3 | 819200 | SM3 | 300 | 2.0000 | 3.0000 | SM3 | 3000.00 | {gmssl_sm3_runs} |" in (
+        text
+    )
+
+
+def test_gmssl_gets_every_repeat_unless_a_budget_is_asked_for():
+    calls = []
+    with tqdm(total=0, disable=True) as progress:
+        samples = crypto._measure_gmssl(lambda: calls.append(1), 300, None, progress)
+        assert len(samples) == 300
+        assert len(calls) == 300 + crypto.GMSSL_WARMUP
+        capped = crypto._measure_gmssl(lambda: None, 300, 1e-12, progress)
+        assert len(capped) == 3  # the floor when even one run exceeds the budget
+
+
+@pytest.mark.parametrize("argv", [["--repeat", "0"], ["--gmssl-budget", "0"]])
+def test_crypto_refuses_nonsense_arguments(tmp_path, argv):
+    with pytest.raises(SystemExit) as exit_info:
+        crypto.main([*argv, "--results-dir", str(tmp_path)])
+    assert exit_info.value.code == 2
+
+
+@pytest.mark.parametrize("argv", [["--uploads", "0"], ["--uploads", "1"], ["--owners", "0"]])
+def test_message_size_refuses_nonsense_arguments(tmp_path, argv):
+    with pytest.raises(SystemExit) as exit_info:
+        message_size.main([*argv, "--results-dir", str(tmp_path)])
     assert exit_info.value.code == 2
