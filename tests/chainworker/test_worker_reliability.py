@@ -12,6 +12,7 @@ from collections import Counter
 
 import pytest
 import redis
+from django.db import connection
 
 from accounts import services as accounts_services
 from accounts.models import ChainState, Owner
@@ -160,10 +161,15 @@ def test_chain_down_for_twenty_seconds(stack_factory):
 
     def upload() -> None:
         seq = 1
-        while not stop_uploading.is_set():
-            uploaded.append(record_create(robot=setup.robot, data=setup.seal(seq)))
-            seq += 1
-            time.sleep(0.2)
+        try:
+            while not stop_uploading.is_set():
+                uploaded.append(record_create(robot=setup.robot, data=setup.seal(seq)))
+                seq += 1
+                time.sleep(0.2)
+        finally:
+            # This thread's own database connection: left open, it keeps the test database
+            # from being dropped at the end of the run.
+            connection.close()
 
     uploader = threading.Thread(target=upload)
     uploader.start()
