@@ -111,7 +111,9 @@ class RecordAdmin(ReadOnlyAdmin):
         tampered = []
         for record in records:
             try:
-                verdict = record_verify(record_id=record.pk, viewer_id=record.owner_id).verdict
+                verdict = record_verify(
+                    record_id=record.pk, viewer_id=record.owner_id, checked_by_id=request.user.pk
+                ).verdict
             except ChainError as exc:
                 self.message_user(
                     request,
@@ -127,7 +129,11 @@ class RecordAdmin(ReadOnlyAdmin):
         if outcomes:
             summary = ", ".join(f"{count} {labels[outcome]}" for outcome, count in outcomes.items())
             level = messages.ERROR if tampered else messages.SUCCESS
-            self.message_user(request, f"Re-verified as their owners: {summary}.", level)
+            self.message_user(
+                request,
+                f"Re-verified with their owners' rights, recorded as your checks: {summary}.",
+                level,
+            )
         if tampered:
             self.message_user(request, f"TAMPERED: {', '.join(tampered)}", messages.ERROR)
 
@@ -158,15 +164,23 @@ class GrantAdmin(ReadOnlyAdmin):
 
 @admin.register(Verdict)
 class VerdictAdmin(ReadOnlyAdmin):
-    list_display = ("record", "viewer", "outcome", "source", "block_number", "created_at")
-    list_filter = ("outcome", "source", "created_at")
+    list_display = (
+        "record",
+        "viewer",
+        "checked_by",
+        "outcome",
+        "source",
+        "block_number",
+        "created_at",
+    )
+    list_filter = ("outcome", "source", ("checked_by", admin.EmptyFieldListFilter), "created_at")
     search_fields = (
         "record__id",
         "viewer__user__username",
         "computed_digest",
         "chain_digest",
     )
-    list_select_related = ("record__owner__user", "viewer__user")
+    list_select_related = ("record__owner__user", "viewer__user", "checked_by")
     readonly_fields = [f.name for f in Verdict._meta.fields]
 
 

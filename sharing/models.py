@@ -2,6 +2,7 @@
 
 import uuid
 
+from django.conf import settings
 from django.db import models
 
 from accounts.models import Owner, Robot
@@ -97,6 +98,16 @@ class Verdict(models.Model):
 
     record = models.ForeignKey(Record, on_delete=models.CASCADE, related_name="verdicts")
     viewer = models.ForeignKey(Owner, on_delete=models.CASCADE, related_name="verdicts")
+    # An operator's check from the admin console, made with the viewer's (the owner's) rights:
+    # the audit trail must not show it as the owner viewing their data.
+    checked_by = models.ForeignKey(
+        settings.AUTH_USER_MODEL,
+        on_delete=models.SET_NULL,
+        null=True,
+        blank=True,
+        related_name="+",
+        help_text="the operator who ran this check; empty when the viewer viewed the record",
+    )
     outcome = models.CharField(max_length=20, choices=Outcome.choices)
     computed_digest = models.CharField(max_length=64, blank=True)
     chain_digest = models.CharField(max_length=64, blank=True)
@@ -108,6 +119,8 @@ class Verdict(models.Model):
         ordering = ["-created_at"]
 
     def __str__(self) -> str:
+        if self.checked_by_id:
+            return f"{self.record_id} checked by operator {self.checked_by}: {self.outcome}"
         return f"{self.record_id} viewed by {self.viewer}: {self.outcome}"
 
 

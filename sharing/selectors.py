@@ -66,12 +66,16 @@ def grant_list_received(owner: Owner) -> QuerySet[Grant]:
 
 
 def verdict_list_for_record(record: Record) -> QuerySet[Verdict]:
-    return record.verdicts.select_related("viewer__user")
+    return record.verdicts.select_related("viewer__user", "checked_by")
 
 
 def verdict_latest(record: Record, viewer: Owner) -> Verdict | None:
-    """The viewer's most recent integrity verdict on the record."""
-    return record.verdicts.filter(viewer=viewer).order_by("-created_at", "-pk").first()
+    """The viewer's most recent integrity verdict on the record (their own views only)."""
+    return (
+        record.verdicts.filter(viewer=viewer, checked_by__isnull=True)
+        .order_by("-created_at", "-pk")
+        .first()
+    )
 
 
 def record_topic_history(record: Record, *, limit: int) -> list[Record]:

@@ -233,10 +233,14 @@ class Verification:
     envelope: bytes | None  # only when verified
 
 
-def record_verify(*, record_id: uuid.UUID | str, viewer_id: int) -> Verification:
+def record_verify(
+    *, record_id: uuid.UUID | str, viewer_id: int, checked_by_id: int | None = None
+) -> Verification:
     """Check access on chain and the stored envelope's SM3 digest against the chain.
 
     Every check leaves a Verdict: the audit trail of who viewed what, when, at which block.
+    `checked_by_id` names the operator running the check with the viewer's rights (the admin
+    console's re-verify), so that it is not recorded as the viewer's own view.
     """
     record = Record.objects.select_related("owner").get(pk=record_id)
     viewer = Owner.objects.get(pk=viewer_id)
@@ -245,7 +249,12 @@ def record_verify(*, record_id: uuid.UUID | str, viewer_id: int) -> Verification
 
     def verdict(outcome: str, **fields: object) -> Verdict:
         return Verdict.objects.create(
-            record=record, viewer=viewer, outcome=outcome, block_number=block, **fields
+            record=record,
+            viewer=viewer,
+            checked_by_id=checked_by_id,
+            outcome=outcome,
+            block_number=block,
+            **fields,
         )
 
     if not _may_view(record, viewer, client):

@@ -6,6 +6,7 @@ from django.urls import reverse
 
 from accounts.models import OwnerKey, Robot
 from sharing.models import Record, SecurityEvent, Verdict
+from sharing.selectors import verdict_latest
 from tests.anvil import free_port
 from tests.conftest import TEST_PASSWORD
 from tests.pages.conftest import tamper
@@ -120,7 +121,12 @@ def test_reverify_records(admin_client, make_robot, upload):
     assert "1 not anchored yet" in html
     assert f"TAMPERED: {bad.pk}" in html
     assert SecurityEvent.objects.filter(record=bad).exists()
-    assert Verdict.objects.filter(record=good, viewer=alice.owner, outcome="verified").exists()
+    verdict = Verdict.objects.get(record=good, viewer=alice.owner, outcome="verified")
+    # The operator's check, not the owner viewing their own data.
+    assert str(verdict.checked_by.pk) == admin_client.session["_auth_user_id"]
+    assert verdict.checked_by.is_staff
+    assert "checked by operator" in str(verdict)
+    assert verdict_latest(good, alice.owner) is None
 
 
 def test_revoke_robot_tokens_from_the_admin(admin_client, make_robot):
