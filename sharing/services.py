@@ -11,6 +11,7 @@ from collections.abc import Sequence
 from contextlib import suppress
 from dataclasses import dataclass
 from datetime import UTC, datetime, timedelta
+from typing import Any
 
 from django.conf import settings
 from django.core.files.base import ContentFile
@@ -44,6 +45,7 @@ from sharing.errors import (
     RecordNotFound,
     ReplayedSequence,
     SelfGrant,
+    SharingError,
     UnknownKey,
     VerificationUnavailable,
 )
@@ -348,7 +350,26 @@ def record_open(*, record_id: uuid.UUID | str, viewer: Owner) -> OpenedRecord:
         record = Record.objects.select_related("owner__user").get(pk=uuid.UUID(str(record_id)))
     except (ValueError, Record.DoesNotExist):
         raise RecordNotFound("no such record") from None
-    verdict = _verify_through_worker(record, viewer)
+    return _opened(record, _verdict_from_worker(record, viewer, _send_verify(record, viewer)))
+
+
+def record_open_many(
+    *, records: Sequence[Record], viewer: Owner
+) -> list[OpenedRecord | SharingError]:
+    """record_open for several records at once: every check is queued before any answer is
+    awaited, so they run side by side on the verify workers. One result per record, in
+    order: the opened record, or the SharingError record_open would have raised."""
+    sent = [(record, _send_verify(record, viewer)) for record in records]
+    results: list[OpenedRecord | SharingError] = []
+    for record, pending in sent:
+        try:
+            results.append(_opened(record, _verdict_from_worker(record, viewer, pending)))
+        except SharingError as exc:
+            results.append(exc)
+    return results
+
+
+def _opened(record: Record, verdict: Verdict) -> OpenedRecord:
     if verdict.outcome == Verdict.Outcome.NO_ACCESS:
         raise AccessDenied("you have no live grant to this record")
     if verdict.outcome == Verdict.Outcome.TAMPERED:
@@ -370,13 +391,21 @@ def record_reseal_for(*, opened: OpenedRecord, viewer: Owner) -> bytes:
     )
 
 
-def _verify_through_worker(record: Record, viewer: Owner) -> Verdict:
+def _send_verify(record: Record, viewer: Owner) -> Any:
+    """Queue the worker's integrity check; an exception instead if it cannot be queued."""
     from sharing.tasks import record_verify as record_verify_task  # tasks import services
 
     try:
-        result = record_verify_task.apply_async(args=(str(record.pk), viewer.pk)).get(
-            timeout=settings.VERIFY_TIMEOUT, disable_sync_subtasks=False
-        )
+        return record_verify_task.apply_async(args=(str(record.pk), viewer.pk))
+    except Exception as exc:  # the broker is down
+        return exc
+
+
+def _verdict_from_worker(record: Record, viewer: Owner, pending: Any) -> Verdict:
+    try:
+        if isinstance(pending, Exception):
+            raise pending
+        result = pending.get(timeout=settings.VERIFY_TIMEOUT, disable_sync_subtasks=False)
     except Exception as exc:  # timeout, broker down, or the worker's own failure
         logger.warning("verification of %s for %s failed: %s", record.pk, viewer, exc)
         raise VerificationUnavailable(

@@ -12,6 +12,7 @@ from sharing.services import (
     grant_revoke,
     record_create,
     record_open,
+    record_open_many,
     record_reseal_for,
 )
 from smcrypto import CryptoError, envelope
@@ -72,3 +73,27 @@ def test_unknown_record(shared):
     with pytest.raises(errors.RecordNotFound):
         record_open(record_id="not-a-uuid", viewer=alice.owner)
     assert record_get_visible(alice.owner, "not-a-uuid") is None
+
+
+def test_opening_many_gives_each_record_its_own_outcome(
+    shared, make_robot, django_capture_on_commit_callbacks
+):
+    alice, bob, anchored = shared
+    with django_capture_on_commit_callbacks(execute=True):
+        tampered = record_create(robot=alice.robot, data=alice.seal(2))
+    pending = record_create(robot=alice.robot, data=alice.seal(3))  # anchoring not run
+    cached = bytearray(get_redis().get(cache_key(tampered.pk)))
+    cached[-1] ^= 1
+    get_redis().set(cache_key(tampered.pk), bytes(cached))
+
+    opened, not_yet, refused = record_open_many(
+        records=[anchored, pending, tampered], viewer=alice.owner
+    )
+    assert opened.plaintext == b'{"K": "odom"}'
+    assert isinstance(not_yet, errors.NotAnchoredYet)
+    assert isinstance(refused, errors.IntegrityCheckFailed)
+    # Someone without a grant gets a refusal for each, and nothing else.
+    assert all(
+        isinstance(result, errors.AccessDenied)
+        for result in record_open_many(records=[anchored, tampered], viewer=bob)
+    )
