@@ -32,6 +32,9 @@ NOISE_PATCH = (88, 64)  # width, height of the sensor-noise patch that sets the 
 NOISE_SIGMA = 6.0
 LAP_SECONDS = 60.0
 HALF_WIDTH = 3.0  # metres
+# In the start-up log line, before the stamp the trajectory's time counts from: with it, what
+# was published at any stamp can be computed again (tests compare it with what was stored).
+START_MARK = "t0="
 
 
 @dataclass(frozen=True)
@@ -143,7 +146,14 @@ def run(*, duration: float, odom_rate: float, image_rate: float) -> None:
     rate = rospy.Rate(odom_rate)
     frame = 0  # rospy numbers header.seq itself, so the frame number is kept here
     rospy.loginfo(
-        "publishing %s at %g Hz and %s at %g Hz", ODOM_TOPIC, odom_rate, IMAGE_TOPIC, image_rate
+        "publishing %s at %g Hz and %s at %g Hz from stamp %s%d.%09d",
+        ODOM_TOPIC,
+        odom_rate,
+        IMAGE_TOPIC,
+        image_rate,
+        START_MARK,
+        start.secs,
+        start.nsecs,
     )
     while not rospy.is_shutdown():
         now = rospy.Time.now()

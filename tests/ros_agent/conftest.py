@@ -6,7 +6,9 @@ ROS_HOME and ROS_LOG_DIR in the test's temporary folder.
 """
 
 import contextlib
+import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -16,8 +18,11 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
+import genpy
 import pytest
 
+from ros_agent import sim
+from ros_agent.extractors import extract
 from smcrypto import sm4
 from tests.anvil import free_port
 from tests.ros_agent.records_server import RecordsServer
@@ -63,6 +68,25 @@ def chatter_record(text: str, time: str) -> dict:
         "Type": "std_msgs/String",
         "Topic": "/chatter",
     }
+
+
+def published_odometry(sim_log: Path) -> Callable[[dict], dict]:
+    """What the simulator whose log is `sim_log` published at a stored odometry record's
+    stamp, as the agent extracts it: the trajectory is a function of the time since the start
+    stamp the simulator logs."""
+    text = sim_log.read_text()
+    match = re.search(re.escape(sim.START_MARK) + r"(\d+)\.(\d{9})", text)
+    assert match, f"no start stamp in the simulator's log:\n{text[-2000:]}"
+    start = genpy.Time(int(match[1]), int(match[2]))
+
+    def at(stored: dict) -> dict:
+        stamp = stored["header"]["stamp"]
+        now = genpy.Time(stamp["secs"], stamp["nsecs"])
+        msg = sim.odometry_message(sim.figure_eight((now - start).to_sec()), now)
+        msg.header.seq = stored["header"]["seq"]  # rospy numbers messages as it sends them
+        return json.loads(json.dumps(extract(msg, "nav_msgs/Odometry")))
+
+    return at
 
 
 def wait_until(condition: Callable[[], object], timeout: float, what: str) -> None:

@@ -23,6 +23,7 @@ from tests.ros_agent.conftest import (
     TOKEN,
     RosMaster,
     chatter_record,
+    published_odometry,
     python_module,
     running,
     stop_process,
@@ -170,7 +171,7 @@ def test_rostopic_pub_reaches_the_portal_across_an_outage_and_an_agent_crash(
         assert (stored.header["owner"], stored.header["robot"]) == (OWNER, ROBOT)
 
 
-def test_the_simulated_robot_reaches_the_portal_with_plausible_odometry_and_images(
+def test_the_simulated_robot_reaches_the_portal_with_the_odometry_and_images_it_published(
     ros_master, portal: RecordsServer, key_file, tmp_path
 ):
     topics = [(sim.ODOM_TOPIC, "nav_msgs/Odometry"), (sim.IMAGE_TOPIC, "sensor_msgs/Image")]
@@ -209,6 +210,10 @@ def test_the_simulated_robot_reaches_the_portal_with_plausible_odometry_and_imag
     assert len(odometry) >= 25
     assert len(images) >= 2
     _check_odometry(odometry)
+    # Equal to what was published, field by field, not only plausible.
+    published = published_odometry(tmp_path / "sim.log")
+    for pose in odometry:
+        assert pose == published(pose)
     _check_images(images)
 
 
