@@ -302,13 +302,15 @@ def _post_server(record_ids: list[str], concurrent: list[int]) -> ThreadingHTTPS
             body = json.loads(self.rfile.read(int(self.headers["Content-Length"])))
             record_ids.append(body["envelope"])
             payload = json.dumps({"id": body["envelope"]}).encode()
+            # Out of flight before the answer leaves: a sequential client can only send its
+            # next POST after reading this answer, so it can never be counted as overlapping.
+            with lock:
+                active[0] -= 1
             self.send_response(201)
             self.send_header("Content-Type", "application/json")
             self.send_header("Content-Length", str(len(payload)))
             self.end_headers()
             self.wfile.write(payload)
-            with lock:
-                active[0] -= 1
 
         def log_message(self, *args):
             pass
