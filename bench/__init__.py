@@ -5,21 +5,26 @@ holds what they share: where results go, timing, and a description of the machin
 """
 
 import importlib.metadata
+import multiprocessing
 import os
 import pkgutil
 import platform
+import signal
 import statistics
 import sys
 import time
 from collections.abc import Callable
+from concurrent.futures import ProcessPoolExecutor
 from datetime import UTC, datetime
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import psutil
 from tqdm import tqdm
 
 RESULTS_DIR = Path(__file__).resolve().parent / "results"
+T = TypeVar("T")
+R = TypeVar("R")
 
 
 def available() -> list[str]:
@@ -29,6 +34,22 @@ def available() -> list[str]:
         for module in pkgutil.iter_modules([str(Path(__file__).parent)])
         if not module.name.startswith("_")
     )
+
+
+def run_in_child(function: Callable[[T], R], argument: T) -> R:
+    """`function(argument)` in a fresh interpreter, so Django there reads a fresh environment.
+
+    `function` must be importable (module level). A SIGTERM in the child exits it cleanly, so
+    the `finally` blocks of a benchmark run still stop the stack it started.
+    """
+    context = multiprocessing.get_context("spawn")
+    with ProcessPoolExecutor(max_workers=1, mp_context=context) as pool:
+        return pool.submit(_in_child, function, argument).result()
+
+
+def _in_child(function: Callable[[T], R], argument: T) -> R:
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(128 + signal.SIGTERM))
+    return function(argument)
 
 
 def measure(

@@ -23,10 +23,8 @@ Every run happens in its own spawned interpreter (Django reads its settings once
 import argparse
 import csv
 import json
-import multiprocessing
 import os
 import shutil
-import signal
 import statistics
 import subprocess
 import sys
@@ -34,7 +32,7 @@ import tempfile
 import threading
 import time
 from collections import Counter
-from concurrent.futures import Future, ProcessPoolExecutor, ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
@@ -43,7 +41,7 @@ import psutil
 import redis
 import requests
 
-from bench import RESULTS_DIR, machine_info, progress_bar, summarize
+from bench import RESULTS_DIR, machine_info, progress_bar, run_in_child, summarize
 from bench.pipeline import (
     BENCH_REDIS_URL,
     POLL_INTERVAL,
@@ -251,9 +249,7 @@ def print_table(report: dict[str, Any], columns: tuple[tuple[str, str, str], ...
 
 def measure_in_child(run: UploadRun) -> dict[str, Any]:
     """Measure one run in a fresh interpreter, so Django reads a fresh environment."""
-    context = multiprocessing.get_context("spawn")
-    with ProcessPoolExecutor(max_workers=1, mp_context=context) as pool:
-        return pool.submit(_measure, run).result()
+    return run_in_child(_measure, run)
 
 
 def add_ratios(rows: list[dict[str, Any]], same: tuple[str, ...], keys: tuple[str, ...]) -> None:
@@ -345,21 +341,26 @@ class _Upload:
     verify_error: str | None = None
 
 
-def _measure(run: UploadRun) -> dict[str, Any]:
-    signal.signal(signal.SIGTERM, lambda *_: sys.exit(128 + signal.SIGTERM))
-    workdir = Path(tempfile.mkdtemp(prefix="authros-bench-rest-"))
-    configuration = Configuration(
+def web_configuration(run: Any, *, records: int, timeout: float) -> Configuration:
+    """The stack's configuration for a run through REST (an UploadRun, a SustainedRun): the
+    records come over HTTP, so none is made by the stack itself (rate 0)."""
+    return Configuration(
         block_time=run.block_time,
         batch_max=run.batch_max,
-        records=run.uploads,
+        records=records,
         owners=run.owners,
         workers=run.workers,
         max_wait=run.max_wait,
         rate=0.0,
-        timeout=run.timeout,
+        timeout=timeout,
         redis_url=run.redis_url,
         keep_logs=run.keep_logs,
     )
+
+
+def _measure(run: UploadRun) -> dict[str, Any]:
+    workdir = Path(tempfile.mkdtemp(prefix="authros-bench-rest-"))
+    configuration = web_configuration(run, records=run.uploads, timeout=run.timeout)
     stack = _WebStack(configuration, workdir)
     try:
         stack.start()

@@ -22,7 +22,6 @@ Writes bench/results/pipeline.json, pipeline.csv and pipeline.png.
 import argparse
 import csv
 import json
-import multiprocessing
 import os
 import re
 import secrets
@@ -33,7 +32,6 @@ import sys
 import tempfile
 import time
 from collections import Counter
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
@@ -49,7 +47,7 @@ import matplotlib.pyplot as plt
 import psutil
 import redis
 
-from bench import RESULTS_DIR, machine_info, now_iso, progress_bar, summarize
+from bench import RESULTS_DIR, machine_info, now_iso, progress_bar, run_in_child, summarize
 from smcrypto import envelope, sm4
 from tests.anvil import AnvilProcess, start_anvil
 
@@ -167,7 +165,7 @@ def main(argv: list[str]) -> int:
             f"ANCHOR_BATCH_MAX={configuration.batch_max}",
             file=sys.stderr,
         )
-        rows.append(_measure_in_child(configuration))
+        rows.append(run_in_child(_measure, configuration))
     _add_ratios(rows)
     portal_settings = rows[0]["portal_settings"]
     for row in rows:
@@ -225,16 +223,8 @@ def _notes(args: argparse.Namespace) -> list[str]:
 # --- one configuration, in a child process --------------------------------------------------
 
 
-def _measure_in_child(configuration: Configuration) -> dict[str, Any]:
-    """Measure one configuration in a fresh interpreter, so Django reads a fresh environment."""
-    context = multiprocessing.get_context("spawn")
-    with ProcessPoolExecutor(max_workers=1, mp_context=context) as pool:
-        return pool.submit(_measure, configuration).result()
-
-
 def _measure(configuration: Configuration) -> dict[str, Any]:
     """Start the stack, register owners, upload, wait for anchoring, stop; the row of results."""
-    signal.signal(signal.SIGTERM, lambda *_: sys.exit(128 + signal.SIGTERM))
     workdir = Path(tempfile.mkdtemp(prefix="authros-bench-pipeline-"))
     stack = _Stack(configuration, workdir)
     try:

@@ -27,16 +27,13 @@ Writes bench/results/sustained.json, sustained.csv and sustained.png.
 import argparse
 import base64
 import math
-import multiprocessing
 import queue
 import shutil
-import signal
 import sys
 import tempfile
 import threading
 import time
 from collections import Counter
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -51,7 +48,7 @@ import matplotlib.pyplot as plt
 import psutil
 import requests
 
-from bench import now_iso, progress_bar
+from bench import now_iso, progress_bar, run_in_child
 from bench._stack import (
     REQUEST_TIMEOUT,
     _WebStack,
@@ -59,6 +56,7 @@ from bench._stack import (
     check_arguments,
     print_table,
     report_header,
+    web_configuration,
     write_results,
 )
 from bench.pipeline import POLL_INTERVAL, Configuration, _owners_register, seal_record
@@ -202,9 +200,7 @@ def main(argv: list[str]) -> int:
             f"{run.agents} robots x {run.rate:g} rec/s for {run.duration:g}s",
             file=sys.stderr,
         )
-        context = multiprocessing.get_context("spawn")
-        with ProcessPoolExecutor(max_workers=1, mp_context=context) as pool:
-            rows.append(pool.submit(_measure, run).result())
+        rows.append(run_in_child(_measure, run))
     _add_ratios(rows)
     del report["settings"]["timeout_s"]  # --drain bounds the wait here
     report["settings"] |= {
@@ -319,20 +315,8 @@ class _Sampler(threading.Thread):
 
 
 def _measure(run: SustainedRun) -> dict[str, Any]:
-    signal.signal(signal.SIGTERM, lambda *_: sys.exit(128 + signal.SIGTERM))
     workdir = Path(tempfile.mkdtemp(prefix="authros-bench-sustained-"))
-    configuration = Configuration(
-        block_time=run.block_time,
-        batch_max=run.batch_max,
-        records=0,
-        owners=run.owners,
-        workers=run.workers,
-        max_wait=run.max_wait,
-        rate=0.0,
-        timeout=run.drain,
-        redis_url=run.redis_url,
-        keep_logs=run.keep_logs,
-    )
+    configuration = web_configuration(run, records=0, timeout=run.drain)
     stack = _WebStack(configuration, workdir)
     try:
         stack.start()
