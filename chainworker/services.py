@@ -315,9 +315,13 @@ def anchor_schedule(*, owner_id: int, countdown: float | None = None) -> None:
     except RedisError:
         first = True
     if first and not enqueue("chainworker.tasks.records_anchor", owner_id, countdown=countdown):
-        # Not queued: do not let the flag keep the sweep from queueing it again.
-        with suppress(RedisError):
-            get_redis().delete(redis_key("anchor-scheduled", owner_id))
+        _anchor_unschedule(owner_id)  # not queued: the flag must not keep the sweep from it
+
+
+def _anchor_unschedule(owner_id: int) -> None:
+    """Drop the "a run is queued" flag of `anchor_schedule`."""
+    with suppress(RedisError):
+        get_redis().delete(redis_key("anchor-scheduled", owner_id))
 
 
 def records_anchor(*, owner_id: int) -> int:
@@ -331,8 +335,7 @@ def records_anchor(*, owner_id: int) -> int:
     Idempotent: a record whose id is already on chain with the same digest and owner counts
     as anchored; with another digest it is marked failed and a security event is logged.
     """
-    with suppress(RedisError):
-        get_redis().delete(redis_key("anchor-scheduled", owner_id))
+    _anchor_unschedule(owner_id)
     owner = Owner.objects.filter(pk=owner_id).first()
     if owner is None:
         logger.warning("records_anchor: owner %s no longer exists", owner_id)
