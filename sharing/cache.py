@@ -15,8 +15,11 @@ must never be evicted. Beside each entry `<prefix>:envelope:<id>`:
 import logging
 import time
 import uuid
+from functools import lru_cache
 
+import redis
 from django.conf import settings
+from redis.commands.core import Script
 from redis.exceptions import RedisError
 
 from portal.redis_client import get_redis, redis_key
@@ -77,10 +80,15 @@ def _bookkeeping() -> list[str]:
     ]
 
 
+@lru_cache(maxsize=8)
+def _script(client: redis.Redis, source: str) -> Script:
+    """The script registered once per client (it hashes its source for EVALSHA)."""
+    return client.register_script(source)
+
+
 def _run(script: str, *args: object, now_ms: int | None = None) -> int:
     now = int(time.time() * 1000) if now_ms is None else now_ms
-    client = get_redis()
-    return client.register_script(script)(
+    return _script(get_redis(), script)(
         keys=_bookkeeping(),
         args=[
             redis_key("envelope", ""),
