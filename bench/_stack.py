@@ -24,7 +24,6 @@ import argparse
 import csv
 import json
 import os
-import shutil
 import statistics
 import subprocess
 import sys
@@ -50,6 +49,7 @@ from bench.pipeline import (
     _anvil_version,
     _owners_register,
     _Stack,
+    run_finished,
     seal_record,
 )
 from tests.anvil import free_port
@@ -372,13 +372,7 @@ def _measure(run: UploadRun) -> dict[str, Any]:
         row = _statistics(run, uploads)
     finally:
         stack.stop()
-    row["worker_logs"] = stack.log_summary()
-    if run.keep_logs:
-        row["workdir"] = str(workdir)
-        print(f"kept {workdir}", file=sys.stderr)
-    else:
-        shutil.rmtree(workdir, ignore_errors=True)
-    return row
+    return run_finished(row, stack, workdir, keep_logs=run.keep_logs)
 
 
 def _agents_create(

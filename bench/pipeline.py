@@ -235,9 +235,17 @@ def _measure(configuration: Configuration) -> dict[str, Any]:
         row = _statistics(configuration)
     finally:
         stack.stop()
-    row["worker_logs"] = stack.log_summary()
     row["portal_settings"] = stack.portal_settings
-    if configuration.keep_logs:
+    return run_finished(row, stack, workdir, keep_logs=configuration.keep_logs)
+
+
+def run_finished(
+    row: dict[str, Any], stack: Any, workdir: Path, *, keep_logs: bool
+) -> dict[str, Any]:
+    """A run's row after its stack stopped: with the workers' log summary, and the work
+    folder kept (and named in the row) or removed."""
+    row["worker_logs"] = stack.log_summary()
+    if keep_logs:
         row["workdir"] = str(workdir)
         print(f"kept {workdir}", file=sys.stderr)
     else:

@@ -28,7 +28,6 @@ import argparse
 import base64
 import math
 import queue
-import shutil
 import sys
 import tempfile
 import threading
@@ -59,7 +58,13 @@ from bench._stack import (
     web_configuration,
     write_results,
 )
-from bench.pipeline import POLL_INTERVAL, Configuration, _owners_register, seal_record
+from bench.pipeline import (
+    POLL_INTERVAL,
+    Configuration,
+    _owners_register,
+    run_finished,
+    seal_record,
+)
 
 NAME = "sustained"
 BLOCK_TIMES: tuple[float | None, ...] = (None, 1.0)  # None: automine
@@ -338,13 +343,7 @@ def _measure(run: SustainedRun) -> dict[str, Any]:
         row = _statistics(run, robots, watcher, sampler.samples, started, uploaded)
     finally:
         stack.stop()
-    row["worker_logs"] = stack.log_summary()
-    if run.keep_logs:
-        row["workdir"] = str(workdir)
-        print(f"kept {workdir}", file=sys.stderr)
-    else:
-        shutil.rmtree(workdir, ignore_errors=True)
-    return row
+    return run_finished(row, stack, workdir, keep_logs=run.keep_logs)
 
 
 def _robots_create(run: SustainedRun, configuration: Configuration, stack: Any) -> list[_Robot]:
