@@ -1,10 +1,13 @@
 """What the accounts services refuse, as values the caller can act on."""
 
+from core.errors import DomainError
 
-class AccountError(Exception):
+
+class AccountError(DomainError):
     """Base: `code` is the machine-readable error, the message says what to do."""
 
     code = "account_error"
+    http_status = 400
 
 
 class UsernameTaken(AccountError):

@@ -8,7 +8,7 @@ created on first use. The public key is served as `04||x||y` hex; ciphertexts ar
 from django.conf import settings
 
 from accounts.errors import InvalidKeyMaterial
-from portal.secrets import load_or_create_secret
+from core.secrets import load_or_create_secret
 from smcrypto import CryptoError, sm2, sm4
 
 

@@ -8,7 +8,7 @@ import secrets
 
 from django.conf import settings
 
-from portal.secrets import load_or_create_secret
+from core.secrets import load_or_create_secret
 from smcrypto import CryptoError, sm4
 
 WRAP_VERSION = 1

@@ -1,9 +1,12 @@
 """Actions on owners, their keys and robots. Each is one transaction; chain work is queued
-on commit (outbox) and carried out by the chain worker."""
+on commit (outbox), and the worker's tasks carry it out through the `*_on_chain` services
+below: registration (fund, enroll, register) and key rotation."""
 
 import secrets
 from collections.abc import Sequence
+from datetime import timedelta
 
+from django.conf import settings
 from django.contrib.auth import get_user_model
 from django.contrib.auth.password_validation import validate_password
 from django.contrib.auth.validators import UnicodeUsernameValidator
@@ -13,6 +16,7 @@ from django.utils import timezone
 from eth_account import Account
 
 from accounts import keywrap
+from accounts.agent_config import Topic
 from accounts.errors import (
     InvalidKeyMaterial,
     InvalidRobotName,
@@ -30,9 +34,10 @@ from accounts.models import (
     Robot,
     validate_robot_topics,
 )
-from accounts.selectors import eoa_purpose, robot_token_hash, sm4_key_purpose
-from chainworker.outbox import enqueue
-from ros_agent.config import TopicConfig
+from accounts.selectors import eoa_purpose, owner_eoa_account, robot_token_hash, sm4_key_purpose
+from chainworker.services import chain_client, operator_account, operator_ensure_funded
+from chainworker.work import ChainWorkNotReady, exclusive
+from core.outbox import enqueue
 from smcrypto import key_commitment, key_id, sm4
 
 ROBOT_TOKEN_BYTES = 32
@@ -62,7 +67,7 @@ def owner_create(*, username: str, password: str, sm4_key: bytes) -> Owner:
             owner.eoa_key_wrapped = keywrap.wrap(bytes(eoa.key), purpose=eoa_purpose(owner.pk))
             owner.save(update_fields=["eoa_key_wrapped"])
             _owner_key_add(owner, sm4_key)
-            transaction.on_commit(lambda: enqueue("chainworker.tasks.owner_register", owner.pk))
+            transaction.on_commit(lambda: enqueue("accounts.tasks.owner_register", owner.pk))
     except IntegrityError:
         raise UsernameTaken(f"the username {username!r} is taken") from None
     return owner
@@ -76,12 +81,12 @@ def key_rotate(*, owner: Owner, sm4_key: bytes) -> OwnerKey:
             raise KeyAlreadyUsed("this key was used by this owner before: choose a new one")
         owner.keys.filter(is_current=True).update(is_current=False, retired_at=timezone.now())
         new_key = _owner_key_add(owner, sm4_key)
-        transaction.on_commit(lambda: enqueue("chainworker.tasks.key_rotate", new_key.pk))
+        transaction.on_commit(lambda: enqueue("accounts.tasks.key_rotate", new_key.pk))
     return new_key
 
 
 def robot_create(
-    *, owner: Owner, name: str, topics: Sequence[TopicConfig] | None = None
+    *, owner: Owner, name: str, topics: Sequence[Topic] | None = None
 ) -> tuple[Robot, str]:
     """A robot and its API token; the token is returned once and only its hash is kept.
 
@@ -114,6 +119,91 @@ def robot_token_revoke(*, robot: Robot) -> Robot:
     Robot.objects.filter(pk=robot.pk).update(is_active=False, revoked_at=timezone.now())
     robot.refresh_from_db()
     return robot
+
+
+# --- on chain (run by the worker) ---------------------------------------------------------
+
+
+def owner_register_on_chain(*, owner_id: int) -> Owner:
+    """Fund the owner's EOA, enroll it (operator) and register its key commitment."""
+    with exclusive(f"owner:{owner_id}", timeout=settings.CHAIN_RECEIPT_TIMEOUT * 3 + 30):
+        owner = Owner.objects.select_related("user").get(pk=owner_id)
+        if owner.chain_state == ChainState.CONFIRMED:
+            return owner
+        client = chain_client()
+        operator = operator_account()
+        operator_ensure_funded(client=client, operator=operator)
+        first_key = owner.keys.order_by("created_at").first()
+        # Each step is written as soon as it is on chain, so progress pages move step by step.
+        step = Owner.objects.filter(pk=owner.pk).update
+        funding = settings.CHAIN_EOA_FUNDING_WEI
+        if client.balance(owner.eoa_address) < funding // 2:
+            step(fund_tx=client.transfer(operator, owner.eoa_address, funding).tx_hash)
+        if not client.is_enrolled(owner.eoa_address):
+            step(enroll_tx=client.enroll(operator, owner.eoa_address).tx_hash)
+        if not client.is_registered(owner.eoa_address):
+            commitment = bytes.fromhex(first_key.commitment.removeprefix("0x"))
+            result = client.register(owner_eoa_account(owner), commitment)
+            step(register_tx=result.tx_hash, registered_block=result.block_number)
+            OwnerKey.objects.filter(pk=first_key.pk).update(
+                chain_state=ChainState.CONFIRMED,
+                tx_hash=result.tx_hash,
+                block_number=result.block_number,
+            )
+        else:
+            OwnerKey.objects.filter(pk=first_key.pk).update(chain_state=ChainState.CONFIRMED)
+        step(chain_state=ChainState.CONFIRMED, chain_error="")
+        owner.refresh_from_db()
+    # Keys rotated (and records uploaded) while registration was pending can go now.
+    for key in owner.keys.filter(chain_state=ChainState.PENDING):
+        enqueue("accounts.tasks.key_rotate", key.pk)
+    enqueue("sharing.tasks.records_anchor", owner.pk)
+    return owner
+
+
+def key_rotate_on_chain(*, owner_key_id: int) -> OwnerKey:
+    """Put a rotated key's commitment on chain (`rotateKey`), in the order keys were made."""
+    key = OwnerKey.objects.select_related("owner").get(pk=owner_key_id)
+    owner = key.owner
+    if key.chain_state == ChainState.CONFIRMED:
+        return key
+    if owner.chain_state != ChainState.CONFIRMED:
+        raise ChainWorkNotReady(f"{owner} is not registered on chain yet")
+    if owner.keys.filter(created_at__lt=key.created_at, chain_state=ChainState.PENDING).exists():
+        raise ChainWorkNotReady(f"an older key of {owner} is not on chain yet")
+    with exclusive(f"owner:{owner.pk}", timeout=settings.CHAIN_RECEIPT_TIMEOUT + 30):
+        client = chain_client()
+        commitment = bytes.fromhex(key.commitment.removeprefix("0x"))
+        fields: dict[str, object] = {"chain_state": ChainState.CONFIRMED}
+        if client.commitment_of(owner.eoa_address) != commitment:
+            result = client.rotate_key(owner_eoa_account(owner), commitment)
+            fields.update(tx_hash=result.tx_hash, block_number=result.block_number)
+        OwnerKey.objects.filter(pk=key.pk).update(**fields)
+    key.refresh_from_db()
+    return key
+
+
+def chain_work_sweep() -> dict[str, int]:
+    """Queue again registrations and key rotations pending for longer than ANCHOR_STALE_AFTER
+    (a lost message, a dead worker); their tasks are idempotent."""
+    cutoff = timezone.now() - timedelta(seconds=settings.ANCHOR_STALE_AFTER)
+    registrations = list(
+        Owner.objects.filter(chain_state=ChainState.PENDING, created_at__lt=cutoff).values_list(
+            "pk", flat=True
+        )
+    )
+    for owner_id in registrations:
+        enqueue("accounts.tasks.owner_register", owner_id)
+    keys = list(
+        OwnerKey.objects.filter(
+            chain_state=ChainState.PENDING,
+            created_at__lt=cutoff,
+            owner__chain_state=ChainState.CONFIRMED,
+        ).values_list("pk", flat=True)
+    )
+    for key_pk in keys:
+        enqueue("accounts.tasks.key_rotate", key_pk)
+    return {"registrations": len(registrations), "keys": len(keys)}
 
 
 def _owner_key_add(owner: Owner, sm4_key: bytes) -> OwnerKey:

@@ -11,12 +11,11 @@ from django.template.response import TemplateResponse
 from django.urls import URLPattern, path
 from redis.exceptions import RedisError
 
-from accounts.models import ChainState, Owner, OwnerKey
+from chainworker.backlog import backlog_counts
 from chainworker.chain import ChainError
 from chainworker.models import Deployment
 from chainworker.services import chain_status
-from portal.redis_client import get_redis
-from sharing.models import Grant, Record
+from core.redis_client import get_redis
 
 WEI_PER_ETHER = Decimal(10) ** 18
 # Kombu's Redis transport keeps messages of priority p > 0 under "<queue>\x06\x16<p>".
@@ -57,15 +56,7 @@ class DeploymentAdmin(admin.ModelAdmin):
             "operator_balance": balance,
             "queue_name": settings.CELERY_TASK_DEFAULT_QUEUE,
             "queue_length": celery_queue_length(),
-            "pending": {
-                "records": Record.objects.filter(status=Record.Status.PENDING).count(),
-                "failed_records": Record.objects.filter(status=Record.Status.FAILED).count(),
-                "registrations": Owner.objects.filter(chain_state=ChainState.PENDING).count(),
-                "keys": OwnerKey.objects.filter(chain_state=ChainState.PENDING).count(),
-                "grants": Grant.objects.filter(
-                    status__in=[Grant.Status.PENDING, Grant.Status.REVOKING]
-                ).count(),
-            },
+            "pending": backlog_counts(),
             "deployments": Deployment.objects.filter(is_active=True),
         }
         status_code = 200 if status is not None else 503

@@ -11,7 +11,7 @@ from pathlib import Path
 import environ
 from kombu import Queue
 
-from portal.secrets import load_or_create_secret
+from core.secrets import load_or_create_secret
 
 BASE_DIR = Path(__file__).resolve().parent.parent
 
@@ -195,7 +195,7 @@ REST_FRAMEWORK = {
     "DEFAULT_PARSER_CLASSES": ["rest_framework.parsers.JSONParser"],
     "DEFAULT_RENDERER_CLASSES": ["rest_framework.renderers.JSONRenderer"],
     "DEFAULT_SCHEMA_CLASS": "drf_spectacular.openapi.AutoSchema",
-    "EXCEPTION_HANDLER": "portal.api_errors.exception_handler",
+    "EXCEPTION_HANDLER": "core.api_errors.exception_handler",
     "DEFAULT_PAGINATION_CLASS": "rest_framework.pagination.LimitOffsetPagination",
     "PAGE_SIZE": 50,
     "DEFAULT_THROTTLE_CLASSES": [
@@ -269,12 +269,19 @@ CELERY_TASK_QUEUES = (
     Queue(CELERY_TASK_DEFAULT_QUEUE + CELERY_VERIFY_QUEUE_SUFFIX),
 )
 CELERY_WORKER_HIJACK_ROOT_LOGGER = False
+_SWEEP_INTERVAL = env.float("ANCHOR_SWEEP_INTERVAL", default=15.0)
+# Each app's sweep queues again its chain work pending too long. A sweep still queued when
+# the next one is due is worthless: it expires.
 CELERY_BEAT_SCHEDULE = {
     "sweep-stale-chain-work": {
-        "task": "chainworker.tasks.sweep_stale",
-        "schedule": env.float("ANCHOR_SWEEP_INTERVAL", default=15.0),
-        # A sweep still queued when the next one is due is worthless: drop it.
-        "options": {"expires": env.float("ANCHOR_SWEEP_INTERVAL", default=15.0)},
+        "task": "sharing.tasks.chain_work_sweep",
+        "schedule": _SWEEP_INTERVAL,
+        "options": {"expires": _SWEEP_INTERVAL},
+    },
+    "sweep-stale-registrations": {
+        "task": "accounts.tasks.chain_work_sweep",
+        "schedule": _SWEEP_INTERVAL,
+        "options": {"expires": _SWEEP_INTERVAL},
     },
 }
 

@@ -12,9 +12,9 @@ from django.http import HttpRequest
 
 from accounts.admin import ReadOnlyAdmin
 from chainworker.chain import ChainError
-from chainworker.services import records_reanchor
+from sharing.anchoring import records_reanchor
 from sharing.models import Grant, Record, SecurityEvent, Verdict
-from sharing.services import record_verify
+from sharing.verification import record_verify
 
 # Re-verification runs in the admin's request: keep a selection small enough to answer.
 REVERIFY_MAX = 200

@@ -22,7 +22,7 @@ from django.conf import settings
 from redis.commands.core import Script
 from redis.exceptions import RedisError
 
-from portal.redis_client import get_redis, redis_key
+from core.redis_client import get_redis, redis_key
 from sharing.models import Record
 from sharing.storage import envelope_storage
 

@@ -1,9 +1,23 @@
 """What the sharing services refuse. `http_status` is the one mapping to HTTP codes."""
 
+from typing import Any
 
-class SharingError(Exception):
+from core.errors import DomainError
+
+
+class SharingError(DomainError):
     code = "sharing_error"
     http_status = 400
+
+
+class ViewRefused(SharingError):
+    """A view of a record's content refused after its check: the record and the verdict the
+    check left ride along, so that whoever shows the refusal need not look them up again."""
+
+    def __init__(self, message: str, *, record: Any = None, verdict: Any = None) -> None:
+        super().__init__(message)
+        self.record = record
+        self.verdict = verdict
 
 
 class InvalidEnvelope(SharingError):
@@ -64,17 +78,17 @@ class NoGrant(SharingError):
     http_status = 404
 
 
-class AccessDenied(SharingError):
+class AccessDenied(ViewRefused):
     code = "access_denied"
     http_status = 403
 
 
-class IntegrityCheckFailed(SharingError):
+class IntegrityCheckFailed(ViewRefused):
     code = "integrity_check_failed"
     http_status = 409
 
 
-class NotAnchoredYet(SharingError):
+class NotAnchoredYet(ViewRefused):
     code = "not_anchored_yet"
     http_status = 409
 
@@ -89,3 +103,4 @@ class VerificationUnavailable(SharingError):
 
     code = "verification_unavailable"
     http_status = 503
+    retry_after = 5

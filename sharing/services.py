@@ -1,17 +1,17 @@
-"""Actions on records and grants, and the integrity check at view time.
+"""Actions on records and grants: uploads, grants and revocations, and their sweep.
 
-Uploads are committed (row and durable envelope) before they are acknowledged; anchoring is
-queued on commit and retried by the sweep. Grants and revocations take effect in the portal
-at once and are mirrored on chain by the worker.
+Uploads are committed (row and durable envelope) before they are acknowledged; anchoring
+(sharing/anchoring.py) is queued on commit and retried by the sweep. A grant takes effect
+once `authorityGrant` is confirmed on chain (`grant_sync_on_chain`, run by the worker); a
+revocation is refused by the portal at once and `authorityRevoke` follows.
 """
 
 import logging
 import uuid
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from contextlib import suppress
 from dataclasses import dataclass
 from datetime import UTC, datetime, timedelta
-from typing import Any
 
 from django.conf import settings
 from django.core.files.base import ContentFile
@@ -20,36 +20,31 @@ from django.utils import timezone
 
 from accounts.models import ChainState, Owner, OwnerKey, Robot
 from accounts.selectors import (
-    owner_by_address,
-    owner_by_username,
+    owner_by_identifier,
+    owner_eoa_account,
     owner_key_bytes,
-    owner_key_current,
 )
-from chainworker.chain import AuthROSChain
-from chainworker.outbox import enqueue
-from chainworker.services import anchor_schedule, chain_client
-from sharing.cache import envelope_cache_evict, envelope_cache_put, envelope_fetch
+from chainworker.chain import TransactionReverted, TxResult
+from chainworker.services import chain_client
+from chainworker.work import ChainWorkNotReady, exclusive
+from core.outbox import enqueue
+from sharing.anchoring import anchor_schedule
+from sharing.cache import envelope_cache_put
 from sharing.errors import (
-    AccessDenied,
     AlreadyGranted,
     EnvelopeTooLarge,
     ForgedEnvelope,
     GranteeNotRegistered,
     HeaderMismatch,
-    IntegrityCheckFailed,
     InvalidEnvelope,
     NoGrant,
-    NotAnchoredYet,
     NotRegisteredYet,
     OwnerNotFound,
-    RecordNotFound,
     ReplayedSequence,
     SelfGrant,
-    SharingError,
     UnknownKey,
-    VerificationUnavailable,
 )
-from sharing.models import Grant, Record, SecurityEvent, Verdict
+from sharing.models import Grant, Record, SecurityEvent
 from sharing.storage import envelope_storage
 from smcrypto import CryptoError, envelope, sm3
 
@@ -179,14 +174,10 @@ def _check_upload(robot: Robot, data: bytes) -> _CheckedUpload:
 
 
 def owner_resolve(identifier: str) -> Owner:
-    """An owner named by username or by EOA address."""
-    identifier = identifier.strip()
-    if identifier.lower().startswith("0x"):
-        owner = owner_by_address(identifier)
-    else:
-        owner = owner_by_username(identifier)
+    """An owner named by username or by EOA address; OwnerNotFound for anything else."""
+    owner = owner_by_identifier(identifier)
     if owner is None:
-        raise OwnerNotFound(f"no owner {identifier!r}")
+        raise OwnerNotFound(f"no owner {identifier.strip()!r}")
     return owner
 
 
@@ -203,7 +194,7 @@ def grant_create(*, owner: Owner, grantee: Owner) -> Grant:
             if Grant.objects.filter(owner=owner, grantee=grantee, status__in=Grant.LIVE).exists():
                 raise AlreadyGranted(f"{grantee} already has access")
             grant = Grant.objects.create(owner=owner, grantee=grantee)
-            transaction.on_commit(lambda: enqueue("chainworker.tasks.grant_sync", grant.pk))
+            transaction.on_commit(lambda: enqueue("sharing.tasks.grant_sync", grant.pk))
     except IntegrityError:
         # A simultaneous grant for the same pair won the race (one live grant per pair).
         raise AlreadyGranted(f"{grantee} already has access") from None
@@ -222,193 +213,88 @@ def grant_revoke(*, owner: Owner, grantee: Owner) -> Grant:
             raise NoGrant(f"{grantee} has no access to revoke")
         grant.status = Grant.Status.REVOKING
         grant.save(update_fields=["status", "updated_at"])
-        transaction.on_commit(lambda: enqueue("chainworker.tasks.grant_sync", grant.pk))
+        transaction.on_commit(lambda: enqueue("sharing.tasks.grant_sync", grant.pk))
     return grant
 
 
-# --- integrity check at view time ---------------------------------------------------------
+# --- on chain (run by the worker) -----------------------------------------------------
 
 
-@dataclass(frozen=True)
-class Verification:
-    verdict: Verdict
-    envelope: bytes | None  # only when verified
-
-
-def record_verify(
-    *, record_id: uuid.UUID | str, viewer_id: int, checked_by_id: int | None = None
-) -> Verification:
-    """Check access on chain and the stored envelope's SM3 digest against the chain.
-
-    Every check leaves a Verdict: the audit trail of who viewed what, when, at which block.
-    `checked_by_id` names the operator running the check with the viewer's rights (the admin
-    console's re-verify), so that it is not recorded as the viewer's own view.
-    """
-    record = Record.objects.select_related("owner").get(pk=record_id)
-    viewer = Owner.objects.get(pk=viewer_id)
-    client = chain_client()
-    block = client.latest_block()
-
-    def verdict(outcome: str, **fields: object) -> Verdict:
-        return Verdict.objects.create(
-            record=record,
-            viewer=viewer,
-            checked_by_id=checked_by_id,
-            outcome=outcome,
-            block_number=block,
-            **fields,
-        )
-
-    if not _may_view(record, viewer, client):
-        return Verification(verdict(Verdict.Outcome.NO_ACCESS), None)
-    data, source = envelope_fetch(record)
-    computed = sm3.sm3_hex(data)
-    on_chain = client.data_query(record.id)
-    if on_chain is None:
-        return Verification(
-            verdict(Verdict.Outcome.NOT_ANCHORED_YET, computed_digest=computed, source=source),
-            None,
-        )
-    chain_digest = on_chain.digest.hex()
-    if chain_digest != computed or on_chain.owner.lower() != record.owner.eoa_address.lower():
-        _record_tampered(record, viewer, source=source, computed=computed, chain=chain_digest)
-        return Verification(
-            verdict(
-                Verdict.Outcome.TAMPERED,
-                computed_digest=computed,
-                chain_digest=chain_digest,
-                source=source,
-            ),
-            None,
-        )
-    return Verification(
-        verdict(
-            Verdict.Outcome.VERIFIED,
-            computed_digest=computed,
-            chain_digest=chain_digest,
-            source=source,
-        ),
-        data,
-    )
-
-
-def _may_view(record: Record, viewer: Owner, client: AuthROSChain) -> bool:
-    """The owner, or a grantee whose grant is live in the portal and on chain."""
-    if viewer.pk == record.owner_id:
-        return True
-    live = Grant.objects.filter(
-        owner_id=record.owner_id, grantee=viewer, status=Grant.Status.ACTIVE
-    ).exists()
-    if not live:
-        return False
-    return client.has_access(record.owner.eoa_address, viewer.eoa_address)
-
-
-def _record_tampered(
-    record: Record, viewer: Owner, *, source: str, computed: str, chain: str
-) -> None:
-    Record.objects.filter(pk=record.pk).update(tampered_at=timezone.now())
-    SecurityEvent.objects.create(
-        kind=SecurityEvent.Kind.TAMPERED_ON_VIEW,
-        record=record,
-        owner=record.owner,
-        detail={"viewer": viewer.username, "source": source, "computed": computed, "chain": chain},
-    )
-    security_log.error(
-        "record %s failed its integrity check (%s copy): computed %s, chain %s",
-        record.pk,
-        source,
-        computed,
-        chain,
-    )
-    # The next view reads durable storage again instead of the bad cached copy.
-    envelope_cache_evict(record.pk)
-
-
-# --- reading content -------------------------------------------------------------------------
-
-
-@dataclass(frozen=True)
-class OpenedRecord:
-    """A record that passed its integrity check, decrypted for one viewer."""
-
-    record: Record
-    verdict: Verdict
-    header: dict
-    plaintext: bytes
-    envelope: bytes
-
-
-def record_open(*, record_id: uuid.UUID | str, viewer: Owner) -> OpenedRecord:
-    """Verify through the worker, then decrypt; raise unless the verdict is `verified`.
-
-    Raises AccessDenied, IntegrityCheckFailed, NotAnchoredYet, RecordNotFound or
-    VerificationUnavailable. The bytes decrypted are hashed again here and must be the ones
-    the worker checked against the chain.
-    """
-    try:
-        record = Record.objects.select_related("owner__user").get(pk=uuid.UUID(str(record_id)))
-    except (ValueError, Record.DoesNotExist):
-        raise RecordNotFound("no such record") from None
-    return _opened(record, _verdict_from_worker(record, viewer, _send_verify(record, viewer)))
-
-
-def record_open_many(
-    *, records: Sequence[Record], viewer: Owner
-) -> list[OpenedRecord | SharingError]:
-    """record_open for several records at once: every check is queued before any answer is
-    awaited, so they run side by side on the verify workers. One result per record, in
-    order: the opened record, or the SharingError record_open would have raised."""
-    sent = [(record, _send_verify(record, viewer)) for record in records]
-    results: list[OpenedRecord | SharingError] = []
-    for record, pending in sent:
+def grant_sync_on_chain(*, grant_id: int) -> Grant:
+    """Make the chain agree with the portal's grant: authorityGrant or authorityRevoke."""
+    grant = Grant.objects.select_related("owner", "grantee").get(pk=grant_id)
+    for party in (grant.owner, grant.grantee):
+        if party.chain_state != ChainState.CONFIRMED:
+            raise ChainWorkNotReady(f"{party} is not registered on chain yet")
+    pair = f"grant:{grant.owner_id}:{grant.grantee_id}"
+    with exclusive(pair, timeout=settings.CHAIN_RECEIPT_TIMEOUT + 30):
+        grant.refresh_from_db()
         try:
-            results.append(_opened(record, _verdict_from_worker(record, viewer, pending)))
-        except SharingError as exc:
-            results.append(exc)
-    return results
+            _grant_sync(grant)
+        except TransactionReverted as exc:
+            if grant.status != Grant.Status.PENDING:
+                raise  # a revocation is never given up: it fails loudly and the sweep retries
+            # The contract will refuse this grant every time: say so, do not retry forever.
+            Grant.objects.filter(pk=grant.pk, status=Grant.Status.PENDING).update(
+                status=Grant.Status.FAILED, failure_reason=str(exc)[:300]
+            )
+            logger.error("grant %s refused on chain: %s", grant.pk, exc)
+    grant.refresh_from_db()
+    return grant
 
 
-def _opened(record: Record, verdict: Verdict) -> OpenedRecord:
-    if verdict.outcome == Verdict.Outcome.NO_ACCESS:
-        raise AccessDenied("you have no live grant to this record")
-    if verdict.outcome == Verdict.Outcome.TAMPERED:
-        raise IntegrityCheckFailed("the stored data differs from the digest on chain")
-    if verdict.outcome == Verdict.Outcome.NOT_ANCHORED_YET:
-        raise NotAnchoredYet("the record is not anchored on chain yet")
-    data, _source = envelope_fetch(record)
-    if sm3.sm3_hex(data) != verdict.chain_digest:
-        raise IntegrityCheckFailed("the stored data changed after it was checked")
-    key = record.owner.keys.get(key_id=record.key_id)
-    header, plaintext = envelope.open(owner_key_bytes(key), data)
-    return OpenedRecord(record, verdict, header, plaintext, data)
+def _grant_sync(grant: Grant) -> None:
+    client = chain_client()
+    owner, grantee = grant.owner, grant.grantee
+    has_access = client.has_access(owner.eoa_address, grantee.eoa_address)
+    if grant.status == Grant.Status.PENDING:
+        fields: dict[str, object] = {"status": Grant.Status.ACTIVE}
+        if not has_access:
+            result = _tolerating(
+                "AlreadyGranted",
+                lambda: client.authority_grant(owner_eoa_account(owner), grantee.eoa_address),
+            )
+            if result is not None:
+                fields.update(grant_tx=result.tx_hash, grant_block=result.block_number)
+        Grant.objects.filter(pk=grant.pk, status=Grant.Status.PENDING).update(**fields)
+    elif grant.status == Grant.Status.REVOKING:
+        fields = {"status": Grant.Status.REVOKED}
+        if has_access:
+            result = _tolerating(
+                "NoGrant",
+                lambda: client.authority_revoke(owner_eoa_account(owner), grantee.eoa_address),
+            )
+            if result is not None:
+                fields.update(revoke_tx=result.tx_hash, revoke_block=result.block_number)
+        Grant.objects.filter(pk=grant.pk, status=Grant.Status.REVOKING).update(**fields)
 
 
-def record_reseal_for(*, opened: OpenedRecord, viewer: Owner) -> bytes:
-    """The record's content sealed under the viewer's own current key (same header)."""
-    return envelope.seal(
-        owner_key_bytes(owner_key_current(viewer)), opened.header, opened.plaintext
+def _tolerating(error_name: str, send: Callable[[], TxResult]) -> TxResult | None:
+    """Send; a refusal meaning "already the case" (a lost race) counts as done."""
+    try:
+        return send()
+    except TransactionReverted as exc:
+        if exc.error_name == error_name:
+            return None
+        raise
+
+
+def chain_work_sweep() -> dict[str, int]:
+    """Queue again anchoring and grants pending for longer than ANCHOR_STALE_AFTER (a lost
+    message, a dead worker); their tasks are idempotent."""
+    cutoff = timezone.now() - timedelta(seconds=settings.ANCHOR_STALE_AFTER)
+    owners = set(
+        Record.objects.filter(status=Record.Status.PENDING, created_at__lt=cutoff).values_list(
+            "owner_id", flat=True
+        )
     )
-
-
-def _send_verify(record: Record, viewer: Owner) -> Any:
-    """Queue the worker's integrity check; an exception instead if it cannot be queued."""
-    from sharing.tasks import record_verify as record_verify_task  # tasks import services
-
-    try:
-        return record_verify_task.apply_async(args=(str(record.pk), viewer.pk))
-    except Exception as exc:  # the broker is down
-        return exc
-
-
-def _verdict_from_worker(record: Record, viewer: Owner, pending: Any) -> Verdict:
-    try:
-        if isinstance(pending, Exception):
-            raise pending
-        result = pending.get(timeout=settings.VERIFY_TIMEOUT, disable_sync_subtasks=False)
-    except Exception as exc:  # timeout, broker down, or the worker's own failure
-        logger.warning("verification of %s for %s failed: %s", record.pk, viewer, exc)
-        raise VerificationUnavailable(
-            "the integrity check could not run now; nothing is shown: try again shortly"
-        ) from exc
-    return Verdict.objects.get(pk=result["verdict_id"])
+    for owner_id in owners:
+        anchor_schedule(owner_id=owner_id)
+    grants = list(
+        Grant.objects.filter(
+            status__in=[Grant.Status.PENDING, Grant.Status.REVOKING], updated_at__lt=cutoff
+        ).values_list("pk", flat=True)
+    )
+    for grant_pk in grants:
+        enqueue("sharing.tasks.grant_sync", grant_pk)
+    return {"anchor_owners": len(owners), "grants": len(grants)}

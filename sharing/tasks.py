@@ -1,9 +1,31 @@
-"""The integrity check at view time, run by the worker."""
+"""Celery tasks of sharing: each loads by id and calls one service.
+
+Anchoring and grants send transactions (the chain retry policy); the integrity check at view
+time runs on the verify queue (portal/celery.py) with a short policy: a person is waiting.
+"""
+
+from typing import Any
 
 from celery import shared_task
 
 from chainworker.chain import ChainUnavailable
-from sharing import services
+from chainworker.work import CHAIN_TASK
+from sharing import anchoring, services, verification
+
+
+@shared_task(name="sharing.tasks.records_anchor", **CHAIN_TASK)
+def records_anchor(owner_id: int) -> int:
+    return anchoring.records_anchor(owner_id=owner_id)
+
+
+@shared_task(name="sharing.tasks.grant_sync", **CHAIN_TASK)
+def grant_sync(grant_id: int) -> str:
+    return services.grant_sync_on_chain(grant_id=grant_id).status
+
+
+@shared_task(name="sharing.tasks.chain_work_sweep", soft_time_limit=60, time_limit=90)
+def chain_work_sweep() -> dict[str, int]:
+    return services.chain_work_sweep()
 
 
 @shared_task(
@@ -14,6 +36,6 @@ from sharing import services
     soft_time_limit=60,
     time_limit=90,
 )
-def record_verify(record_id: str, viewer_id: int) -> dict[str, object]:
-    verification = services.record_verify(record_id=record_id, viewer_id=viewer_id)
-    return {"verdict_id": verification.verdict.pk, "outcome": verification.verdict.outcome}
+def record_verify(record_id: str, viewer_id: int) -> dict[str, Any]:
+    checked = verification.record_verify(record_id=record_id, viewer_id=viewer_id)
+    return verification.verification_answer(checked)

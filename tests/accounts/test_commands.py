@@ -13,7 +13,7 @@ from django.core.management import CommandError, call_command
 from accounts.models import ChainState, Owner, Robot
 from accounts.selectors import robot_by_token
 from smcrypto import key_id, sm4
-from tests.anvil import start_anvil
+from stack.anvil import start_anvil
 from tests.conftest import TEST_PASSWORD
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
@@ -38,6 +38,7 @@ def test_owner_create_registers_on_chain_and_prints_json(deployed):
     owner = Owner.objects.get(user__username="alice")
     assert result == {
         "username": "alice",
+        "eoa": owner.eoa_address,
         "address": owner.eoa_address,
         "key_id": key_id(key).hex(),
         "chain_state": "confirmed",

@@ -46,7 +46,7 @@ def test_owner_is_registered_on_chain_with_its_key_commitment(make_owner, deploy
 
 
 def test_registration_is_idempotent(make_owner, deployed):
-    from chainworker.services import owner_register_on_chain
+    from accounts.services import owner_register_on_chain
 
     owner = make_owner()
     Owner.objects.filter(pk=owner.pk).update(chain_state=ChainState.PENDING)

@@ -23,7 +23,7 @@ from chainworker.chain import (
     record_id_to_bytes32,
 )
 from smcrypto import key_commitment, sm3, sm4
-from tests.anvil import free_port
+from stack.anvil import free_port
 from tests.conftest import make_registered_owner
 
 

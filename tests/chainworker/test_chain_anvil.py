@@ -18,7 +18,7 @@ from chainworker.chain import (
     TransactionTimeout,
 )
 from smcrypto import key_commitment, sm3, sm4
-from tests.anvil import start_anvil
+from stack.anvil import start_anvil
 
 pytestmark = pytest.mark.anvil
 

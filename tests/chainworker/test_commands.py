@@ -13,7 +13,7 @@ from eth_account import Account
 
 from chainworker.models import Deployment
 from chainworker.services import chain_client
-from tests.anvil import free_port, start_anvil
+from stack.anvil import free_port, start_anvil
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 pytestmark = pytest.mark.django_db

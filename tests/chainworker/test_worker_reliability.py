@@ -19,6 +19,7 @@ from accounts.models import ChainState, Owner
 from accounts.services import owner_create, robot_create
 from chainworker import services as chain_services
 from chainworker.chain import record_id_to_bytes32
+from sharing import anchoring as sharing_anchoring
 from sharing import services as sharing_services
 from sharing.cache import _key as cache_key
 from sharing.models import Grant, Record
@@ -243,8 +244,8 @@ def test_views_are_checked_on_their_own_queue_with_no_chain_worker_left(stack_fa
     assert view["outcome"] == "verified"
     verifier_log = (stack.logs / "verifier.log").read_text()
     assert "Task sharing.tasks.record_verify[" in verifier_log
-    assert "Task chainworker.tasks.records_anchor[" not in verifier_log
-    assert "Task chainworker.tasks.owner_register[" not in verifier_log
+    assert "Task sharing.tasks.records_anchor[" not in verifier_log
+    assert "Task accounts.tasks.owner_register[" not in verifier_log
     assert Record.objects.get(pk=later.pk).status == Record.Status.PENDING
 
 
@@ -305,11 +306,11 @@ def test_work_whose_messages_the_broker_lost_is_queued_again_by_the_beat_sweep(
     alice, bob = _robots(2)
     lost: list[str] = []
 
-    def broker_lost(task_path, *args, countdown=None):
-        lost.append(task_path.rpartition(".")[2])
+    def broker_lost(task_name, *args, countdown=None):
+        lost.append(task_name.rpartition(".")[2])
         return False
 
-    for module in (sharing_services, chain_services, accounts_services):
+    for module in (sharing_services, sharing_anchoring, accounts_services):
         monkeypatch.setattr(module, "enqueue", broker_lost)
     for seq in range(1, 6):
         record_create(robot=alice.robot, data=alice.seal(seq))
@@ -329,5 +330,5 @@ def test_work_whose_messages_the_broker_lost_is_queued_again_by_the_beat_sweep(
         timeout=60,
         what="the rotated key on chain",
     )
-    assert "sweep_stale" in (stack.logs / "beat.log").read_text()
+    assert "sharing.tasks.chain_work_sweep" in (stack.logs / "beat.log").read_text()
     _assert_each_anchored_exactly_once(stack)

@@ -22,7 +22,7 @@ from playwright.sync_api import Browser, Page, Response, expect
 from sensor_msgs.msg import Image
 
 from accounts.selectors import owner_by_username, owner_key_bytes, owner_key_current
-from portal.redis_client import get_redis
+from core.redis_client import get_redis
 from ros_agent.extractors import extract
 from ros_agent.wrapping import capture_time, envelope_header, record_json
 from sharing.cache import _key as cache_key

@@ -13,9 +13,9 @@ def test_integrity_checks_go_to_the_verify_queue_and_chain_work_to_the_default_o
     default = app.conf.task_default_queue
     assert _queue("sharing.tasks.record_verify") == f"{default}-verify"
     for chain_work in (
-        "chainworker.tasks.records_anchor",
-        "chainworker.tasks.owner_register",
-        "chainworker.tasks.sweep_stale",
+        "sharing.tasks.records_anchor",
+        "accounts.tasks.owner_register",
+        "sharing.tasks.chain_work_sweep",
     ):
         assert _queue(chain_work) == default
 
@@ -25,7 +25,7 @@ def test_the_route_follows_the_default_queue_chosen_at_run_time():
     app.conf.task_default_queue = "elsewhere"
     try:
         assert _queue("sharing.tasks.record_verify") == "elsewhere-verify"
-        assert _queue("chainworker.tasks.records_anchor") == "elsewhere"
+        assert _queue("sharing.tasks.records_anchor") == "elsewhere"
     finally:
         app.conf.task_default_queue = before
 

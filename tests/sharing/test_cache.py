@@ -4,7 +4,7 @@ import uuid
 
 import pytest
 
-from portal.redis_client import get_redis
+from core.redis_client import get_redis
 from sharing.cache import (
     _key,
     envelope_cache_bytes,

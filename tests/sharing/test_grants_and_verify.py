@@ -2,9 +2,9 @@
 
 import pytest
 
-from chainworker.services import records_anchor
-from portal.redis_client import get_redis
+from core.redis_client import get_redis
 from sharing import errors
+from sharing.anchoring import records_anchor
 from sharing.cache import _key as cache_key
 from sharing.cache import envelope_cache_get
 from sharing.models import Grant, Record, SecurityEvent, Verdict
@@ -13,9 +13,9 @@ from sharing.services import (
     grant_revoke,
     owner_resolve,
     record_create,
-    record_verify,
 )
 from sharing.storage import envelope_storage
+from sharing.verification import record_verify
 
 pytestmark = pytest.mark.django_db
 
@@ -180,10 +180,10 @@ def test_anchoring_is_idempotent(make_robot, deployed):
     records = [record_create(robot=setup.robot, data=setup.seal(seq)) for seq in range(1, 6)]
     # A previous attempt anchored two of them and died before writing it down.
     from accounts.selectors import owner_eoa_account
-    from chainworker.services import _anchor_item
+    from sharing.anchoring import anchor_item
 
     account = owner_eoa_account(setup.owner)
-    deployed.data_upload_batch(account, [_anchor_item(r) for r in records[:2]])
+    deployed.data_upload_batch(account, [anchor_item(r) for r in records[:2]])
     Record.objects.filter(pk__in=[r.pk for r in records[:2]]).update(anchor_attempts=1)
     assert records_anchor(owner_id=setup.owner.pk) == 3
     assert set(Record.objects.values_list("status", flat=True)) == {"anchored"}
@@ -198,9 +198,9 @@ def test_taken_id_without_a_recorded_attempt_is_settled(make_robot, deployed):
     setup = make_robot()
     records = [record_create(robot=setup.robot, data=setup.seal(seq)) for seq in range(1, 4)]
     from accounts.selectors import owner_eoa_account
-    from chainworker.services import _anchor_item
+    from sharing.anchoring import anchor_item
 
-    deployed.data_upload(owner_eoa_account(setup.owner), _anchor_item(records[1]))
+    deployed.data_upload(owner_eoa_account(setup.owner), anchor_item(records[1]))
     records_anchor(owner_id=setup.owner.pk)
     assert Record.objects.filter(status="anchored").count() == 3
     assert len(deployed.events(names=["DataUploaded"])) == 3
@@ -210,9 +210,9 @@ def test_other_digest_on_chain_fails_the_record_and_raises_an_alarm(make_robot, 
     setup = make_robot()
     record = record_create(robot=setup.robot, data=setup.seal(1))
     from accounts.selectors import owner_eoa_account
-    from chainworker.services import _anchor_item
+    from sharing.anchoring import anchor_item
 
-    wrong = _anchor_item(record)
+    wrong = anchor_item(record)
     object.__setattr__(wrong, "digest", bytes(32 - 1) + b"\x01")
     deployed.data_upload(owner_eoa_account(setup.owner), wrong)
     Record.objects.filter(pk=record.pk).update(anchor_attempts=1)

@@ -3,18 +3,12 @@
 import pytest
 
 from accounts.selectors import owner_key_bytes, owner_key_current
-from portal.redis_client import get_redis
+from core.redis_client import get_redis
 from sharing import errors
 from sharing.cache import _key as cache_key
 from sharing.selectors import record_get_visible, record_list_visible_to
-from sharing.services import (
-    grant_create,
-    grant_revoke,
-    record_create,
-    record_open,
-    record_open_many,
-    record_reseal_for,
-)
+from sharing.services import grant_create, grant_revoke, record_create
+from sharing.verification import record_open, record_open_many, record_reseal_for
 from smcrypto import CryptoError, envelope
 
 pytestmark = pytest.mark.django_db

@@ -15,9 +15,8 @@ from django.core.management.base import BaseCommand, CommandError, CommandParser
 
 from accounts.models import ChainState
 from accounts.selectors import owner_by_username, robot_by_token
-from accounts.services import owner_create, robot_create
+from accounts.services import owner_create, owner_register_on_chain, robot_create
 from chainworker.chain import ChainError
-from chainworker.services import owner_register_on_chain
 from smcrypto import sm4
 
 DEMO_TOPICS = [

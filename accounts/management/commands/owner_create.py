@@ -2,7 +2,8 @@
 
 The password is read from standard input (prompted twice on a terminal), never from the
 command line. The command returns once the owner's EOA is funded, enrolled and registered
-on chain, and prints JSON with the EOA address; it exits non-zero if that cannot be done.
+on chain, and prints JSON with the EOA (`eoa`, also as `address`); it exits non-zero if that
+cannot be done.
 """
 
 import getpass
@@ -17,24 +18,10 @@ from django.core.management.base import BaseCommand, CommandError, CommandParser
 from accounts.errors import AccountError, WeakPassword
 from accounts.models import Owner
 from accounts.selectors import owner_key_current
-from accounts.services import owner_create
-from chainworker.chain import (
-    ChainError,
-    ChainUnavailable,
-    InsufficientFunds,
-    NonceError,
-    TransactionTimeout,
-)
-from chainworker.services import ChainWorkNotReady, chain_client, owner_register_on_chain
-
-# Worth waiting out: the node, the nonce or another worker registering the same owner.
-_TRANSIENT = (
-    ChainUnavailable,
-    TransactionTimeout,
-    NonceError,
-    InsufficientFunds,
-    ChainWorkNotReady,
-)
+from accounts.services import owner_create, owner_register_on_chain
+from chainworker.chain import ChainError
+from chainworker.services import chain_client
+from chainworker.work import TRANSIENT
 
 
 class Command(BaseCommand):
@@ -76,6 +63,7 @@ class Command(BaseCommand):
         owner = _registered(owner, timeout=options["timeout"])
         result = {
             "username": owner.username,
+            "eoa": owner.eoa_address,
             "address": owner.eoa_address,
             "key_id": owner_key_current(owner).key_id,
             "chain_state": owner.chain_state,
@@ -120,7 +108,7 @@ def _registered(owner: Owner, *, timeout: float) -> Owner:
     while True:
         try:
             return owner_register_on_chain(owner_id=owner.pk)
-        except _TRANSIENT as exc:
+        except TRANSIENT as exc:
             problem = f"{type(exc).__name__}: {exc}"
         except ChainError as exc:
             raise CommandError(_not_registered(owner, f"{type(exc).__name__}: {exc}")) from exc

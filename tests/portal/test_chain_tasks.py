@@ -3,14 +3,21 @@
 import pytest
 from celery.exceptions import SoftTimeLimitExceeded
 
-from chainworker import tasks
+from accounts import tasks as accounts_tasks
 from chainworker.chain import ChainUnavailable, NonceError, TransactionTimeout
-from chainworker.services import ChainWorkNotReady
+from chainworker.work import ChainWorkNotReady
 from portal.celery import app
+from sharing import tasks as sharing_tasks
 
 
 @pytest.mark.parametrize(
-    "task", [tasks.owner_register, tasks.key_rotate, tasks.grant_sync, tasks.records_anchor]
+    "task",
+    [
+        accounts_tasks.owner_register,
+        accounts_tasks.key_rotate,
+        sharing_tasks.grant_sync,
+        sharing_tasks.records_anchor,
+    ],
 )
 def test_chain_tasks_retry_transient_failures_late_acked_and_time_limited(task):
     assert set(task.autoretry_for) >= {

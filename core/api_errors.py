@@ -16,8 +16,7 @@ from rest_framework.response import Response
 from rest_framework.views import exception_handler as drf_exception_handler
 from rest_framework.views import set_rollback
 
-from accounts.errors import AccountError
-from sharing.errors import SharingError, VerificationUnavailable
+from core.errors import DomainError
 
 logger = logging.getLogger(__name__)
 
@@ -33,18 +32,14 @@ _DRF_CODES = {
     exceptions.Throttled: "rate_limited",
     exceptions.ValidationError: "invalid_request",
 }
-# Seconds a client should wait before asking again for an integrity check that could not run.
-VERIFY_RETRY_AFTER = 5
 
 
 def exception_handler(exc: Exception, context: dict[str, Any]) -> Response:
-    if isinstance(exc, SharingError):
+    if isinstance(exc, DomainError):
         response = _answer(exc.code, str(exc), exc.http_status)
-        if isinstance(exc, VerificationUnavailable):
-            response["Retry-After"] = str(VERIFY_RETRY_AFTER)
+        if exc.retry_after is not None:
+            response["Retry-After"] = str(exc.retry_after)
         return response
-    if isinstance(exc, AccountError):
-        return _answer(exc.code, str(exc), status.HTTP_400_BAD_REQUEST)
     if isinstance(exc, RecursionError):
         return _answer("malformed_request", "the request is nested too deeply", 400)
     if isinstance(exc, RequestDataTooBig):

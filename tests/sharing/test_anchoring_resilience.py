@@ -5,11 +5,12 @@ import pytest
 
 from accounts.models import ChainState
 from accounts.selectors import owner_eoa_account
-from chainworker import services
 from chainworker.chain import ChainUnavailable, TransactionReverted
-from chainworker.services import ChainWorkNotReady, _anchor_item, records_anchor
+from chainworker.work import ChainWorkNotReady
+from sharing import anchoring
+from sharing.anchoring import anchor_item, records_anchor
 from sharing.models import Grant, Record
-from sharing.services import grant_create, grant_revoke, record_create
+from sharing.services import grant_create, grant_revoke, grant_sync_on_chain, record_create
 
 pytestmark = pytest.mark.django_db
 
@@ -19,7 +20,7 @@ def scheduled(monkeypatch) -> list[tuple[int, float | None]]:
     """Runs queued by the anchoring service, instead of running them inline (eager mode)."""
     queued: list[tuple[int, float | None]] = []
     monkeypatch.setattr(
-        services,
+        anchoring,
         "enqueue",
         lambda path, *args, countdown=None: queued.append((args[0], countdown)) or True,
     )
@@ -86,7 +87,7 @@ def test_records_found_on_chain_wait_for_their_confirmations(make_robot, deploye
     setup = make_robot()
     records = _pending(setup, 2)
     # An earlier run sent them and died before writing down the receipt.
-    deployed.data_upload_batch(owner_eoa_account(setup.owner), [_anchor_item(r) for r in records])
+    deployed.data_upload_batch(owner_eoa_account(setup.owner), [anchor_item(r) for r in records])
     Record.objects.update(anchor_attempts=1)
     deployed.confirmations = 2
     scheduled.clear()
@@ -94,7 +95,7 @@ def test_records_found_on_chain_wait_for_their_confirmations(make_robot, deploye
     assert records_anchor(owner_id=setup.owner.pk) == 0
     assert set(Record.objects.values_list("status", flat=True)) == {Record.Status.PENDING}
     assert _uploads(deployed) == 2  # not sent again either
-    assert scheduled == [(setup.owner.pk, services.ANCHOR_RECHECK_DELAY)]  # look again later
+    assert scheduled == [(setup.owner.pk, anchoring.ANCHOR_RECHECK_DELAY)]  # look again later
 
     deployed.w3.testing.mine(2)
     records_anchor(owner_id=setup.owner.pk)
@@ -132,7 +133,7 @@ def test_a_refused_revocation_is_never_given_up(
     monkeypatch.setattr(deployed, "authority_revoke", refused)
     grant = grant_revoke(owner=alice, grantee=bob)
     with pytest.raises(TransactionReverted):
-        services.grant_sync_on_chain(grant_id=grant.pk)
+        grant_sync_on_chain(grant_id=grant.pk)
     grant.refresh_from_db()
     assert grant.status == Grant.Status.REVOKING  # still to do; the sweep will retry
 
@@ -142,5 +143,5 @@ def test_a_grant_waits_for_both_owners_to_be_registered(make_owner, deployed):
     type(bob).objects.filter(pk=bob.pk).update(chain_state=ChainState.PENDING)
     grant = Grant.objects.create(owner=alice, grantee=bob)
     with pytest.raises(ChainWorkNotReady, match="not registered on chain yet"):
-        services.grant_sync_on_chain(grant_id=grant.pk)
+        grant_sync_on_chain(grant_id=grant.pk)
     assert Grant.objects.get(pk=grant.pk).status == Grant.Status.PENDING

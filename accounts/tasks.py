@@ -1,0 +1,21 @@
+"""Celery tasks of accounts: each loads by id and calls one service (chain work, retried)."""
+
+from celery import shared_task
+
+from accounts import services
+from chainworker.work import CHAIN_TASK
+
+
+@shared_task(name="accounts.tasks.owner_register", **CHAIN_TASK)
+def owner_register(owner_id: int) -> str:
+    return services.owner_register_on_chain(owner_id=owner_id).chain_state
+
+
+@shared_task(name="accounts.tasks.key_rotate", **CHAIN_TASK)
+def key_rotate(owner_key_id: int) -> str:
+    return services.key_rotate_on_chain(owner_key_id=owner_key_id).chain_state
+
+
+@shared_task(name="accounts.tasks.chain_work_sweep", soft_time_limit=60, time_limit=90)
+def chain_work_sweep() -> dict[str, int]:
+    return services.chain_work_sweep()

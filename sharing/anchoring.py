@@ -1,0 +1,273 @@
+"""Anchoring: the SM3 digests of pending records go on chain in `dataUploadBatch`
+transactions sent by their owner's EOA, a fair share of one owner per task run.
+
+A record moves pending -> anchored (or failed after ANCHOR_MAX_ATTEMPTS); only these services
+and the upload move it. Every run is idempotent: ids are write-once on chain, and a record
+found on chain with its digest counts as anchored.
+"""
+
+import logging
+import time
+import uuid
+from collections.abc import Sequence
+from contextlib import suppress
+
+from django.conf import settings
+from django.db import transaction
+from django.db.models import F
+from django.utils import timezone
+from redis.exceptions import LockError, RedisError
+from redis.lock import Lock
+from web3.types import TxReceipt
+
+from accounts.models import ChainState, Owner
+from accounts.selectors import owner_eoa_account
+from chainworker.chain import (
+    AnchorItem,
+    AuthROSChain,
+    ChainUnavailable,
+    TransactionReverted,
+    TransactionTimeout,
+)
+from chainworker.services import chain_client
+from chainworker.work import ChainWorkNotReady
+from core.outbox import enqueue
+from core.redis_client import get_redis, redis_key
+from sharing.models import Record, SecurityEvent
+
+logger = logging.getLogger(__name__)
+security_log = logging.getLogger("authros.security")
+
+# How long records on chain but not yet CHAIN_CONFIRMATIONS deep wait before a new look.
+ANCHOR_RECHECK_DELAY = 2.0
+
+
+def anchor_schedule(*, owner_id: int, countdown: float | None = None) -> None:
+    """Queue a run of `records_anchor` for an owner, unless one is queued already."""
+    flag_ttl = max(30, int(settings.ANCHOR_MAX_WAIT * 4 + (countdown or 0)))
+    try:
+        first = get_redis().set(redis_key("anchor-scheduled", owner_id), 1, nx=True, ex=flag_ttl)
+    except RedisError:
+        first = True
+    if first and not enqueue("sharing.tasks.records_anchor", owner_id, countdown=countdown):
+        _anchor_unschedule(owner_id)  # not queued: the flag must not keep the sweep from it
+
+
+def _anchor_unschedule(owner_id: int) -> None:
+    """Drop the "a run is queued" flag of `anchor_schedule`."""
+    with suppress(RedisError):
+        get_redis().delete(redis_key("anchor-scheduled", owner_id))
+
+
+def records_anchor(*, owner_id: int) -> int:
+    """Anchor a fair share of an owner's pending records; return how many were anchored.
+
+    A run sends at most ANCHOR_INFLIGHT dataUploadBatch transactions (consecutive nonces, in
+    flight together), waits for their receipts, then hands the worker back and queues the
+    next run if records remain, so that owners take turns. A run that finds another worker
+    anchoring this owner returns at once: that worker queues the next run when it is done.
+
+    Idempotent: a record whose id is already on chain with the same digest and owner counts
+    as anchored; with another digest it is marked failed and a security event is logged.
+    """
+    _anchor_unschedule(owner_id)
+    owner = Owner.objects.filter(pk=owner_id).first()
+    if owner is None:
+        logger.warning("records_anchor: owner %s no longer exists", owner_id)
+        return 0
+    if owner.chain_state != ChainState.CONFIRMED:
+        raise ChainWorkNotReady(f"{owner} is not registered on chain yet")
+    # Short, and renewed while waiting for receipts, so a killed worker frees it quickly.
+    lock = get_redis().lock(
+        redis_key("work", f"anchor:{owner_id}"), timeout=settings.ANCHOR_LOCK_TTL
+    )
+    try:
+        if not lock.acquire(blocking=False):
+            return 0
+    except RedisError as exc:
+        raise ChainWorkNotReady(f"cannot lock owner {owner_id} in Redis: {exc}") from exc
+    try:
+        _wait_for_batch_to_fill(owner_id)
+        anchored, sent = _anchor_round(chain_client(), owner, lock)
+    finally:
+        with suppress(LockError, RedisError):
+            lock.release()
+    if Record.objects.filter(owner_id=owner_id, status=Record.Status.PENDING).exists():
+        # Nothing sent: what is left is on chain awaiting confirmations, so look again after
+        # about a block rather than at once.
+        anchor_schedule(owner_id=owner_id, countdown=None if sent else ANCHOR_RECHECK_DELAY)
+    return anchored
+
+
+def records_reanchor(*, record_ids: Sequence[uuid.UUID]) -> int:
+    """Put failed records back in the queue (an operator's repair); how many were failed."""
+    with transaction.atomic():
+        failed = Record.objects.filter(pk__in=record_ids, status=Record.Status.FAILED)
+        owner_ids = sorted(set(failed.values_list("owner_id", flat=True)))
+        count = failed.update(status=Record.Status.PENDING, anchor_attempts=0, failure_reason="")
+        for owner_id in owner_ids:
+            transaction.on_commit(lambda o=owner_id: anchor_schedule(owner_id=o))
+    return count
+
+
+def _wait_for_batch_to_fill(owner_id: int) -> None:
+    """Let records that arrive together share a batch: wait until the oldest pending record
+    is ANCHOR_MAX_WAIT old, unless a full batch is already waiting."""
+    pending = Record.objects.filter(owner_id=owner_id, status=Record.Status.PENDING)
+    oldest = pending.order_by("created_at").values_list("created_at", flat=True).first()
+    if oldest is None or pending.count() >= settings.ANCHOR_BATCH_MAX:
+        return
+    remaining = settings.ANCHOR_MAX_WAIT - (timezone.now() - oldest).total_seconds()
+    if remaining > 0:
+        time.sleep(min(remaining, settings.ANCHOR_MAX_WAIT))
+
+
+def _anchor_round(client: AuthROSChain, owner: Owner, lock: Lock) -> tuple[int, int]:
+    """One run's sends and receipts; returns (records anchored, transactions sent)."""
+    account = owner_eoa_account(owner)
+    in_flight: list[tuple[list[Record], str]] = []
+    refusal: TransactionReverted | None = None
+    for _ in range(settings.ANCHOR_INFLIGHT):
+        # "One sender per EOA": stop if our hold on the owner lapsed (a long wait before).
+        if not _renew(lock):
+            break
+        sent_ids = [r.pk for batch, _tx in in_flight for r in batch]
+        batch = _settle_attempted(client, owner, _next_batch(owner.pk, exclude=sent_ids))
+        if not batch:
+            break
+        batch_ids = [r.pk for r in batch]
+        # Counted before sending: a run that dies after the send must look on chain first.
+        Record.objects.filter(pk__in=batch_ids).update(anchor_attempts=F("anchor_attempts") + 1)
+        try:
+            tx_hash = client.data_upload_batch(
+                account, [anchor_item(r) for r in batch], wait=False
+            )
+        except ChainUnavailable:
+            # The node (or Redis) is away: that is not the records' fault, so it does not
+            # count towards ANCHOR_MAX_ATTEMPTS; an outage of any length loses nothing. If the
+            # send did reach the node, the next send is refused with RecordExists and settled.
+            Record.objects.filter(pk__in=batch_ids, anchor_attempts__gt=0).update(
+                anchor_attempts=F("anchor_attempts") - 1
+            )
+            raise
+        except TransactionReverted as exc:
+            if exc.error_name != "RecordExists":
+                refusal = exc
+                break
+            # Someone anchored some of these already: settle them all from the chain; the
+            # rest go in the next run.
+            _settle_attempted(client, owner, batch, force=True)
+            break
+        in_flight.append((batch, tx_hash))
+    anchored = 0
+    for batch, tx_hash in in_flight:
+        receipt = _await_receipt(client, tx_hash, lock)
+        Record.objects.filter(pk__in=[r.pk for r in batch], status=Record.Status.PENDING).update(
+            status=Record.Status.ANCHORED,
+            tx_hash=tx_hash,
+            block_number=int(receipt["blockNumber"]),
+            anchored_at=timezone.now(),
+        )
+        anchored += len(batch)
+    if refusal is not None:
+        raise refusal
+    return anchored, len(in_flight)
+
+
+def _renew(lock: Lock) -> bool:
+    """Extend our hold on a lock; False if it expired meanwhile (another worker may own it).
+
+    Losing it is safe, not fatal: ids are write-once on chain and a duplicate send is
+    settled as already anchored. We stop after the batch in hand.
+    """
+    try:
+        lock.reacquire()
+    except (LockError, RedisError) as exc:
+        logger.warning("lost lock %s (%s); finishing the batch in hand", lock.name, exc)
+        return False
+    return True
+
+
+def _next_batch(owner_id: int, *, exclude: list[uuid.UUID]) -> list[Record]:
+    pending = Record.objects.filter(owner_id=owner_id, status=Record.Status.PENDING)
+    exhausted = pending.filter(anchor_attempts__gte=settings.ANCHOR_MAX_ATTEMPTS)
+    exhausted.update(
+        status=Record.Status.FAILED,
+        failure_reason=f"not anchored after {settings.ANCHOR_MAX_ATTEMPTS} attempts",
+    )
+    pending = pending.exclude(pk__in=exclude)
+    return list(pending.order_by("created_at", "seq")[: settings.ANCHOR_BATCH_MAX])
+
+
+def anchor_item(record: Record) -> AnchorItem:
+    return AnchorItem(
+        record_id=record.id,
+        digest=bytes.fromhex(record.digest),
+        time=record.captured_at,
+        data_type=record.data_type,
+    )
+
+
+def _await_receipt(client: AuthROSChain, tx_hash: str, lock: Lock) -> TxReceipt:
+    """Wait for the receipt in short steps, keeping the owner's anchoring lock alive."""
+    deadline = time.monotonic() + client.receipt_timeout
+    while True:
+        step = min(settings.ANCHOR_LOCK_TTL / 3, max(deadline - time.monotonic(), 0.1))
+        try:
+            return client.wait_for_receipt(tx_hash, timeout=step)
+        except TransactionTimeout:
+            if time.monotonic() >= deadline:
+                raise
+            _renew(lock)
+
+
+def _settle_attempted(
+    client: AuthROSChain, owner: Owner, batch: list[Record], *, force: bool = False
+) -> list[Record]:
+    """Look up records a previous attempt may have anchored; return those still to send."""
+    still_pending = []
+    latest = None
+    for record in batch:
+        if record.anchor_attempts == 0 and not force:
+            still_pending.append(record)
+            continue
+        on_chain = client.data_query(record.id)
+        if on_chain is None:
+            still_pending.append(record)
+        elif on_chain.digest.hex() == record.digest and (
+            on_chain.owner.lower() == owner.eoa_address.lower()
+        ):
+            event = client.upload_event(record.id)
+            if client.confirmations:
+                latest = client.latest_block() if latest is None else latest
+                if event is None or latest - event.block_number < client.confirmations:
+                    continue  # on chain, not deep enough yet: neither anchored nor resent
+            Record.objects.filter(pk=record.pk, status=Record.Status.PENDING).update(
+                status=Record.Status.ANCHORED,
+                tx_hash=event.tx_hash if event else "",
+                block_number=event.block_number if event else None,
+                anchored_at=timezone.now(),
+            )
+        else:
+            _chain_digest_mismatch(record, on_chain.digest.hex(), on_chain.owner)
+    return still_pending
+
+
+def _chain_digest_mismatch(record: Record, chain_digest: str, chain_owner: str) -> None:
+    Record.objects.filter(pk=record.pk).update(
+        status=Record.Status.FAILED,
+        failure_reason="the chain holds another digest or owner for this record id",
+    )
+    SecurityEvent.objects.create(
+        kind=SecurityEvent.Kind.CHAIN_DIGEST_MISMATCH,
+        record=record,
+        owner=record.owner,
+        detail={"stored": record.digest, "chain": chain_digest, "chain_owner": chain_owner},
+    )
+    security_log.error(
+        "record %s: chain holds digest %s (owner %s), we stored %s",
+        record.pk,
+        chain_digest,
+        chain_owner,
+        record.digest,
+    )
