@@ -10,11 +10,13 @@ import base64
 import logging
 import uuid
 from collections.abc import Sequence
+from contextlib import suppress
 from dataclasses import dataclass
 from typing import Any
 
 from django.conf import settings
 from django.utils import timezone
+from redis.exceptions import RedisError
 
 from accounts.models import Owner
 from accounts.selectors import owner_key_bytes, owner_key_current
@@ -231,8 +233,10 @@ def _worker_answer(record: Record, viewer: Owner, pending: Any) -> tuple[Verdict
         try:
             answer = pending.get(timeout=settings.VERIFY_TIMEOUT, disable_sync_subtasks=False)
         finally:
-            # The answer may hold a whole envelope: it is not kept in Redis once read.
-            pending.forget()
+            # The answer may hold a whole envelope: it is not kept in Redis once read (a
+            # failure to drop it only leaves it to expire with CELERY_RESULT_EXPIRES).
+            with suppress(RedisError, OSError):
+                pending.forget()
     except Exception as exc:  # timeout, broker down, or the worker's own failure
         logger.warning("verification of %s for %s failed: %s", record.pk, viewer, exc)
         raise VerificationUnavailable(

@@ -4,12 +4,12 @@ import pytest
 
 from accounts.selectors import owner_key_bytes, owner_key_current
 from core.redis_client import get_redis
-from sharing import errors
+from sharing import errors, verification
 from sharing.cache import _key as cache_key
 from sharing.selectors import record_get_visible, record_list_visible_to
 from sharing.services import grant_create, grant_revoke, record_create
 from sharing.verification import record_open, record_open_many, record_reseal_for
-from smcrypto import CryptoError, envelope
+from smcrypto import CryptoError, envelope, sm3
 
 pytestmark = pytest.mark.django_db
 
@@ -91,3 +91,65 @@ def test_opening_many_gives_each_record_its_own_outcome(
         isinstance(result, errors.AccessDenied)
         for result in record_open_many(records=[anchored, tampered], viewer=bob)
     )
+
+
+def test_a_view_fetches_and_hashes_the_envelope_once(shared, monkeypatch):
+    """The worker fetches and hashes; the view decrypts the bytes the worker checked."""
+    alice, _bob, record = shared
+    fetches, hashes = [], []
+    real_fetch, real_hash = verification.envelope_fetch, sm3.sm3_hex
+
+    def counting_fetch(fetched):
+        fetches.append(fetched.pk)
+        return real_fetch(fetched)
+
+    def counting_hash(data):
+        hashes.append(len(data))
+        return real_hash(data)
+
+    monkeypatch.setattr(verification, "envelope_fetch", counting_fetch)
+    monkeypatch.setattr(sm3, "sm3_hex", counting_hash)
+    opened = record_open(record_id=record.pk, viewer=alice.owner)
+    assert opened.plaintext == b'{"K": "odom"}'
+    assert fetches == [record.pk]
+    assert hashes == [record.size]
+    assert sm3.sm3_hex(opened.envelope) == opened.verdict.chain_digest
+
+
+def test_the_view_decrypts_what_the_worker_checked_not_a_later_copy(shared, monkeypatch):
+    """Stored bytes that change after the check are never what is shown."""
+    alice, _bob, record = shared
+    checked = get_redis().get(cache_key(record.pk))
+    real_verify = verification.record_verify
+
+    def verify_then_tamper(**kwargs):
+        result = real_verify(**kwargs)
+        changed = bytearray(checked)
+        changed[-1] ^= 1
+        get_redis().set(cache_key(record.pk), bytes(changed))
+        return result
+
+    monkeypatch.setattr(verification, "record_verify", verify_then_tamper)
+    opened = record_open(record_id=record.pk, viewer=alice.owner)
+    assert opened.envelope == checked
+    assert opened.plaintext == b'{"K": "odom"}'
+
+
+@pytest.mark.parametrize("outcome", ["no_access", "tampered", "not_anchored_yet"])
+def test_a_refusal_carries_its_record_and_verdict(shared, outcome):
+    alice, bob, record = shared
+    viewer = alice.owner
+    if outcome == "no_access":
+        viewer = bob
+    elif outcome == "tampered":
+        cached = bytearray(get_redis().get(cache_key(record.pk)))
+        cached[-1] ^= 1
+        get_redis().set(cache_key(record.pk), bytes(cached))
+    else:
+        record = record_create(robot=alice.robot, data=alice.seal(2))  # anchoring not run
+    with pytest.raises(errors.ViewRefused) as refused:
+        record_open(record_id=record.pk, viewer=viewer)
+    assert refused.value.record.pk == record.pk
+    assert refused.value.record.owner.username == "alice"
+    assert refused.value.verdict.outcome == outcome
+    assert refused.value.verdict.viewer_id == viewer.pk
