@@ -1,11 +1,11 @@
-"""Start and stop a real anvil node for integration tests.
+"""Start and stop a real anvil node: for `make run`, the benchmarks and integration tests.
 
     with start_anvil() as node:
         w3 = Web3(Web3.HTTPProvider(node.url))
 
 The binary is the one pinned in package.json (node_modules/@foundry-rs/anvil-<os>-<arch>);
-ANVIL_BIN overrides it. Each node listens on a free port of 127.0.0.1, so parallel test
-workers (pytest-xdist) do not collide.
+ANVIL_BIN overrides it. Without a port each node listens on a free port of 127.0.0.1, so
+parallel test workers (pytest-xdist) do not collide.
 """
 
 from __future__ import annotations
@@ -25,6 +25,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from types import TracebackType
 from typing import IO, Self
+
+from stack.processes import exit_with_parent
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
 HOST = "127.0.0.1"
@@ -55,10 +57,36 @@ def anvil_binary() -> Path:
     raise AnvilError(f"anvil not found at {pinned} nor on PATH: run npm ci")
 
 
+def anvil_version() -> str:
+    """`anvil --version`'s first line, or why it is unknown."""
+    try:
+        done = subprocess.run(
+            [str(anvil_binary()), "--version"], capture_output=True, text=True, timeout=10
+        )
+    except (OSError, subprocess.TimeoutExpired, AnvilError) as exc:
+        return f"unknown ({exc})"
+    return done.stdout.strip().splitlines()[0] if done.stdout.strip() else "unknown"
+
+
 def free_port() -> int:
+    """A TCP port of 127.0.0.1 that nothing listens on right now."""
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
         sock.bind((HOST, 0))
         return sock.getsockname()[1]
+
+
+def rpc_answers(url: str, timeout: float = 1.0) -> bool:
+    """Whether a JSON-RPC node answers eth_chainId at url."""
+    body = json.dumps({"jsonrpc": "2.0", "id": 1, "method": "eth_chainId", "params": []})
+    # A node URL from our own configuration, never from a request.
+    rpc = urllib.request.Request(  # noqa: S310
+        url, data=body.encode(), headers={"Content-Type": "application/json"}
+    )
+    try:
+        with urllib.request.urlopen(rpc, timeout=timeout) as response:  # noqa: S310
+            return "result" in json.loads(response.read())
+    except (urllib.error.URLError, ConnectionError, TimeoutError, ValueError):
+        return False
 
 
 @dataclass
@@ -67,7 +95,7 @@ class AnvilProcess:
 
     port: int
     process: subprocess.Popen[bytes]
-    stderr: IO[bytes]
+    output: IO[bytes]
 
     @property
     def url(self) -> str:
@@ -82,7 +110,7 @@ class AnvilProcess:
             except subprocess.TimeoutExpired:
                 self.process.kill()
                 self.process.wait()
-        self.stderr.close()
+        self.output.close()
 
     def __enter__(self) -> Self:
         return self
@@ -97,31 +125,53 @@ class AnvilProcess:
 
 
 def start_anvil(
-    block_time: float | None = None, state_path: str | None = None, port: int | None = None
+    block_time: float | None = None,
+    state_path: str | Path | None = None,
+    port: int | None = None,
+    *,
+    state_interval: float | None = None,
+    log_path: Path | None = None,
+    die_with_parent: bool = False,
 ) -> AnvilProcess:
     """Start anvil on a free port and return once its JSON-RPC answers.
 
     block_time: seconds between blocks (interval mining); None mines one block per transaction.
     state_path: file the chain state is loaded from (if present) and written to on stop().
     port: a fixed port (e.g. to restart a node where its clients expect it); else a free one.
+    state_interval: also write the state every this many seconds (survives a kill -9).
+    log_path: anvil's output goes there (appended); else it is silent.
+    die_with_parent: the kernel stops it if the process that started it dies (see Children).
     """
-    args = [str(anvil_binary()), "--host", HOST, "--silent"]
+
+    args = [str(anvil_binary()), "--host", HOST]
+    if log_path is None:
+        args.append("--silent")
     if block_time is not None:
         args += ["--block-time", str(block_time)]
     if state_path is not None:
         args += ["--state", str(state_path)]
+        if state_interval is not None:
+            args += ["--state-interval", str(state_interval)]
     last_error = ""
     # The free port may be taken by someone else before anvil binds it: try a few.
     fixed_port = port
     for _ in range(PORT_ATTEMPTS):
         port = fixed_port or free_port()
-        stderr = tempfile.TemporaryFile()  # noqa: SIM115  (closed by AnvilProcess.stop)
+        # Closed by AnvilProcess.stop.
+        output = log_path.open("ab+") if log_path else tempfile.TemporaryFile()  # noqa: SIM115
+        start = output.tell()
         process = subprocess.Popen(
-            [*args, "--port", str(port)], stdout=subprocess.DEVNULL, stderr=stderr
+            [*args, "--port", str(port)],
+            stdout=output,
+            stderr=subprocess.STDOUT,
+            # Its own session: a Ctrl-C meant for whoever started it must not kill it before
+            # its state is written; the owner stops it.
+            start_new_session=True,
+            preexec_fn=exit_with_parent if die_with_parent else None,
         )
-        node = AnvilProcess(port=port, process=process, stderr=stderr)
+        node = AnvilProcess(port=port, process=process, output=output)
         try:
-            _wait_until_ready(node)
+            _wait_until_ready(node, start)
         except AnvilError as error:
             node.stop()
             last_error = str(error)
@@ -130,23 +180,14 @@ def start_anvil(
     raise AnvilError(f"anvil did not start after {PORT_ATTEMPTS} attempts: {last_error}")
 
 
-def _wait_until_ready(node: AnvilProcess) -> None:
-    body = json.dumps({"jsonrpc": "2.0", "id": 1, "method": "eth_chainId", "params": []})
-    # Our own http://127.0.0.1 URL, never user input.
-    rpc = urllib.request.Request(  # noqa: S310
-        node.url, data=body.encode(), headers={"Content-Type": "application/json"}
-    )
+def _wait_until_ready(node: AnvilProcess, log_start: int) -> None:
     deadline = time.monotonic() + STARTUP_TIMEOUT
     while time.monotonic() < deadline:
         if node.process.poll() is not None:
-            node.stderr.seek(0)
-            output = node.stderr.read().decode(errors="replace").strip()
-            raise AnvilError(f"anvil exited with {node.process.returncode}: {output}")
-        try:
-            with urllib.request.urlopen(rpc, timeout=1) as response:  # noqa: S310
-                if "result" in json.loads(response.read()):
-                    return
-        except (urllib.error.URLError, ConnectionError, TimeoutError, ValueError):
-            pass
+            node.output.seek(log_start)
+            text = node.output.read().decode(errors="replace").strip()
+            raise AnvilError(f"anvil exited with {node.process.returncode}: {text[-2000:]}")
+        if rpc_answers(node.url):
+            return
         time.sleep(0.05)
     raise AnvilError(f"anvil did not answer on {node.url} within {STARTUP_TIMEOUT} s")

@@ -18,7 +18,7 @@ from chainworker import services as chain_services
 from chainworker.chain import AuthROSChain, forget_in_process_chain
 from portal.celery import app as celery_app
 from smcrypto import envelope, key_commitment, sm4
-from tests.anvil import AnvilProcess, start_anvil
+from stack.anvil import AnvilProcess, start_anvil
 
 TEST_PASSWORD = "correct horse battery staple 42"
 

@@ -21,7 +21,7 @@ from django.conf import settings
 from django.db import connection
 
 from portal.celery import app as celery_app
-from tests.anvil import AnvilProcess, free_port, start_anvil
+from stack.anvil import AnvilProcess, free_port, start_anvil
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
 

@@ -14,7 +14,7 @@ from sharing.services import grant_create, grant_revoke
 from sharing.storage import envelope_storage
 from smcrypto import envelope, sm3
 from smcrypto.errors import WrongKey
-from tests.anvil import free_port
+from stack.anvil import free_port
 from tests.api.conftest import RECORDS, session_client, token_client
 from tests.conftest import seal_for
 

@@ -5,7 +5,7 @@ from eth_account import Account
 from web3 import Web3
 from web3.exceptions import ContractCustomError
 
-from tests.anvil import start_anvil
+from stack.anvil import start_anvil
 
 pytestmark = pytest.mark.anvil
 

@@ -13,7 +13,7 @@ from accounts.selectors import owner_key_current, robot_by_token
 from ros_agent.config import config_from_mapping
 from sharing.models import Grant
 from sharing.services import grant_create, grant_revoke
-from tests.anvil import free_port
+from stack.anvil import free_port
 
 pytestmark = pytest.mark.django_db
 

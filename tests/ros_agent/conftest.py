@@ -24,7 +24,7 @@ import pytest
 from ros_agent import sim
 from ros_agent.extractors import extract
 from smcrypto import sm4
-from tests.anvil import free_port
+from stack.anvil import free_port
 from tests.ros_agent.records_server import RecordsServer
 
 REPO_ROOT = Path(__file__).resolve().parents[2]

@@ -27,7 +27,7 @@ from typing import Any
 
 from smcrypto import CryptoError, envelope
 from smcrypto.errors import WrongKey
-from tests.anvil import free_port
+from stack.anvil import free_port
 
 RECORDS_PATH = "/api/v1/records/"
 
