@@ -8,7 +8,7 @@ from rest_framework.response import Response
 from rest_framework.views import APIView
 
 from accounts.keyexchange import portal_sm2_public_key
-from portal.api_errors import error_responses
+from core.api_errors import error_responses
 
 SM2_CIPHERTEXT_MODE = "C1C3C2"
 

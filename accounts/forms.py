@@ -13,10 +13,10 @@ from django.contrib.auth.password_validation import (
 from django.contrib.auth.validators import UnicodeUsernameValidator
 from django.core.exceptions import ValidationError
 
+from accounts.agent_config import DEFAULT_TOPICS, Topic
 from accounts.errors import InvalidKeyMaterial
 from accounts.keyexchange import sm4_key_from_submission
-from accounts.models import DEFAULT_TOPICS, validate_robot_topics
-from ros_agent.config import TopicConfig
+from accounts.models import validate_robot_topics
 
 NO_SCRIPT_KEY = (
     "Your key was not encrypted in the browser, so it was not sent. This page needs "
@@ -122,7 +122,7 @@ class RobotCreateForm(forms.Form):
             raise ValidationError("Give the robot a name.", code="required")
         return name
 
-    def clean_topics(self) -> list[TopicConfig]:
+    def clean_topics(self) -> list[Topic]:
         entries = []
         for number, line in enumerate(self.cleaned_data["topics"].splitlines(), start=1):
             parts = line.split()
@@ -135,4 +135,4 @@ class RobotCreateForm(forms.Form):
                 )
             entries.append({"name": parts[0], "type": parts[1]})
         validate_robot_topics(entries)
-        return [TopicConfig(name=entry["name"], type=entry["type"]) for entry in entries]
+        return [Topic(name=entry["name"], type=entry["type"]) for entry in entries]

@@ -6,29 +6,22 @@ from django.conf import settings
 from django.core.exceptions import ValidationError
 from django.db import models
 
-from ros_agent.config import ConfigError, TopicConfig, parse_topics
-
-# The topics of ros_agent.sim (and of the paper): odometry and a camera.
-DEFAULT_TOPICS = (
-    TopicConfig(name="/robot/odom", type="nav_msgs/Odometry"),
-    TopicConfig(name="/robot/complicatedImage", type="sensor_msgs/Image"),
-)
+from accounts.agent_config import DEFAULT_TOPICS, InvalidTopics, topics_as_list, topics_parse
 
 
 def default_robot_topics() -> list[dict[str, str]]:
     """What a robot records unless told otherwise (also what robots made before topics were
     stored were given)."""
-    return [{"name": topic.name, "type": topic.type} for topic in DEFAULT_TOPICS]
+    return topics_as_list(DEFAULT_TOPICS)
 
 
 def validate_robot_topics(value: object) -> None:
     """A robot's topics: a non-empty list of {name, type}, as the agent's config takes them."""
-    if isinstance(value, list) and not value:
-        raise ValidationError("List at least one topic.", code="required")
     try:
-        parse_topics(value, "topics")
-    except ConfigError as exc:
-        raise ValidationError(str(exc).removeprefix("topics: "), code="invalid_topic") from None
+        topics_parse(value)
+    except InvalidTopics as exc:
+        code = "required" if isinstance(value, list) and not value else "invalid_topic"
+        raise ValidationError(str(exc), code=code) from None
 
 
 class ChainState(models.TextChoices):

@@ -6,8 +6,9 @@ from eth_account import Account
 from eth_account.signers.local import LocalAccount
 
 from accounts import keywrap
-from accounts.models import Owner, OwnerKey, Robot
-from ros_agent.config import TopicConfig
+from accounts.agent_config import Topic
+from accounts.models import ChainState, Owner, OwnerKey, Robot
+from chainworker.services import chain_client
 
 
 def owner_eoa_account(owner: Owner) -> LocalAccount:
@@ -35,6 +36,24 @@ def owner_by_username(username: str) -> Owner | None:
 
 def owner_by_address(address: str) -> Owner | None:
     return Owner.objects.select_related("user").filter(eoa_address__iexact=address).first()
+
+
+def owner_by_identifier(identifier: str) -> Owner | None:
+    """The owner named by a username or, 0x-prefixed, an EOA address in any case; surrounding
+    blanks are ignored. None for anything else, NUL characters included."""
+    identifier = identifier.strip()
+    if not identifier or "\x00" in identifier:
+        # PostgreSQL refuses NUL characters in a query, which would be a 500.
+        return None
+    if identifier.lower().startswith("0x"):
+        return owner_by_address(identifier)
+    return owner_by_username(identifier)
+
+
+def owner_balance_wei(owner: Owner) -> int:
+    """The balance of the owner's EOA on chain; raises chainworker.chain.ChainError when the
+    node cannot be asked."""
+    return chain_client().balance(owner.eoa_address)
 
 
 def robot_by_token(token: str) -> Robot | None:
@@ -75,6 +94,19 @@ def robot_list_of(owner: Owner) -> list[Robot]:
     return list(owner.robots.order_by("-is_active", "name"))
 
 
-def robot_topics(robot: Robot) -> tuple[TopicConfig, ...]:
+def robot_count_active(owner: Owner) -> int:
+    """The owner's robots whose token still works."""
+    return owner.robots.filter(is_active=True).count()
+
+
+def robot_topics(robot: Robot) -> tuple[Topic, ...]:
     """The topics kept with the robot when it was added: what its agent config lists."""
-    return tuple(TopicConfig(name=entry["name"], type=entry["type"]) for entry in robot.topics)
+    return tuple(Topic(name=entry["name"], type=entry["type"]) for entry in robot.topics)
+
+
+def chain_backlog() -> dict[str, int]:
+    """Registrations and key rotations not yet confirmed on chain (admin's chain status)."""
+    return {
+        "registrations": Owner.objects.filter(chain_state=ChainState.PENDING).count(),
+        "keys": OwnerKey.objects.filter(chain_state=ChainState.PENDING).count(),
+    }

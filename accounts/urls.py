@@ -1,4 +1,4 @@
-"""Owner pages of the accounts app: registration, sign-in, dashboard, key, robots."""
+"""Owner pages of the accounts app: registration, sign-in, key, robots."""
 
 from django.contrib.auth import views as auth_views
 from django.urls import path
@@ -10,7 +10,6 @@ urlpatterns = [
     path("register/progress/", views.registration_progress, name="registration-progress"),
     path("login/", views.LoginView.as_view(), name="login"),
     path("logout/", auth_views.LogoutView.as_view(), name="logout"),
-    path("dashboard/", views.dashboard, name="dashboard"),
     path("account/status.json", views.account_status, name="account-status"),
     path("account/password/", views.PasswordChangeView.as_view(), name="password_change"),
     path("account/key/", views.key_rotation, name="key-rotation"),

@@ -1,30 +1,26 @@
-"""Owner pages: registration, sign-in, dashboard, key rotation, robots.
+"""Owner pages of the accounts app: registration, sign-in, key rotation, robots.
 
 Views validate, call one service and answer; reads go through the selectors. Every page
-but registration and sign-in needs a logged-in owner (`owner_required`).
+but registration and sign-in needs a logged-in owner (`owner_required`). The dashboard,
+which counts the owner's records and grants too, is the project's (portal/views.py).
 """
 
-from collections.abc import Callable
-from decimal import Decimal
-from functools import wraps
-
-import yaml
 from axes.helpers import get_cool_off
 from django.conf import settings
 from django.contrib import messages
 from django.contrib.auth import login
 from django.contrib.auth import views as auth_views
-from django.contrib.auth.decorators import login_required
 from django.http import HttpRequest, HttpResponse, JsonResponse
 from django.shortcuts import get_object_or_404, redirect, render
 from django.urls import reverse_lazy
 from django.utils import timezone
 from django.utils.decorators import method_decorator
-from django.utils.text import slugify
 from django.views.decorators.cache import never_cache
 from django.views.decorators.http import require_GET, require_http_methods, require_POST
 from rest_framework.throttling import BaseThrottle
 
+from accounts.agent_config import agent_config_yaml, config_filename, key_filename
+from accounts.decorators import no_store, owner_required
 from accounts.errors import (
     InvalidKeyMaterial,
     InvalidUsername,
@@ -44,41 +40,9 @@ from accounts.selectors import (
     robot_topics,
 )
 from accounts.services import key_rotate, owner_create, robot_create, robot_token_revoke
-from chainworker.chain import ChainError
-from chainworker.services import chain_client
-from sharing.models import Grant
-from sharing.selectors import grant_list_given, grant_list_received, record_list_owned
 
 # The session backend that `login()` records for a user who has just registered.
 MODEL_BACKEND = "django.contrib.auth.backends.ModelBackend"
-WEI_PER_ETHER = Decimal(10) ** 18
-
-OwnerView = Callable[..., HttpResponse]
-
-
-def owner_required(view: OwnerView) -> OwnerView:
-    """Login required, and the user must be an owner: sets `request.owner`.
-
-    Operator accounts (admin users without an owner) get a page pointing to the admin.
-    """
-
-    @wraps(view)
-    @login_required
-    def wrapped(request: HttpRequest, *args: object, **kwargs: object) -> HttpResponse:
-        owner = owner_for_user(request.user)
-        if owner is None:
-            return render(request, "accounts/not_an_owner.html", status=403)
-        request.owner = owner
-        return view(request, *args, **kwargs)
-
-    return wrapped
-
-
-def no_store(response: HttpResponse) -> HttpResponse:
-    """Keep a page that shows a secret or decrypted data out of every cache."""
-    response["Cache-Control"] = "no-store, private"
-    response["Pragma"] = "no-cache"
-    return response
 
 
 # --- registration and sign-in ----------------------------------------------------------------
@@ -207,36 +171,7 @@ class PasswordChangeView(auth_views.PasswordChangeView):
         return super().form_valid(form)
 
 
-# --- dashboard and key ---------------------------------------------------------------------
-
-# What the dashboard counts as a grant, on both sides alike: active, or being granted on
-# chain. A grant being revoked is not counted: its owner has taken it back.
-GRANTS_COUNTED = (Grant.Status.ACTIVE, Grant.Status.PENDING)
-
-
-@owner_required
-@require_GET
-def dashboard(request: HttpRequest) -> HttpResponse:
-    owner: Owner = request.owner
-    balance, chain_problem = None, None
-    try:
-        balance = Decimal(chain_client().balance(owner.eoa_address)) / WEI_PER_ETHER
-    except ChainError as exc:
-        chain_problem = f"The chain node is not reachable right now ({exc.__class__.__name__})."
-    context = {
-        "owner": owner,
-        "key": owner_key_current(owner),
-        "balance": balance,
-        "chain_problem": chain_problem,
-        "record_count": record_list_owned(owner).count(),
-        "grants_given_count": grant_list_given(owner).filter(status__in=GRANTS_COUNTED).count(),
-        "grants_received_count": grant_list_received(owner)
-        .filter(status__in=GRANTS_COUNTED)
-        .count(),
-        "robot_count": owner.robots.filter(is_active=True).count(),
-        **_steps(request),
-    }
-    return render(request, "accounts/dashboard.html", context)
+# --- key ------------------------------------------------------------------------------------
 
 
 @never_cache
@@ -285,13 +220,13 @@ def robots(request: HttpRequest) -> HttpResponse:
         except (RobotNameTaken, InvalidUsername) as exc:
             form.add_error("name", str(exc))
         else:
-            config = agent_config_yaml(request, robot, token=token)
+            config = _agent_config(request, robot, token=token)
             context = {
                 "robot": robot,
                 "token": token,
                 "config": config,
-                "config_filename": _config_filename(robot),
-                "key_filename": _key_filename(owner),
+                "config_filename": config_filename(robot.name),
+                "key_filename": key_filename(owner.username),
             }
             # The token exists only in this response: it is never stored nor shown again.
             return no_store(render(request, "accounts/robot_created.html", context, status=201))
@@ -316,53 +251,20 @@ def robot_revoke(request: HttpRequest, robot_id: str) -> HttpResponse:
 def robot_config(request: HttpRequest, robot_id: str) -> HttpResponse:
     """The agent config again, without the token (shown once): it names a token file."""
     robot = get_object_or_404(Robot, pk=robot_id, owner=request.owner)
-    text = agent_config_yaml(request, robot, token=None)
+    text = _agent_config(request, robot, token=None)
     response = HttpResponse(text, content_type="application/yaml; charset=utf-8")
-    response["Content-Disposition"] = f'attachment; filename="{_config_filename(robot)}"'
+    response["Content-Disposition"] = f'attachment; filename="{config_filename(robot.name)}"'
     return no_store(response)
 
 
-def agent_config_yaml(request: HttpRequest, robot: Robot, *, token: str | None) -> str:
-    """An agent.yaml for ros_agent (see ros_agent/config.py) with the topics kept with the
-    robot; never the SM4 key itself."""
-    owner = robot.owner
-    key_file = _key_filename(owner)
-    settings_map: dict[str, object] = {
-        "portal_url": request.build_absolute_uri("/").rstrip("/"),
-        "robot": str(robot.id),
-        "owner": owner.username,
-    }
-    if token is None:
-        settings_map["token_file"] = "robot.token"  # noqa: S105 (a file name)
-    else:
-        settings_map["token"] = token
-    settings_map["key_file"] = key_file
-    settings_map["topics"] = [
-        {"name": topic.name, "type": topic.type} for topic in robot_topics(robot)
-    ]
-    token_line = (
-        "# It holds the robot's API token: keep it private too (chmod 600 this file)."
-        if token
-        else "# Put the robot's API token (shown once when the robot was added) in robot.token, "
-        "mode 0600."
+def _agent_config(request: HttpRequest, robot: Robot, *, token: str | None) -> str:
+    """The robot's agent.yaml, pointing the agent at the address this page was asked at."""
+    return agent_config_yaml(
+        portal_url=request.build_absolute_uri("/"),
+        robot_id=str(robot.id),
+        robot_name=robot.name,
+        owner_username=robot.owner.username,
+        topics=robot_topics(robot),
+        token=token,
+        made_at=timezone.now(),
     )
-    header = "\n".join(
-        [
-            f"# AuthROS agent settings for robot {robot.name!r} of {owner.username}, "
-            f"made {timezone.now():%Y-%m-%d %H:%M} UTC.",
-            "# Run it with: python -m ros_agent --config agent.yaml",
-            token_line,
-            "# The SM4 key is not in this file. Put your key (32 hex digits) in the key file",
-            f"# named below, beside this file, readable by you only: chmod 600 {key_file}",
-        ]
-    )
-    body = yaml.safe_dump(settings_map, sort_keys=False, default_flow_style=False)
-    return f"{header}\n{body}"
-
-
-def _config_filename(robot: Robot) -> str:
-    return f"agent-{slugify(robot.name) or 'robot'}.yaml"
-
-
-def _key_filename(owner: Owner) -> str:
-    return f"{slugify(owner.username) or 'owner'}.sm4"

@@ -4,7 +4,7 @@ from django.urls import include, path, re_path
 from drf_spectacular.views import SpectacularAPIView, SpectacularSwaggerView
 
 from accounts.apis import Sm2PublicKeyApi
-from portal.api_errors import api_not_found
+from core.api_errors import api_not_found
 from sharing.apis import GrantRevokeApi, GrantsApi, RecordContentApi, RecordDetailApi, RecordsApi
 
 v1 = [

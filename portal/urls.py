@@ -1,4 +1,4 @@
-"""URL routes of the portal: pages, the REST API, the admin console."""
+"""URL routes of the portal: its own pages, the apps' pages, the REST API, the admin console."""
 
 from django.contrib import admin
 from django.urls import include, path
@@ -7,6 +7,7 @@ from portal import views
 
 urlpatterns = [
     path("", views.home, name="home"),
+    path("dashboard/", views.dashboard, name="dashboard"),
     path("", include("accounts.urls")),
     path("", include("sharing.urls")),
     path("admin/", admin.site.urls),

@@ -2,7 +2,7 @@
 
 One view per route; each validates with its nested serializers, calls one service or
 selector, and answers. Refusals are `sharing.errors` (and DRF's), mapped to HTTP in
-`portal.api_errors`.
+`core.api_errors`.
 """
 
 import base64
@@ -30,7 +30,7 @@ from rest_framework.views import APIView
 
 from accounts.authentication import RobotUploadRateThrottle, caller_owner, caller_robot
 from accounts.models import Owner
-from portal.api_errors import error_responses
+from core.api_errors import error_responses
 from sharing.errors import OwnerNotFound, RecordNotFound
 from sharing.models import Grant, Record
 from sharing.selectors import (
@@ -44,9 +44,8 @@ from sharing.services import (
     grant_revoke,
     owner_resolve,
     record_create_batch,
-    record_open,
-    record_reseal_for,
 )
+from sharing.verification import record_open, record_reseal_for
 
 # Envelopes in one upload at most; the body size limit (413) bounds the bytes.
 MAX_ENVELOPES_PER_UPLOAD = 1000

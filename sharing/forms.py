@@ -1,10 +1,13 @@
 """Forms of the sharing pages: record filters and grants."""
 
+from typing import Any
+
 from django import forms
 from django.core.exceptions import ValidationError
 from django.db.models import QuerySet
 
 from sharing.models import Record
+from sharing.selectors import RECORD_FILTER_STATUSES
 
 
 class DateTimeLocalInput(forms.DateTimeInput):
@@ -15,14 +18,12 @@ class DateTimeLocalInput(forms.DateTimeInput):
 
 
 class RecordFilterForm(forms.Form):
-    """Filters of a record list (GET); times are UTC."""
+    """Filters of a record list (GET); times are UTC, the range half-open: from `since`,
+    before `until` (as in the API). `filters()` gives them to `record_list_filtered`."""
 
     topic = forms.ChoiceField(required=False)
     data_type = forms.ChoiceField(label="Type", required=False)
-    status = forms.ChoiceField(
-        required=False,
-        choices=[("", "any"), *Record.Status.choices, ("tampered", "tampered")],
-    )
+    status = forms.ChoiceField(required=False, choices=[("", "any"), *RECORD_FILTER_STATUSES])
     since = forms.DateTimeField(
         label="From (UTC)",
         required=False,
@@ -30,7 +31,7 @@ class RecordFilterForm(forms.Form):
         input_formats=["%Y-%m-%dT%H:%M", "%Y-%m-%dT%H:%M:%S", "%Y-%m-%d"],
     )
     until = forms.DateTimeField(
-        label="Until (UTC)",
+        label="Before (UTC)",
         required=False,
         widget=DateTimeLocalInput(),
         input_formats=["%Y-%m-%dT%H:%M", "%Y-%m-%dT%H:%M:%S", "%Y-%m-%d"],
@@ -60,26 +61,11 @@ class RecordFilterForm(forms.Form):
             raise ValidationError("The start of the time range is after its end.")
         return cleaned
 
-    def filter(self, records: QuerySet[Record]) -> QuerySet[Record]:
-        """The records that match; all of them while the filters are invalid."""
-        if not self.is_valid():
-            return records
-        data = self.cleaned_data
-        if data.get("topic"):
-            records = records.filter(topic=data["topic"])
-        if data.get("data_type"):
-            records = records.filter(data_type=data["data_type"])
-        if data.get("status") == "tampered":
-            records = records.filter(tampered_at__isnull=False)
-        elif data.get("status"):
-            records = records.filter(status=data["status"])
-        if data.get("since"):
-            records = records.filter(captured_at__gte=data["since"])
-        if data.get("until"):
-            records = records.filter(captured_at__lte=data["until"])
-        if data.get("owner"):
-            records = records.filter(owner__user__username=data["owner"])
-        return records
+    def filters(self) -> dict[str, Any]:
+        """The filters given, as `record_list_filtered` takes them; none while invalid."""
+        if not self.is_bound or not self.is_valid():
+            return {}
+        return {name: value for name, value in self.cleaned_data.items() if value}
 
 
 class GrantForm(forms.Form):

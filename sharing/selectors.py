@@ -1,6 +1,7 @@
 """Reads: which records and grants an owner may see."""
 
 import uuid
+from datetime import datetime
 
 from django.db.models import Q, QuerySet
 
@@ -49,6 +50,47 @@ def record_list_shared_with(viewer: Owner) -> QuerySet[Record]:
     return record_list_visible_to(viewer).exclude(owner=viewer)
 
 
+# The record filters' statuses: anchoring's, and "tampered" (a view found the stored data
+# changed), which is not an anchoring status.
+RECORD_STATUS_TAMPERED = "tampered"
+RECORD_FILTER_STATUSES = [*Record.Status.choices, (RECORD_STATUS_TAMPERED, "tampered")]
+
+
+def record_list_filtered(
+    records: QuerySet[Record],
+    *,
+    topic: str | None = None,
+    data_type: str | None = None,
+    status: str | None = None,
+    since: datetime | None = None,
+    until: datetime | None = None,
+    owner: str | None = None,
+    robot: uuid.UUID | str | None = None,
+) -> QuerySet[Record]:
+    """The records that match every filter given (None or empty: not filtered).
+
+    Capture times are half-open, [since, until); `owner` is a username; `status` is one of
+    RECORD_FILTER_STATUSES. The one filter of the record pages and the API.
+    """
+    if topic:
+        records = records.filter(topic=topic)
+    if data_type:
+        records = records.filter(data_type=data_type)
+    if status == RECORD_STATUS_TAMPERED:
+        records = records.filter(tampered_at__isnull=False)
+    elif status:
+        records = records.filter(status=status)
+    if since is not None:
+        records = records.filter(captured_at__gte=since)
+    if until is not None:
+        records = records.filter(captured_at__lt=until)
+    if owner:
+        records = records.filter(owner__user__username=owner)
+    if robot:
+        records = records.filter(robot_id=robot)
+    return records
+
+
 def record_get_visible(viewer: Owner, record_id: uuid.UUID | str) -> Record | None:
     try:
         record_uuid = uuid.UUID(str(record_id))
@@ -63,6 +105,19 @@ def grant_list_given(owner: Owner) -> QuerySet[Grant]:
 
 def grant_list_received(owner: Owner) -> QuerySet[Grant]:
     return Grant.objects.filter(grantee=owner).select_related("owner__user")
+
+
+# A grant counts, on both sides alike, while it is active or being granted on chain; one being
+# revoked does not: its owner has taken it back.
+GRANTS_COUNTED = (Grant.Status.ACTIVE, Grant.Status.PENDING)
+
+
+def grant_count_given(owner: Owner) -> int:
+    return grant_list_given(owner).filter(status__in=GRANTS_COUNTED).count()
+
+
+def grant_count_received(owner: Owner) -> int:
+    return grant_list_received(owner).filter(status__in=GRANTS_COUNTED).count()
 
 
 def verdict_list_for_record(record: Record) -> QuerySet[Verdict]:
@@ -112,3 +167,14 @@ def chain_events_of_owner(owner: Owner) -> list[ChainEvent]:
     deployment = deployment_active(chain_id=client.chain_id, genesis_hash=client.genesis_hash)
     from_block = deployment.block_number if deployment else 0
     return client.events_naming(owner.eoa_address, OWNER_EVENT_ARGS, from_block)
+
+
+def chain_backlog() -> dict[str, int]:
+    """Records and grants waiting for the chain, and records whose anchoring failed."""
+    return {
+        "records": Record.objects.filter(status=Record.Status.PENDING).count(),
+        "failed_records": Record.objects.filter(status=Record.Status.FAILED).count(),
+        "grants": Grant.objects.filter(
+            status__in=[Grant.Status.PENDING, Grant.Status.REVOKING]
+        ).count(),
+    }

@@ -13,7 +13,7 @@ from django.test import Client
 from accounts.keyexchange import portal_sm2_public_key
 from accounts.models import Owner
 from accounts.services import owner_create
-from portal.redis_client import get_redis
+from core.redis_client import get_redis
 from sharing.cache import _key as cache_key
 from sharing.models import Record
 from sharing.services import record_create

@@ -8,7 +8,7 @@ from django.urls import reverse
 
 from sharing.models import Grant, Record
 from sharing.services import record_create_batch
-from tests.anvil import free_port
+from stack.anvil import free_port
 
 pytestmark = pytest.mark.django_db
 
@@ -23,7 +23,9 @@ def test_grant_by_username_then_revoke(client, make_owner, django_capture_on_com
     grant = Grant.objects.get(owner=alice, grantee=bob)
     assert grant.status == Grant.Status.ACTIVE
     html = client.get(reverse("grants")).content.decode()
-    assert "bob may now read your records" in html
+    # The grant is pending until the chain confirms it, and the message says so.
+    assert "bob may read your records once it is confirmed" in html
+    assert "may now read" not in html
     assert grant.grant_tx in html
     assert re.search(r'data-grantee="bob" data-status="active"', html)
 
@@ -134,7 +136,7 @@ def test_audit_shows_the_owners_history_from_the_chain(
 def test_audit_groups_a_batch_and_caps_its_list(
     client, make_robot, monkeypatch, django_capture_on_commit_callbacks
 ):
-    monkeypatch.setattr("sharing.views.AUDIT_RECORDS_PER_UPLOAD", 2)
+    monkeypatch.setattr("sharing.audit.AUDIT_RECORDS_PER_UPLOAD", 2)
     alice = make_robot("alice")
     with django_capture_on_commit_callbacks(execute=True):
         records = record_create_batch(

@@ -9,10 +9,10 @@ import pytest
 from django.urls import reverse
 from django.utils import timezone
 
-from chainworker.services import records_reanchor
+from sharing.anchoring import records_reanchor
 from sharing.models import Record, Verdict
 from sharing.services import grant_create, grant_revoke
-from tests.anvil import free_port
+from stack.anvil import free_port
 from tests.pages.conftest import image, odometry, tamper
 
 pytestmark = pytest.mark.django_db
