@@ -6,6 +6,7 @@ from django.core.exceptions import ValidationError
 from django.db import connection
 
 from accounts import keywrap
+from accounts.agent_config import Topic
 from accounts.errors import (
     InvalidKeyMaterial,
     InvalidUsername,
@@ -23,7 +24,6 @@ from accounts.selectors import (
     robot_topics,
 )
 from accounts.services import key_rotate, owner_create, robot_create, robot_token_revoke
-from ros_agent.config import TopicConfig
 from smcrypto import key_commitment, key_id, sm4
 from tests.conftest import TEST_PASSWORD
 
@@ -162,8 +162,8 @@ def unregistered_owner(db) -> Owner:
 def test_robot_keeps_the_topics_it_was_created_with(unregistered_owner):
     owner = unregistered_owner
     topics = [
-        TopicConfig("/scan", "sensor_msgs/LaserScan"),
-        TopicConfig("~odom", "nav_msgs/Odometry"),
+        Topic("/scan", "sensor_msgs/LaserScan"),
+        Topic("~odom", "nav_msgs/Odometry"),
     ]
     robot, _token = robot_create(owner=owner, name="lidar", topics=topics)
     stored = Robot.objects.get(pk=robot.pk)
@@ -180,9 +180,9 @@ def test_robot_keeps_the_topics_it_was_created_with(unregistered_owner):
     ("topics", "message"),
     [
         ([], "at least one topic"),
-        ([TopicConfig("/a", "String")], "must be package/Message"),
-        ([TopicConfig("not a topic", "std_msgs/String")], "not a valid ROS topic name"),
-        ([TopicConfig("/a", "std_msgs/String")] * 2, "topics listed twice"),
+        ([Topic("/a", "String")], "must be package/Message"),
+        ([Topic("not a topic", "std_msgs/String")], "not a valid ROS topic name"),
+        ([Topic("/a", "std_msgs/String")] * 2, "topics listed twice"),
     ],
 )
 def test_robot_with_invalid_topics_is_refused(unregistered_owner, topics, message):
