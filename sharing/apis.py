@@ -11,7 +11,6 @@ import uuid
 from typing import Any
 
 from django.core.validators import ProhibitNullCharactersValidator, RegexValidator
-from django.db.models import QuerySet
 from drf_spectacular.types import OpenApiTypes
 from drf_spectacular.utils import (
     OpenApiParameter,
@@ -29,14 +28,15 @@ from rest_framework.throttling import BaseThrottle
 from rest_framework.views import APIView
 
 from accounts.authentication import RobotUploadRateThrottle, caller_owner, caller_robot
-from accounts.models import Owner
 from core.api_errors import error_responses
-from sharing.errors import OwnerNotFound, RecordNotFound
+from sharing.errors import RecordNotFound
 from sharing.models import Grant, Record
 from sharing.selectors import (
+    RECORD_FILTER_STATUSES,
     grant_list_given,
     grant_list_received,
     record_get_visible,
+    record_list_filtered,
     record_list_visible_to,
 )
 from sharing.services import (
@@ -222,16 +222,6 @@ class IsRobot(BasePermission):
         return caller_robot(request) is not None
 
 
-def _owner_named(identifier: str) -> Owner:
-    """The owner named by username or 0x address; OwnerNotFound for anything else."""
-    field = TextField(max_length=MAX_OWNER_IDENTIFIER)
-    try:
-        identifier = field.run_validation(identifier)
-    except serializers.ValidationError:
-        raise OwnerNotFound("no such owner") from None
-    return owner_resolve(identifier)
-
-
 # --- records ---------------------------------------------------------------------------------
 
 
@@ -271,12 +261,18 @@ class RecordsApi(APIView):
             ref_name = "RecordFilter"
 
         topic = TextField(required=False, max_length=255)
-        type = TextField(required=False, max_length=255, help_text="ROS type")
-        status = serializers.ChoiceField(choices=Record.Status.choices, required=False)
+        type = TextField(required=False, max_length=255, help_text="ROS type", source="data_type")
+        status = serializers.ChoiceField(
+            choices=RECORD_FILTER_STATUSES,
+            required=False,
+            help_text="anchoring status, or `tampered`: a view found the stored data changed",
+        )
         since = serializers.DateTimeField(
             required=False, help_text="captured at or after (ISO 8601)"
         )
-        until = serializers.DateTimeField(required=False, help_text="captured before (ISO 8601)")
+        until = serializers.DateTimeField(
+            required=False, help_text="captured before, not at (ISO 8601): [since, until)"
+        )
         owner = TextField(
             required=False, max_length=MAX_OWNER_IDENTIFIER, help_text="owner's username"
         )
@@ -303,7 +299,8 @@ class RecordsApi(APIView):
         # A plain mapping, not form semantics: `?type=` is refused rather than ignored.
         filters = self.FilterSerializer(data=request.query_params.dict())
         filters.is_valid(raise_exception=True)
-        records = _filtered(record_list_visible_to(caller_owner(request)), filters.validated_data)
+        visible = record_list_visible_to(caller_owner(request))
+        records = record_list_filtered(visible, **filters.validated_data)
         paginator = self.pagination_class()
         page = paginator.paginate_queryset(records, request, view=self)
         return paginator.get_paginated_response(RecordOutputSerializer(page, many=True).data)
@@ -362,21 +359,6 @@ class RecordsApi(APIView):
         records = record_create_batch(robot=robot, envelopes=envelopes)
         results = self.UploadOutputSerializer(records, many=True).data
         return Response(results if batch else results[0], status=status.HTTP_201_CREATED)
-
-
-def _filtered(records: QuerySet[Record], filters: dict[str, Any]) -> QuerySet[Record]:
-    lookups = {
-        "topic": "topic",
-        "type": "data_type",
-        "status": "status",
-        "since": "captured_at__gte",
-        "until": "captured_at__lt",
-        "owner": "owner__user__username",
-        "robot": "robot_id",
-    }
-    return records.filter(
-        **{lookup: filters[name] for name, lookup in lookups.items() if name in filters}
-    )
 
 
 def _record_uuid(record_id: str) -> uuid.UUID:
@@ -543,5 +525,5 @@ class GrantRevokeApi(APIView):
     )
     def delete(self, request: Request, grantee: str) -> Response:
         owner = caller_owner(request)
-        grant = grant_revoke(owner=owner, grantee=_owner_named(grantee))
+        grant = grant_revoke(owner=owner, grantee=owner_resolve(grantee))
         return Response(GrantOutputSerializer(grant).data)

@@ -1,11 +1,30 @@
 """agent.yaml and ROS-parameter settings: defaults, paths, and clear refusals."""
 
+from datetime import UTC, datetime
 from pathlib import Path
 
 import pytest
 import yaml
+from django.core.exceptions import ValidationError
 
-from ros_agent.config import AgentConfig, ConfigError, TopicConfig, config_from_mapping, load_config
+from accounts.agent_config import (
+    DEFAULT_TOPICS,
+    TOKEN_FILENAME,
+    InvalidTopics,
+    Topic,
+    agent_config_yaml,
+    topics_as_list,
+    topics_parse,
+)
+from accounts.models import validate_robot_topics
+from ros_agent.config import (
+    AgentConfig,
+    ConfigError,
+    TopicConfig,
+    config_from_mapping,
+    load_config,
+    parse_topics,
+)
 from tests.ros_agent.conftest import OWNER, ROBOT, TOKEN, write_key_file
 
 
@@ -148,3 +167,125 @@ def test_unreadable_or_non_mapping_yaml(tmp_path):
     (tmp_path / "agent.yaml").write_text("portal_url: [unclosed\n")
     with pytest.raises(ConfigError, match="not valid YAML"):
         load_config(tmp_path / "agent.yaml")
+
+
+# --- the portal's side of the format (accounts/agent_config.py) -------------------------------
+# The portal writes agent.yaml and checks the topics owners type in, without importing the
+# agent: these tests hold the two sides to one format.
+
+
+@pytest.mark.parametrize("token", [TOKEN, None])
+def test_the_agent_loads_the_config_the_portal_writes(tmp_path, key_file, token):
+    topics = (
+        Topic("/robot/odom", "nav_msgs/Odometry"),
+        Topic("~scan", "sensor_msgs/LaserScan"),
+        Topic("front_camera/image_raw", "sensor_msgs/Image"),
+    )
+    text = agent_config_yaml(
+        portal_url="https://portal.example.org/",
+        robot_id=ROBOT,
+        robot_name="turtle 1",
+        owner_username=OWNER,
+        topics=topics,
+        token=token,
+        made_at=datetime(2026, 3, 1, 12, 0, tzinfo=UTC),
+    )
+    config_file = tmp_path / "agent.yaml"
+    config_file.write_text(text)
+    # The file names the key file it expects; the owner puts it beside the config.
+    assert yaml.safe_load(text)["key_file"] == key_file.name
+    if token is None:
+        token_file = tmp_path / TOKEN_FILENAME
+        token_file.write_text(TOKEN)
+        token_file.chmod(0o600)
+
+    config = load_config(config_file)
+
+    assert [(topic.name, topic.type) for topic in config.topics] == [
+        (topic.name, topic.type) for topic in topics
+    ]
+    assert (config.robot, config.owner, config.token) == (ROBOT, OWNER, TOKEN)
+    assert config.records_url == "https://portal.example.org/api/v1/records/"
+    assert config.key_file == key_file
+
+
+def test_the_portals_default_topics_are_valid_for_the_agent():
+    assert parse_topics(topics_as_list(DEFAULT_TOPICS), "topics") == tuple(
+        TopicConfig(topic.name, topic.type) for topic in DEFAULT_TOPICS
+    )
+
+
+def _entry(name: object, ros_type: object = "std_msgs/String") -> dict:
+    return {"name": name, "type": ros_type}
+
+
+# Topic values run through both sides: None where both accept them, else a part of the
+# message both give.
+TOPIC_CASES = [
+    ([_entry("/robot/odom", "nav_msgs/Odometry")], None),
+    ([_entry("~odom"), _entry("~/private"), _entry("relative/name_2")], None),
+    ([_entry("/a/b_c/d1", "my_pkg2/My_Msg_3")], None),
+    ([], None),  # an empty list: each side has its own message, both refuse
+    (None, None),
+    ("", None),
+    ("/odom std_msgs/String", "topics must be a list"),
+    ({"name": "/odom", "type": "std_msgs/String"}, "topics must be a list"),
+    ([["/odom", "std_msgs/String"]], "topics[0] must have exactly the keys name and type"),
+    ([{"name": "/odom"}], "topics[0] must have exactly the keys name and type"),
+    ([{**_entry("/odom"), "rate": 10}], "topics[0] must have exactly the keys name and type"),
+    ([_entry("/ok"), _entry("odom here")], "topics[1]: 'odom here' is not a valid ROS topic"),
+    ([_entry("/1odom")], "is not a valid ROS topic name"),
+    ([_entry("//odom")], "is not a valid ROS topic name"),
+    ([_entry("/odom/")], "is not a valid ROS topic name"),
+    ([_entry("/odöm")], "is not a valid ROS topic name"),
+    ([_entry("")], "is not a valid ROS topic name"),
+    ([_entry(5)], "5 is not a valid ROS topic name"),
+    ([_entry("/odom", "Odometry")], "type 'Odometry' must be package/Message"),
+    ([_entry("/odom", "nav_msgs/Odometry/x")], "must be package/Message"),
+    ([_entry("/odom", "nav_msgs/")], "must be package/Message"),
+    ([_entry("/odom", None)], "type None must be package/Message"),
+    ([_entry("/a"), _entry("/b"), _entry("/a")], "topics listed twice: /a"),
+]
+_VALID = {0, 1, 2}
+
+
+def _agent_refusal(value: object, tmp_path: Path) -> str | None:
+    """What the agent's loader says of these topics in an otherwise valid agent.yaml."""
+    settings = _settings()
+    settings["topics"] = value
+    try:
+        config_from_mapping(settings, source="agent.yaml", base_dir=tmp_path)
+    except ConfigError as exc:
+        return str(exc)
+    return None
+
+
+def _portal_refusal(value: object) -> str | None:
+    """What the portal says of the same topics when a robot is added (its topic check)."""
+    try:
+        topics_parse(value)
+    except InvalidTopics as exc:
+        return str(exc)
+    return None
+
+
+def _model_refusal(value: object) -> str | None:
+    """What the Robot model's validator says of them (the admin, a full_clean)."""
+    try:
+        validate_robot_topics(value)
+    except ValidationError as exc:
+        return " ".join(exc.messages)
+    return None
+
+
+@pytest.mark.parametrize(("index", "case"), list(enumerate(TOPIC_CASES)))
+def test_the_portal_refuses_the_topics_the_agent_refuses(tmp_path, key_file, index, case):
+    value, fragment = case
+    agent, portal = _agent_refusal(value, tmp_path), _portal_refusal(value)
+    assert _model_refusal(value) == portal
+    assert (agent is None, portal is None) == (index in _VALID, index in _VALID)
+    if fragment is not None:
+        assert fragment in agent
+        assert fragment in portal
+        # The agent names its source first; after that, the two messages are the same.
+        assert agent == f"agent.yaml: {portal}"
