@@ -9,7 +9,7 @@ from typing import Any
 from django.core.management.base import BaseCommand, CommandError, CommandParser
 
 from accounts.errors import AccountError
-from accounts.selectors import owner_by_address, owner_by_username
+from accounts.selectors import owner_by_identifier
 from accounts.services import robot_create
 
 
@@ -21,13 +21,11 @@ class Command(BaseCommand):
         parser.add_argument("--name", required=True, help="the robot's name, unique per owner")
 
     def handle(self, *args: Any, **options: Any) -> None:
-        identifier = options["owner"].strip()
-        if identifier.lower().startswith("0x"):
-            owner = owner_by_address(identifier)
-        else:
-            owner = owner_by_username(identifier)
+        owner = owner_by_identifier(options["owner"])
         if owner is None:
-            raise CommandError(f"no owner {identifier!r}: create it with `manage.py owner_create`")
+            raise CommandError(
+                f"no owner {options['owner'].strip()!r}: create it with `manage.py owner_create`"
+            )
         try:
             robot, token = robot_create(owner=owner, name=options["name"])
         except AccountError as exc:
