@@ -9,7 +9,9 @@ from django.test import Client
 from django.urls import reverse
 
 from accounts.models import DEFAULT_TOPICS, Robot
-from accounts.selectors import owner_key_current, robot_by_token
+from accounts.selectors import owner_balance_wei, owner_key_current, robot_by_token
+from chainworker.chain import ChainError
+from chainworker.services import chain_client
 from ros_agent.config import config_from_mapping
 from sharing.models import Grant
 from sharing.services import grant_create, grant_revoke
@@ -92,6 +94,16 @@ def test_dashboard_without_the_chain(client, pending_owner, settings):
     assert "unavailable" in html
     assert owner.eoa_address in html
     assert "still being registered" in html
+
+
+def test_owner_balance_is_read_from_the_chain_and_its_failure_let_through(
+    make_owner, pending_owner, settings
+):
+    owner = make_owner("olga")
+    assert owner_balance_wei(owner) == chain_client().balance(owner.eoa_address) > 0
+    settings.CHAIN_RPC_URL = f"http://127.0.0.1:{free_port()}"
+    with pytest.raises(ChainError):
+        owner_balance_wei(pending_owner())
 
 
 # --- robots -------------------------------------------------------------------------------

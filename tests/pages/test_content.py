@@ -1,0 +1,85 @@
+"""How a decrypted record is shown (sharing/content.py): pure functions of its plaintext."""
+
+import base64
+import json
+import math
+
+import pytest
+
+from sharing.content import (
+    MISSING,
+    content_of,
+    image_data_url,
+    odometry_rows,
+    pose_of,
+    trajectory_plot,
+)
+from tests.pages.conftest import image, odometry, tiny_png
+
+pytestmark = pytest.mark.nodb
+
+
+def test_odometry_record_gets_its_rows_and_pretty_json():
+    content = content_of(data_type="nav_msgs/Odometry", plaintext=odometry("alice", 1.5, -2.0))
+    assert content.is_odometry
+    rows = dict(content.odometry)
+    assert rows["Frame"] == "odom-frame to base_link"
+    assert rows["Position (m)"] == "x 1.5000, y -2.0000, z 0.0000"
+    assert rows["Heading (yaw)"] == "45.0°"
+    assert json.loads(content.pretty)["K"]["position"] == {"x": 1.5, "y": -2.0, "z": 0.0}
+    assert content.image_url == ""
+
+
+def test_image_record_shows_its_image_and_leaves_the_base64_out_of_the_json():
+    content = content_of(data_type="sensor_msgs/Image", plaintext=image("alice"))
+    encoded = base64.b64encode(tiny_png()).decode()
+    assert content.image_url == f"data:image/png;base64,{encoded}"
+    assert content.image_size == (4, 3)
+    assert encoded not in content.pretty
+    assert "base64 characters, above" in content.pretty
+
+
+def test_anything_but_json_is_left_to_the_download():
+    content = content_of(data_type="std_msgs/String", plaintext=b"\xff\xfenot json")
+    assert content.document is None
+    assert "download the raw record" in content.pretty
+    assert content.size == 10
+
+
+@pytest.mark.parametrize(
+    "encoded",
+    [None, 5, "not base64!", base64.b64encode(b"GIF89a....").decode(), ""],
+)
+def test_only_png_and_jpeg_become_data_urls(encoded):
+    assert image_data_url(encoded) == ""
+
+
+def test_a_jpeg_becomes_a_data_url():
+    encoded = base64.b64encode(b"\xff\xd8\xff\xe0rest").decode()
+    assert image_data_url(encoded) == f"data:image/jpeg;base64,{encoded}"
+
+
+def test_odometry_rows_of_partial_or_odd_data_say_what_is_missing():
+    rows = dict(odometry_rows({"position": {"x": True, "y": "1", "z": 2}, "header": "odd"}))
+    assert rows["Position (m)"] == f"x {MISSING}, y {MISSING}, z 2.0000"
+    assert rows["Heading (yaw)"] == MISSING
+    assert rows["Stamp"] == MISSING
+
+
+def test_pose_of_an_odometry_record_and_of_anything_else():
+    x, y, yaw = pose_of(odometry("alice", 3.0, 4.0))
+    assert (x, y) == (3.0, 4.0)
+    assert math.isclose(yaw, math.pi / 4, abs_tol=1e-6)
+    assert pose_of(b"[1, 2]") is None
+    assert pose_of(json.dumps({"K": {"position": {"x": True, "y": 1}}}).encode()) is None
+    assert pose_of(b"not json") is None
+
+
+def test_trajectory_plot_is_square_scaled_with_y_up():
+    plot = trajectory_plot([(0.0, 0.0, None), (1.0, 1.0, 0.0)])
+    assert plot["count"] == 2
+    (x0, y0), (x1, y1) = plot["start"], plot["end"]
+    assert x1 - x0 == pytest.approx(y0 - y1)  # same scale on both axes, y grows upwards
+    assert plot["arrow"] == (round(x1 + 22, 1), y1)  # heading 0 points right
+    assert plot["last"] == "1.00, 1.00"
+    assert trajectory_plot([]) == {"width": 480, "height": 360, "points": "", "count": 0}
