@@ -2,16 +2,14 @@
 and the portal itself (gunicorn) for clients that talk to it over HTTP.
 
 The tests that use this are about the queue, so nothing runs eagerly: the test process only
-writes rows and queues messages, exactly like the web processes do in production.
+writes rows and queues messages, exactly like the web processes do in production. The
+processes are started by the stack package (stack/processes.py), as `make run` starts them;
+this module only points them at the test's database, settings and a queue of its own.
 """
 
 from __future__ import annotations
 
 import os
-import signal
-import subprocess
-import sys
-import time
 import uuid
 from collections.abc import Callable
 from pathlib import Path
@@ -22,8 +20,20 @@ from django.db import connection
 
 from portal.celery import app as celery_app
 from stack.anvil import AnvilProcess, free_port, start_anvil
+from stack.processes import (
+    REPO_ROOT,
+    Children,
+    StackError,
+    WebSizing,
+    celery_beat,
+    celery_worker,
+    gunicorn,
+)
+from stack.processes import wait_until as _wait_until
 
-REPO_ROOT = Path(__file__).resolve().parent.parent
+__all__ = ["REPO_ROOT", "WorkerStack", "database_url", "wait_for"]
+
+WEB_THREADS = 4
 
 
 def database_url() -> str:
@@ -39,17 +49,16 @@ def database_url() -> str:
 def wait_for(
     predicate: Callable[[], bool], *, timeout: float, what: str, interval: float = 0.25
 ) -> None:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if predicate():
-            return
-        time.sleep(interval)
-    if not predicate():
-        raise AssertionError(f"timed out after {timeout:.0f}s waiting for {what}")
+    """Poll predicate until it holds; AssertionError after timeout seconds."""
+    try:
+        _wait_until(predicate, timeout=timeout, what=what, interval=interval)
+    except StackError as exc:
+        raise AssertionError(str(exc)) from None
 
 
 class WorkerStack:
-    """anvil + N Celery workers (+ beat), configured like the test process."""
+    """anvil + N Celery workers (+ beat, + the portal under gunicorn), configured like the
+    test process."""
 
     def __init__(
         self,
@@ -62,20 +71,16 @@ class WorkerStack:
         self.env_overrides = env_overrides or {}
         self.state_path = tmp_path / "anvil-state.json"
         self.block_time = block_time
-        self.anvil: AnvilProcess = start_anvil(
-            block_time=block_time, state_path=str(self.state_path)
-        )
+        self.anvil: AnvilProcess = start_anvil(block_time=block_time, state_path=self.state_path)
         self.port = self.anvil.port
         self.redis_url = settings.REDIS_URL
-        self.workers: dict[str, subprocess.Popen] = {}
-        self.beat: subprocess.Popen | None = None
-        self.web: subprocess.Popen | None = None
         self.web_port: int | None = None
         # A queue of its own: test runs sharing this Redis must not take each other's tasks.
         self.queue = f"authros-test-{uuid.uuid4().hex[:12]}"
         self._queue_before: str | None = None
         self.logs = tmp_path / "logs"
         self.logs.mkdir(exist_ok=True)
+        self.children = Children(self.logs)
 
     def configure_test_process(self, django_settings) -> None:
         """Point the test process at this stack's chain, with the stack's short timings."""
@@ -104,6 +109,7 @@ class WorkerStack:
             "ANCHOR_LOCK_TTL": "6",
             "CHAIN_NONCE_LOCK_TIMEOUT": "5",
             "LOG_LEVEL": "INFO",
+            "PYTHONUNBUFFERED": "1",
             **self.env_overrides,
         }
 
@@ -111,85 +117,19 @@ class WorkerStack:
 
     def start_worker(self, name: str, *, queues: list[str] | None = None) -> None:
         """A worker with one pool process; on both of the stack's queues unless told."""
-        log = open(self.logs / f"{name}.log", "ab")  # noqa: SIM115 (owned by the process)
-        self.workers[name] = subprocess.Popen(
-            [
-                sys.executable,
-                "-m",
-                "celery",
-                "-A",
-                "portal",
-                "worker",
-                "-n",
-                f"{name}@%h",
-                "-c",
-                "1",
-                "--pool",
-                "prefork",
-                "--without-gossip",
-                "--without-mingle",
-                "--without-heartbeat",
-                "-l",
-                "INFO",
-                *(["-Q", ",".join(queues)] if queues else []),
-            ],
-            cwd=REPO_ROOT,
-            env=self.env(),
-            stdout=log,
-            stderr=subprocess.STDOUT,
-            start_new_session=True,
-        )
+        self.children.spawn(name, celery_worker(name, queues=queues or ()), env=self.env())
 
     def start_beat(self) -> None:
-        log = open(self.logs / "beat.log", "ab")  # noqa: SIM115
-        self.beat = subprocess.Popen(
-            [
-                sys.executable,
-                "-m",
-                "celery",
-                "-A",
-                "portal",
-                "beat",
-                "-l",
-                "INFO",
-                "-s",
-                str(self.tmp_path / "celerybeat-schedule"),
-            ],
-            cwd=REPO_ROOT,
-            env=self.env(),
-            stdout=log,
-            stderr=subprocess.STDOUT,
-            start_new_session=True,
+        self.children.spawn(
+            "beat", celery_beat(self.tmp_path / "celerybeat-schedule"), env=self.env()
         )
 
     def start_web(self, *, workers: int = 2, timeout: float = 60) -> str:
         """The portal under gunicorn on 127.0.0.1 (the same port again after a stop_web);
         returns its URL once it answers."""
         self.web_port = self.web_port or free_port()
-        log = open(self.logs / "web.log", "ab")  # noqa: SIM115
-        self.web = subprocess.Popen(
-            [
-                sys.executable,
-                "-m",
-                "gunicorn",
-                "portal.wsgi:application",
-                "--bind",
-                f"127.0.0.1:{self.web_port}",
-                "--workers",
-                str(workers),
-                "--timeout",
-                "60",
-                "--graceful-timeout",
-                "5",
-                "--access-logfile",
-                "-",
-            ],
-            cwd=REPO_ROOT,
-            env=self.env(),
-            stdout=log,
-            stderr=subprocess.STDOUT,
-            start_new_session=True,
-        )
+        command = gunicorn(f"127.0.0.1:{self.web_port}", WebSizing(workers, WEB_THREADS))
+        self.children.spawn("web", command, env=self.env(), stop_timeout=15)
         wait_for(self._web_answers, timeout=timeout, what="the portal (gunicorn) to answer")
         return self.web_url
 
@@ -198,7 +138,7 @@ class WorkerStack:
         return f"http://127.0.0.1:{self.web_port}"
 
     def _web_answers(self) -> bool:
-        if self.web is None or self.web.poll() is not None:
+        if not self.children["web"].running():
             raise AssertionError(f"the portal exited:\n{self.worker_logs()[-3000:]}")
         try:
             # Any JSON answer from Django will do; this path is not rate limited.
@@ -208,51 +148,25 @@ class WorkerStack:
 
     def stop_web(self) -> None:
         """Stop the portal (its port refuses connections until start_web)."""
-        if self.web is not None:
-            _terminate(self.web)
-            self.web = None
+        self.children.stop("web")
 
     def kill_worker(self, name: str) -> None:
         """kill -9 the worker and its pool processes, as a crash or an OOM kill would."""
-        process = self.workers.pop(name)
-        os.killpg(process.pid, signal.SIGKILL)
-        process.wait(timeout=10)
+        self.children.kill(name)
 
     def stop_anvil(self) -> None:
         self.anvil.stop()
 
     def restart_anvil(self) -> None:
         self.anvil = start_anvil(
-            block_time=self.block_time, state_path=str(self.state_path), port=self.port
+            block_time=self.block_time, state_path=self.state_path, port=self.port
         )
 
     def worker_logs(self) -> str:
         return "\n".join(path.read_text(errors="replace") for path in self.logs.glob("*.log"))
 
     def stop(self) -> None:
-        self.stop_web()
-        processes = list(self.workers.values()) + ([self.beat] if self.beat else [])
-        for process in processes:
-            if process.poll() is None:
-                os.killpg(process.pid, signal.SIGTERM)
-        for process in processes:
-            try:
-                process.wait(timeout=15)
-            except subprocess.TimeoutExpired:
-                os.killpg(process.pid, signal.SIGKILL)
-                process.wait()
-        self.workers.clear()
-        self.beat = None
+        self.children.stop_all(order=["web"])
         self.anvil.stop()
         if self._queue_before is not None:
             celery_app.conf.task_default_queue = self._queue_before
-
-
-def _terminate(process: subprocess.Popen, timeout: float = 15) -> None:
-    if process.poll() is None:
-        os.killpg(process.pid, signal.SIGTERM)
-    try:
-        process.wait(timeout=timeout)
-    except subprocess.TimeoutExpired:
-        os.killpg(process.pid, signal.SIGKILL)
-        process.wait()
