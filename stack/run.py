@@ -468,20 +468,27 @@ def main(argv: list[str]) -> int:
     commands = parser.add_subparsers(dest="command", required=True)
     commands.add_parser("redis", help="make sure a Redis answers at REDIS_URL (start one)")
     run_parser = commands.add_parser("run", help="start the whole stack (what `make run` does)")
-    run_parser.add_argument("--workdir", type=Path, default=defaults.workdir)
-    run_parser.add_argument("--host", default=defaults.host)
-    run_parser.add_argument("--port", type=int, default=defaults.port, help="0 = a free port")
-    run_parser.add_argument(
-        "--anvil-port", type=int, default=defaults.anvil_port, help="0 = a free port"
+    options = (
+        ("--workdir", Path, defaults.workdir, "AUTHROS_VAR_DIR: database, secrets, logs, state"),
+        ("--host", str, defaults.host, "PORTAL_HOST"),
+        ("--port", int, defaults.port, "PORTAL_PORT (0 = a free port)"),
+        ("--anvil-port", int, defaults.anvil_port, "ANVIL_PORT (0 = a free port)"),
+        ("--block-time", float, defaults.block_time, "ANVIL_BLOCK_TIME, seconds"),
+        ("--queue", str, defaults.queue, "CELERY_QUEUE (verify queue: QUEUE-verify)"),
+        ("--workers", int, defaults.workers, "STACK_WORKERS: chain worker processes"),
+        ("--verify-workers", int, defaults.verify_workers, "STACK_VERIFY_WORKERS"),
+        ("--web-workers", int, defaults.web_workers, "WEB_WORKERS (0 = 2 x cores + 1)"),
+        ("--web-threads", int, defaults.web_threads, "WEB_THREADS per web worker (0 = 8)"),
     )
-    run_parser.add_argument("--block-time", type=float, default=defaults.block_time)
-    run_parser.add_argument("--queue", default=defaults.queue)
-    run_parser.add_argument("--workers", type=int, default=defaults.workers)
-    run_parser.add_argument("--verify-workers", type=int, default=defaults.verify_workers)
-    run_parser.add_argument("--web-workers", type=int, default=defaults.web_workers)
-    run_parser.add_argument("--web-threads", type=int, default=defaults.web_threads)
-    run_parser.add_argument("--web", action=argparse.BooleanOptionalAction, default=defaults.web)
-    run_parser.add_argument("--ros", action=argparse.BooleanOptionalAction, default=defaults.ros)
+    for flag, kind, default, what in options:
+        run_parser.add_argument(flag, type=kind, default=default, help=f"{what} [{default}]")
+    for flag, default, what in (
+        ("--web", defaults.web, "STACK_WEB: serve the portal"),
+        ("--ros", defaults.ros, "STACK_ROS: roscore, simulated robot, demo agent"),
+    ):
+        run_parser.add_argument(
+            flag, action=argparse.BooleanOptionalAction, default=default, help=what
+        )
     args = parser.parse_args(argv)
     if args.command == "redis":
         return redis(defaults.redis_url, defaults.workdir / "redis")
