@@ -16,7 +16,7 @@ from rest_framework.request import Request
 from rest_framework.settings import api_settings
 
 from accounts.models import Owner, Robot
-from accounts.selectors import robot_by_token
+from accounts.selectors import owner_for_user, robot_by_token
 
 if TYPE_CHECKING:  # rest_framework.views imports this module through the settings
     from rest_framework.views import APIView
@@ -77,7 +77,7 @@ def caller_owner(request: Request) -> Owner:
     robot = caller_robot(request)
     if robot is not None:
         return robot.owner
-    owner = Owner.objects.select_related("user").filter(user_id=request.user.pk).first()
+    owner = owner_for_user(request.user)
     if owner is None:
         raise exceptions.PermissionDenied("this account is not a robot owner")
     return owner
