@@ -90,12 +90,16 @@ def agent_config_yaml(
     topics: Sequence[Topic],
     token: str | None,
     made_at: datetime,
+    key_file: str | None = None,
+    options: Mapping[str, object] | None = None,
 ) -> str:
     """An agent.yaml for a robot; it holds `token` if given, else names TOKEN_FILENAME.
 
-    Never the SM4 key itself: the file names a key file the owner fills in.
+    Never the SM4 key itself: the file names a key file the owner fills in (`key_file`, by
+    default named after the owner). `options` are the agent's optional settings (batch_size,
+    spool_dir, ...), written as given after the topics.
     """
-    key_file = key_filename(owner_username)
+    key_file = key_file or key_filename(owner_username)
     settings_map: dict[str, object] = {
         "portal_url": portal_url.rstrip("/"),
         "robot": robot_id,
@@ -107,6 +111,7 @@ def agent_config_yaml(
         settings_map["token"] = token
     settings_map["key_file"] = key_file
     settings_map["topics"] = topics_as_list(topics)
+    settings_map.update(options or {})
     token_line = (
         "# It holds the robot's API token: keep it private too (chmod 600 this file)."
         if token

@@ -209,6 +209,31 @@ def test_the_agent_loads_the_config_the_portal_writes(tmp_path, key_file, token)
     assert config.key_file == key_file
 
 
+def test_the_agent_takes_the_optional_settings_the_portal_writes(tmp_path, owner_key):
+    write_key_file(tmp_path / "sm4.key", owner_key)
+    text = agent_config_yaml(
+        portal_url="http://127.0.0.1:8000",
+        robot_id=ROBOT,
+        robot_name="demo",
+        owner_username=OWNER,
+        topics=DEFAULT_TOPICS,
+        token=TOKEN,
+        made_at=datetime(2026, 3, 1, tzinfo=UTC),
+        key_file="sm4.key",
+        options={"batch_size": 20, "flush_interval": 1.0, "spool_dir": "spool"},
+    )
+    config = load_config(_write_text(tmp_path, text))
+    assert (config.batch_size, config.flush_interval) == (20, 1.0)
+    assert config.spool_dir == tmp_path / "spool"
+    assert config.key == owner_key
+
+
+def _write_text(folder: Path, text: str) -> Path:
+    path = folder / "agent.yaml"
+    path.write_text(text)
+    return path
+
+
 def test_the_portals_default_topics_are_valid_for_the_agent():
     assert parse_topics(topics_as_list(DEFAULT_TOPICS), "topics") == tuple(
         TopicConfig(topic.name, topic.type) for topic in DEFAULT_TOPICS
