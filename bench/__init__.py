@@ -1,13 +1,16 @@
-"""Benchmarks, never part of the test suite: `python -m bench [NAME [args]]`.
+"""Benchmarks, never part of the test suite: `python -m bench [NAME [args]]` from the
+repository root.
 
-Each benchmark is a module `bench/<name>.py` with `main(argv: list[str]) -> int`; this package
-holds what they share: where results go, timing, and a description of the machine.
+Each benchmark is a module `bench/<name>.py` with `main(argv: list[str]) -> int`, listed in
+BENCHMARKS. What they share: this package (where results go, timing, a description of the
+machine), bench/common.py (the loop over configurations, ratios, tables, JSON/CSV/PNG files),
+bench/plotting.py (matplotlib, set up once), bench/stack.py (a measured run's stack: what
+`make run` starts) and bench/rest.py (agents uploading through the REST API).
 """
 
 import importlib.metadata
 import multiprocessing
 import os
-import pkgutil
 import platform
 import signal
 import statistics
@@ -23,17 +26,23 @@ import psutil
 from tqdm import tqdm
 
 RESULTS_DIR = Path(__file__).resolve().parent / "results"
+# The modules with a main(argv); the others in this package are what they share.
+BENCHMARKS = (
+    "block_interval",
+    "concurrency",
+    "crypto",
+    "message_size",
+    "pipeline",
+    "report",
+    "sustained",
+)
 T = TypeVar("T")
 R = TypeVar("R")
 
 
 def available() -> list[str]:
-    """Names of the benchmarks in this package (modules not starting with `_`)."""
-    return sorted(
-        module.name
-        for module in pkgutil.iter_modules([str(Path(__file__).parent)])
-        if not module.name.startswith("_")
-    )
+    """Names of the benchmarks, as `python -m bench NAME` takes them."""
+    return list(BENCHMARKS)
 
 
 def run_in_child(function: Callable[[T], R], argument: T) -> R:

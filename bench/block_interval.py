@@ -1,7 +1,7 @@
 """Block interval (paper Fig. 16, its difficulty settings): automine, 1 s, 2 s and 5 s blocks.
 
 Each block time, with ANCHOR_BATCH_MAX 1 (one transaction per record, the paper's way and the
-baseline) and 100 (batching), is one configuration with a fresh stack (bench/_stack.py): N
+baseline) and 100 (batching), is one configuration with a fresh stack (bench/rest.py): N
 agents (default 300, as the paper's 300 Data_upload calls; `--quick`: 20) each POST one 1 KB
 envelope through REST at once. Reported: average latency to anchored (and to verified, and the
 response time), batching as a ratio against batch size 1 of the same block time in this run.
@@ -11,29 +11,13 @@ Writes bench/results/block_interval.json, block_interval.csv and block_interval.
 """
 
 import argparse
-import sys
 from pathlib import Path
 from typing import Any
 
-if not __package__:  # run as `python bench/block_interval.py`: make the repository importable
-    sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
-
-import matplotlib
-
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt
-
 from bench import now_iso
-from bench._stack import (
-    add_arguments,
-    add_ratios,
-    check_arguments,
-    measure_all,
-    print_table,
-    report_header,
-    upload_run,
-    write_results,
-)
+from bench.common import add_ratios, print_table, run_configurations, write_results
+from bench.plotting import machine_line, plt, save_figure
+from bench.rest import add_arguments, check_arguments, measure, report_header, upload_run
 
 NAME = "block_interval"
 BLOCK_TIMES: tuple[float | None, ...] = (None, 1.0, 2.0, 5.0)  # None: automine
@@ -101,7 +85,7 @@ def main(argv: list[str]) -> int:
         for block_time in block_times
         for batch_max in BATCH_SIZES
     ]
-    rows = measure_all(runs)
+    rows = run_configurations(runs, measure)
     add_ratios(rows, ("mode",), RATIO_KEYS)
     report["settings"] |= {
         "agents_per_run": agents,
@@ -115,9 +99,7 @@ def main(argv: list[str]) -> int:
     )
     report["results"] = rows
     print_table(report, COLUMNS)
-    write_results(NAME, report, FIELDS, args.results_dir)
-    _plot(report, args.results_dir / f"{NAME}.png")
-    print(f"results: {args.results_dir}/{NAME}.json, {NAME}.csv, {NAME}.png")
+    write_results(NAME, report, FIELDS, args.results_dir, plot=_plot)
     return 0 if all(row["success_rate"] == 1 for row in rows) else 1
 
 
@@ -152,16 +134,9 @@ def _plot(report: dict[str, Any], path: Path) -> None:
     axis.set_ylabel("mean latency POST to anchored, s")
     axis.grid(True, axis="y", alpha=0.3)
     axis.legend(fontsize=8)
-    machine = report["machine"]
-    figure.suptitle(
+    save_figure(
+        figure,
+        path,
         f"block interval (paper Fig. 16): {rows[0]['agents'] if rows else 0} concurrent 1 KB "
-        f"uploads per run; {machine['logical_cores']} cores, {report['date']}",
-        fontsize=9,
+        f"uploads per run; {machine_line(report)}",
     )
-    figure.tight_layout()
-    figure.savefig(path, dpi=120)
-    plt.close(figure)
-
-
-if __name__ == "__main__":
-    sys.exit(main(sys.argv[1:]))

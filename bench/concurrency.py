@@ -2,39 +2,24 @@
 
 For N in 300, 500 and 700 (`--quick`: 30 and 50), on anvil with automine, `--block-time 1` and
 `--block-time 2`, each with ANCHOR_BATCH_MAX 1 (one transaction per record, the paper's way and
-the baseline) and 100 (batching), every configuration in its own process with a fresh stack
-(see bench/_stack.py). Measures total response time (first POST to last 201), time until
-anchored and until verified, and success rate = verified / sent. Batching is reported as a
-ratio against batch size 1 of the same block mode and N, measured in the same run.
+the baseline) and 100 (batching), every configuration in its own process with a fresh stack:
+the one `make run` starts, gunicorn settings included (bench/stack.py, bench/rest.py).
+Measures total response time (first POST to last 201), time until anchored and until
+verified, and success rate = verified / sent. Batching is reported as a ratio against batch
+size 1 of the same block mode and N, measured in the same run.
 
 Run: `python -m bench concurrency [--agents 300 500 700] [--quick]`.
 Writes bench/results/concurrency.json, concurrency.csv and concurrency.png.
 """
 
 import argparse
-import sys
 from pathlib import Path
 from typing import Any
 
-if not __package__:  # run as `python bench/concurrency.py`: make the repository importable
-    sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
-
-import matplotlib
-
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt
-
 from bench import now_iso
-from bench._stack import (
-    add_arguments,
-    add_ratios,
-    check_arguments,
-    measure_all,
-    print_table,
-    report_header,
-    upload_run,
-    write_results,
-)
+from bench.common import add_ratios, print_table, run_configurations, write_results
+from bench.plotting import machine_line, plt, save_figure
+from bench.rest import add_arguments, check_arguments, measure, report_header, upload_run
 
 NAME = "concurrency"
 AGENTS = (300, 500, 700)
@@ -115,7 +100,7 @@ def main(argv: list[str]) -> int:
         for n in agents
         for batch_max in BATCH_SIZES
     ]
-    rows = measure_all(runs)
+    rows = run_configurations(runs, measure)
     add_ratios(rows, ("mode", "agents", "plaintext_bytes"), RATIO_KEYS)
     report["settings"] |= {
         "agents_per_run": list(agents),
@@ -129,9 +114,7 @@ def main(argv: list[str]) -> int:
     )
     report["results"] = rows
     print_table(report, COLUMNS)
-    write_results(NAME, report, FIELDS, args.results_dir)
-    _plot(report, args.results_dir / f"{NAME}.png")
-    print(f"results: {args.results_dir}/{NAME}.json, {NAME}.csv, {NAME}.png")
+    write_results(NAME, report, FIELDS, args.results_dir, plot=_plot)
     return 0 if all(row["success_rate"] == 1 for row in rows) else 1
 
 
@@ -174,16 +157,4 @@ def _plot(report: dict[str, Any], path: Path) -> None:
         axis.grid(True, alpha=0.3)
         axis.legend(fontsize=7, loc="upper left")
         rate_axis.legend(fontsize=7, loc="lower right")
-    machine = report["machine"]
-    figure.suptitle(
-        f"concurrency (paper Fig. 14): {machine['cpu_model']}, {machine['logical_cores']} "
-        f"cores, {report['date']}",
-        fontsize=9,
-    )
-    figure.tight_layout()
-    figure.savefig(path, dpi=120)
-    plt.close(figure)
-
-
-if __name__ == "__main__":
-    sys.exit(main(sys.argv[1:]))
+    save_figure(figure, path, f"concurrency (paper Fig. 14): {machine_line(report)}")

@@ -12,41 +12,26 @@ hour. `--gmssl-budget SECONDS` opts in to fewer gmssl runs where 300 would take 
 that; `--quick` (a smoke run) times 20 runs each with a 5 s budget. The repeats actually made are
 in the results, per row.
 
-Run: `python -m bench crypto [--repeat N] [--gmssl-budget S] [--quick]` or `python
-bench/crypto.py [...]`. Writes bench/results/crypto.json, crypto.csv and crypto.png.
+Run: `python -m bench crypto [--repeat N] [--gmssl-budget S] [--quick]`.
+Writes bench/results/crypto.json, crypto.csv and crypto.png.
 """
 
 import argparse
-import csv
-import json
 import math
 import os
-import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-if not __package__:  # run as `python bench/crypto.py`: make the repository importable
-    sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
-
-import matplotlib
-
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt
 from cryptography.hazmat.backends.openssl import backend as openssl_backend
 from gmssl.sm3 import sm3_hash
 from gmssl.sm4 import SM4_DECRYPT, SM4_ENCRYPT, CryptSM4
 from tqdm import tqdm
 
-from bench import (
-    RESULTS_DIR,
-    machine_info,
-    measure,
-    now_iso,
-    progress_bar,
-    summarize,
-)
+from bench import RESULTS_DIR, machine_info, measure, now_iso, progress_bar, summarize
+from bench.common import write_results
+from bench.plotting import plt, save_figure
 from smcrypto import envelope, sm4
 from smcrypto.sm3 import sm3_digest
 
@@ -142,11 +127,9 @@ def main(argv: list[str]) -> int:
         "results": rows,
     }
     _print_table(report)
-    args.results_dir.mkdir(parents=True, exist_ok=True)
-    _write_json(report, args.results_dir / "crypto.json")
-    _write_csv(rows, args.results_dir / "crypto.csv")
-    _plot(report, args.results_dir / "crypto.png")
-    print(f"results: {args.results_dir}/crypto.json, crypto.csv, crypto.png")
+    write_results(
+        "crypto", report, CSV_FIELDS, args.results_dir, plot=_plot, csv_rows=_csv_rows(rows)
+    )
     return 0
 
 
@@ -272,23 +255,19 @@ def _print_table(report: dict[str, Any]) -> None:
         )
 
 
-def _write_json(report: dict[str, Any], path: Path) -> None:
-    path.write_text(json.dumps(report, indent=2) + "\n")
+CSV_STATS = ("median_ms", "mean_ms", "p5_ms", "p95_ms", "min_ms", "max_ms")
+CSV_FIELDS = ("operation", "size_bytes", "implementation", "what", "repeats", *CSV_STATS)
 
 
-def _write_csv(rows: list[dict[str, Any]], path: Path) -> None:
-    stats = ("median_ms", "mean_ms", "p5_ms", "p95_ms", "min_ms", "max_ms")
-    with path.open("w", newline="") as handle:
-        writer = csv.writer(handle)
-        writer.writerow(["operation", "size_bytes", "implementation", "what", "repeats", *stats])
-        for row in rows:
-            for implementation in ("smcrypto", "gmssl"):
-                measured = row[implementation]
-                writer.writerow(
-                    [row["operation"], row["size_bytes"], implementation, measured["what"]]
-                    + [measured["repeats"]]
-                    + [f"{measured[stat]:.6f}" for stat in stats]
-                )
+def _csv_rows(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """One CSV row per measurement: each result row holds smcrypto's and gmssl's."""
+    return [
+        {"operation": row["operation"], "size_bytes": row["size_bytes"]}
+        | {"implementation": implementation}
+        | {key: row[implementation][key] for key in ("what", "repeats", *CSV_STATS)}
+        for row in rows
+        for implementation in ("smcrypto", "gmssl")
+    ]
 
 
 def _plot(report: dict[str, Any], path: Path) -> None:
@@ -342,16 +321,10 @@ def _plot(report: dict[str, Any], path: Path) -> None:
     right.grid(True, axis="y", which="both", alpha=0.3)
 
     machine = report["machine"]
-    figure.suptitle(
+    save_figure(
+        figure,
+        path,
         f"smcrypto (cryptography {machine['cryptography_version']}, {report['openssl']}) "
         f"vs gmssl {machine['gmssl_version']} (pure Python): "
         f"{machine['cpu_model']}, {report['date']}",
-        fontsize=9,
     )
-    figure.tight_layout()
-    figure.savefig(path, dpi=120)
-    plt.close(figure)
-
-
-if __name__ == "__main__":
-    sys.exit(main(sys.argv[1:]))

@@ -3,8 +3,8 @@
 The paper calls Data_upload 300 times per size "through the simulated process" and reports the
 average time. Here, for each size, one agent (one robot, one requests.Session) POSTs 300
 envelopes of that plaintext size to `/api/v1/records/` in a row, each once the previous one was
-answered, so the size is not hidden behind queueing (bench/_stack.py has the stack: anvil with
-automine, Celery workers, gunicorn). Measured per upload: response time (POST to 201, the
+answered, so the size is not hidden behind queueing (bench/rest.py; the stack is `make run`'s:
+anvil with automine, Celery workers, gunicorn). Measured per upload: response time (POST to 201, the
 paper's measure) and time to anchored on chain (POST to Record.anchored_at).
 
 Each size runs twice, each time with a fresh stack: ANCHOR_BATCH_MAX 1 (one transaction per
@@ -21,29 +21,13 @@ Run: `python -m bench message_size [--uploads N] [--sizes 1024 2048 ...] [--no-c
 """
 
 import argparse
-import sys
 from pathlib import Path
 from typing import Any
 
-if not __package__:  # run as `python bench/message_size.py`: make the repository importable
-    sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
-
-import matplotlib
-
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt
-
 from bench import now_iso
-from bench._stack import (
-    add_arguments,
-    add_ratios,
-    check_arguments,
-    measure_all,
-    print_table,
-    report_header,
-    upload_run,
-    write_results,
-)
+from bench.common import add_ratios, print_table, run_configurations, write_results
+from bench.plotting import machine_line, plt, save_figure
+from bench.rest import add_arguments, check_arguments, measure, report_header, upload_run
 
 NAME = "message_size"
 SIZES = (1024, 2048, 4096, 8192)
@@ -133,7 +117,7 @@ def main(argv: list[str]) -> int:
         for size in args.sizes
         for batch_max in BATCH_SIZES
     ]
-    rows = measure_all(runs)
+    rows = run_configurations(runs, measure)
     add_ratios(rows, ("pattern", "plaintext_bytes"), RATIO_KEYS)
     _add_size_ratios(rows)
     report["settings"] |= {
@@ -157,9 +141,7 @@ def main(argv: list[str]) -> int:
     ]
     report["results"] = rows
     print_table(report, COLUMNS)
-    write_results(NAME, report, FIELDS, args.results_dir)
-    _plot(report, args.results_dir / f"{NAME}.png")
-    print(f"results: {args.results_dir}/{NAME}.json, {NAME}.csv, {NAME}.png")
+    write_results(NAME, report, FIELDS, args.results_dir, plot=_plot)
     return 0 if all(row["success_rate"] == 1 for row in rows) else 1
 
 
@@ -237,16 +219,6 @@ def _plot(report: dict[str, Any], path: Path) -> None:
             axis.set_title(title, fontsize=10)
             axis.grid(True, alpha=0.3)
             axis.legend(fontsize=8)
-    machine = report["machine"]
-    figure.suptitle(
-        f"message size (paper Fig. 15), anvil automine; {machine['logical_cores']} cores, "
-        f"{report['date']}",
-        fontsize=9,
+    save_figure(
+        figure, path, f"message size (paper Fig. 15), anvil automine; {machine_line(report)}"
     )
-    figure.tight_layout()
-    figure.savefig(path, dpi=120)
-    plt.close(figure)
-
-
-if __name__ == "__main__":
-    sys.exit(main(sys.argv[1:]))

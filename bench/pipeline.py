@@ -2,8 +2,9 @@
 
 Issue 3, section 7. For ANCHOR_BATCH_MAX 1 (one record per transaction, the paper's way and
 the baseline), 10 and 100, on anvil with automine and with `--block-time 1`. Every
-configuration gets a fresh SQLite database, anvil, contract, W Celery workers and one beat,
-all sharing Redis DB 13 (flushed first). K owners are registered on chain by the workers,
+configuration gets a fresh stack, `make run`'s without the portal (bench/stack.py): SQLite
+database, anvil, contract, a chain worker with W pool processes, a verify worker and beat, all
+sharing Redis DB 13 (flushed first). K owners are registered on chain by the workers,
 then N envelopes of about 1 KB are uploaded through `sharing.services.record_create`,
 round-robin over the owners' robots, as fast as one process can (or at `--rate`), and the
 benchmark waits until every record is anchored.
@@ -20,64 +21,45 @@ Writes bench/results/pipeline.json, pipeline.csv and pipeline.png.
 """
 
 import argparse
-import csv
-import json
-import os
-import re
-import secrets
-import shutil
-import signal
-import subprocess
 import sys
 import tempfile
 import time
 from collections import Counter
 from dataclasses import dataclass
-from datetime import UTC, datetime
+from datetime import datetime
 from pathlib import Path
 from typing import Any
 
-if not __package__:  # run as `python bench/pipeline.py`: make the repository importable
-    sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
-
-import matplotlib
-
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt
 import psutil
-import redis
 
-from bench import RESULTS_DIR, machine_info, now_iso, progress_bar, run_in_child, summarize
-from smcrypto import envelope, sm4
-from tests.anvil import AnvilProcess, start_anvil
+from bench import RESULTS_DIR, machine_info, now_iso, progress_bar, summarize
+from bench.common import (
+    PLAINTEXT_BYTES,
+    add_ratios,
+    check_redis_url,
+    run_configurations,
+    seal_record,
+    write_results,
+)
+from bench.plotting import machine_line, plt, save_figure
+from bench.stack import (
+    BENCH_REDIS_URL,
+    POLL_INTERVAL,
+    BenchStack,
+    StackOptions,
+    owners_register,
+    run_finished,
+)
+from stack.anvil import anvil_version
 
-REPO_ROOT = Path(__file__).resolve().parent.parent
 BATCH_SIZES = (1, 10, 100)
 BLOCK_TIMES: tuple[float | None, ...] = (None, 1.0)  # None: automine
-BENCH_REDIS_URL = "redis://127.0.0.1:6379/13"
-REDIS_KEY_PREFIX = "authros-bench"
-CELERY_QUEUE = "authros-bench"
-PLAINTEXT_BYTES = 1024
 QUICK = {"records": 20, "owners": 2, "workers": 2}
-REGISTRATION_TIMEOUT = 180.0
-WORKER_STOP_TIMEOUT = 20.0
-POLL_INTERVAL = 0.2
-WORKER_OPTIONS = (
-    "-c",
-    "1",
-    "--pool",
-    "prefork",
-    "--without-gossip",
-    "--without-mingle",
-    "--without-heartbeat",
-)
-_TASK_LINE = re.compile(r"Task (?P<task>[\w.]+)\[[0-9a-f-]+\] (?P<what>succeeded|retry|raised)")
-_ANCHOR_RESULT = re.compile(
-    r"Task chainworker\.tasks\.records_anchor\[[0-9a-f-]+\] succeeded in [\d.e-]+s: (\d+)"
-)
-_RETRY_REASON = re.compile(r"retry: Retry in [^:]+: (\w+)")
-_IDS = re.compile(r"0x[0-9a-fA-F]+|[0-9a-f-]{36}")
-_LOG_LEVEL = re.compile(r"^\S+ \S+ (ERROR|WARNING|CRITICAL) ")
+RATIO_NAMES = {
+    "throughput_rps": "throughput_ratio_vs_batch1",
+    "latency_p50_s": "latency_p50_ratio_vs_batch1",
+    "latency_p95_s": "latency_p95_ratio_vs_batch1",
+}
 
 
 @dataclass(frozen=True)
@@ -99,13 +81,29 @@ class Configuration:
     def mode(self) -> str:
         return "automine" if self.block_time is None else f"block-time {self.block_time:g}s"
 
+    def describe(self) -> str:
+        return f"{self.mode}, ANCHOR_BATCH_MAX={self.batch_max}"
+
+    def stack_options(self) -> StackOptions:
+        """No portal: records are created through the service, in the benchmark's process."""
+        return StackOptions(
+            block_time=self.block_time,
+            batch_max=self.batch_max,
+            workers=self.workers,
+            max_wait=self.max_wait,
+            redis_url=self.redis_url,
+            web=False,
+        )
+
 
 def main(argv: list[str]) -> int:
     """Run every configuration, print the table and write JSON, CSV and PNG results."""
     parser = argparse.ArgumentParser(prog="python -m bench pipeline", description=__doc__)
     parser.add_argument("--records", type=int, default=300, help="uploads per configuration")
     parser.add_argument("--owners", type=int, default=3, help="owners (one robot each)")
-    parser.add_argument("--workers", type=int, default=2, help="Celery worker processes (-c 1)")
+    parser.add_argument(
+        "--workers", type=int, default=2, help="pool processes of the chain worker (default 2)"
+    )
     parser.add_argument(
         "--max-wait", type=float, default=0.2, help="ANCHOR_MAX_WAIT in seconds (default 0.2)"
     )
@@ -134,11 +132,7 @@ def main(argv: list[str]) -> int:
         args.records, args.owners = QUICK["records"], QUICK["owners"]
     if min(args.records, args.owners, args.workers) < 1:
         parser.error("--records, --owners and --workers must be at least 1")
-    if redis.Redis.from_url(args.redis_url).connection_pool.connection_kwargs.get("db", 0) in (
-        0,
-        14,
-    ):
-        parser.error("refusing to flush Redis DB 0 (development) or 14 (tests)")
+    check_redis_url(parser, args.redis_url)
 
     started = now_iso()
     load_at_start = [round(load, 2) for load in psutil.getloadavg()]  # other work on the host
@@ -158,15 +152,8 @@ def main(argv: list[str]) -> int:
         for block_time in BLOCK_TIMES
         for batch_max in BATCH_SIZES
     ]
-    rows = []
-    for number, configuration in enumerate(configurations, 1):
-        print(
-            f"== [{number}/{len(configurations)}] {configuration.mode}, "
-            f"ANCHOR_BATCH_MAX={configuration.batch_max}",
-            file=sys.stderr,
-        )
-        rows.append(run_in_child(_measure, configuration))
-    _add_ratios(rows)
+    rows = run_configurations(configurations, _measure)
+    add_ratios(rows, ("mode",), RATIO_NAMES)
     portal_settings = rows[0]["portal_settings"]
     for row in rows:
         del row["portal_settings"]
@@ -174,13 +161,15 @@ def main(argv: list[str]) -> int:
         "benchmark": "pipeline",
         "date": started,
         "machine": machine_info(("celery", "django", "web3", "redis", "matplotlib")),
-        "anvil": _anvil_version(),
+        "anvil": anvil_version(),
         "load_average_at_start": load_at_start,
         "settings": {
             "records": args.records,
             "owners": args.owners,
             "workers": args.workers,
-            "worker_command": f"celery -A portal worker {' '.join(WORKER_OPTIONS)}, plus one beat",
+            "stack": "python -m stack run --no-ros --no-web (make run's, without the portal)",
+            "worker_command": f"celery -A portal worker -c {args.workers} --pool prefork, "
+            "one more -c 1 for the verify queue alone, and one beat, as make run starts them",
             "batch_sizes": list(BATCH_SIZES),
             "block_times": ["automine" if b is None else b for b in BLOCK_TIMES],
             "anchor_max_wait_s": args.max_wait,
@@ -194,11 +183,7 @@ def main(argv: list[str]) -> int:
         "results": rows,
     }
     _print_table(report)
-    args.results_dir.mkdir(parents=True, exist_ok=True)
-    (args.results_dir / "pipeline.json").write_text(json.dumps(report, indent=2) + "\n")
-    _write_csv(rows, args.results_dir / "pipeline.csv")
-    _plot(report, args.results_dir / "pipeline.png")
-    print(f"results: {args.results_dir}/pipeline.json, pipeline.csv, pipeline.png")
+    write_results("pipeline", report, CSV_FIELDS, args.results_dir, plot=_plot)
     incomplete = [row for row in rows if row["pending"] or row["failed"]]
     return 1 if incomplete else 0
 
@@ -226,206 +211,17 @@ def _notes(args: argparse.Namespace) -> list[str]:
 def _measure(configuration: Configuration) -> dict[str, Any]:
     """Start the stack, register owners, upload, wait for anchoring, stop; the row of results."""
     workdir = Path(tempfile.mkdtemp(prefix="authros-bench-pipeline-"))
-    stack = _Stack(configuration, workdir)
+    stack = BenchStack(configuration.stack_options(), workdir)
     try:
         stack.start()
-        robots = _owners_register(configuration, stack)
+        robots = owners_register(stack, configuration.owners)
         _upload(configuration, robots)
         _await_anchoring(configuration, stack)
         row = _statistics(configuration)
     finally:
         stack.stop()
     row["portal_settings"] = stack.portal_settings
-    return run_finished(row, stack, workdir, keep_logs=configuration.keep_logs)
-
-
-def run_finished(
-    row: dict[str, Any], stack: Any, workdir: Path, *, keep_logs: bool
-) -> dict[str, Any]:
-    """A run's row after its stack stopped: with the workers' log summary, and the work
-    folder kept (and named in the row) or removed."""
-    row["worker_logs"] = stack.log_summary()
-    if keep_logs:
-        row["workdir"] = str(workdir)
-        print(f"kept {workdir}", file=sys.stderr)
-    else:
-        shutil.rmtree(workdir, ignore_errors=True)
-    return row
-
-
-class _Stack:
-    """anvil, the bench process's Django, W workers and a beat, for one configuration."""
-
-    def __init__(self, configuration: Configuration, workdir: Path) -> None:
-        self.configuration = configuration
-        self.workdir = workdir
-        self.logs = workdir / "logs"
-        self.anvil: AnvilProcess | None = None
-        self.processes: list[subprocess.Popen[bytes]] = []
-        self.roles: dict[str, list[subprocess.Popen[bytes]]] = {}  # workers, beat, web
-        self.portal_settings: dict[str, Any] = {}
-
-    def start(self) -> None:
-        configuration = self.configuration
-        redis.Redis.from_url(configuration.redis_url).flushdb()
-        self.anvil = start_anvil(block_time=configuration.block_time)
-        os.environ.update(self._environment(log_level="WARNING"))
-
-        import django
-
-        django.setup()
-        from django.conf import settings
-        from django.core.management import call_command
-
-        from chainworker.services import contract_deploy
-
-        call_command("migrate", verbosity=0, interactive=False)
-        contract_deploy()
-        self.portal_settings = {
-            name.lower(): getattr(settings, name)
-            for name in (
-                "ANCHOR_MAX_WAIT",
-                "ANCHOR_STALE_AFTER",
-                "ANCHOR_LOCK_TTL",
-                "CHAIN_CONFIRMATIONS",
-                "CHAIN_RECEIPT_TIMEOUT",
-            )
-        }
-        self.portal_settings["anchor_sweep_interval"] = settings.CELERY_BEAT_SCHEDULE[
-            "sweep-stale-chain-work"
-        ]["schedule"]
-        self.logs.mkdir()
-        for number in range(configuration.workers):
-            self._spawn(f"w{number}", ["worker", "-n", f"bench{number}@%h", *WORKER_OPTIONS])
-        self._spawn("beat", ["beat", "-s", str(self.workdir / "celerybeat-schedule")], role="beat")
-
-    def _environment(self, *, log_level: str) -> dict[str, str]:
-        configuration = self.configuration
-        var = self.workdir / "var"
-        return {
-            "DJANGO_SETTINGS_MODULE": "portal.settings",
-            "DJANGO_DEBUG": "false",
-            "AUTHROS_VAR_DIR": str(var),
-            "AUTHROS_SECRETS_DIR": str(var / "secrets"),
-            "AUTHROS_MEDIA_ROOT": str(var / "media"),
-            "AUTHROS_MASTER_KEY": "",
-            "DATABASE_URL": f"sqlite:///{var / 'db.sqlite3'}",
-            "REDIS_URL": configuration.redis_url,
-            "CELERY_BROKER_URL": configuration.redis_url,
-            "CELERY_RESULT_BACKEND": configuration.redis_url,
-            "REDIS_KEY_PREFIX": REDIS_KEY_PREFIX,
-            "CELERY_QUEUE": CELERY_QUEUE,
-            "CELERY_TASK_ALWAYS_EAGER": "false",
-            "CHAIN_RPC_URL": self.anvil.url,
-            "CHAIN_CONTRACT_ADDRESS": "",
-            "CHAIN_OPERATOR_KEY": "",
-            "CHAIN_CONFIRMATIONS": "0",
-            "ANCHOR_BATCH_MAX": str(configuration.batch_max),
-            "ANCHOR_MAX_WAIT": str(configuration.max_wait),
-            "LOG_LEVEL": log_level,
-        }
-
-    def _spawn(self, name: str, celery_args: list[str], *, role: str = "workers") -> None:
-        log = (self.logs / f"{name}.log").open("ab")
-        try:
-            process = subprocess.Popen(
-                [sys.executable, "-m", "celery", "-A", "portal", *celery_args, "-l", "INFO"],
-                cwd=REPO_ROOT,
-                env={**os.environ, **self._environment(log_level="INFO")},
-                stdout=log,
-                stderr=subprocess.STDOUT,
-                start_new_session=True,  # its own group: killed with its pool if it hangs
-            )
-        finally:
-            log.close()
-        self.processes.append(process)
-        self.roles.setdefault(role, []).append(process)
-
-    def check_alive(self) -> None:
-        for process in self.processes:
-            if process.poll() is not None:
-                raise RuntimeError(
-                    f"celery process {process.pid} exited with {process.returncode}; "
-                    f"see {self.logs}:\n{self.log_tail()}"
-                )
-
-    def stop(self) -> None:
-        """Warm shutdown of beat and workers (their pool children stop with them), then anvil."""
-        for process in reversed(self.processes):  # beat first: no new work while workers stop
-            if process.poll() is None:
-                process.terminate()
-        deadline = time.monotonic() + WORKER_STOP_TIMEOUT
-        for process in self.processes:
-            try:
-                process.wait(timeout=max(deadline - time.monotonic(), 0.1))
-            except subprocess.TimeoutExpired:
-                os.killpg(process.pid, signal.SIGKILL)
-                process.wait()
-        if self.anvil is not None:
-            self.anvil.stop()
-        if "django" in sys.modules:
-            from django.db import connections
-
-            connections.close_all()
-
-    def log_tail(self, lines: int = 30) -> str:
-        text = "\n".join(p.read_text(errors="replace") for p in sorted(self.logs.glob("*.log")))
-        return "\n".join(text.splitlines()[-lines:])
-
-    def log_summary(self) -> dict[str, Any]:
-        """What the workers' logs say: task outcomes, retries, warnings and errors."""
-        outcomes: Counter[str] = Counter()
-        retries: Counter[str] = Counter()
-        anchor_results: Counter[int] = Counter()
-        problems: Counter[str] = Counter()
-        for path in sorted(self.logs.glob("*.log")):
-            for line in path.read_text(errors="replace").splitlines():
-                if match := _TASK_LINE.search(line):
-                    outcomes[f"{match['task'].rsplit('.', 1)[-1]} {match['what']}"] += 1
-                if match := _RETRY_REASON.search(line):
-                    retries[match[1]] += 1
-                if match := _ANCHOR_RESULT.search(line):
-                    anchor_results[int(match[1])] += 1
-                if match := _LOG_LEVEL.search(line):
-                    message = line.split(" ", 5)[-1]
-                    problems[
-                        f"{match[1]} {re.sub(r'0x[0-9a-fA-F]+|[0-9a-f-]{36}', '…', message)}"
-                    ] += 1
-        return {
-            "task_outcomes": dict(outcomes),
-            "retry_reasons": dict(retries),
-            "records_anchor_runs": sum(anchor_results.values()),
-            "records_anchor_runs_anchoring_nothing": anchor_results.get(0, 0),
-            "warnings_and_errors": dict(problems.most_common(10)),
-        }
-
-
-def _owners_register(configuration: Configuration, stack: _Stack) -> list[tuple[Any, bytes]]:
-    """K owners with one robot each, registered on chain by the workers; (robot, sm4 key)."""
-    from accounts.models import ChainState, Owner
-    from accounts.services import owner_create, robot_create
-
-    robots = []
-    for number in range(configuration.owners):
-        key = sm4.generate_key()
-        owner = owner_create(
-            username=f"bench-owner-{number}", password=secrets.token_urlsafe(18), sm4_key=key
-        )
-        robot, _token = robot_create(owner=owner, name="bench-robot")
-        robots.append((robot, key))
-    deadline = time.monotonic() + REGISTRATION_TIMEOUT
-    with progress_bar(configuration.owners, "owners registered", unit="owner") as progress:
-        while True:
-            confirmed = Owner.objects.filter(chain_state=ChainState.CONFIRMED).count()
-            progress.update(confirmed - progress.n)
-            if confirmed == configuration.owners:
-                return robots
-            stack.check_alive()
-            if time.monotonic() > deadline:
-                raise RuntimeError(
-                    f"owners not registered after {REGISTRATION_TIMEOUT:.0f}s:\n{stack.log_tail()}"
-                )
-            time.sleep(POLL_INTERVAL)
+    return run_finished(row, stack, keep_logs=configuration.keep_logs)
 
 
 def _upload(configuration: Configuration, robots: list[tuple[Any, bytes]]) -> None:
@@ -443,27 +239,7 @@ def _upload(configuration: Configuration, robots: list[tuple[Any, bytes]]) -> No
             progress.update(1)
 
 
-def seal_record(
-    robot: Any, key: bytes, *, seq: int, plaintext_bytes: int = PLAINTEXT_BYTES
-) -> bytes:
-    """Fig. 4's JSON record padded to plaintext_bytes, sealed as the robot's agent seals it."""
-    now = datetime.now(tz=UTC).isoformat().replace("+00:00", "Z")
-    header = {
-        "owner": robot.owner.username,
-        "robot": str(robot.id),
-        "topic": "/robot/odom",
-        "type": "nav_msgs/Odometry",
-        "seq": seq,
-        "time": now,
-    }
-    record = {"K": {"seq": seq, "pad": ""}, "Owner": robot.owner.username, "Time": now}
-    record.update(Type=header["type"], Topic=header["topic"])
-    filler = max(plaintext_bytes - len(json.dumps(record).encode()), 0)
-    record["K"]["pad"] = secrets.token_hex(filler // 2 + 1)[:filler]
-    return envelope.seal(key, header, json.dumps(record).encode())
-
-
-def _await_anchoring(configuration: Configuration, stack: _Stack) -> None:
+def _await_anchoring(configuration: Configuration, stack: BenchStack) -> None:
     """Until every record is anchored or failed, or the timeout."""
     from sharing.models import Record
 
@@ -552,32 +328,6 @@ def _per_owner(anchored: list[dict[str, Any]], start: datetime) -> list[dict[str
 # --- reporting ---------------------------------------------------------------------------------
 
 
-def _add_ratios(rows: list[dict[str, Any]]) -> None:
-    """Each row against batch size 1 of the same block mode, measured in this run."""
-    baselines = {row["mode"]: row for row in rows if row["batch_max"] == 1}
-    for row in rows:
-        baseline = baselines.get(row["mode"])
-        for name, key in (
-            ("throughput_ratio_vs_batch1", "throughput_rps"),
-            ("latency_p50_ratio_vs_batch1", "latency_p50_s"),
-            ("latency_p95_ratio_vs_batch1", "latency_p95_s"),
-        ):
-            ours, theirs = row.get(key), baseline.get(key) if baseline else None
-            row[name] = ours / theirs if ours is not None and theirs else None
-
-
-def _anvil_version() -> str:
-    from tests.anvil import anvil_binary
-
-    try:
-        done = subprocess.run(
-            [str(anvil_binary()), "--version"], capture_output=True, text=True, timeout=10
-        )
-    except (OSError, subprocess.TimeoutExpired) as exc:
-        return f"unknown ({exc})"
-    return done.stdout.strip().splitlines()[0] if done.stdout.strip() else "unknown"
-
-
 def _ratio(value: float | None) -> str:
     return f"{value:.2f}x" if value is not None else "-"
 
@@ -643,19 +393,6 @@ CSV_FIELDS = (
 )
 
 
-def _write_csv(rows: list[dict[str, Any]], path: Path) -> None:
-    with path.open("w", newline="") as handle:
-        writer = csv.writer(handle)
-        writer.writerow(CSV_FIELDS)
-        for row in rows:
-            writer.writerow(
-                [
-                    f"{value:.6f}" if isinstance(value, float) else value
-                    for value in (row.get(field) for field in CSV_FIELDS)
-                ]
-            )
-
-
 def _plot(report: dict[str, Any], path: Path) -> None:
     rows = [row for row in report["results"] if row["anchored"]]
     figure, (left, right) = plt.subplots(1, 2, figsize=(12, 5))
@@ -711,17 +448,11 @@ def _plot(report: dict[str, Any], path: Path) -> None:
     right.set_yscale("log")
     right.set_ylabel("upload-to-anchored latency, s (log)")
     right.set_title("latency p50 / p95")
-    settings, machine = report["settings"], report["machine"]
-    figure.suptitle(
+    settings = report["settings"]
+    save_figure(
+        figure,
+        path,
         f"anchoring pipeline: {settings['records']} records, {settings['owners']} owners, "
         f"{settings['workers']} workers, ANCHOR_MAX_WAIT {settings['anchor_max_wait_s']:g}s; "
-        f"{machine['cpu_model']}, {machine['logical_cores']} cores, {report['date']}",
-        fontsize=9,
+        f"{machine_line(report)}",
     )
-    figure.tight_layout()
-    figure.savefig(path, dpi=120)
-    plt.close(figure)
-
-
-if __name__ == "__main__":
-    sys.exit(main(sys.argv[1:]))

@@ -11,13 +11,9 @@ Run: `python -m bench report [--results-dir DIR] [--output FILE]`.
 import argparse
 import itertools
 import json
-import sys
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
-
-if not __package__:  # run as `python bench/report.py`: make the repository importable
-    sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from bench import RESULTS_DIR, now_iso
 
@@ -665,7 +661,3 @@ def _relative(path: Path) -> str:
         return str(path.resolve().relative_to(Path.cwd().resolve()))
     except ValueError:
         return str(path)
-
-
-if __name__ == "__main__":
-    sys.exit(main(sys.argv[1:]))

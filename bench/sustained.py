@@ -37,39 +37,31 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-if not __package__:  # run as `python bench/sustained.py`: make the repository importable
-    sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
-
-import matplotlib
-
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt
 import psutil
 import requests
 
-from bench import now_iso, progress_bar, run_in_child
-from bench._stack import (
-    REQUEST_TIMEOUT,
-    _WebStack,
-    add_arguments,
-    check_arguments,
+from bench import now_iso, progress_bar
+from bench.common import (
+    PLAINTEXT_BYTES,
+    add_ratios,
     print_table,
-    report_header,
-    web_configuration,
+    run_configurations,
+    seal_record,
     write_results,
 )
-from bench.pipeline import (
+from bench.plotting import machine_line, plt, save_figure
+from bench.rest import REQUEST_TIMEOUT, add_arguments, check_arguments, report_header
+from bench.stack import (
     POLL_INTERVAL,
-    Configuration,
-    _owners_register,
+    BenchStack,
+    StackOptions,
+    owners_register,
     run_finished,
-    seal_record,
 )
 
 NAME = "sustained"
 BLOCK_TIMES: tuple[float | None, ...] = (None, 1.0)  # None: automine
 BATCH_SIZES = (1, 100)
-PLAINTEXT_BYTES = 1024
 QUICK = {"agents": 10, "duration": 15.0, "warmup": 3.0, "drain": 60.0}
 SAMPLE_INTERVAL = 1.0
 PERCENTILES = (50, 95, 99)
@@ -139,6 +131,22 @@ class SustainedRun:
     def mode(self) -> str:
         return "automine" if self.block_time is None else f"block-time {self.block_time:g}s"
 
+    def describe(self) -> str:
+        return (
+            f"{self.mode}, ANCHOR_BATCH_MAX={self.batch_max}, "
+            f"{self.agents} robots x {self.rate:g} rec/s for {self.duration:g}s"
+        )
+
+    def stack_options(self) -> StackOptions:
+        return StackOptions(
+            block_time=self.block_time,
+            batch_max=self.batch_max,
+            workers=self.workers,
+            max_wait=self.max_wait,
+            redis_url=self.redis_url,
+            web_workers=self.web_workers,
+        )
+
 
 def main(argv: list[str]) -> int:
     """Run every configuration, print the table and write JSON, CSV and PNG results."""
@@ -198,15 +206,8 @@ def main(argv: list[str]) -> int:
         for block_time in block_times
         for batch_max in BATCH_SIZES
     ]
-    rows = []
-    for number, run in enumerate(runs, 1):
-        print(
-            f"== [{number}/{len(runs)}] {run.mode}, ANCHOR_BATCH_MAX={run.batch_max}, "
-            f"{run.agents} robots x {run.rate:g} rec/s for {run.duration:g}s",
-            file=sys.stderr,
-        )
-        rows.append(run_in_child(_measure, run))
-    _add_ratios(rows)
+    rows = run_configurations(runs, _measure)
+    add_ratios(rows, ("mode",), RATIO_KEYS)
     del report["settings"]["timeout_s"]  # --drain bounds the wait here
     report["settings"] |= {
         "agents": f"{args.agents} robots, one thread and requests.Session each, each with its "
@@ -242,9 +243,7 @@ def main(argv: list[str]) -> int:
     ]
     report["results"] = rows
     print_table(report, COLUMNS)
-    write_results(NAME, report, FIELDS, args.results_dir)
-    _plot(report, args.results_dir / f"{NAME}.png")
-    print(f"results: {args.results_dir}/{NAME}.json, {NAME}.csv, {NAME}.png")
+    write_results(NAME, report, FIELDS, args.results_dir, plot=_plot)
     return 0 if all(row["failed_records"] == 0 for row in rows) else 1
 
 
@@ -321,14 +320,12 @@ class _Sampler(threading.Thread):
 
 def _measure(run: SustainedRun) -> dict[str, Any]:
     workdir = Path(tempfile.mkdtemp(prefix="authros-bench-sustained-"))
-    configuration = web_configuration(run, records=0, timeout=run.drain)
-    stack = _WebStack(configuration, workdir)
+    stack = BenchStack(run.stack_options(), workdir)
     try:
         stack.start()
-        base = stack.web_start(run.web_workers)
-        robots = _robots_create(run, configuration, stack)
-        roots = {role: [p.pid for p in stack.roles[role]] for role in ("web", "workers", "beat")}
-        roots["anvil"] = [stack.anvil.process.pid]
+        base = stack.web_url
+        robots = _robots_create(run, stack)
+        roots = stack.pids()
         started = time.time()
         sampler = _Sampler(roots, started)
         sampler.start()
@@ -343,14 +340,14 @@ def _measure(run: SustainedRun) -> dict[str, Any]:
         row = _statistics(run, robots, watcher, sampler.samples, started, uploaded)
     finally:
         stack.stop()
-    return run_finished(row, stack, workdir, keep_logs=run.keep_logs)
+    return run_finished(row, stack, keep_logs=run.keep_logs)
 
 
-def _robots_create(run: SustainedRun, configuration: Configuration, stack: Any) -> list[_Robot]:
+def _robots_create(run: SustainedRun, stack: BenchStack) -> list[_Robot]:
     """K owners registered on chain, then one robot per agent, round-robin over the owners."""
     from accounts.services import robot_create
 
-    owners = _owners_register(configuration, stack)
+    owners = owners_register(stack, run.owners)
     robots = []
     for number in range(run.agents):
         owner_robot, key = owners[number % len(owners)]
@@ -454,7 +451,7 @@ class _Watcher:
             for record_id in upload.record_ids
         }
 
-    def finish(self, stack: Any) -> None:
+    def finish(self, stack: BenchStack) -> None:
         """Wait (at most run.drain s) until every accepted record is settled and viewed."""
         accepted = self.accepted()
         deadline = time.monotonic() + self.run.drain
@@ -643,14 +640,6 @@ def _timeline(
     return {"accepted_per_s": accepted, "anchored_per_s": anchored, "resources": samples}
 
 
-def _add_ratios(rows: list[dict[str, Any]]) -> None:
-    for row in rows:
-        baseline = next((r for r in rows if r["batch_max"] == 1 and r["mode"] == row["mode"]), None)
-        for key in RATIO_KEYS:
-            ours, theirs = row.get(key), baseline.get(key) if baseline else None
-            row[f"{key}_ratio_vs_batch1"] = ours / theirs if ours is not None and theirs else None
-
-
 def _plot(report: dict[str, Any], path: Path) -> None:
     rows = report["results"]
     figure, axes = plt.subplots(2, 2, figsize=(12, 8))
@@ -695,17 +684,5 @@ def _plot(report: dict[str, Any], path: Path) -> None:
     for axis in (rate_axis, latency_axis, cpu_axis, memory_axis):
         axis.grid(True, alpha=0.3)
         axis.legend(fontsize=6)
-    machine = report["machine"]
-    settings = report["settings"]
-    figure.suptitle(
-        f"whole pipeline: {settings['agents']}; {machine['cpu_model']}, "
-        f"{machine['logical_cores']} cores, {report['date']}",
-        fontsize=8,
-    )
-    figure.tight_layout()
-    figure.savefig(path, dpi=120)
-    plt.close(figure)
-
-
-if __name__ == "__main__":
-    sys.exit(main(sys.argv[1:]))
+    title = f"whole pipeline: {report['settings']['agents']}; {machine_line(report)}"
+    save_figure(figure, path, title, fontsize=8)

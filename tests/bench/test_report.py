@@ -13,7 +13,7 @@ from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 import pytest
 from tqdm import tqdm
 
-from bench import _stack, available, crypto, message_size, report, sustained
+from bench import available, common, crypto, message_size, report, rest, sustained
 from bench.__main__ import main as bench_main
 
 
@@ -117,7 +117,7 @@ def test_ratios_divide_by_batch_one_of_the_same_mode():
         {"mode": "automine", "batch_max": 100, "anchored_per_s": 50.0, "to_anchored_p50_s": 1.0},
         {"mode": "block-time 1s", "batch_max": 100, "anchored_per_s": 30.0},
     ]
-    sustained._add_ratios(rows)
+    common.add_ratios(rows, ("mode",), sustained.RATIO_KEYS)
     assert rows[1]["anchored_per_s_ratio_vs_batch1"] == 5.0
     assert rows[1]["to_anchored_p50_s_ratio_vs_batch1"] == 0.25
     assert rows[2]["anchored_per_s_ratio_vs_batch1"] is None  # no baseline in this run
@@ -185,7 +185,7 @@ def test_message_size_rows_get_ratios_against_batch_one_and_one_kilobyte():
         _size_row("sequential", 2048, 100, 12.5),
         _size_row("concurrent", 2048, 100, 900.0),  # no batch-1 or 1 KB row of its own
     ]
-    _stack.add_ratios(rows, ("pattern", "plaintext_bytes"), message_size.RATIO_KEYS)
+    common.add_ratios(rows, ("pattern", "plaintext_bytes"), message_size.RATIO_KEYS)
     message_size._add_size_ratios(rows)
     assert rows[1]["to_anchored_mean_s_ratio_vs_batch1"] == 0.5
     assert rows[3]["response_mean_s_ratio_vs_batch1"] == 12.5 / 15.0
@@ -208,7 +208,7 @@ def test_the_message_size_section_says_from_the_data_whether_response_grows_with
         ),
         _size_row("concurrent", 1024, 100, 2000.0),
     ]
-    _stack.add_ratios(rows, ("pattern", "plaintext_bytes"), message_size.RATIO_KEYS)
+    common.add_ratios(rows, ("pattern", "plaintext_bytes"), message_size.RATIO_KEYS)
     message_size._add_size_ratios(rows)
     (results / "message_size.json").write_text(json.dumps(_message_size_report(rows)))
     output = tmp_path / "REPORT.md"
@@ -324,8 +324,8 @@ def test_one_agent_posts_its_uploads_in_order_one_at_a_time():
     server = _post_server(received, concurrent)
     threading.Thread(target=server.serve_forever, daemon=True).start()
     try:
-        uploads = [_stack._Upload(None, "token", {"envelope": f"seq-{n}"}) for n in range(1, 6)]
-        _stack._post(f"http://127.0.0.1:{server.server_port}/", [uploads])
+        uploads = [rest.Upload(None, "token", {"envelope": f"seq-{n}"}) for n in range(1, 6)]
+        rest.post_uploads(f"http://127.0.0.1:{server.server_port}/", [uploads])
     finally:
         server.shutdown()
         server.server_close()
@@ -351,16 +351,16 @@ def test_upload_runs_describe_their_pattern():
             "keep_logs": False,
         },
     )()
-    sequential = _stack.upload_run(
+    sequential = rest.upload_run(
         args, block_time=None, batch_max=1, agents=1, plaintext_bytes=1024, uploads_per_agent=300
     )
-    concurrent = _stack.upload_run(
+    concurrent = rest.upload_run(
         args, block_time=None, batch_max=1, agents=300, plaintext_bytes=1024
     )
     assert (sequential.pattern, sequential.uploads) == ("sequential", 300)
     assert (concurrent.pattern, concurrent.uploads) == ("concurrent", 300)
-    assert sequential.describe() == "1 agent x 300 uploads in a row"
-    assert concurrent.describe() == "300 agents at once"
+    assert sequential.describe_agents() == "1 agent x 300 uploads in a row"
+    assert concurrent.describe_agents() == "300 agents at once"
 
 
 # --- crypto ---------------------------------------------------------------------------------
@@ -450,3 +450,41 @@ def test_message_size_refuses_nonsense_arguments(tmp_path, argv):
     with pytest.raises(SystemExit) as exit_info:
         message_size.main([*argv, "--results-dir", str(tmp_path)])
     assert exit_info.value.code == 2
+
+
+# --- shared helpers -------------------------------------------------------------------------
+
+
+def test_ratios_can_be_named_and_a_missing_baseline_gives_none():
+    rows = [
+        {"mode": "automine", "batch_max": 1, "throughput_rps": 4.0},
+        {"mode": "automine", "batch_max": 100, "throughput_rps": 10.0},
+        {"mode": "block-time 1s", "batch_max": 10, "throughput_rps": 8.0},
+    ]
+    common.add_ratios(rows, ("mode",), {"throughput_rps": "throughput_ratio_vs_batch1"})
+    assert [row["throughput_ratio_vs_batch1"] for row in rows] == [1.0, 2.5, None]
+
+
+def test_results_are_written_as_json_csv_and_png(tmp_path):
+    stats = ("mean_ms", "p5_ms", "min_ms", "max_ms")
+    rows = [_crypto_row("seal", 1024, 300, 300), _crypto_row("sm3", 819200, 300, 20)]
+    for row in rows:
+        for implementation in ("smcrypto", "gmssl"):
+            row[implementation] |= {stat: row[implementation]["median_ms"] for stat in stats}
+    report_data = {"benchmark": "crypto", "results": rows}
+    drawn = []
+    common.write_results(
+        "crypto",
+        report_data,
+        crypto.CSV_FIELDS,
+        tmp_path,
+        plot=lambda data, path: drawn.append(path),
+        csv_rows=crypto._csv_rows(report_data["results"]),
+    )
+    assert json.loads((tmp_path / "crypto.json").read_text()) == report_data
+    lines = (tmp_path / "crypto.csv").read_text().splitlines()
+    assert lines[0] == ",".join(crypto.CSV_FIELDS)
+    assert lines[1].startswith("seal,1024,smcrypto,SM3,300,2.000000,")
+    assert lines[4].startswith("sm3,819200,gmssl,SM3,20,3000.000000,")
+    assert len(lines) == 5
+    assert drawn == [tmp_path / "crypto.png"]

@@ -1,7 +1,8 @@
-"""What the REST benchmarks (concurrency, message_size, block_interval) share.
+"""What the REST benchmarks (concurrency, message_size, block_interval, sustained) share.
 
-One measured run: a fresh anvil, SQLite database, Redis DB 13 (flushed), W Celery workers and a
-beat (the pipeline benchmark's stack) plus the portal under gunicorn. N robots are created
+One measured run: the stack `make run` starts (bench/stack.py: a fresh anvil, SQLite database,
+Redis DB 13 flushed, a chain worker with W pool processes, a verify worker, beat, and the
+portal under gunicorn with make run's settings), without the ROS side. N robots are created
 through the services before the timed part, spread round-robin over K owners (registered on
 chain first), and M envelopes each (seq 1..M, M = uploads_per_agent, 1 unless a benchmark asks
 for more) are sealed in advance. Then N agent threads, each with its own requests.Session, are
@@ -21,11 +22,8 @@ Every run happens in its own spawned interpreter (Django reads its settings once
 """
 
 import argparse
-import csv
-import json
-import os
+import base64
 import statistics
-import subprocess
 import sys
 import tempfile
 import threading
@@ -37,25 +35,23 @@ from pathlib import Path
 from typing import Any
 
 import psutil
-import redis
 import requests
 
-from bench import RESULTS_DIR, machine_info, progress_bar, run_in_child, summarize
-from bench.pipeline import (
+from bench import RESULTS_DIR, machine_info, progress_bar, summarize
+from bench.common import check_redis_url, seal_record
+from bench.stack import (
     BENCH_REDIS_URL,
     POLL_INTERVAL,
-    WORKER_OPTIONS,
-    Configuration,
-    _anvil_version,
-    _owners_register,
-    _Stack,
+    BenchStack,
+    StackOptions,
+    owners_register,
+    record_open,
     run_finished,
-    seal_record,
+    web_description,
 )
-from tests.anvil import free_port
+from stack.anvil import anvil_version
 
 REQUEST_TIMEOUT = 300.0
-WEB_START_TIMEOUT = 60.0
 
 
 @dataclass(frozen=True)
@@ -89,11 +85,27 @@ class UploadRun:
         """How the uploads are sent: "concurrent" (one each, all at once) or "sequential"."""
         return "concurrent" if self.uploads_per_agent == 1 else "sequential"
 
-    def describe(self) -> str:
+    def describe_agents(self) -> str:
         if self.uploads_per_agent == 1:
             return f"{self.agents} agents at once"
         agents = "1 agent" if self.agents == 1 else f"{self.agents} agents"
         return f"{agents} x {self.uploads_per_agent} uploads in a row"
+
+    def describe(self) -> str:
+        return (
+            f"{self.mode}, ANCHOR_BATCH_MAX={self.batch_max}, {self.describe_agents()}, "
+            f"{self.plaintext_bytes} B"
+        )
+
+    def stack_options(self) -> StackOptions:
+        return StackOptions(
+            block_time=self.block_time,
+            batch_max=self.batch_max,
+            workers=self.workers,
+            max_wait=self.max_wait,
+            redis_url=self.redis_url,
+            web_workers=self.web_workers,
+        )
 
     def settings(self) -> dict[str, Any]:
         return {key: value for key, value in asdict(self).items() if key != "keep_logs"}
@@ -102,8 +114,15 @@ class UploadRun:
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """The options every REST benchmark takes (besides its own sizes and modes)."""
     parser.add_argument("--owners", type=int, default=5, help="owners; robots round-robin")
-    parser.add_argument("--workers", type=int, default=2, help="Celery worker processes (-c 1)")
-    parser.add_argument("--web-workers", type=int, default=2, help="gunicorn sync workers")
+    parser.add_argument(
+        "--workers", type=int, default=2, help="pool processes of the chain worker (default 2)"
+    )
+    parser.add_argument(
+        "--web-workers",
+        type=int,
+        default=0,
+        help="gunicorn gthread workers (default 0: sized as make run sizes them)",
+    )
     parser.add_argument(
         "--verifiers", type=int, default=4, help="threads opening anchored records (record_open)"
     )
@@ -122,13 +141,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def check_arguments(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
-    if min(args.owners, args.workers, args.web_workers, args.verifiers) < 1:
-        parser.error("--owners, --workers, --web-workers and --verifiers must be at least 1")
-    if redis.Redis.from_url(args.redis_url).connection_pool.connection_kwargs.get("db", 0) in (
-        0,
-        14,
-    ):
-        parser.error("refusing to flush Redis DB 0 (development) or 14 (tests)")
+    if min(args.owners, args.workers, args.verifiers) < 1 or args.web_workers < 0:
+        parser.error("--owners, --workers and --verifiers must be at least 1")
+    check_redis_url(parser, args.redis_url)
 
 
 def upload_run(
@@ -158,30 +173,13 @@ def upload_run(
     )
 
 
-def measure_all(runs: list[UploadRun]) -> list[dict[str, Any]]:
-    """Each run in its own child process, in order, with a header line per run; each row gets
-    run_wall_s, the seconds the run took from starting its stack to stopping it."""
-    rows = []
-    for number, run in enumerate(runs, 1):
-        print(
-            f"== [{number}/{len(runs)}] {run.mode}, ANCHOR_BATCH_MAX={run.batch_max}, "
-            f"{run.describe()}, {run.plaintext_bytes} B",
-            file=sys.stderr,
-        )
-        started = time.monotonic()
-        row = measure_in_child(run)
-        row["run_wall_s"] = time.monotonic() - started
-        rows.append(row)
-    return rows
-
-
 def report_header(name: str, args: argparse.Namespace, started: str) -> dict[str, Any]:
     """What every REST benchmark's JSON starts with: when, where and with what."""
     return {
         "benchmark": name,
         "date": started,
         "machine": machine_info(("celery", "django", "gunicorn", "requests", "web3", "redis")),
-        "anvil": _anvil_version(),
+        "anvil": anvil_version(),
         "load_average_at_start": [round(load, 2) for load in psutil.getloadavg()],
         "settings": {
             "owners": args.owners,
@@ -193,9 +191,11 @@ def report_header(name: str, args: argparse.Namespace, started: str) -> dict[str
             "quick": args.quick,
             "agents": "one thread per agent, requests.Session each, released by a barrier; "
             "one POST /api/v1/records/ each (Authorization: Token), one robot per agent",
-            "web_command": f"gunicorn portal.wsgi:application --workers {args.web_workers} (sync)",
-            "worker_command": "celery -A portal worker -c 1 --pool prefork (each consumes both "
-            "queues), plus one more for the verify queue alone (-Q <queue>-verify) and one beat",
+            "stack": "python -m stack run --no-ros (what make run execs), fresh per run",
+            "web_command": web_description(args.web_workers),
+            "worker_command": f"celery -A portal worker -c {args.workers} --pool prefork "
+            "(both queues), one more -c 1 for the verify queue alone (-Q <queue>-verify) "
+            "and one beat, as make run starts them",
         },
         "notes": [
             "response = POST sent to 201 received; total response = first POST sent to last "
@@ -208,125 +208,27 @@ def report_header(name: str, args: argparse.Namespace, started: str) -> dict[str
     }
 
 
-def write_results(
-    name: str,
-    report: dict[str, Any],
-    fields: tuple[str, ...],
-    results_dir: Path,
-) -> None:
-    """bench/results/NAME.json and NAME.csv (the PNG is the benchmark's own)."""
-    results_dir.mkdir(parents=True, exist_ok=True)
-    (results_dir / f"{name}.json").write_text(json.dumps(report, indent=2) + "\n")
-    with (results_dir / f"{name}.csv").open("w", newline="") as handle:
-        writer = csv.writer(handle)
-        writer.writerow(fields)
-        for row in report["results"]:
-            writer.writerow(
-                [
-                    f"{value:.6f}" if isinstance(value, float) else value
-                    for value in (row.get(field) for field in fields)
-                ]
-            )
-
-
-def print_table(report: dict[str, Any], columns: tuple[tuple[str, str, str], ...]) -> None:
-    """The results as a table of (header, key, format) columns."""
-    machine = report["machine"]
-    print(
-        f"{report['benchmark']} benchmark, {report['date']}: {machine['cpu_model']}, "
-        f"{machine['logical_cores']} cores, {machine['memory_bytes'] / 2**30:.1f} GiB; "
-        f"load average at start {report['load_average_at_start']}"
-    )
-    table = [
-        ["-" if row.get(key) is None else format(row[key], spec) for _, key, spec in columns]
-        for row in report["results"]
-    ]
-    headers = [header for header, _, _ in columns]
-    widths = [max(len(cell) for cell in column) for column in zip(headers, *table, strict=True)]
-    for cells in (headers, *table):
-        print(" ".join(f"{cell:>{width}}" for cell, width in zip(cells, widths, strict=True)))
-
-
-def measure_in_child(run: UploadRun) -> dict[str, Any]:
-    """Measure one run in a fresh interpreter, so Django reads a fresh environment."""
-    return run_in_child(_measure, run)
-
-
-def add_ratios(rows: list[dict[str, Any]], same: tuple[str, ...], keys: tuple[str, ...]) -> None:
-    """Each row's keys divided by those of the batch-size-1 row agreeing on `same` (this run)."""
-    for row in rows:
-        baseline = next(
-            (
-                other
-                for other in rows
-                if other["batch_max"] == 1 and all(other[f] == row[f] for f in same)
-            ),
-            None,
-        )
-        for key in keys:
-            ours, theirs = row.get(key), baseline.get(key) if baseline else None
-            row[f"{key}_ratio_vs_batch1"] = ours / theirs if ours is not None and theirs else None
-
-
 # --- one run, in a child process ---------------------------------------------------------------
 
 
-class _WebStack(_Stack):
-    """The pipeline benchmark's stack plus, as `make run` has them, a worker for the verify
-    queue alone (views' integrity checks) and the portal under gunicorn."""
-
-    def start(self) -> None:
-        super().start()
-        from django.conf import settings
-
-        verify_queue = settings.CELERY_TASK_DEFAULT_QUEUE + settings.CELERY_VERIFY_QUEUE_SUFFIX
-        self._spawn("verify", ["worker", "-n", "verify@%h", "-Q", verify_queue, *WORKER_OPTIONS])
-
-    def web_start(self, workers: int) -> str:
-        port = free_port()
-        log = (self.logs / "web.log").open("ab")
-        try:
-            process = subprocess.Popen(
-                [
-                    sys.executable,
-                    "-m",
-                    "gunicorn",
-                    "portal.wsgi:application",
-                    "--bind",
-                    f"127.0.0.1:{port}",
-                    "--workers",
-                    str(workers),
-                    "--timeout",
-                    "120",
-                    "--graceful-timeout",
-                    "5",
-                    "--backlog",
-                    "2048",
-                ],
-                cwd=Path(__file__).resolve().parent.parent,
-                env={**os.environ, **self._environment(log_level="WARNING")},
-                stdout=log,
-                stderr=subprocess.STDOUT,
-                start_new_session=True,
-            )
-        finally:
-            log.close()
-        self.processes.append(process)
-        self.roles["web"] = [process]
-        url = f"http://127.0.0.1:{port}"
-        deadline = time.monotonic() + WEB_START_TIMEOUT
-        while time.monotonic() < deadline:
-            self.check_alive()
-            try:
-                requests.get(f"{url}/api/", timeout=2)
-                return url
-            except requests.RequestException:
-                time.sleep(0.2)
-        raise RuntimeError(f"gunicorn did not answer in {WEB_START_TIMEOUT:.0f}s")
+def measure(run: UploadRun) -> dict[str, Any]:
+    """One run with a fresh stack: register owners, create robots, post, await verified."""
+    workdir = Path(tempfile.mkdtemp(prefix="authros-bench-rest-"))
+    stack = BenchStack(run.stack_options(), workdir)
+    try:
+        stack.start()
+        agents = _agents_create(run, stack)
+        post_uploads(f"{stack.web_url}/api/v1/records/", agents)
+        uploads = [upload for agent in agents for upload in agent]
+        _await_verified(run, stack, uploads)
+        row = _statistics(run, uploads)
+    finally:
+        stack.stop()
+    return run_finished(row, stack, keep_logs=run.keep_logs)
 
 
 @dataclass
-class _Upload:
+class Upload:
     """One envelope of one agent (robot) and what became of it."""
 
     robot: Any
@@ -341,50 +243,12 @@ class _Upload:
     verify_error: str | None = None
 
 
-def web_configuration(run: Any, *, records: int, timeout: float) -> Configuration:
-    """The stack's configuration for a run through REST (an UploadRun, a SustainedRun): the
-    records come over HTTP, so none is made by the stack itself (rate 0)."""
-    return Configuration(
-        block_time=run.block_time,
-        batch_max=run.batch_max,
-        records=records,
-        owners=run.owners,
-        workers=run.workers,
-        max_wait=run.max_wait,
-        rate=0.0,
-        timeout=timeout,
-        redis_url=run.redis_url,
-        keep_logs=run.keep_logs,
-    )
-
-
-def _measure(run: UploadRun) -> dict[str, Any]:
-    workdir = Path(tempfile.mkdtemp(prefix="authros-bench-rest-"))
-    configuration = web_configuration(run, records=run.uploads, timeout=run.timeout)
-    stack = _WebStack(configuration, workdir)
-    try:
-        stack.start()
-        url = stack.web_start(run.web_workers) + "/api/v1/records/"
-        agents = _agents_create(run, configuration, stack)
-        _post(url, agents)
-        uploads = [upload for agent in agents for upload in agent]
-        _await_verified(run, stack, uploads)
-        row = _statistics(run, uploads)
-    finally:
-        stack.stop()
-    return run_finished(row, stack, workdir, keep_logs=run.keep_logs)
-
-
-def _agents_create(
-    run: UploadRun, configuration: Configuration, stack: _Stack
-) -> list[list[_Upload]]:
+def _agents_create(run: UploadRun, stack: BenchStack) -> list[list[Upload]]:
     """K owners registered on chain, then N robots round-robin over them, each with its M
     sealed envelopes, seq 1..M (sealing is not timed)."""
-    import base64
-
     from accounts.services import robot_create
 
-    owners = _owners_register(configuration, stack)
+    owners = owners_register(stack, run.owners)
     agents = []
     for number in range(run.agents):
         owner_robot, key = owners[number % len(owners)]
@@ -392,19 +256,19 @@ def _agents_create(
         uploads = []
         for seq in range(1, run.uploads_per_agent + 1):
             data = seal_record(robot, key, seq=seq, plaintext_bytes=run.plaintext_bytes)
-            uploads.append(_Upload(robot, token, {"envelope": base64.b64encode(data).decode()}))
+            uploads.append(Upload(robot, token, {"envelope": base64.b64encode(data).decode()}))
         agents.append(uploads)
     return agents
 
 
-def _post(url: str, agents: list[list[_Upload]]) -> None:
+def post_uploads(url: str, agents: list[list[Upload]]) -> None:
     """One thread per agent, released together; each POSTs its envelopes on its own session,
     one after another (the next once the previous one was answered)."""
     barrier = threading.Barrier(len(agents) + 1)
     progress = progress_bar(sum(len(agent) for agent in agents), "201 received", unit="req")
     lock = threading.Lock()
 
-    def agent_post(uploads: list[_Upload]) -> None:
+    def agent_post(uploads: list[Upload]) -> None:
         session = requests.Session()
         session.headers["Authorization"] = f"Token {uploads[0].token}"
         barrier.wait()
@@ -426,7 +290,7 @@ def _post(url: str, agents: list[list[_Upload]]) -> None:
     progress.close()
 
 
-def _post_one(session: requests.Session, url: str, upload: _Upload) -> None:
+def _post_one(session: requests.Session, url: str, upload: Upload) -> None:
     upload.sent_at = time.time()
     try:
         response = session.post(url, json=upload.body, timeout=REQUEST_TIMEOUT)
@@ -439,7 +303,7 @@ def _post_one(session: requests.Session, url: str, upload: _Upload) -> None:
         upload.status = type(exc).__name__
 
 
-def _await_verified(run: UploadRun, stack: _Stack, uploads: list[_Upload]) -> None:
+def _await_verified(run: UploadRun, stack: BenchStack, uploads: list[Upload]) -> None:
     """Watch for anchored records and open each as soon as it is; until all are settled."""
     from sharing.models import Record
 
@@ -475,13 +339,11 @@ def _await_verified(run: UploadRun, stack: _Stack, uploads: list[_Upload]) -> No
     verifying.close()
 
 
-def _verify(upload: _Upload, progress: Any) -> None:
+def _verify(upload: Upload, progress: Any) -> None:
     from django.db import connections
 
-    from sharing.services import record_open
-
     try:
-        record_open(record_id=upload.record_id, viewer=upload.robot.owner)
+        record_open()(record_id=upload.record_id, viewer=upload.robot.owner)
         upload.verified_at = time.time()
         progress.update(1)
     except Exception as exc:  # every failure is a result: counted, not raised
@@ -490,7 +352,7 @@ def _verify(upload: _Upload, progress: Any) -> None:
         connections.close_all()
 
 
-def _statistics(run: UploadRun, uploads: list[_Upload]) -> dict[str, Any]:
+def _statistics(run: UploadRun, uploads: list[Upload]) -> dict[str, Any]:
     """The row of one run, from every upload (one per agent unless M > 1)."""
     from sharing.models import Record
 

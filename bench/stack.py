@@ -1,0 +1,296 @@
+"""One measured run's stack: `python -m stack run`, what `make run` execs, with its settings.
+
+Each run gets a fresh work folder (SQLite database, secrets, logs, anvil state), anvil on a
+free port (automine or a block time), the portal on a free port under gunicorn exactly as
+`make run` serves it, a chain worker with W pool processes, a verify worker and beat, all
+sharing a Redis database of the benchmark's own (flushed first); the ROS side is not started.
+The benchmark's process then points its own Django at the same database, Redis, chain and
+secrets (from <workdir>/stack.json), to create owners and robots through the services and to
+watch records; it must be a fresh interpreter (bench.run_in_child), as Django reads its settings
+once.
+"""
+
+import contextlib
+import importlib
+import json
+import os
+import re
+import secrets
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from collections import Counter
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import redis
+
+from bench import progress_bar
+from smcrypto import sm4
+from stack.processes import REPO_ROOT, WebSizing, gunicorn, log_tail, web_sizing
+from stack.run import STATE_FILE
+
+BENCH_REDIS_URL = "redis://127.0.0.1:6379/13"
+REDIS_KEY_PREFIX = "authros-bench"
+CELERY_QUEUE = "authros-bench"
+POLL_INTERVAL = 0.2
+START_TIMEOUT = 300.0
+STOP_TIMEOUT = 180.0
+REGISTRATION_TIMEOUT = 180.0
+# How the processes of stack.json group for the resource samples of the sustained benchmark.
+ROLES = {"web": ("web",), "workers": ("worker", "verify"), "beat": ("beat",), "anvil": ("anvil",)}
+_TASK_LINE = re.compile(r"Task (?P<task>[\w.]+)\[[0-9a-f-]+\] (?P<what>succeeded|retry|raised)")
+_ANCHOR_RESULT = re.compile(
+    r"Task [\w.]+\.records_anchor\[[0-9a-f-]+\] succeeded in [\d.e-]+s: (\d+)"
+)
+_RETRY_REASON = re.compile(r"retry: Retry in [^:]+: (\w+)")
+_LOG_LEVEL = re.compile(r"^\S+ \S+ (ERROR|WARNING|CRITICAL) ")
+
+
+@dataclass(frozen=True)
+class StackOptions:
+    """What a run changes in the stack; everything else is as `make run` has it."""
+
+    block_time: float | None
+    batch_max: int
+    workers: int
+    max_wait: float
+    redis_url: str
+    web: bool = True
+    web_workers: int = 0  # 0: as make run sizes it
+
+
+def web_description(web_workers: int = 0) -> str:
+    """The gunicorn command line the runs serve with (port aside)."""
+    machine = web_sizing()
+    sizing = WebSizing(web_workers or machine.workers, machine.threads)
+    return " ".join(gunicorn("127.0.0.1:PORT", sizing)[2:])
+
+
+class BenchStack:
+    """`python -m stack run --no-ros` in workdir; start(), use, stop() (always)."""
+
+    def __init__(self, options: StackOptions, workdir: Path) -> None:
+        self.options = options
+        self.workdir = workdir
+        self.var = workdir / "var"
+        self.logs = self.var / "log"
+        self.process: subprocess.Popen[bytes] | None = None
+        self.state: dict[str, Any] = {}
+        self.portal_settings: dict[str, Any] = {}
+
+    def settings(self) -> dict[str, str]:
+        """The environment of the stack and of this process's Django, besides stack.json's."""
+        options = self.options
+        return {
+            "AUTHROS_VAR_DIR": str(self.var),
+            "AUTHROS_SECRETS_DIR": str(self.var / "secrets"),
+            "AUTHROS_MEDIA_ROOT": str(self.var / "media"),
+            "AUTHROS_MASTER_KEY": "",
+            "DATABASE_URL": f"sqlite:///{self.var / 'db.sqlite3'}",
+            "REDIS_URL": options.redis_url,
+            "CELERY_BROKER_URL": options.redis_url,
+            "CELERY_RESULT_BACKEND": options.redis_url,
+            "REDIS_KEY_PREFIX": REDIS_KEY_PREFIX,
+            "CELERY_QUEUE": CELERY_QUEUE,
+            "CELERY_TASK_ALWAYS_EAGER": "false",
+            "CHAIN_CONTRACT_ADDRESS": "",
+            "CHAIN_OPERATOR_KEY": "",
+            "CHAIN_CONFIRMATIONS": "0",
+            "ANCHOR_BATCH_MAX": str(options.batch_max),
+            "ANCHOR_MAX_WAIT": str(options.max_wait),
+            "DJANGO_DEBUG": "false",
+            "LOG_LEVEL": "INFO",
+        }
+
+    def start(self) -> None:
+        """Flush the benchmark's Redis database, start the stack, wait until everything
+        answers, then set up this process's Django against it."""
+        options = self.options
+        redis.Redis.from_url(options.redis_url).flushdb()
+        self.var.mkdir(parents=True, exist_ok=True)
+        command = [
+            sys.executable,
+            "-m",
+            "stack",
+            "run",
+            "--no-ros",
+            "--workdir",
+            str(self.var),
+            "--port",
+            "0",
+            "--anvil-port",
+            "0",
+            "--workers",
+            str(options.workers),
+            "--queue",
+            CELERY_QUEUE,
+            "--web" if options.web else "--no-web",
+            "--web-workers",
+            str(options.web_workers),
+            *(["--block-time", str(options.block_time)] if options.block_time else []),
+        ]
+        environment = {**os.environ, **self.settings()}
+        environment.pop("CHAIN_RPC_URL", None)  # a node of its own, on a free port
+        with (self.workdir / "stack.out").open("ab") as output:
+            self.process = subprocess.Popen(
+                command,
+                cwd=REPO_ROOT,
+                env=environment,
+                stdout=output,
+                stderr=subprocess.STDOUT,
+                start_new_session=True,
+            )
+        state_file = self.var / STATE_FILE
+        deadline = time.monotonic() + START_TIMEOUT
+        while not state_file.exists():
+            self.check_alive()
+            if time.monotonic() > deadline:
+                raise RuntimeError(f"the stack did not come up in {START_TIMEOUT:.0f}s")
+            time.sleep(POLL_INTERVAL)
+        self.state = json.loads(state_file.read_text())
+        os.environ.update({**self.settings(), **self.state["env"]})
+        self._django_setup()
+
+    def _django_setup(self) -> None:
+        import django
+
+        django.setup()
+        from django.conf import settings
+
+        self.portal_settings = {
+            name.lower(): getattr(settings, name)
+            for name in (
+                "ANCHOR_MAX_WAIT",
+                "ANCHOR_STALE_AFTER",
+                "ANCHOR_LOCK_TTL",
+                "CHAIN_CONFIRMATIONS",
+                "CHAIN_RECEIPT_TIMEOUT",
+            )
+        }
+        sweep = settings.CELERY_BEAT_SCHEDULE.get("sweep-stale-chain-work")
+        if sweep is not None:
+            self.portal_settings["anchor_sweep_interval"] = sweep["schedule"]
+
+    @property
+    def web_url(self) -> str:
+        return self.state["web_url"]
+
+    def pids(self) -> dict[str, list[int]]:
+        """The processes of each role (ROLES), each with its children."""
+        processes = self.state["processes"]
+        return {
+            role: [processes[name] for name in names if name in processes]
+            for role, names in ROLES.items()
+        }
+
+    def check_alive(self) -> None:
+        """RuntimeError if the stack exited (it does when any of its processes does)."""
+        if self.process is not None and self.process.poll() is not None:
+            raise RuntimeError(
+                f"the stack exited with {self.process.returncode}; see {self.logs}:\n"
+                f"{log_tail(self.workdir / 'stack.out', 40)}\n{self.log_tail()}"
+            )
+
+    def stop(self) -> None:
+        """SIGINT, as Ctrl-C on `make run`: it stops its processes in order (waiting for
+        them), then exits."""
+        if self.process is not None:
+            if self.process.poll() is None:
+                self.process.send_signal(signal.SIGINT)
+            try:
+                self.process.wait(timeout=STOP_TIMEOUT)
+            except subprocess.TimeoutExpired:
+                os.killpg(self.process.pid, signal.SIGKILL)
+                self.process.wait()
+        if "django" in sys.modules:
+            from django.db import connections
+
+            connections.close_all()
+
+    def log_tail(self, lines: int = 30) -> str:
+        text = "\n".join(p.read_text(errors="replace") for p in sorted(self.logs.glob("*.log")))
+        return "\n".join(text.splitlines()[-lines:])
+
+    def log_summary(self) -> dict[str, Any]:
+        """What the workers' logs say: task outcomes, retries, warnings and errors."""
+        outcomes: Counter[str] = Counter()
+        retries: Counter[str] = Counter()
+        anchor_results: Counter[int] = Counter()
+        problems: Counter[str] = Counter()
+        for path in sorted(self.logs.glob("*.log")):
+            for line in path.read_text(errors="replace").splitlines():
+                if match := _TASK_LINE.search(line):
+                    outcomes[f"{match['task'].rsplit('.', 1)[-1]} {match['what']}"] += 1
+                if match := _RETRY_REASON.search(line):
+                    retries[match[1]] += 1
+                if match := _ANCHOR_RESULT.search(line):
+                    anchor_results[int(match[1])] += 1
+                if match := _LOG_LEVEL.search(line):
+                    message = line.split(" ", 5)[-1]
+                    problems[
+                        f"{match[1]} {re.sub(r'0x[0-9a-fA-F]+|[0-9a-f-]{36}', '…', message)}"
+                    ] += 1
+        return {
+            "task_outcomes": dict(outcomes),
+            "retry_reasons": dict(retries),
+            "records_anchor_runs": sum(anchor_results.values()),
+            "records_anchor_runs_anchoring_nothing": anchor_results.get(0, 0),
+            "warnings_and_errors": dict(problems.most_common(10)),
+        }
+
+
+def run_finished(row: dict[str, Any], stack: BenchStack, *, keep_logs: bool) -> dict[str, Any]:
+    """A run's row after its stack stopped: with the workers' log summary, and the work
+    folder kept (and named in the row) or removed."""
+    row["worker_logs"] = stack.log_summary()
+    if keep_logs:
+        row["workdir"] = str(stack.workdir)
+        print(f"kept {stack.workdir}", file=sys.stderr)
+    else:
+        shutil.rmtree(stack.workdir, ignore_errors=True)
+    return row
+
+
+def record_open() -> Callable[..., Any]:
+    """The service that opens a record for a viewer after the worker's integrity check."""
+    # It moves from sharing.services to sharing.verification; either is the same service.
+    for module in ("sharing.verification", "sharing.services"):
+        with contextlib.suppress(ImportError):
+            service = getattr(importlib.import_module(module), "record_open", None)
+            if service is not None:
+                return service
+    raise ImportError("no record_open in sharing.verification or sharing.services")
+
+
+def owners_register(stack: BenchStack, owners: int) -> list[tuple[Any, bytes]]:
+    """K owners with one robot each, registered on chain by the stack's workers;
+    (robot, sm4 key) each."""
+    from accounts.models import ChainState, Owner
+    from accounts.services import owner_create, robot_create
+
+    robots = []
+    for number in range(owners):
+        key = sm4.generate_key()
+        owner = owner_create(
+            username=f"bench-owner-{number}", password=secrets.token_urlsafe(18), sm4_key=key
+        )
+        robot, _token = robot_create(owner=owner, name="bench-robot")
+        robots.append((robot, key))
+    deadline = time.monotonic() + REGISTRATION_TIMEOUT
+    with progress_bar(owners, "owners registered", unit="owner") as progress:
+        while True:
+            confirmed = Owner.objects.filter(chain_state=ChainState.CONFIRMED).count()
+            progress.update(confirmed - progress.n)
+            if confirmed == owners:
+                return robots
+            stack.check_alive()
+            if time.monotonic() > deadline:
+                raise RuntimeError(
+                    f"owners not registered after {REGISTRATION_TIMEOUT:.0f}s:\n{stack.log_tail()}"
+                )
+            time.sleep(POLL_INTERVAL)
