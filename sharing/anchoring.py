@@ -139,9 +139,7 @@ def _anchor_round(client: AuthROSChain, owner: Owner, lock: Lock) -> tuple[int, 
         # Counted before sending: a run that dies after the send must look on chain first.
         Record.objects.filter(pk__in=batch_ids).update(anchor_attempts=F("anchor_attempts") + 1)
         try:
-            tx_hash = client.data_upload_batch(
-                account, [anchor_item(r) for r in batch], wait=False
-            )
+            tx_hash = client.data_upload_batch(account, [anchor_item(r) for r in batch], wait=False)
         except ChainUnavailable:
             # The node (or Redis) is away: that is not the records' fault, so it does not
             # count towards ANCHOR_MAX_ATTEMPTS; an outage of any length loses nothing. If the

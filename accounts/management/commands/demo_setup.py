@@ -12,17 +12,17 @@ from pathlib import Path
 from typing import Any
 
 from django.core.management.base import BaseCommand, CommandError, CommandParser
+from django.utils import timezone
 
+from accounts.agent_config import DEFAULT_TOPICS, agent_config_yaml
 from accounts.models import ChainState
 from accounts.selectors import owner_by_username, robot_by_token
 from accounts.services import owner_create, owner_register_on_chain, robot_create
 from chainworker.chain import ChainError
 from smcrypto import sm4
 
-DEMO_TOPICS = [
-    {"name": "/robot/odom", "type": "nav_msgs/Odometry"},
-    {"name": "/robot/complicatedImage", "type": "sensor_msgs/Image"},
-]
+# The demo agent sends often, so the simulated robot's data shows up within a second.
+DEMO_AGENT_OPTIONS = {"batch_size": 20, "flush_interval": 1.0, "spool_dir": "spool"}
 
 
 class Command(BaseCommand):
@@ -60,7 +60,19 @@ class Command(BaseCommand):
         if not config_file.exists() or robot_by_token(token) is None:
             robot, token = robot_create(owner=owner, name=f"demo-robot-{secrets.token_hex(3)}")
             _write_private(token_file, token)
-            config_file.write_text(_agent_config(options["portal_url"], robot.pk, username))
+            config_file.write_text(
+                agent_config_yaml(
+                    portal_url=options["portal_url"],
+                    robot_id=str(robot.pk),
+                    robot_name=robot.name,
+                    owner_username=username,
+                    topics=DEFAULT_TOPICS,
+                    token=None,
+                    made_at=timezone.now(),
+                    key_file="sm4.key",
+                    options=DEMO_AGENT_OPTIONS,
+                )
+            )
         self.stdout.write(
             json.dumps(
                 {
@@ -72,22 +84,6 @@ class Command(BaseCommand):
                 sort_keys=True,
             )
         )
-
-
-def _agent_config(portal_url: str, robot_id: object, owner: str) -> str:
-    topics = "\n".join(f"  - {{name: {t['name']}, type: {t['type']}}}" for t in DEMO_TOPICS)
-    return (
-        "# Written by `manage.py demo_setup` for `make run`.\n"
-        f"portal_url: {portal_url}\n"
-        "token_file: robot.token\n"
-        f"robot: {robot_id}\n"
-        f"owner: {owner}\n"
-        "key_file: sm4.key\n"
-        f"topics:\n{topics}\n"
-        "batch_size: 20\n"
-        "flush_interval: 1.0\n"
-        "spool_dir: spool\n"
-    )
 
 
 def _write_private(path: Path, text: str) -> None:
