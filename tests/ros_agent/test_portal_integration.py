@@ -30,7 +30,7 @@ from chainworker import services as chain_services
 from chainworker.chain import record_id_to_bytes32
 from ros_agent import sim
 from sharing.models import Record
-from sharing.services import record_open
+from sharing.verification import record_open
 from smcrypto import sm4
 from tests.conftest import TEST_PASSWORD
 from tests.ros_agent.conftest import (
