@@ -54,7 +54,7 @@ ROS_START_TIMEOUT = 30.0
 ANVIL_STATE_INTERVAL = 5
 # Stopped one at a time in this order (anvil and Redis after them): nothing new is
 # scheduled while workers finish, and the chain outlives everything that writes to it.
-STOP_ORDER = ("beat", "web", "workers", "agent", "sim", "roscore")
+STOP_ORDER = (("beat",), ("web",), ("worker", "verify"), ("agent",), ("sim",), ("roscore",))
 _STOP = {  # signal and seconds each process gets before its group is killed
     "beat": (signal.SIGTERM, 10.0),
     "web": (signal.SIGTERM, 15.0),
@@ -390,8 +390,7 @@ class Stack:
         started = [name for name in self.children.names() if self.children[name].running()]
         if started or self.anvil is not None or self.redis_started:
             self._say("stopping what the stack started")
-        for role in STOP_ORDER:
-            names = ["worker", "verify"] if role == "workers" else [role]
+        for names in STOP_ORDER:
             self.children.stop_many(names)
         self.children.stop_all()
         if self.anvil is not None:
@@ -405,7 +404,8 @@ class Stack:
     # --- output --------------------------------------------------------------------------
 
     def _say(self, message: str) -> None:
-        self.out.write(f"\033[1;32m[stack]\033[0m {message}\n")
+        tag = "\033[1;32m[stack]\033[0m" if self.out.isatty() else "[stack]"
+        self.out.write(f"{tag} {message}\n")
         self.out.flush()
 
     def _say_output(self, text: str) -> None:
