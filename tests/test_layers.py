@@ -1,0 +1,134 @@
+"""Imports go down the layers (docs/architecture.md), never up or round in a circle.
+
+Read from the source with `ast`, so the test needs nothing running and fails on the import
+that breaks the rule, wherever in a file it is written.
+"""
+
+import ast
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+pytestmark = pytest.mark.nodb
+
+REPO_ROOT = Path(__file__).resolve().parent.parent
+PACKAGES = ("portal", "accounts", "sharing", "chainworker", "core", "smcrypto", "ros_agent")
+# What each package may import of the others; everything not listed is forbidden.
+ALLOWED = {
+    "portal": {"accounts", "sharing", "chainworker", "core", "smcrypto"},
+    "sharing": {"accounts", "chainworker", "core", "smcrypto"},
+    "accounts": {"chainworker", "core", "smcrypto"},
+    "chainworker": {"core", "smcrypto"},
+    "core": set(),
+    "smcrypto": set(),
+    "ros_agent": {"smcrypto"},
+}
+# Where a function-level import of the project's own modules is the rule, not a dodge:
+# AppConfig.ready runs once models can be imported.
+LOCAL_IMPORTS_ALLOWED = {"apps.py"}
+
+
+def _source_files(package: str) -> Iterator[Path]:
+    for path in sorted((REPO_ROOT / package).rglob("*.py")):
+        if "migrations" not in path.parts:
+            yield path
+
+
+def _module_name(path: Path) -> str:
+    parts = list(path.relative_to(REPO_ROOT).with_suffix("").parts)
+    if parts[-1] == "__init__":
+        parts.pop()
+    return ".".join(parts)
+
+
+def _imports(path: Path) -> Iterator[tuple[str, bool, int]]:
+    """(imported module, imported inside a function, line) for each import of the file."""
+    tree = ast.parse(path.read_text(), filename=str(path))
+    local_lines = {
+        node.lineno
+        for function in ast.walk(tree)
+        if isinstance(function, ast.FunctionDef | ast.AsyncFunctionDef)
+        for node in ast.walk(function)
+        if isinstance(node, ast.Import | ast.ImportFrom)
+    }
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            for alias in node.names:
+                yield alias.name, node.lineno in local_lines, node.lineno
+        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            for alias in node.names:
+                # `from sharing import services` imports the module sharing.services.
+                yield f"{node.module}.{alias.name}", node.lineno in local_lines, node.lineno
+
+
+def _project_module(name: str, modules: set[str]) -> str | None:
+    """The longest project module that `name` (a module or module.attribute) lies in."""
+    parts = name.split(".")
+    for end in range(len(parts), 0, -1):
+        candidate = ".".join(parts[:end])
+        if candidate in modules:
+            return candidate
+    return None
+
+
+def _graph() -> tuple[dict[str, set[str]], list[str]]:
+    files = {_module_name(path): path for package in PACKAGES for path in _source_files(package)}
+    modules = set(files)
+    edges: dict[str, set[str]] = {module: set() for module in modules}
+    local: list[str] = []
+    for module, path in files.items():
+        for name, is_local, line in _imports(path):
+            target = _project_module(name, modules)
+            if target is None or target == module:
+                continue
+            edges[module].add(target)
+            if is_local and path.name not in LOCAL_IMPORTS_ALLOWED:
+                local.append(f"{path.relative_to(REPO_ROOT)}:{line} imports {target}")
+    return edges, local
+
+
+def test_packages_import_only_the_layers_below_them():
+    edges, _local = _graph()
+    wrong = sorted(
+        f"{module} imports {target}"
+        for module, targets in edges.items()
+        for target in targets
+        if (package := module.split(".")[0]) != (other := target.split(".")[0])
+        and other not in ALLOWED[package]
+    )
+    assert wrong == []
+
+
+def test_no_module_imports_the_project_inside_a_function():
+    _edges, local = _graph()
+    assert local == []
+
+
+def test_no_import_circle_between_modules():
+    edges, _local = _graph()
+    state: dict[str, str] = {}
+    circles: list[list[str]] = []
+
+    def visit(module: str, path: list[str]) -> None:
+        state[module] = "open"
+        for target in sorted(edges[module]):
+            if state.get(target) == "open":
+                circles.append([*path[path.index(target) :], target])
+            elif target not in state:
+                visit(target, [*path, target])
+        state[module] = "done"
+
+    for module in sorted(edges):
+        if module not in state:
+            visit(module, [module])
+    assert circles == []
+
+
+def test_the_check_sees_a_forbidden_import(tmp_path):
+    """The reading above finds imports at any depth, so the rules cannot pass vacuously."""
+    source = tmp_path / "probe.py"
+    source.write_text("import os\n\ndef f():\n    from sharing import services\n")
+    assert list(_imports(source)) == [("os", False, 1), ("sharing.services", True, 4)]
+    edges, _local = _graph()
+    assert "chainworker.chain" in edges["sharing.anchoring"]
