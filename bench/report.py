@@ -107,6 +107,7 @@ def _section_concurrency(results: Path) -> str | None:
         plot="concurrency.png",
         comparison=_join(
             _success_summary(rows),
+            _served_by(report),
             _prefixed("From the message-size benchmark: ", _single_upload_summary(results)),
         ),
     )
@@ -555,6 +556,17 @@ def _kb(row: dict[str, Any], key: str = "plaintext_bytes") -> str:
 
 def _ms(seconds: float | None) -> str:
     return "-" if seconds is None else f"{seconds * 1000:.1f}"
+
+
+def _served_by(report: dict[str, Any]) -> str | None:
+    """What served the uploads, as the run recorded it (older runs did not)."""
+    settings = report.get("settings", {})
+    if not settings.get("stack"):
+        return None
+    return (
+        f"Every configuration ran on a fresh `{settings['stack']}`; the portal was served by "
+        f"`{settings.get('web_command', 'gunicorn')}`."
+    )
 
 
 def _join(*sentences: str | None) -> str | None:

@@ -488,3 +488,28 @@ def test_results_are_written_as_json_csv_and_png(tmp_path):
     assert lines[4].startswith("sm3,819200,gmssl,SM3,20,3000.000000,")
     assert len(lines) == 5
     assert drawn == [tmp_path / "crypto.png"]
+
+
+def test_the_concurrency_section_names_the_stack_that_served_the_uploads(tmp_path):
+    results = tmp_path / "results"
+    results.mkdir()
+    row = {
+        "mode": "automine",
+        "batch_max": 1,
+        "agents": 700,
+        "success_rate": 1.0,
+        "http_201": 700,
+        "sent": 700,
+        "transactions": 700,
+    }
+    data = _message_size_report([row]) | {"benchmark": "concurrency"}
+    data["settings"] |= {"stack": "python -m stack run --no-ros", "web_command": "gunicorn -k x"}
+    (results / "concurrency.json").write_text(json.dumps(data))
+    output = tmp_path / "REPORT.md"
+
+    assert report.main(["--results-dir", str(results), "--output", str(output)]) == 0
+
+    assert (
+        "Every configuration ran on a fresh `python -m stack run --no-ros`; the portal was "
+        "served by `gunicorn -k x`."
+    ) in output.read_text()
