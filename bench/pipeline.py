@@ -167,7 +167,8 @@ def main(argv: list[str]) -> int:
             "records": args.records,
             "owners": args.owners,
             "workers": args.workers,
-            "stack": "python -m stack run --no-ros --no-web (make run's, without the portal)",
+            "stack": "`python -m stack run --no-ros --no-web` (what `make run` execs, without "
+            "the portal), a fresh one for each configuration",
             "worker_command": f"celery -A portal worker -c {args.workers} --pool prefork, "
             "one more -c 1 for the verify queue alone, and one beat, as make run starts them",
             "batch_sizes": list(BATCH_SIZES),

@@ -564,7 +564,7 @@ def _served_by(report: dict[str, Any]) -> str | None:
     if not settings.get("stack"):
         return None
     return (
-        f"Every configuration ran on a fresh `{settings['stack']}`; the portal was served by "
+        f"Stack of every configuration: {settings['stack']}; the portal was served by "
         f"`{settings.get('web_command', 'gunicorn')}`."
     )
 

@@ -191,7 +191,8 @@ def report_header(name: str, args: argparse.Namespace, started: str) -> dict[str
             "quick": args.quick,
             "agents": "one thread per agent, requests.Session each, released by a barrier; "
             "one POST /api/v1/records/ each (Authorization: Token), one robot per agent",
-            "stack": "python -m stack run --no-ros (what make run execs), fresh per run",
+            "stack": "`python -m stack run --no-ros` (what `make run` execs), a fresh one for "
+            "each configuration",
             "web_command": web_description(args.web_workers),
             "worker_command": f"celery -A portal worker -c {args.workers} --pool prefork "
             "(both queues), one more -c 1 for the verify queue alone (-Q <queue>-verify) "

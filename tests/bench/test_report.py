@@ -510,6 +510,6 @@ def test_the_concurrency_section_names_the_stack_that_served_the_uploads(tmp_pat
     assert report.main(["--results-dir", str(results), "--output", str(output)]) == 0
 
     assert (
-        "Every configuration ran on a fresh `python -m stack run --no-ros`; the portal was "
+        "Stack of every configuration: python -m stack run --no-ros; the portal was "
         "served by `gunicorn -k x`."
     ) in output.read_text()
