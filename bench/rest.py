@@ -10,7 +10,7 @@ released together by a barrier and each POSTs its envelopes to `/api/v1/records/
 (Authorization: Token) one after another, each once the previous one was answered: N agents
 with M = 1 is N concurrent uploads, one agent with M = 300 is 300 calls in a row. The bench
 process then watches the database for anchored records and opens each one as soon as it is
-anchored with `sharing.services.record_open`, which has a worker check the digest on chain: a
+anchored with `sharing.verification.record_open`, which has a worker check the digest on chain: a
 record that opens is *verified*.
 
 Times are wall-clock (time.time()) on this one machine, so they compare with the database's
@@ -45,7 +45,6 @@ from bench.stack import (
     BenchStack,
     StackOptions,
     owners_register,
-    record_open,
     run_finished,
     web_description,
 )
@@ -201,7 +200,7 @@ def report_header(name: str, args: argparse.Namespace, started: str) -> dict[str
         "notes": [
             "response = POST sent to 201 received; total response = first POST sent to last "
             "answer; to anchored = POST sent to Record.anchored_at; to verified = POST sent "
-            "to sharing.services.record_open returning (worker checked the digest on chain).",
+            "to sharing.verification.record_open returning (worker checked the digest on chain).",
             "success rate = verified / sent.",
             "every process (anvil, gunicorn, workers, beat and the agent threads) shares "
             "this machine, and other work may run on it: see load_average_at_start.",
@@ -343,8 +342,10 @@ def _await_verified(run: UploadRun, stack: BenchStack, uploads: list[Upload]) ->
 def _verify(upload: Upload, progress: Any) -> None:
     from django.db import connections
 
+    from sharing.verification import record_open
+
     try:
-        record_open()(record_id=upload.record_id, viewer=upload.robot.owner)
+        record_open(record_id=upload.record_id, viewer=upload.robot.owner)
         upload.verified_at = time.time()
         progress.update(1)
     except Exception as exc:  # every failure is a result: counted, not raised

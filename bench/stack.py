@@ -10,8 +10,6 @@ watch records; it must be a fresh interpreter (bench.run_in_child), as Django re
 once.
 """
 
-import contextlib
-import importlib
 import json
 import os
 import re
@@ -22,7 +20,6 @@ import subprocess
 import sys
 import time
 from collections import Counter
-from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -254,17 +251,6 @@ def run_finished(row: dict[str, Any], stack: BenchStack, *, keep_logs: bool) -> 
     else:
         shutil.rmtree(stack.workdir, ignore_errors=True)
     return row
-
-
-def record_open() -> Callable[..., Any]:
-    """The service that opens a record for a viewer after the worker's integrity check."""
-    # It moves from sharing.services to sharing.verification; either is the same service.
-    for module in ("sharing.verification", "sharing.services"):
-        with contextlib.suppress(ImportError):
-            service = getattr(importlib.import_module(module), "record_open", None)
-            if service is not None:
-                return service
-    raise ImportError("no record_open in sharing.verification or sharing.services")
 
 
 def owners_register(stack: BenchStack, owners: int) -> list[tuple[Any, bytes]]:
