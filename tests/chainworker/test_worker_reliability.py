@@ -1,6 +1,6 @@
 """Real Celery workers, Redis and anvil: everything is anchored exactly once, whatever fails.
 
-These tests start worker and beat processes (tests/stack.py) that share the test database,
+These tests start worker and beat processes (tests/stack/) that share the test database,
 a Redis database of their own and an anvil node, then break things: kill -9 a worker in the
 middle of a batch, stop the chain for 20 s, flush Redis, change stored ciphertext.
 """

@@ -2,7 +2,7 @@
 
 The portal runs in pytest-django's live server (a thread of the test process, sharing its
 settings and test database; it serves /static/ through django.contrib.staticfiles). Real
-Celery workers, beat and anvil come from tests/stack.py: the record page runs its integrity
+Celery workers, beat and anvil come from tests/stack/: the record page runs its integrity
 check through the worker.
 """
 
