@@ -5,6 +5,7 @@ a Redis database of their own and an anvil node, then break things: kill -9 a wo
 middle of a batch, stop the chain for 20 s, flush Redis, change stored ciphertext.
 """
 
+import re
 import threading
 import time
 import uuid
@@ -29,6 +30,8 @@ from sharing.tasks import record_verify
 from smcrypto import sm4
 from tests.conftest import TEST_PASSWORD, RobotSetup
 from tests.stack import WorkerStack, wait_for
+
+_ANCHOR_RUN_DONE = r"Task sharing\.tasks\.records_anchor\[[^\]]+\] succeeded"
 
 pytestmark = [
     pytest.mark.worker,
@@ -304,6 +307,13 @@ def test_work_whose_messages_the_broker_lost_is_queued_again_by_the_beat_sweep(
 ):
     stack = stack_factory(workers=1)
     alice, bob = _robots(2)
+    # A registration ends by queueing an anchoring run for its owner; let those runs finish,
+    # or one still running would itself queue the anchoring the broker is about to "lose".
+    wait_for(
+        lambda: len(re.findall(_ANCHOR_RUN_DONE, stack.worker_logs())) >= 2,
+        timeout=60,
+        what="the anchoring runs queued by the registrations",
+    )
     lost: list[str] = []
 
     def broker_lost(task_name, *args, countdown=None):
