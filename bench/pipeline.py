@@ -47,6 +47,7 @@ from bench.stack import (
     POLL_INTERVAL,
     BenchStack,
     StackOptions,
+    block_mode,
     owners_register,
     run_finished,
 )
@@ -79,21 +80,14 @@ class Configuration:
 
     @property
     def mode(self) -> str:
-        return "automine" if self.block_time is None else f"block-time {self.block_time:g}s"
+        return block_mode(self.block_time)
 
     def describe(self) -> str:
         return f"{self.mode}, ANCHOR_BATCH_MAX={self.batch_max}"
 
     def stack_options(self) -> StackOptions:
         """No portal: records are created through the service, in the benchmark's process."""
-        return StackOptions(
-            block_time=self.block_time,
-            batch_max=self.batch_max,
-            workers=self.workers,
-            max_wait=self.max_wait,
-            redis_url=self.redis_url,
-            web=False,
-        )
+        return StackOptions.for_run(self, web=False)
 
 
 def main(argv: list[str]) -> int:

@@ -44,6 +44,7 @@ from bench.stack import (
     POLL_INTERVAL,
     BenchStack,
     StackOptions,
+    block_mode,
     owners_register,
     run_finished,
     web_description,
@@ -73,7 +74,7 @@ class UploadRun:
 
     @property
     def mode(self) -> str:
-        return "automine" if self.block_time is None else f"block-time {self.block_time:g}s"
+        return block_mode(self.block_time)
 
     @property
     def uploads(self) -> int:
@@ -97,14 +98,7 @@ class UploadRun:
         )
 
     def stack_options(self) -> StackOptions:
-        return StackOptions(
-            block_time=self.block_time,
-            batch_max=self.batch_max,
-            workers=self.workers,
-            max_wait=self.max_wait,
-            redis_url=self.redis_url,
-            web_workers=self.web_workers,
-        )
+        return StackOptions.for_run(self, web_workers=self.web_workers)
 
     def settings(self) -> dict[str, Any]:
         return {key: value for key, value in asdict(self).items() if key != "keep_logs"}

@@ -22,7 +22,7 @@ import time
 from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 import redis
 
@@ -59,6 +59,36 @@ class StackOptions:
     redis_url: str
     web: bool = True
     web_workers: int = 0  # 0: as make run sizes it
+
+    @classmethod
+    def for_run(
+        cls, run: "StackedRun", *, web: bool = True, web_workers: int = 0
+    ) -> "StackOptions":
+        """The stack a benchmark's run asks for (each benchmark's run type has these fields)."""
+        return cls(
+            block_time=run.block_time,
+            batch_max=run.batch_max,
+            workers=run.workers,
+            max_wait=run.max_wait,
+            redis_url=run.redis_url,
+            web=web,
+            web_workers=web_workers,
+        )
+
+
+class StackedRun(Protocol):
+    """What every benchmark's run says about the stack it needs."""
+
+    block_time: float | None
+    batch_max: int
+    workers: int
+    max_wait: float
+    redis_url: str
+
+
+def block_mode(block_time: float | None) -> str:
+    """How a run's chain makes blocks: `automine`, or `block-time Ns`."""
+    return "automine" if block_time is None else f"block-time {block_time:g}s"
 
 
 def web_description(web_workers: int = 0) -> str:

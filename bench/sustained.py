@@ -55,6 +55,7 @@ from bench.stack import (
     POLL_INTERVAL,
     BenchStack,
     StackOptions,
+    block_mode,
     owners_register,
     run_finished,
 )
@@ -129,7 +130,7 @@ class SustainedRun:
 
     @property
     def mode(self) -> str:
-        return "automine" if self.block_time is None else f"block-time {self.block_time:g}s"
+        return block_mode(self.block_time)
 
     def describe(self) -> str:
         return (
@@ -138,14 +139,7 @@ class SustainedRun:
         )
 
     def stack_options(self) -> StackOptions:
-        return StackOptions(
-            block_time=self.block_time,
-            batch_max=self.batch_max,
-            workers=self.workers,
-            max_wait=self.max_wait,
-            redis_url=self.redis_url,
-            web_workers=self.web_workers,
-        )
+        return StackOptions.for_run(self, web_workers=self.web_workers)
 
 
 def main(argv: list[str]) -> int:
