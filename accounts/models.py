@@ -5,6 +5,7 @@ import uuid
 from django.conf import settings
 from django.core.exceptions import ValidationError
 from django.db import models
+from django.utils import timezone
 
 from accounts.agent_config import DEFAULT_TOPICS, InvalidTopics, topics_as_list, topics_parse
 
@@ -32,6 +33,14 @@ class ChainState(models.TextChoices):
     FAILED = "failed", "failed"
 
 
+class Approval(models.TextChoices):
+    """Whether an operator let a sign-up onto the chain (SIGNUP_APPROVAL); approved by default."""
+
+    APPROVED = "approved", "approved"
+    AWAITING = "awaiting", "awaiting an operator's approval"
+    REFUSED = "refused", "refused by an operator"
+
+
 class Owner(models.Model):
     """A robot owner: a Django user with a custodial EOA registered on chain."""
 
@@ -49,6 +58,16 @@ class Owner(models.Model):
     register_tx = models.CharField(max_length=66, blank=True)
     registered_block = models.BigIntegerField(null=True, blank=True)
     chain_error = models.CharField(max_length=300, blank=True)
+    approval = models.CharField(max_length=16, choices=Approval.choices, default=Approval.APPROVED)
+    approved_by = models.ForeignKey(
+        settings.AUTH_USER_MODEL,
+        on_delete=models.SET_NULL,
+        null=True,
+        blank=True,
+        related_name="+",
+        help_text="the operator who approved or refused the sign-up",
+    )
+    approved_at = models.DateTimeField(null=True, blank=True)
     created_at = models.DateTimeField(auto_now_add=True)
 
     class Meta:
@@ -119,3 +138,144 @@ class Robot(models.Model):
 
     def __str__(self) -> str:
         return f"{self.owner}/{self.name}"
+
+
+class OwnerToken(models.Model):
+    """An owner's API credential for scripts: scoped, expiring, revocable; only its hash kept.
+
+    Robot tokens upload; an owner token reads content (`read`) and grants or revokes
+    (`share`) on the owner's behalf, as a browser session does.
+    """
+
+    class Scope(models.TextChoices):
+        READ = "read", "read records and their content"
+        SHARE = "share", "grant and revoke access"
+
+    owner = models.ForeignKey(Owner, on_delete=models.CASCADE, related_name="api_tokens")
+    name = models.CharField(max_length=100)
+    token_hash = models.CharField(max_length=64, unique=True)
+    token_prefix = models.CharField(
+        max_length=12, help_text="first characters, to tell tokens apart"
+    )
+    scopes = models.JSONField(default=list, help_text='a subset of ["read", "share"]')
+    expires_at = models.DateTimeField()
+    created_at = models.DateTimeField(auto_now_add=True)
+    last_used_at = models.DateTimeField(null=True, blank=True)
+    revoked_at = models.DateTimeField(null=True, blank=True)
+
+    class Meta:
+        ordering = ["-created_at"]
+
+    def __str__(self) -> str:
+        return f"{self.owner}/{self.name} ({self.token_prefix}…)"
+
+    @property
+    def is_live(self) -> bool:
+        return self.revoked_at is None and self.expires_at > timezone.now()
+
+
+class AccountEvent(models.Model):
+    """Something that happened to an owner's account that the owner sees on the security page:
+    an operator's change, a credential made or revoked, an identity check that failed.
+
+    Record-level alarms (tampering, forged uploads) are sharing.models.SecurityEvent.
+    """
+
+    class Kind(models.TextChoices):
+        ADMIN_ACTION = "admin_action", "an operator changed the account"
+        IDENTITY_MISMATCH = "identity_mismatch", "the key commitment on chain differs"
+        TOKEN_CREATED = "token_created", "API token created"
+        TOKEN_REVOKED = "token_revoked", "API token revoked"
+        ROBOT_TOKEN_REVOKED = "robot_token_revoked", "robot token revoked"
+        SIGNUP_APPROVED = "signup_approved", "sign-up approved"
+        SIGNUP_REFUSED = "signup_refused", "sign-up refused"
+
+    owner = models.ForeignKey(Owner, on_delete=models.CASCADE, related_name="account_events")
+    kind = models.CharField(max_length=32, choices=Kind.choices)
+    actor = models.ForeignKey(
+        settings.AUTH_USER_MODEL,
+        on_delete=models.SET_NULL,
+        null=True,
+        blank=True,
+        related_name="+",
+        help_text="who did it: the owner, an operator, or empty for the portal itself",
+    )
+    detail = models.JSONField(default=dict)
+    created_at = models.DateTimeField(auto_now_add=True)
+
+    class Meta:
+        ordering = ["-created_at", "-id"]
+        indexes = [models.Index(fields=["owner", "-created_at"], name="account_event_owner")]
+
+    def __str__(self) -> str:
+        return f"{self.owner}: {self.kind} at {self.created_at:%Y-%m-%d %H:%M:%S}"
+
+
+class ChainActivity(models.Model):
+    """One of an owner's transactions as the worker saw its receipt: the audit page's index,
+    so that pages never scan the chain's logs."""
+
+    class Kind(models.TextChoices):
+        FUNDED = "funded", "EOA funded"
+        ENROLLED = "enrolled", "enrolled"
+        REGISTERED = "registered", "key commitment registered"
+        KEY_ROTATED = "key_rotated", "key rotated"
+        ANCHORED = "anchored", "records anchored"
+        GRANTED = "granted", "access granted"
+        REVOKED = "revoked", "access revoked"
+
+    owner = models.ForeignKey(Owner, on_delete=models.CASCADE, related_name="chain_activity")
+    # The other side of a grant or revocation (who sees it as "received").
+    counterpart = models.ForeignKey(
+        Owner, on_delete=models.SET_NULL, null=True, blank=True, related_name="+"
+    )
+    kind = models.CharField(max_length=16, choices=Kind.choices)
+    tx_hash = models.CharField(max_length=66)
+    block_number = models.BigIntegerField(null=True, blank=True)
+    record_count = models.PositiveIntegerField(default=0)
+    detail = models.JSONField(default=dict)
+    at = models.DateTimeField(default=timezone.now, help_text="when the receipt was seen")
+
+    class Meta:
+        ordering = ["-at", "-id"]
+        constraints = [
+            models.UniqueConstraint(
+                fields=["owner", "kind", "tx_hash"], name="one_activity_per_owner_kind_tx"
+            ),
+        ]
+        indexes = [
+            models.Index(fields=["owner", "-at"], name="chain_activity_owner"),
+            models.Index(fields=["counterpart", "-at"], name="chain_activity_counterpart"),
+        ]
+
+    def __str__(self) -> str:
+        return f"{self.owner}: {self.kind} {self.tx_hash}"
+
+
+class EoaFunding(models.Model):
+    """Ether the operator sent to an owner's EOA: the ledger the funding budget is kept on."""
+
+    owner = models.ForeignKey(Owner, on_delete=models.CASCADE, related_name="fundings")
+    amount_wei = models.DecimalField(max_digits=78, decimal_places=0)
+    tx_hash = models.CharField(max_length=66, blank=True)
+    reason = models.CharField(max_length=32, default="registration")
+    created_at = models.DateTimeField(auto_now_add=True)
+
+    class Meta:
+        ordering = ["-created_at"]
+        indexes = [models.Index(fields=["created_at"], name="eoa_funding_created")]
+
+    def __str__(self) -> str:
+        return f"{self.amount_wei} wei to {self.owner} ({self.reason})"
+
+
+class SecretFingerprint(models.Model):
+    """A fingerprint of a secret kept outside the database (the KEK), so that a portal started
+    with another secret than the one its rows were wrapped under refuses to serve."""
+
+    name = models.CharField(max_length=32, primary_key=True)
+    fingerprint = models.CharField(max_length=64)
+    created_at = models.DateTimeField(auto_now_add=True)
+
+    def __str__(self) -> str:
+        return f"{self.name}: {self.fingerprint[:16]}…"

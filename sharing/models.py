@@ -5,7 +5,7 @@ import uuid
 from django.conf import settings
 from django.db import models
 
-from accounts.models import Owner, Robot
+from accounts.models import Owner, OwnerToken, Robot
 
 
 class Record(models.Model):
@@ -44,6 +44,7 @@ class Record(models.Model):
         indexes = [
             models.Index(fields=["status", "created_at"], name="record_status_created"),
             models.Index(fields=["owner", "status"], name="record_owner_status"),
+            models.Index(fields=["tx_hash"], name="record_tx_hash"),
         ]
 
     def __str__(self) -> str:
@@ -70,6 +71,11 @@ class Grant(models.Model):
     revoke_tx = models.CharField(max_length=66, blank=True)
     revoke_block = models.BigIntegerField(null=True, blank=True)
     failure_reason = models.CharField(max_length=300, blank=True)
+    # Which credential made the grant: "session", "token", or "cli"; with the token if one.
+    made_with = models.CharField(max_length=16, default="session")
+    made_with_token = models.ForeignKey(
+        OwnerToken, on_delete=models.SET_NULL, null=True, blank=True, related_name="grants_made"
+    )
     created_at = models.DateTimeField(auto_now_add=True)
     updated_at = models.DateTimeField(auto_now=True)
 
