@@ -1,55 +1,124 @@
-"""Who calls the REST API and how often: robot tokens, the caller's owner, rate limits.
+"""Who calls the REST API and how often: robot and owner API tokens, what each may do, the
+caller's owner, rate limits.
 
-Robot tokens: `Authorization: Token <key>`, compared by SHA-256. Rate limits are counted in
-the shared cache (Redis), so they hold across every web process; a cache that is down lets
-requests through rather than failing them.
+Both kinds of token come as `Authorization: Token <key>` and are compared by SHA-256. A robot
+token is a device credential (a stolen robot must not give away its owner's data): it uploads
+and reads the status of that robot's own uploads, nothing else. Reading content, listing what
+others shared, granting and revoking need the owner: a browser session, or an owner API token
+(`aro_...`) with the scope for it (`OwnerCredential`). Rate limits are counted in the shared
+cache (Redis), so they hold across every web process; a cache that is down lets requests
+through rather than failing them.
 """
 
 import logging
 from typing import TYPE_CHECKING, Any
 
 from django.conf import settings
+from django.urls import reverse
+from django.utils import timezone
 from drf_spectacular.extensions import OpenApiAuthenticationExtension
 from redis.exceptions import RedisError
 from rest_framework import authentication, exceptions, throttling
+from rest_framework.permissions import BasePermission
 from rest_framework.request import Request
 from rest_framework.settings import api_settings
 
-from accounts.models import Owner, Robot
-from accounts.selectors import owner_for_user, robot_by_token
+from accounts.errors import InsufficientScope
+from accounts.models import Owner, OwnerToken, Robot
+from accounts.selectors import (
+    OWNER_TOKEN_PREFIX,
+    owner_for_user,
+    owner_token_by_key,
+    robot_by_token,
+)
+from accounts.services import owner_token_mark_used
 
 if TYPE_CHECKING:  # rest_framework.views imports this module through the settings
     from rest_framework.views import APIView
 
 logger = logging.getLogger(__name__)
 
+AUTH_KEYWORD = "Token"
+
+
+def _token_key(request: Request) -> str | None:
+    """The key of an `Authorization: Token <key>` header; None without such a header."""
+    header = authentication.get_authorization_header(request).split()
+    if not header or header[0].lower() != AUTH_KEYWORD.lower().encode():
+        return None
+    if len(header) != 2:
+        raise exceptions.AuthenticationFailed("use the header `Authorization: Token <key>`")
+    try:
+        return header[1].decode("ascii")
+    except UnicodeDecodeError:
+        raise exceptions.AuthenticationFailed("the token has characters it cannot have") from None
+
+
+class OwnerTokenAuthentication(authentication.BaseAuthentication):
+    """Authenticates an owner API token; `request.user` is its owner's user, `request.auth` the
+    OwnerToken. Keys that are no owner token are left to RobotTokenAuthentication (next)."""
+
+    keyword = AUTH_KEYWORD
+
+    def authenticate(self, request: Request) -> tuple[Any, OwnerToken] | None:
+        key = _token_key(request)
+        if key is None or not key.startswith(OWNER_TOKEN_PREFIX):
+            return None
+        token = owner_token_by_key(key)
+        if token is None:
+            return None  # a robot token may start the same way, however unlikely
+        if token.revoked_at is not None:
+            raise exceptions.AuthenticationFailed("this API token was revoked")
+        if token.expires_at <= timezone.now():
+            raise exceptions.AuthenticationFailed(
+                f"this API token expired at {token.expires_at:%Y-%m-%d %H:%M} UTC: "
+                f"make a new one at {reverse('api-tokens')}"
+            )
+        if not token.owner.user.is_active:
+            raise exceptions.AuthenticationFailed("the token's owner account is disabled")
+        owner_token_mark_used(token=token)
+        return token.owner.user, token
+
+    def authenticate_header(self, request: Request) -> str:
+        return self.keyword
+
 
 class RobotTokenAuthentication(authentication.BaseAuthentication):
     """Authenticates a robot; `request.user` is its owner's user, `request.auth` the Robot."""
 
-    keyword = "Token"
+    keyword = AUTH_KEYWORD
 
     def authenticate(self, request: Request) -> tuple[Any, Robot] | None:
-        header = authentication.get_authorization_header(request).split()
-        if not header or header[0].lower() != self.keyword.lower().encode():
+        key = _token_key(request)
+        if key is None:
             return None
-        if len(header) != 2:
-            raise exceptions.AuthenticationFailed("use the header `Authorization: Token <key>`")
-        try:
-            token = header[1].decode("ascii")
-        except UnicodeDecodeError:
-            raise exceptions.AuthenticationFailed(
-                "the token has characters it cannot have"
-            ) from None
-        robot = robot_by_token(token)
+        robot = robot_by_token(key)
         if robot is None:
-            raise exceptions.AuthenticationFailed("unknown or revoked robot token")
+            raise exceptions.AuthenticationFailed("unknown or revoked token")
         if not robot.owner.user.is_active:
             raise exceptions.AuthenticationFailed("the robot's owner account is disabled")
         return robot.owner.user, robot
 
     def authenticate_header(self, request: Request) -> str:
         return self.keyword
+
+
+class OwnerTokenScheme(OpenApiAuthenticationExtension):
+    """How the OpenAPI schema describes owner API tokens."""
+
+    target_class = OwnerTokenAuthentication
+    name = "ownerToken"
+
+    def get_security_definition(self, auto_schema: Any) -> dict[str, str]:
+        return {
+            "type": "apiKey",
+            "in": "header",
+            "name": "Authorization",
+            "description": (
+                "`Token aro_<key>`, an owner API token made at `/account/tokens/`: scoped "
+                "(`read`: records and their content; `share`: grants), expiring, revocable"
+            ),
+        }
 
 
 class RobotTokenScheme(OpenApiAuthenticationExtension):
@@ -63,24 +132,64 @@ class RobotTokenScheme(OpenApiAuthenticationExtension):
             "type": "apiKey",
             "in": "header",
             "name": "Authorization",
-            "description": "`Token <key>`, the robot's token printed by `manage.py robot_create`",
+            "description": (
+                "`Token <key>`, the robot's token printed by `manage.py robot_create`: uploads, "
+                "and the status of that robot's own uploads, nothing else"
+            ),
         }
 
 
 def caller_robot(request: Request) -> Robot | None:
-    """The robot behind a token-authenticated request, else None (a browser session)."""
+    """The robot behind a robot-token request, else None."""
     return request.auth if isinstance(request.auth, Robot) else None
 
 
+def caller_owner_token(request: Request) -> OwnerToken | None:
+    """The owner API token behind a request, else None."""
+    return request.auth if isinstance(request.auth, OwnerToken) else None
+
+
 def caller_owner(request: Request) -> Owner:
-    """The owner a request acts for: the robot's owner, or the logged-in user's owner."""
-    robot = caller_robot(request)
-    if robot is not None:
-        return robot.owner
+    """The owner a request acts for: an owner token's, or the signed-in user's. A robot token
+    never acts for its owner."""
+    if caller_robot(request) is not None:
+        raise exceptions.PermissionDenied("a robot token cannot act for its owner")
+    token = caller_owner_token(request)
+    if token is not None:
+        return token.owner
     owner = owner_for_user(request.user)
     if owner is None:
         raise exceptions.PermissionDenied("this account is not a robot owner")
     return owner
+
+
+class OwnerCredential(BasePermission):
+    """The caller acts as the owner: a browser session, or an owner API token with `scope`.
+
+    A robot token is refused (403 `permission_denied`), unless `robots` is set: the view then
+    answers only about that robot's own uploads. A token without the scope is refused with 403
+    `insufficient_scope`. `action` completes "cannot ..." in the refusal.
+    """
+
+    def __init__(self, scope: str, action: str, *, robots: bool = False) -> None:
+        self.scope, self.action, self.robots = scope, action, robots
+
+    def has_permission(self, request: Request, view: "APIView") -> bool:
+        if caller_robot(request) is not None:
+            if self.robots:
+                return True
+            raise exceptions.PermissionDenied(
+                f"a robot token cannot {self.action}: it only uploads and reads the status of "
+                "its own uploads. Sign in to the portal, or use an owner API token with the "
+                f"`{self.scope}` scope (made at {reverse('api-tokens')})"
+            )
+        token = caller_owner_token(request)
+        if token is not None and self.scope not in token.scopes:
+            raise InsufficientScope(
+                f"this API token cannot {self.action}: that needs the `{self.scope}` scope, "
+                f"and it has {', '.join(token.scopes) or 'none'}"
+            )
+        return True
 
 
 # --- rate limits ------------------------------------------------------------------------------

@@ -40,3 +40,31 @@ class InvalidRobotName(AccountError):
 
 class RobotNameTaken(AccountError):
     code = "robot_name_taken"
+
+
+class InvalidOwnerToken(AccountError):
+    """An API token asked for with a bad name, scopes or lifetime."""
+
+    code = "invalid_api_token"
+
+
+class InsufficientScope(AccountError):
+    """An owner API token used for what its scopes do not cover."""
+
+    code = "insufficient_scope"
+    http_status = 403
+
+
+class MasterKeyRefused(AccountError):
+    """The master key (KEK) is missing while owner keys are wrapped under it, or is not the one
+    they were wrapped under: nothing is wrapped or served until an operator restores it."""
+
+    code = "service_misconfigured"
+    http_status = 503
+
+
+class IdentityMismatch(AccountError):
+    """The key commitment on chain is not the one of the key the portal holds for the owner."""
+
+    code = "identity_check_failed"
+    http_status = 409

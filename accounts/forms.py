@@ -16,7 +16,7 @@ from django.core.exceptions import ValidationError
 from accounts.agent_config import DEFAULT_TOPICS, Topic
 from accounts.errors import InvalidKeyMaterial
 from accounts.keyexchange import sm4_key_from_submission
-from accounts.models import validate_robot_topics
+from accounts.models import OwnerToken, validate_robot_topics
 
 NO_SCRIPT_KEY = (
     "Your key was not encrypted in the browser, so it was not sent. This page needs "
@@ -136,3 +136,50 @@ class RobotCreateForm(forms.Form):
             entries.append({"name": parts[0], "type": parts[1]})
         validate_robot_topics(entries)
         return [Topic(name=entry["name"], type=entry["type"]) for entry in entries]
+
+
+# The lifetimes an owner picks from for an API token, in days.
+API_TOKEN_LIFETIMES = (7, 30, 90, 365)
+
+
+class ApiTokenCreateForm(forms.Form):
+    """An owner API token: its name, scopes and lifetime, confirmed with the owner's password
+    (a stolen session cookie must not mint a long-lived credential)."""
+
+    name = forms.CharField(
+        max_length=100,
+        help_text="What will use it, e.g. nightly-export; shown in the list and on grants.",
+    )
+    scopes = forms.MultipleChoiceField(
+        choices=OwnerToken.Scope.choices,
+        widget=forms.CheckboxSelectMultiple,
+        help_text="Give it only what the script needs.",
+    )
+    expires_in_days = forms.TypedChoiceField(
+        label="Expires after",
+        choices=[(days, f"{days} days") for days in API_TOKEN_LIFETIMES],
+        coerce=int,
+        initial=30,
+    )
+    password = forms.CharField(
+        label="Your password",
+        strip=False,
+        widget=forms.PasswordInput(attrs={"autocomplete": "current-password"}),
+        help_text="An API token acts for you until it expires: confirm it is you.",
+    )
+
+    def __init__(self, *args: object, user: object, **kwargs: object) -> None:
+        self.user = user
+        super().__init__(*args, **kwargs)
+
+    def clean_name(self) -> str:
+        name = self.cleaned_data["name"].strip()
+        if not name:
+            raise ValidationError("Give the token a name.", code="required")
+        return name
+
+    def clean_password(self) -> str:
+        password = self.cleaned_data["password"]
+        if not self.user.check_password(password):
+            raise ValidationError("This is not your password.", code="wrong_password")
+        return password

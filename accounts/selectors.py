@@ -1,13 +1,16 @@
 """Reads about owners, including the unwrapping of their secrets for the services."""
 
 import hashlib
+from datetime import datetime
 
+from django.db.models import Q, QuerySet
 from eth_account import Account
 from eth_account.signers.local import LocalAccount
 
 from accounts import keywrap
 from accounts.agent_config import Topic
-from accounts.models import ChainState, Owner, OwnerKey, Robot
+from accounts.keywrap import eoa_purpose, sm4_key_purpose
+from accounts.models import AccountEvent, ChainState, Owner, OwnerKey, OwnerToken, Robot
 from chainworker.services import chain_client
 
 
@@ -69,14 +72,6 @@ def robot_token_hash(token: str) -> str:
     return hashlib.sha256(token.encode()).hexdigest()
 
 
-def eoa_purpose(owner_pk: int) -> str:
-    return f"eoa-key:{owner_pk}"
-
-
-def sm4_key_purpose(owner_pk: int, key_id: str) -> str:
-    return f"sm4-key:{owner_pk}:{key_id}"
-
-
 def owner_for_user(user: object) -> Owner | None:
     """The owner behind a logged-in user; None for operators (admin-only accounts)."""
     if not getattr(user, "is_authenticated", False):
@@ -110,3 +105,44 @@ def chain_backlog() -> dict[str, int]:
         "registrations": Owner.objects.filter(chain_state=ChainState.PENDING).count(),
         "keys": OwnerKey.objects.filter(chain_state=ChainState.PENDING).count(),
     }
+
+
+def account_events_of(owner: Owner) -> QuerySet[AccountEvent]:
+    """What happened to the owner's account, newest first (the security page)."""
+    return AccountEvent.objects.filter(owner=owner).select_related("actor")
+
+
+def account_events_to_notice(owner: Owner, *, since: datetime) -> QuerySet[AccountEvent]:
+    """Events since `since` the owner should look at: made by someone else (an operator), or
+    an identity check that failed."""
+    by_others = Q(actor__isnull=False) & ~Q(actor_id=owner.user_id)
+    return account_events_of(owner).filter(
+        by_others | Q(kind=AccountEvent.Kind.IDENTITY_MISMATCH), created_at__gte=since
+    )
+
+
+# --- owner API tokens -------------------------------------------------------------------------
+
+# Every owner API token starts with this: told apart from a robot token at a glance, and by
+# secret scanners.
+OWNER_TOKEN_PREFIX = "aro_"  # noqa: S105 (a marker, not a secret)
+
+
+def owner_token_by_key(key: str) -> OwnerToken | None:
+    """The owner API token whose key is `key`, live or not; compared by SHA-256 only (the same
+    hash as robot tokens)."""
+    return (
+        OwnerToken.objects.select_related("owner__user")
+        .filter(token_hash=robot_token_hash(key))
+        .first()
+    )
+
+
+def owner_token_list(owner: Owner) -> list[OwnerToken]:
+    """An owner's API tokens, newest first, revoked and expired ones included."""
+    return list(owner.api_tokens.order_by("-created_at", "-id"))
+
+
+def owner_token_of(owner: Owner, token_id: int) -> OwnerToken | None:
+    """One of the owner's API tokens; None for another owner's."""
+    return owner.api_tokens.filter(pk=token_id).first()

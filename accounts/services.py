@@ -2,49 +2,82 @@
 on commit (outbox), and the worker's tasks carry it out through the `*_on_chain` services
 below: registration (fund, enroll, register) and key rotation."""
 
+import logging
 import secrets
+from collections import Counter
 from collections.abc import Sequence
+from contextlib import suppress
 from datetime import timedelta
+from itertools import pairwise
 
 from django.conf import settings
 from django.contrib.auth import get_user_model
+from django.contrib.auth.base_user import AbstractBaseUser
 from django.contrib.auth.password_validation import validate_password
 from django.contrib.auth.validators import UnicodeUsernameValidator
 from django.core.exceptions import ValidationError
 from django.db import IntegrityError, transaction
+from django.db.models import Sum
 from django.utils import timezone
 from eth_account import Account
+from eth_account.signers.local import LocalAccount
+from redis.exceptions import RedisError
 
 from accounts import keywrap
 from accounts.agent_config import Topic
 from accounts.errors import (
+    IdentityMismatch,
     InvalidKeyMaterial,
+    InvalidOwnerToken,
     InvalidRobotName,
     InvalidUsername,
     KeyAlreadyUsed,
+    MasterKeyRefused,
     RobotNameTaken,
     UsernameTaken,
     WeakPassword,
 )
 from accounts.models import (
     DEFAULT_TOPICS,
+    AccountEvent,
+    Approval,
+    ChainActivity,
     ChainState,
+    EoaFunding,
     Owner,
     OwnerKey,
+    OwnerToken,
     Robot,
     validate_robot_topics,
 )
-from accounts.selectors import eoa_purpose, owner_eoa_account, robot_token_hash, sm4_key_purpose
+from accounts.selectors import (
+    OWNER_TOKEN_PREFIX,
+    eoa_purpose,
+    owner_eoa_account,
+    robot_token_hash,
+    sm4_key_purpose,
+)
+from chainworker.chain import AuthROSChain, ChainError
 from chainworker.services import chain_client, operator_account, operator_ensure_funded
 from chainworker.work import ChainWorkNotReady, exclusive
 from core.outbox import enqueue
+from core.redis_client import get_redis, redis_key
 from smcrypto import key_commitment, key_id, sm4
+
+logger = logging.getLogger(__name__)
 
 ROBOT_TOKEN_BYTES = 32
 
 
-def owner_create(*, username: str, password: str, sm4_key: bytes) -> Owner:
-    """A new owner with a custodial EOA; funding, enrolment and registration follow on chain."""
+def owner_create(
+    *, username: str, password: str, sm4_key: bytes, self_signup: bool = False
+) -> Owner:
+    """A new owner with a custodial EOA; funding, enrolment and registration follow on chain.
+
+    `self_signup`: made on the open registration page, not by an operator's command; with
+    SIGNUP_APPROVAL such an owner awaits an operator's approval (owner_approve) and nothing
+    is done on chain until then.
+    """
     User = get_user_model()
     try:
         UnicodeUsernameValidator()(username)
@@ -60,14 +93,21 @@ def owner_create(*, username: str, password: str, sm4_key: bytes) -> Owner:
         raise WeakPassword(list(exc.messages)) from None
 
     eoa = Account.create()
+    awaiting = self_signup and settings.SIGNUP_APPROVAL
     try:
         with transaction.atomic():
             user = User.objects.create_user(username=username, password=password)
-            owner = Owner.objects.create(user=user, eoa_address=eoa.address, eoa_key_wrapped=b"")
+            owner = Owner.objects.create(
+                user=user,
+                eoa_address=eoa.address,
+                eoa_key_wrapped=b"",
+                approval=Approval.AWAITING if awaiting else Approval.APPROVED,
+            )
             owner.eoa_key_wrapped = keywrap.wrap(bytes(eoa.key), purpose=eoa_purpose(owner.pk))
             owner.save(update_fields=["eoa_key_wrapped"])
             _owner_key_add(owner, sm4_key)
-            transaction.on_commit(lambda: enqueue("accounts.tasks.owner_register", owner.pk))
+            if not awaiting:
+                transaction.on_commit(lambda: enqueue("accounts.tasks.owner_register", owner.pk))
     except IntegrityError:
         raise UsernameTaken(f"the username {username!r} is taken") from None
     return owner
@@ -114,9 +154,20 @@ def robot_create(
     return robot, token
 
 
-def robot_token_revoke(*, robot: Robot) -> Robot:
-    """The robot's token stops working at once; its records stay."""
-    Robot.objects.filter(pk=robot.pk).update(is_active=False, revoked_at=timezone.now())
+def robot_token_revoke(*, robot: Robot, actor: AbstractBaseUser | None = None) -> Robot:
+    """The robot's token stops working at once; its records stay. The owner's security page
+    shows who revoked it (`actor`: the owner or an operator)."""
+    with transaction.atomic():
+        revoked = Robot.objects.filter(pk=robot.pk, is_active=True).update(
+            is_active=False, revoked_at=timezone.now()
+        )
+        if revoked:
+            account_event_record(
+                owner=robot.owner,
+                kind=AccountEvent.Kind.ROBOT_TOKEN_REVOKED,
+                actor=actor,
+                detail={"robot": robot.name, "robot_id": str(robot.pk)},
+            )
     robot.refresh_from_db()
     return robot
 
@@ -128,7 +179,7 @@ def owner_register_on_chain(*, owner_id: int) -> Owner:
     """Fund the owner's EOA, enroll it (operator) and register its key commitment."""
     with exclusive(f"owner:{owner_id}", timeout=settings.CHAIN_RECEIPT_TIMEOUT * 3 + 30):
         owner = Owner.objects.select_related("user").get(pk=owner_id)
-        if owner.chain_state == ChainState.CONFIRMED:
+        if owner.chain_state == ChainState.CONFIRMED or owner.approval != Approval.APPROVED:
             return owner
         client = chain_client()
         operator = operator_account()
@@ -136,15 +187,34 @@ def owner_register_on_chain(*, owner_id: int) -> Owner:
         first_key = owner.keys.order_by("created_at").first()
         # Each step is written as soon as it is on chain, so progress pages move step by step.
         step = Owner.objects.filter(pk=owner.pk).update
-        funding = settings.CHAIN_EOA_FUNDING_WEI
-        if client.balance(owner.eoa_address) < funding // 2:
-            step(fund_tx=client.transfer(operator, owner.eoa_address, funding).tx_hash)
+        funding = eoa_funding_amount(fee_per_gas=client.fee_per_gas())
+        if funding and client.balance(owner.eoa_address) < funding // 2:
+            fund_tx = _eoa_fund(owner=owner, client=client, operator=operator, amount_wei=funding)
+            if fund_tx is None:
+                owner.refresh_from_db()
+                return owner  # over the funding budget: it waits; chain_work_sweep retries it
+            step(fund_tx=fund_tx)
+            chain_activity_record(owner=owner, kind=ChainActivity.Kind.FUNDED, tx_hash=fund_tx)
         if not client.is_enrolled(owner.eoa_address):
-            step(enroll_tx=client.enroll(operator, owner.eoa_address).tx_hash)
+            enrolled = client.enroll(operator, owner.eoa_address)
+            step(enroll_tx=enrolled.tx_hash)
+            chain_activity_record(
+                owner=owner,
+                kind=ChainActivity.Kind.ENROLLED,
+                tx_hash=enrolled.tx_hash,
+                block_number=enrolled.block_number,
+            )
         if not client.is_registered(owner.eoa_address):
             commitment = bytes.fromhex(first_key.commitment.removeprefix("0x"))
             result = client.register(owner_eoa_account(owner), commitment)
             step(register_tx=result.tx_hash, registered_block=result.block_number)
+            chain_activity_record(
+                owner=owner,
+                kind=ChainActivity.Kind.REGISTERED,
+                tx_hash=result.tx_hash,
+                block_number=result.block_number,
+                detail={"key_id": first_key.key_id, "commitment": first_key.commitment},
+            )
             OwnerKey.objects.filter(pk=first_key.pk).update(
                 chain_state=ChainState.CONFIRMED,
                 tx_hash=result.tx_hash,
@@ -154,6 +224,8 @@ def owner_register_on_chain(*, owner_id: int) -> Owner:
             OwnerKey.objects.filter(pk=first_key.pk).update(chain_state=ChainState.CONFIRMED)
         step(chain_state=ChainState.CONFIRMED, chain_error="")
         owner.refresh_from_db()
+    # Read back what is on chain now: the commitment of the key the portal holds.
+    owner_identity_check(owner=owner, fresh=True)
     # Keys rotated (and records uploaded) while registration was pending can go now.
     for key in owner.keys.filter(chain_state=ChainState.PENDING):
         enqueue("accounts.tasks.key_rotate", key.pk)
@@ -178,19 +250,28 @@ def key_rotate_on_chain(*, owner_key_id: int) -> OwnerKey:
         if client.commitment_of(owner.eoa_address) != commitment:
             result = client.rotate_key(owner_eoa_account(owner), commitment)
             fields.update(tx_hash=result.tx_hash, block_number=result.block_number)
+            chain_activity_record(
+                owner=owner,
+                kind=ChainActivity.Kind.KEY_ROTATED,
+                tx_hash=result.tx_hash,
+                block_number=result.block_number,
+                detail={"key_id": key.key_id, "commitment": key.commitment},
+            )
         OwnerKey.objects.filter(pk=key.pk).update(**fields)
     key.refresh_from_db()
+    owner_identity_check(owner=owner, fresh=True)
     return key
 
 
 def chain_work_sweep() -> dict[str, int]:
     """Queue again registrations and key rotations pending for longer than ANCHOR_STALE_AFTER
-    (a lost message, a dead worker); their tasks are idempotent."""
+    (a lost message, a dead worker, a registration waiting for the funding budget); their
+    tasks are idempotent. Sign-ups awaiting or refused an operator's approval stay put."""
     cutoff = timezone.now() - timedelta(seconds=settings.ANCHOR_STALE_AFTER)
     registrations = list(
-        Owner.objects.filter(chain_state=ChainState.PENDING, created_at__lt=cutoff).values_list(
-            "pk", flat=True
-        )
+        Owner.objects.filter(
+            chain_state=ChainState.PENDING, created_at__lt=cutoff, approval=Approval.APPROVED
+        ).values_list("pk", flat=True)
     )
     for owner_id in registrations:
         enqueue("accounts.tasks.owner_register", owner_id)
@@ -218,8 +299,423 @@ def _owner_key_add(owner: Owner, sm4_key: bytes) -> OwnerKey:
     )
 
 
+# A key an owner chose is recovered offline from its public commitment if it can be guessed,
+# so a key must look drawn at random. How often each rule refuses 16 uniformly random bytes:
+# fewer than 8 distinct byte values (one repeated byte included): 6.4e-13; a pattern of at
+# most 8 bytes repeated: 5.4e-20; 12 or more of the 15 steps between neighbouring bytes equal
+# (counting up or down: 000102..., 00112233..., ffeedd...): 1.5e-24; every byte printable
+# ASCII or NUL (a word or phrase, maybe zero-padded): (96/256)**16 = 1.5e-7. So one random key
+# in 6.5 million is refused (sm4_key_generate draws another); a looser text rule, such as 12
+# of 16 bytes printable, would refuse one in 430.
+KEY_MIN_DISTINCT_BYTES = 8
+KEY_MAX_PATTERN_BYTES = 8
+KEY_MAX_EQUAL_STEPS = 11
+_KEY_TEXT_BYTES = frozenset(range(0x20, 0x7F)) | {0}
+_LET_THE_PORTAL_GENERATE = (
+    "; let the portal generate your key instead (the registration and key pages do by "
+    "default; `manage.py owner_create` does without --sm4-key-hex)"
+)
+
+
 def _check_sm4_key(sm4_key: bytes) -> None:
     if not isinstance(sm4_key, bytes) or len(sm4_key) != sm4.KEY_SIZE:
         raise InvalidKeyMaterial("an SM4 key is 16 bytes (32 hex digits)")
-    if sm4_key == bytes(sm4.KEY_SIZE):
-        raise InvalidKeyMaterial("an all-zero SM4 key is not a key")
+    weakness = _sm4_key_weakness(sm4_key)
+    if weakness is not None:
+        raise InvalidKeyMaterial(weakness + _LET_THE_PORTAL_GENERATE)
+
+
+def _sm4_key_weakness(key: bytes) -> str | None:
+    """Why `key` looks chosen rather than random, or None."""
+    if key == bytes(len(key)):
+        return "an all-zero SM4 key is not a key"
+    if len(set(key)) < KEY_MIN_DISTINCT_BYTES:
+        return f"this key has fewer than {KEY_MIN_DISTINCT_BYTES} different byte values"
+    for period in range(1, KEY_MAX_PATTERN_BYTES + 1):
+        if key[period:] == key[:-period]:
+            return f"this key repeats a pattern of {period} bytes"
+    steps = Counter((b - a) % 256 for a, b in pairwise(key))
+    if steps.most_common(1)[0][1] > KEY_MAX_EQUAL_STEPS:
+        return "this key counts up or down (a sequence of bytes)"
+    if all(byte in _KEY_TEXT_BYTES for byte in key):
+        return "this key is text (printable characters), not random bytes"
+    return None
+
+
+# --- account events: what the owner sees on the security page -------------------------------
+
+
+def account_event_record(
+    *,
+    owner: Owner,
+    kind: str,
+    actor: AbstractBaseUser | None = None,
+    detail: dict[str, object] | None = None,
+) -> AccountEvent:
+    """One entry on the owner's security page. `actor` is who did it (the owner, an operator,
+    or None for the portal itself); `detail` is shown to the owner: never put a secret in it."""
+    if kind not in AccountEvent.Kind.values:
+        raise ValueError(f"unknown account event kind {kind!r}")
+    return AccountEvent.objects.create(owner=owner, kind=kind, actor=actor, detail=detail or {})
+
+
+def owner_active_set(*, owner: Owner, active: bool, actor: AbstractBaseUser) -> bool:
+    """An operator deactivates (no sign-in, no session) or reactivates an owner's account;
+    the owner sees who did it. Returns whether anything changed."""
+    User = get_user_model()
+    with transaction.atomic():
+        changed = User.objects.filter(pk=owner.user_id, is_active=not active).update(
+            is_active=active
+        )
+        if changed:
+            account_event_record(
+                owner=owner,
+                kind=AccountEvent.Kind.ADMIN_ACTION,
+                actor=actor,
+                detail={"action": "reactivated" if active else "deactivated", "field": "is_active"},
+            )
+    owner.user.refresh_from_db(fields=["is_active"])
+    return bool(changed)
+
+
+# --- owner API tokens: an owner's scripts read and share with scopes, never a robot's token ---
+
+OWNER_TOKEN_BYTES = 32
+OWNER_TOKEN_MAX_LIFETIME = timedelta(days=365)
+# A token's last use is written at most this often, so that most requests write nothing.
+OWNER_TOKEN_USE_RESOLUTION = timedelta(minutes=1)
+
+
+def owner_token_create(
+    *, owner: Owner, name: str, scopes: Sequence[str], expires_in: timedelta
+) -> tuple[OwnerToken, str]:
+    """An API token for the owner's scripts; the key is returned once and only its hash kept.
+
+    `scopes` is a non-empty subset of OwnerToken.Scope; the token expires after `expires_in`,
+    at most OWNER_TOKEN_MAX_LIFETIME. The owner's security page shows it was made.
+    """
+    name = name.strip() if isinstance(name, str) else ""
+    if not name or len(name) > 100 or "\x00" in name:
+        raise InvalidOwnerToken("a token name has 1 to 100 characters")
+    allowed = OwnerToken.Scope.values
+    if isinstance(scopes, str) or not scopes or not set(scopes) <= set(allowed):
+        raise InvalidOwnerToken(f"scopes are one or more of: {', '.join(allowed)}")
+    if not isinstance(expires_in, timedelta) or not (
+        timedelta(0) < expires_in <= OWNER_TOKEN_MAX_LIFETIME
+    ):
+        raise InvalidOwnerToken(
+            f"a token expires within {OWNER_TOKEN_MAX_LIFETIME.days} days of being made"
+        )
+    key = OWNER_TOKEN_PREFIX + secrets.token_urlsafe(OWNER_TOKEN_BYTES)
+    with transaction.atomic():
+        token = OwnerToken.objects.create(
+            owner=owner,
+            name=name,
+            token_hash=robot_token_hash(key),
+            token_prefix=key[:12],
+            scopes=[scope for scope in allowed if scope in scopes],
+            expires_at=timezone.now() + expires_in,
+        )
+        account_event_record(
+            owner=owner,
+            kind=AccountEvent.Kind.TOKEN_CREATED,
+            actor=owner.user,
+            detail=_owner_token_detail(token),
+        )
+    return token, key
+
+
+def owner_token_revoke(*, token: OwnerToken, actor: AbstractBaseUser | None) -> OwnerToken:
+    """The token stops working at once (401); what it granted is
+    sharing.services.grants_revoke_made_with's to take back."""
+    with transaction.atomic():
+        revoked = OwnerToken.objects.filter(pk=token.pk, revoked_at__isnull=True).update(
+            revoked_at=timezone.now()
+        )
+        if revoked:
+            account_event_record(
+                owner=token.owner,
+                kind=AccountEvent.Kind.TOKEN_REVOKED,
+                actor=actor,
+                detail=_owner_token_detail(token),
+            )
+    token.refresh_from_db()
+    return token
+
+
+def owner_token_mark_used(*, token: OwnerToken) -> None:
+    """Note that the token was just used, at most once per OWNER_TOKEN_USE_RESOLUTION."""
+    now = timezone.now()
+    last = token.last_used_at
+    if last is not None and now - last < OWNER_TOKEN_USE_RESOLUTION:
+        return
+    OwnerToken.objects.filter(pk=token.pk).exclude(
+        last_used_at__gt=now - OWNER_TOKEN_USE_RESOLUTION
+    ).update(last_used_at=now)
+    token.last_used_at = now
+
+
+def _owner_token_detail(token: OwnerToken) -> dict[str, object]:
+    """What the security page says about a token: never its key."""
+    return {
+        "token": token.name,
+        "token_id": token.pk,
+        "prefix": token.token_prefix,
+        "scopes": list(token.scopes),
+        "expires_at": token.expires_at.isoformat(),
+    }
+
+
+# --- sign-up: funding within a budget, operator approval, generated keys ----------------------
+
+# What a registration waiting for the funding budget shows its owner (Owner.chain_error).
+FUNDING_BUDGET_SPENT = (
+    "waiting: the portal has funded as many new accounts as it may for now; registration "
+    "continues by itself later"
+)
+
+
+def eoa_funding_amount(*, fee_per_gas: int) -> int:
+    """Wei a new EOA is sent: CHAIN_EOA_FUNDING_GAS gas units at `fee_per_gas` (the chain's
+    current max fee per gas), at most CHAIN_EOA_FUNDING_WEI; 0 on a zero-gas chain."""
+    return min(settings.CHAIN_EOA_FUNDING_GAS * max(fee_per_gas, 0), settings.CHAIN_EOA_FUNDING_WEI)
+
+
+def eoa_funding_spent() -> int:
+    """Wei sent (or about to be) to owners' EOAs within the last SIGNUP_FUNDING_PERIOD."""
+    since = timezone.now() - timedelta(seconds=settings.SIGNUP_FUNDING_PERIOD)
+    total = EoaFunding.objects.filter(created_at__gte=since).aggregate(total=Sum("amount_wei"))
+    return int(total["total"] or 0)
+
+
+def _eoa_fund(
+    *, owner: Owner, client: AuthROSChain, operator: LocalAccount, amount_wei: int
+) -> str | None:
+    """Send `amount_wei` to the owner's EOA if the period's funding budget allows it, recorded
+    in EoaFunding; the transaction hash, or None (nothing sent) when the budget is spent."""
+    # A row of an earlier attempt that did not get its transaction out is reused, not re-counted.
+    entry = owner.fundings.filter(tx_hash="").order_by("created_at").first()
+    if entry is None:
+        # One worker at a time between the sum and the new row, across processes and owners.
+        with exclusive("eoa-funding-budget", timeout=30, wait=30):
+            spent = eoa_funding_spent()
+            budget = settings.SIGNUP_FUNDING_BUDGET_WEI
+            if spent + amount_wei > budget:
+                logger.warning(
+                    "EOA funding budget spent (%s of %s wei in %.0f s): registration of %s waits",
+                    spent,
+                    budget,
+                    settings.SIGNUP_FUNDING_PERIOD,
+                    owner,
+                )
+                Owner.objects.filter(pk=owner.pk).update(chain_error=FUNDING_BUDGET_SPENT)
+                return None
+            entry = EoaFunding.objects.create(owner=owner, amount_wei=amount_wei)
+    tx_hash = client.transfer(operator, owner.eoa_address, int(entry.amount_wei)).tx_hash
+    EoaFunding.objects.filter(pk=entry.pk).update(tx_hash=tx_hash)
+    return tx_hash
+
+
+def owner_approve(*, owner: Owner, operator: AbstractBaseUser) -> bool:
+    """An operator lets a sign-up awaiting approval onto the chain: its registration is queued.
+    Returns whether it was awaiting."""
+    with transaction.atomic():
+        changed = Owner.objects.filter(pk=owner.pk, approval=Approval.AWAITING).update(
+            approval=Approval.APPROVED, approved_by=operator, approved_at=timezone.now()
+        )
+        if changed:
+            account_event_record(
+                owner=owner, kind=AccountEvent.Kind.SIGNUP_APPROVED, actor=operator
+            )
+            transaction.on_commit(lambda: enqueue("accounts.tasks.owner_register", owner.pk))
+    owner.refresh_from_db()
+    return bool(changed)
+
+
+def owner_refuse(*, owner: Owner, operator: AbstractBaseUser) -> bool:
+    """An operator refuses a sign-up awaiting approval: the account is deactivated (no sign-in)
+    and nothing goes on chain. Returns whether it was awaiting."""
+    with transaction.atomic():
+        changed = Owner.objects.filter(pk=owner.pk, approval=Approval.AWAITING).update(
+            approval=Approval.REFUSED, approved_by=operator, approved_at=timezone.now()
+        )
+        if changed:
+            get_user_model().objects.filter(pk=owner.user_id).update(is_active=False)
+            account_event_record(owner=owner, kind=AccountEvent.Kind.SIGNUP_REFUSED, actor=operator)
+    owner.refresh_from_db()
+    owner.user.refresh_from_db(fields=["is_active"])
+    return bool(changed)
+
+
+def sm4_key_generate() -> bytes:
+    """A new random SM4 key that owner_create and key_rotate take (a random key that looks
+    chosen, one in millions, is drawn again)."""
+    while True:
+        key = sm4.generate_key()
+        if _sm4_key_weakness(key) is None:
+            return key
+
+
+# --- the audit page's index of owners' transactions ----------------------------------------
+
+
+def chain_activity_record(
+    *,
+    owner: Owner,
+    kind: str,
+    tx_hash: str,
+    block_number: int | None = None,
+    counterpart: Owner | None = None,
+    record_count: int = 0,
+    detail: dict[str, object] | None = None,
+) -> ChainActivity | None:
+    """Index a transaction of the owner's whose receipt the worker saw, for the audit page.
+
+    Idempotent: a retry that sees the same transaction again updates its row (one per
+    owner, kind and transaction) and keeps the time it was first seen. Nothing is written
+    for an empty `tx_hash` (nothing was sent).
+    """
+    if not tx_hash:
+        return None
+    if kind not in ChainActivity.Kind.values:
+        raise ValueError(f"unknown chain activity kind {kind!r}")
+    activity, _created = ChainActivity.objects.update_or_create(
+        owner=owner,
+        kind=kind,
+        tx_hash=tx_hash,
+        defaults={
+            "block_number": block_number,
+            "counterpart": counterpart,
+            "record_count": record_count,
+            "detail": detail or {},
+        },
+    )
+    return activity
+
+
+# --- the portal's own secrets, and owners' identity on chain --------------------------------
+
+security_log = logging.getLogger("authros.security")
+# Seconds the chain's commitment for an owner at one block stays in Redis (blocks move on).
+IDENTITY_CACHE_TTL = 300
+
+
+def secrets_verify() -> list[str]:
+    """What keeps the portal from serving with its secrets: a master key (KEK) that is
+    missing, unreadable or not the one the owner keys were wrapped with (accounts.keywrap
+    keeps its fingerprint on the first check)."""
+    try:
+        keywrap.kek_verify()
+    except MasterKeyRefused as exc:
+        return [str(exc)]
+    return []
+
+
+def owner_identity_check(*, owner: Owner, fresh: bool = False) -> bool:
+    """The identity check: the key commitment on chain for `owner` is the one of the key the
+    portal holds (the newest confirmed one; while a rotation is on its way, the new one too).
+
+    True when it was checked and holds; False when it cannot be checked (the owner is not on
+    chain yet, no contract, the chain does not answer), which is accepted. Otherwise raises
+    IdentityMismatch, after an AccountEvent (one per commitment seen on chain) and a line on
+    the "authros.security" log. The chain's answer is kept in Redis per owner and block, so
+    checks in a burst of requests cost no chain call; `fresh` asks the chain itself (to read
+    back what a confirmed transaction wrote).
+    """
+    expected = _identity_expected(owner)
+    if not expected:
+        return False
+    try:
+        client = chain_client()
+        on_chain = _commitment_on_chain(client, owner, fresh=fresh)
+        if on_chain not in expected and not fresh:
+            # The cached block may predate a rotation just confirmed: ask the chain itself.
+            on_chain = _commitment_on_chain(client, owner, fresh=True)
+    except ChainError as exc:
+        logger.warning("the identity of %s was not checked: %s", owner, exc)
+        return False
+    if on_chain in expected:
+        return True
+    _identity_mismatch_record(owner, on_chain=on_chain, expected=expected[0])
+    raise IdentityMismatch(
+        f"the key commitment on chain for {owner} differs from the key the portal holds; "
+        "uploads and views are refused until an operator looks"
+    )
+
+
+def _identity_expected(owner: Owner) -> list[str]:
+    """The commitments that may be on chain for the owner, the newest confirmed key's first;
+    none while the owner is not on chain."""
+    if owner.chain_state != ChainState.CONFIRMED:
+        return []
+    newer_pending: list[str] = []
+    keys = owner.keys.order_by("-created_at", "-pk").values_list("commitment", "chain_state")
+    for commitment, state in keys:
+        if state == ChainState.CONFIRMED:
+            return [commitment.lower(), *newer_pending]
+        if state == ChainState.PENDING:
+            newer_pending.append(commitment.lower())
+    return []
+
+
+def _commitment_on_chain(client: AuthROSChain, owner: Owner, *, fresh: bool) -> str:
+    block = client.latest_block() if fresh else _latest_block(client)
+    key = redis_key("identity", client.chain_key, client.address, owner.eoa_address, block)
+    if not fresh and (cached := _cache_get(key)) is not None:
+        return cached
+    on_chain = "0x" + client.commitment_of(owner.eoa_address).hex()
+    _cache_set(key, on_chain, seconds=IDENTITY_CACHE_TTL)
+    return on_chain
+
+
+def _latest_block(client: AuthROSChain) -> int:
+    """The chain's latest block, reused for IDENTITY_BLOCK_CACHE_SECONDS by every process."""
+    seconds = settings.IDENTITY_BLOCK_CACHE_SECONDS
+    if seconds <= 0:
+        return client.latest_block()
+    key = redis_key("latest-block", client.chain_key)
+    if (cached := _cache_get(key)) is not None:
+        return int(cached)
+    block = client.latest_block()
+    _cache_set(key, str(block), seconds=seconds)
+    return block
+
+
+def _cache_get(key: str) -> str | None:
+    try:
+        value = get_redis().get(key)
+    except RedisError:
+        return None  # without Redis every check asks the chain
+    return value.decode() if value is not None else None
+
+
+def _cache_set(key: str, value: str, *, seconds: float) -> None:
+    with suppress(RedisError):
+        get_redis().set(key, value, px=max(1, int(seconds * 1000)))
+
+
+def _identity_mismatch_record(owner: Owner, *, on_chain: str, expected: str) -> None:
+    """One AccountEvent and one log line per commitment seen on chain, not one per request."""
+    with transaction.atomic():
+        # Checks running side by side for the owner write one event between them.
+        Owner.objects.select_for_update().filter(pk=owner.pk).first()
+        seen = AccountEvent.objects.filter(
+            owner=owner,
+            kind=AccountEvent.Kind.IDENTITY_MISMATCH,
+            detail__chain_commitment=on_chain,
+        ).exists()
+        if seen:
+            return
+        account_event_record(
+            owner=owner,
+            kind=AccountEvent.Kind.IDENTITY_MISMATCH,
+            detail={"chain_commitment": on_chain, "expected_commitment": expected},
+        )
+    security_log.error(
+        "identity check failed for %s (EOA %s): the key commitment on chain is %s, the key "
+        "the portal holds commits to %s; uploads and views are refused",
+        owner,
+        owner.eoa_address,
+        on_chain,
+        expected,
+    )

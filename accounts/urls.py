@@ -1,4 +1,4 @@
-"""Owner pages of the accounts app: registration, sign-in, key, robots."""
+"""Owner pages of the accounts app: registration, sign-in, key, robots, API tokens."""
 
 from django.contrib.auth import views as auth_views
 from django.urls import path
@@ -16,4 +16,6 @@ urlpatterns = [
     path("robots/", views.robots, name="robots"),
     path("robots/<uuid:robot_id>/revoke/", views.robot_revoke, name="robot-revoke"),
     path("robots/<uuid:robot_id>/agent.yaml", views.robot_config, name="robot-config"),
+    # Revoking one is sharing's page (`api-token-revoke`): it takes back the grants it made.
+    path("account/tokens/", views.api_tokens, name="api-tokens"),
 ]

@@ -5,6 +5,9 @@ but registration and sign-in needs a logged-in owner (`owner_required`). The das
 which counts the owner's records and grants too, is the project's (portal/views.py).
 """
 
+import math
+from datetime import timedelta
+
 from axes.helpers import get_cool_off
 from django.conf import settings
 from django.contrib import messages
@@ -20,26 +23,35 @@ from django.views.decorators.http import require_GET, require_http_methods, requ
 from rest_framework.throttling import BaseThrottle
 
 from accounts.agent_config import agent_config_yaml, config_filename, key_filename
-from accounts.decorators import no_store, owner_required
+from accounts.decorators import no_store, owner_required, page_throttle
 from accounts.errors import (
     InvalidKeyMaterial,
+    InvalidOwnerToken,
     InvalidUsername,
     KeyAlreadyUsed,
     RobotNameTaken,
     UsernameTaken,
     WeakPassword,
 )
-from accounts.forms import KeyRotateForm, RegisterForm, RobotCreateForm
+from accounts.forms import ApiTokenCreateForm, KeyRotateForm, RegisterForm, RobotCreateForm
 from accounts.keyexchange import portal_sm2_public_key
 from accounts.models import ChainState, Owner, Robot
 from accounts.selectors import (
     owner_for_user,
     owner_key_current,
     owner_keys,
+    owner_token_list,
     robot_list_of,
     robot_topics,
 )
-from accounts.services import key_rotate, owner_create, robot_create, robot_token_revoke
+from accounts.services import (
+    key_rotate,
+    owner_create,
+    owner_token_create,
+    robot_create,
+    robot_token_revoke,
+)
+from accounts.signup_limits import signup_slot_give_back, signup_slot_take
 
 # The session backend that `login()` records for a user who has just registered.
 MODEL_BACKEND = "django.contrib.auth.backends.ModelBackend"
@@ -55,11 +67,17 @@ def register(request: HttpRequest) -> HttpResponse:
         return redirect("dashboard")
     form = RegisterForm(request.POST or None)
     if request.method == "POST" and form.is_valid():
+        # Every owner costs the operator chain work: a registration counts against the
+        # sign-up limits (accounts.signup_limits) before anything is created.
+        slot = signup_slot_take(address=client_ip_address(request))
+        if not slot.allowed:
+            return _signup_throttled(request, slot.retry_after)
         try:
             owner = owner_create(
                 username=form.cleaned_data["username"],
                 password=form.cleaned_data["password1"],
                 sm4_key=form.cleaned_data["key_ciphertext"],
+                self_signup=True,
             )
         except (UsernameTaken, InvalidUsername) as exc:
             form.add_error("username", str(exc))
@@ -70,6 +88,7 @@ def register(request: HttpRequest) -> HttpResponse:
         else:
             login(request, owner.user, backend=MODEL_BACKEND)
             return redirect("registration-progress")
+        signup_slot_give_back(slot)  # refused: nothing was created
     status = 400 if form.is_bound else 200
     return render(
         request,
@@ -79,7 +98,16 @@ def register(request: HttpRequest) -> HttpResponse:
     )
 
 
+def _signup_throttled(request: HttpRequest, retry_after: int) -> HttpResponse:
+    """429: too many registrations from this address, or overall; nothing was created."""
+    context = {"minutes": max(1, math.ceil(retry_after / 60))}
+    response = render(request, "accounts/signup_throttled.html", context, status=429)
+    response["Retry-After"] = str(retry_after)
+    return response
+
+
 @owner_required
+@page_throttle()
 @require_GET
 def registration_progress(request: HttpRequest) -> HttpResponse:
     return render(
@@ -88,6 +116,7 @@ def registration_progress(request: HttpRequest) -> HttpResponse:
 
 
 @owner_required
+@page_throttle()
 @require_GET
 def account_status(request: HttpRequest) -> JsonResponse:
     """What the progress pages poll: the owner's and the current key's on-chain state."""
@@ -160,6 +189,7 @@ def client_ip_address(request: HttpRequest) -> str | None:
 
 
 @method_decorator(owner_required, name="dispatch")
+@method_decorator(page_throttle(), name="dispatch")
 class PasswordChangeView(auth_views.PasswordChangeView):
     """An owner's password; operators change theirs in the admin console."""
 
@@ -176,6 +206,7 @@ class PasswordChangeView(auth_views.PasswordChangeView):
 
 @never_cache
 @owner_required
+@page_throttle()
 @require_http_methods(["GET", "POST"])
 def key_rotation(request: HttpRequest) -> HttpResponse:
     owner: Owner = request.owner
@@ -208,6 +239,7 @@ def key_rotation(request: HttpRequest) -> HttpResponse:
 
 @never_cache
 @owner_required
+@page_throttle()
 @require_http_methods(["GET", "POST"])
 def robots(request: HttpRequest) -> HttpResponse:
     owner: Owner = request.owner
@@ -235,11 +267,12 @@ def robots(request: HttpRequest) -> HttpResponse:
 
 
 @owner_required
+@page_throttle()
 @require_POST
 def robot_revoke(request: HttpRequest, robot_id: str) -> HttpResponse:
     robot = get_object_or_404(Robot, pk=robot_id, owner=request.owner)
     if robot.is_active:
-        robot_token_revoke(robot=robot)
+        robot_token_revoke(robot=robot, actor=request.user)
         messages.success(request, f"The token of {robot.name} is revoked: its uploads now fail.")
     else:
         messages.info(request, f"The token of {robot.name} was already revoked.")
@@ -247,6 +280,7 @@ def robot_revoke(request: HttpRequest, robot_id: str) -> HttpResponse:
 
 
 @owner_required
+@page_throttle()
 @require_GET
 def robot_config(request: HttpRequest, robot_id: str) -> HttpResponse:
     """The agent config again, without the token (shown once): it names a token file."""
@@ -267,4 +301,35 @@ def _agent_config(request: HttpRequest, robot: Robot, *, token: str | None) -> s
         topics=robot_topics(robot),
         token=token,
         made_at=timezone.now(),
+    )
+
+
+# --- owner API tokens ------------------------------------------------------------------------
+# Revoking one is sharing.views.api_token_revoke: it offers to take back the grants it made.
+
+
+@never_cache
+@owner_required
+@page_throttle()
+@require_http_methods(["GET", "POST"])
+def api_tokens(request: HttpRequest) -> HttpResponse:
+    owner: Owner = request.owner
+    form = ApiTokenCreateForm(request.POST or None, user=request.user)
+    if request.method == "POST" and form.is_valid():
+        try:
+            token, key = owner_token_create(
+                owner=owner,
+                name=form.cleaned_data["name"],
+                scopes=form.cleaned_data["scopes"],
+                expires_in=timedelta(days=form.cleaned_data["expires_in_days"]),
+            )
+        except InvalidOwnerToken as exc:
+            form.add_error(None, str(exc))
+        else:
+            # The key exists only in this response: it is never stored nor shown again.
+            context = {"token": token, "key": key}
+            return no_store(render(request, "accounts/api_token_created.html", context, status=201))
+    context = {"form": form, "tokens": owner_token_list(owner), "now": timezone.now()}
+    return render(
+        request, "accounts/api_tokens.html", context, status=400 if form.is_bound else 200
     )

@@ -15,8 +15,9 @@ the paper's one transaction per record and the baseline, and 100, batching):
   accepted record (one not anchored by the end of the drain counts as slower than all);
 - p50/p95/p99 latency to a verified view: every `--view-every`-th accepted record is fetched
   with `GET /api/v1/records/{id}/content/` as soon as it is anchored, by viewer threads using
-  its robot's token; the portal has a worker hash the stored ciphertext and compare it with the
-  chain before it answers 200 `{"verified": true}`;
+  its owner's API token (scope `read`: a robot token only uploads); the portal has a worker
+  hash the stored ciphertext and compare it with the chain before it answers 200
+  `{"verified": true}`;
 - CPU (percent of one core) and resident memory of the web (gunicorn master and workers), the
   Celery workers (with their pool children), beat and anvil, sampled every second.
 
@@ -34,6 +35,7 @@ import threading
 import time
 from collections import Counter
 from dataclasses import dataclass, field
+from datetime import timedelta
 from pathlib import Path
 from typing import Any
 
@@ -224,7 +226,8 @@ def main(argv: list[str]) -> int:
         "every accepted record; a record still pending after the drain counts as slower "
         "than all, and a percentile that falls on one is shown as '-'.",
         "latency to a verified view = the same POST to a 200 {verified: true} from "
-        "GET /api/v1/records/{id}/content/, for every view_every-th accepted record, asked "
+        "GET /api/v1/records/{id}/content/ with the owner's API token (scope read), for "
+        "every view_every-th accepted record, asked "
         "for as soon as the benchmark sees the record anchored (polling every "
         f"{POLL_INTERVAL:g}s).",
         "CPU is percent of one core, averaged over the upload window; memory is the peak "
@@ -260,6 +263,8 @@ class _Robot:
     robot: Any
     key: bytes
     token: str
+    # The owner's API token (scope read) the viewers read this robot's records with.
+    viewer_token: str
     seq: int = 0
     uploads: list[_Upload] = field(default_factory=list)
 
@@ -338,15 +343,25 @@ def _measure(run: SustainedRun) -> dict[str, Any]:
 
 
 def _robots_create(run: SustainedRun, stack: BenchStack) -> list[_Robot]:
-    """K owners registered on chain, then one robot per agent, round-robin over the owners."""
-    from accounts.services import robot_create
+    """K owners registered on chain, each with an API token to read with, then one robot per
+    agent, round-robin over the owners."""
+    from accounts.services import owner_token_create, robot_create
 
     owners = owners_register(stack, run.owners)
+    viewer_tokens = [
+        owner_token_create(
+            owner=owner_robot.owner,
+            name="bench-viewer",
+            scopes=["read"],
+            expires_in=timedelta(days=1),
+        )[1]
+        for owner_robot, _ in owners
+    ]
     robots = []
     for number in range(run.agents):
         owner_robot, key = owners[number % len(owners)]
         robot, token = robot_create(owner=owner_robot.owner, name=f"robot-{number}")
-        robots.append(_Robot(robot, key, token))
+        robots.append(_Robot(robot, key, token, viewer_tokens[number % len(owners)]))
     return robots
 
 
@@ -437,9 +452,10 @@ class _Watcher:
             thread.start()
 
     def accepted(self) -> dict[str, tuple[float, str]]:
-        """Record id -> (POST sent at, robot token), for every record answered with 201."""
+        """Record id -> (POST sent at, the owner's viewer token), for every record answered
+        with 201."""
         return {
-            record_id: (upload.sent_at, robot.token)
+            record_id: (upload.sent_at, robot.viewer_token)
             for robot in self.robots
             for upload in list(robot.uploads)
             for record_id in upload.record_ids

@@ -401,6 +401,13 @@ class AuthROSChain:
         with _translated_errors():
             return int(self.w3.eth.get_balance(Web3.to_checksum_address(address)))
 
+    def fee_per_gas(self) -> int:
+        """The most a gas unit of a transaction sent now may cost (its max fee per gas, or the
+        legacy gas price), as the transactions this client sends set it; 0 on a zero-gas chain."""
+        with _translated_errors():
+            fees = self._fill_fees({})
+        return int(fees.get("maxFeePerGas", fees.get("gasPrice", 0)))
+
     def is_connected(self) -> bool:
         try:
             self.latest_block()
@@ -762,8 +769,10 @@ class AuthROSChain:
                 params["gas"] = 21_000
                 tx = self._fill_fees(params)
             else:
-                tx = fn.build_transaction(params)
-                tx["gas"] = int(tx["gas"] * GAS_MARGIN)
+                # Estimated at zero fees: the gas does not depend on them, and a sender funded
+                # for the gas it needs cannot cover a node's estimate at the block gas limit.
+                gas = int(fn.estimate_gas({**params, "gasPrice": 0}) * GAS_MARGIN)
+                tx = fn.build_transaction(self._fill_fees({**params, "gas": gas}))
         except _REVERTS as exc:
             raise self._reverted(exc, label) from exc
         except (Web3RPCError, EthValidationError, ValueError) as exc:
@@ -778,9 +787,11 @@ class AuthROSChain:
         if base_fee is None:
             params["gasPrice"] = self.w3.eth.gas_price
             return params
-        tip = self.w3.eth.max_priority_fee
+        # A zero-gas chain (a private PoA network): no fee, so unfunded EOAs can send too.
+        free = int(base_fee) == 0 and int(self.w3.eth.gas_price) == 0
+        tip = 0 if free else int(self.w3.eth.max_priority_fee)
         params["maxPriorityFeePerGas"] = tip
-        params["maxFeePerGas"] = 2 * int(base_fee) + int(tip)
+        params["maxFeePerGas"] = 2 * int(base_fee) + tip
         return params
 
     def wait_for_receipt(

@@ -16,7 +16,7 @@ from chainworker.models import Deployment
 from chainworker.selectors import deployment_active
 from chainworker.work import exclusive
 from core.redis_client import get_redis
-from core.secrets import load_or_create_secret
+from core.secrets import SecretFileError, load_or_create_secret
 
 logger = logging.getLogger(__name__)
 
@@ -144,3 +144,30 @@ def chain_status() -> dict[str, object]:
     except ContractNotDeployed:
         status["problem"] = "contract not deployed: run `manage.py chain_deploy`"
     return status
+
+
+def operator_verify() -> list[str]:
+    """Why the operator key cannot do this portal's chain work: it must be the admin of the
+    contract in use. Nothing to say while no contract is deployed; raises ChainError when the
+    node does not answer, which is no refusal: ask again later."""
+    deployed = Deployment.objects.filter(is_active=True).exists()
+    if not (deployed or settings.CHAIN_CONTRACT_ADDRESS):
+        return []
+    try:
+        operator = operator_account()
+    except (ValueError, SecretFileError) as exc:
+        return [f"the operator key cannot be read ({exc}): restore operator.key"]
+    client = chain_client()
+    try:
+        address = client.address
+    except ContractNotDeployed:
+        return []  # none on this chain yet (another chain's deployment is recorded)
+    if not client.has_code(address):
+        return []  # the chain was reset: `manage.py chain_deploy` says so and deploys again
+    admin = client.admin()
+    if admin.lower() != operator.address.lower():
+        return [
+            f"the operator key (address {operator.address}) is not the admin of the AuthROS "
+            f"contract at {address} (admin {admin}): restore operator.key or CHAIN_OPERATOR_KEY"
+        ]
+    return []

@@ -3,6 +3,8 @@
 import os
 import secrets
 import stat
+import tempfile
+from contextlib import suppress
 from pathlib import Path
 
 
@@ -13,19 +15,42 @@ class SecretFileError(RuntimeError):
 def load_or_create_secret(path: Path, *, nbytes: int) -> bytes:
     """Return the secret stored at `path`, creating it with `nbytes` random bytes if absent.
 
-    Creation uses O_EXCL, so concurrent processes on one host agree on a single secret.
+    The secret is written whole to a temporary file and linked into place, which fails if
+    the name exists: concurrent processes on one host agree on a single secret, and none
+    ever reads an empty or partly written file.
     """
     path = Path(path)
     path.parent.mkdir(mode=0o700, parents=True, exist_ok=True)
-    try:
-        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
-    except FileExistsError:
-        return _read_secret(path, nbytes=nbytes)
-    with os.fdopen(fd, "w") as handle:
-        handle.write(secrets.token_hex(nbytes) + "\n")
-        handle.flush()
-        os.fsync(handle.fileno())
+    if not path.exists():
+        _create_secret(path, nbytes=nbytes)
     return _read_secret(path, nbytes=nbytes)
+
+
+def _create_secret(path: Path, *, nbytes: int) -> None:
+    # mkstemp makes the file 0600, in the same directory so that the link stays on one device.
+    fd, temporary = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "w") as handle:
+            handle.write(secrets.token_hex(nbytes) + "\n")
+            handle.flush()
+            os.fsync(handle.fileno())
+        try:
+            os.link(temporary, path)
+        except FileExistsError:
+            return  # another process linked its secret first: that one is complete, and wins
+    finally:
+        with suppress(FileNotFoundError):
+            os.unlink(temporary)
+    _fsync_directory(path.parent)
+
+
+def _fsync_directory(directory: Path) -> None:
+    """Make the new name durable: a crash after this keeps the file that was handed out."""
+    fd = os.open(directory, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
 
 
 def _read_secret(path: Path, *, nbytes: int) -> bytes:

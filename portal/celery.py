@@ -1,13 +1,22 @@
 """The Celery application: broker and results in Redis, tasks in each app's tasks.py."""
 
+import logging
 import os
+import threading
 
-from celery import Celery
+from celery import Celery, signals
+from django.db import connections
+
+from portal.middleware import service_checks_run
 
 os.environ.setdefault("DJANGO_SETTINGS_MODULE", "portal.settings")
 
+logger = logging.getLogger(__name__)
+# A worker that refuses to start exits with this status (sysexits.h EX_CONFIG).
+EXIT_MISCONFIGURED = 78
+
 # Tasks a person is waiting for, answered from the verify queue (see settings).
-VERIFY_TASKS = frozenset({"sharing.tasks.record_verify"})
+VERIFY_TASKS = frozenset({"sharing.tasks.record_verify", "sharing.tasks.records_verify"})
 
 
 def route_task(name, args, kwargs, options, task=None, **kw):
@@ -22,3 +31,38 @@ app = Celery("portal")
 app.config_from_object("django.conf:settings", namespace="CELERY")
 app.conf.task_routes = (route_task,)
 app.autodiscover_tasks()
+
+
+@signals.worker_init.connect
+def worker_refuse_misconfigured(**kwargs: object) -> None:
+    """A worker does not start while the service checks fail (portal/middleware.py): it logs
+    why and exits, so that no task runs under a wrong master key or operator key."""
+    problems = _service_problems_in_own_thread()
+    for problem in problems:
+        logger.error("the worker refuses to start until an operator fixes this: %s", problem)
+    if problems:
+        raise SystemExit(EXIT_MISCONFIGURED)
+
+
+def _service_problems_in_own_thread() -> list[str]:
+    """The checks, in a thread of their own: what they open (a database connection, the chain
+    node's HTTP session, which web3 keeps per thread) is not reused by the pool's processes
+    forked from this one."""
+    outcome: list[str] = []
+
+    def check() -> None:
+        try:
+            problems, unchecked = service_checks_run()
+        except Exception:
+            logger.warning("the worker could not check its secrets; starting", exc_info=True)
+            return
+        finally:
+            connections.close_all()
+        outcome.extend(problems)
+        for note in unchecked:
+            logger.warning("%s", note)
+
+    thread = threading.Thread(target=check, name="service-checks")
+    thread.start()
+    thread.join()
+    return outcome

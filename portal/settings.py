@@ -61,6 +61,8 @@ MIDDLEWARE = [
     "django.middleware.security.SecurityMiddleware",
     # Serves /static/ from gunicorn too, so pages work without DEBUG and without a web server.
     "whitenoise.middleware.WhiteNoiseMiddleware",
+    # 503 for everything but /static/ while the portal's own secrets or operator key are wrong.
+    "portal.middleware.ServiceChecksMiddleware",
     "django.contrib.sessions.middleware.SessionMiddleware",
     "django.middleware.common.CommonMiddleware",
     "django.middleware.csrf.CsrfViewMiddleware",
@@ -158,8 +160,21 @@ CHAIN_RPC_TIMEOUT = env.float("CHAIN_RPC_TIMEOUT", default=10.0)
 CHAIN_CONFIRMATIONS = env.int("CHAIN_CONFIRMATIONS", default=0)
 # Seconds a sender's nonce lock outlives a process that died holding it.
 CHAIN_NONCE_LOCK_TIMEOUT = env.float("CHAIN_NONCE_LOCK_TIMEOUT", default=15.0)
-# Wei sent to each new custodial EOA so it can pay for its own transactions.
+# Each new custodial EOA gets CHAIN_EOA_FUNDING_GAS gas units at the chain's current max fee
+# per gas (registration plus a working allowance of uploads), at most CHAIN_EOA_FUNDING_WEI;
+# nothing on a chain whose gas price and base fee are zero.
+CHAIN_EOA_FUNDING_GAS = env.int("CHAIN_EOA_FUNDING_GAS", default=20_000_000)
 CHAIN_EOA_FUNDING_WEI = env.int("CHAIN_EOA_FUNDING_WEI", default=10**18)
+# At most this much wei goes to new EOAs per SIGNUP_FUNDING_PERIOD seconds; registrations
+# past it wait (pending) until the period frees some.
+SIGNUP_FUNDING_BUDGET_WEI = env.int("SIGNUP_FUNDING_BUDGET_WEI", default=50 * 10**18)
+SIGNUP_FUNDING_PERIOD = env.float("SIGNUP_FUNDING_PERIOD", default=24 * 3600.0)
+# Registrations (page POSTs that would create an owner) per client address and overall,
+# counted in Redis across web processes: "<count>/<second|minute|hour|day>".
+SIGNUP_RATE_PER_ADDRESS = env.str("SIGNUP_RATE_PER_ADDRESS", default="5/hour")
+SIGNUP_RATE_TOTAL = env.str("SIGNUP_RATE_TOTAL", default="200/hour")
+# New owners wait for an operator's approval (admin) before any chain work is done for them.
+SIGNUP_APPROVAL = env.bool("SIGNUP_APPROVAL", default=False)
 # On a development chain (anvil, eth-tester) the operator is topped up automatically.
 CHAIN_DEV_FAUCET = env.bool("CHAIN_DEV_FAUCET", default=True)
 
@@ -167,6 +182,12 @@ CHAIN_DEV_FAUCET = env.bool("CHAIN_DEV_FAUCET", default=True)
 AUTHROS_MASTER_KEY = env.str("AUTHROS_MASTER_KEY", default="")
 # The portal's SM2 private key (64 hex digits) for the key exchange; else a 0600 file.
 AUTHROS_SM2_PRIVATE_KEY = env.str("AUTHROS_SM2_PRIVATE_KEY", default="")
+# Seconds between checks of the master key and the operator key while they fail (the portal
+# answers 503 meanwhile) or while the chain does not answer (portal/middleware.py).
+SERVICE_CHECK_INTERVAL = env.float("SERVICE_CHECK_INTERVAL", default=30.0)
+# Seconds the chain's latest block is reused by the identity check (a burst of requests
+# costs one call); the commitment on chain is kept per owner and block.
+IDENTITY_BLOCK_CACHE_SECONDS = env.float("IDENTITY_BLOCK_CACHE_SECONDS", default=1.0)
 
 LOGIN_URL = "login"
 LOGIN_REDIRECT_URL = "dashboard"
@@ -185,9 +206,18 @@ AXES_RESET_ON_SUCCESS = True
 # django-ipware, which is not installed: without it axes would see only the proxy's address.)
 AXES_CLIENT_IP_CALLABLE = "accounts.views.client_ip_address"
 
+# --- Page rate limits (accounts.decorators.page_throttle) ---------------------------------
+# Per signed-in user, counted in Redis across web processes: "<count>/<second|minute|hour|day>"
+# (empty: no limit). Every page counts against PAGE_RATE_USER; pages that run an integrity
+# check (a record, its download, its trajectory) count their cost against PAGE_RATE_CONTENT.
+PAGE_RATE_USER = env.str("PAGE_RATE_USER", default="600/minute")
+PAGE_RATE_CONTENT = env.str("PAGE_RATE_CONTENT", default="120/minute")
+
 # --- REST API (DRF, drf-spectacular) ------------------------------------------------------
 REST_FRAMEWORK = {
     "DEFAULT_AUTHENTICATION_CLASSES": [
+        # Owner API tokens first: a key that is none is left to the robot tokens.
+        "accounts.authentication.OwnerTokenAuthentication",
         "accounts.authentication.RobotTokenAuthentication",
         "rest_framework.authentication.SessionAuthentication",
     ],

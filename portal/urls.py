@@ -8,6 +8,7 @@ from portal import views
 urlpatterns = [
     path("", views.home, name="home"),
     path("dashboard/", views.dashboard, name="dashboard"),
+    path("account/security/", views.security, name="security"),
     path("", include("accounts.urls")),
     path("", include("sharing.urls")),
     path("admin/", admin.site.urls),

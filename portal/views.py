@@ -1,4 +1,5 @@
-"""The project's own pages, which span both apps: the front page and the dashboard.
+"""The project's own pages, which span both apps: the front page, the dashboard and the
+owner's security page (account events and record alarms together).
 
 The front page only sends each visitor where they belong. Every page but registration and
 sign-in needs a login, so anonymous visitors go to the sign-in page; nothing there calls the
@@ -6,24 +7,42 @@ chain or tells how the portal is deployed (operators see the chain's status in t
 console).
 """
 
+import heapq
+import uuid
+from dataclasses import dataclass
+from datetime import datetime, timedelta
 from decimal import Decimal
+from itertools import islice
 
+from django.core.paginator import Paginator
 from django.http import HttpRequest, HttpResponse
 from django.shortcuts import redirect, render
+from django.utils import timezone
 from django.views.decorators.http import require_GET
 
-from accounts.decorators import owner_required
-from accounts.models import ChainState, Owner
+from accounts.decorators import owner_required, page_throttle
+from accounts.models import AccountEvent, ChainState, Owner
 from accounts.selectors import (
+    account_events_of,
+    account_events_to_notice,
     owner_balance_wei,
     owner_for_user,
     owner_key_current,
     robot_count_active,
 )
 from chainworker.chain import ChainError
-from sharing.selectors import grant_count_given, grant_count_received, record_list_owned
+from sharing.models import SecurityEvent
+from sharing.selectors import (
+    grant_count_given,
+    grant_count_received,
+    record_list_owned,
+    security_events_of,
+)
 
 WEI_PER_ETHER = Decimal(10) ** 18
+SECURITY_EVENTS_PER_PAGE = 50
+# How long the dashboard points to an operator's action or an alarm.
+SECURITY_NOTICE_DAYS = 7
 
 
 def home(request: HttpRequest) -> HttpResponse:
@@ -36,6 +55,7 @@ def home(request: HttpRequest) -> HttpResponse:
 
 
 @owner_required
+@page_throttle()
 @require_GET
 def dashboard(request: HttpRequest) -> HttpResponse:
     """The owner's identity on chain, with its EOA balance, and what it has and shares."""
@@ -56,5 +76,101 @@ def dashboard(request: HttpRequest) -> HttpResponse:
         "grants_given_count": grant_count_given(owner),
         "grants_received_count": grant_count_received(owner),
         "robot_count": robot_count_active(owner),
+        "security_notice": _security_notice(owner),
     }
     return render(request, "portal/dashboard.html", context)
+
+
+def _security_notice(owner: Owner) -> bool:
+    """An operator's action or an alarm in the last SECURITY_NOTICE_DAYS days."""
+    since = timezone.now() - timedelta(days=SECURITY_NOTICE_DAYS)
+    return (
+        account_events_to_notice(owner, since=since).exists()
+        or security_events_of(owner, since=since).exists()
+    )
+
+
+# --- security page -----------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class SecurityEntry:
+    """One line of the security page, from either table."""
+
+    at: datetime
+    kind: str
+    title: str
+    actor: str
+    by_operator: bool
+    alarm: bool
+    detail: list[tuple[str, str]]
+    record_id: uuid.UUID | None
+
+
+class SecurityEntries:
+    """An owner's account events and record alarms as one newest-first list that the
+    Paginator slices: a page reads at most (its last index) rows of each table."""
+
+    def __init__(self, owner: Owner) -> None:
+        self.owner = owner
+
+    def count(self) -> int:
+        return account_events_of(self.owner).count() + security_events_of(self.owner).count()
+
+    def __getitem__(self, index: slice) -> list[SecurityEntry]:
+        stop = index.stop
+        account = (self._account_entry(e) for e in account_events_of(self.owner)[:stop])
+        alarms = (self._alarm_entry(e) for e in security_events_of(self.owner)[:stop])
+        merged = heapq.merge(account, alarms, key=lambda entry: entry.at, reverse=True)
+        return list(islice(merged, index.start, stop))
+
+    def _account_entry(self, event: AccountEvent) -> SecurityEntry:
+        if event.actor_id is None:
+            actor, by_operator = "the portal", False
+        elif event.actor_id == self.owner.user_id:
+            actor, by_operator = "you", False
+        else:
+            actor, by_operator = f"operator {event.actor.get_username()}", True
+        return SecurityEntry(
+            at=event.created_at,
+            kind=event.kind,
+            title=event.get_kind_display(),
+            actor=actor,
+            by_operator=by_operator,
+            alarm=event.kind == AccountEvent.Kind.IDENTITY_MISMATCH,
+            detail=_detail_lines(event.detail),
+            record_id=None,
+        )
+
+    def _alarm_entry(self, event: SecurityEvent) -> SecurityEntry:
+        return SecurityEntry(
+            at=event.created_at,
+            kind=event.kind,
+            title=event.get_kind_display(),
+            actor="the portal",
+            by_operator=False,
+            alarm=True,
+            detail=_detail_lines(event.detail),
+            record_id=event.record_id,
+        )
+
+
+def _detail_lines(detail: object) -> list[tuple[str, str]]:
+    if not isinstance(detail, dict):
+        return [("detail", str(detail))]
+    return [
+        (str(key), ", ".join(map(str, value)) if isinstance(value, list) else str(value))
+        for key, value in detail.items()
+    ]
+
+
+@owner_required
+@page_throttle()
+@require_GET
+def security(request: HttpRequest) -> HttpResponse:
+    """What happened to the owner's account (operators' actions, credentials, identity
+    checks) and alarms about its records, newest first."""
+    owner: Owner = request.owner
+    entries = SecurityEntries(owner)
+    page = Paginator(entries, SECURITY_EVENTS_PER_PAGE).get_page(request.GET.get("page"))
+    return render(request, "portal/security.html", {"page": page, "owner": owner})

@@ -1,16 +1,20 @@
 """Admin console for records, grants, verdicts and security events.
 
 Read-only like accounts.admin; the two actions repair anchoring and re-run the integrity
-check. Envelope bytes and keys are never shown.
+check, and each tells the owners concerned on their security page. Envelope bytes and keys
+are never shown, and nothing here decrypts.
 """
 
-from collections import Counter
+import uuid
+from collections import Counter, defaultdict
+from collections.abc import Iterable
 
 from django.contrib import admin, messages
 from django.db.models import QuerySet
 from django.http import HttpRequest
 
-from accounts.admin import ReadOnlyAdmin
+from accounts.admin import ReadOnlyAdmin, admin_action_record
+from accounts.errors import IdentityMismatch
 from chainworker.chain import ChainError
 from sharing.anchoring import records_reanchor
 from sharing.models import Grant, Record, SecurityEvent, Verdict
@@ -86,7 +90,16 @@ class RecordAdmin(ReadOnlyAdmin):
 
     @admin.action(description="Re-anchor the selected failed records", permissions=["change"])
     def reanchor_failed(self, request: HttpRequest, queryset: QuerySet[Record]) -> None:
+        failed = queryset.filter(status=Record.Status.FAILED)
+        by_owner = _ids_by_owner(failed.values_list("owner_id", "pk"))
         count = records_reanchor(record_ids=list(queryset.values_list("pk", flat=True)))
+        for owner_id, record_ids in by_owner.items():
+            admin_action_record(
+                request,
+                owner_id=owner_id,
+                action="re-anchored failed records",
+                detail={"records": record_ids},
+            )
         skipped = queryset.count() - count
         note = f"; {skipped} selected record(s) had not failed: left alone" if skipped else ""
         self.message_user(
@@ -109,6 +122,7 @@ class RecordAdmin(ReadOnlyAdmin):
             return
         outcomes: Counter[str] = Counter()
         tampered = []
+        checked: list[Record] = []
         for record in records:
             try:
                 verdict = record_verify(
@@ -122,9 +136,22 @@ class RecordAdmin(ReadOnlyAdmin):
                     messages.ERROR,
                 )
                 break
+            except IdentityMismatch as exc:
+                # The owner's commitment on chain differs: an account event is written.
+                self.message_user(request, f"Record {record.pk}: {exc}", messages.ERROR)
+                continue
+            checked.append(record)
             outcomes[verdict.outcome] += 1
             if verdict.outcome == Verdict.Outcome.TAMPERED:
                 tampered.append(str(record.pk))
+        # Only verdicts are kept and shown: the envelope checked is never opened here.
+        for owner_id, record_ids in _ids_by_owner((r.owner_id, r.pk) for r in checked).items():
+            admin_action_record(
+                request,
+                owner_id=owner_id,
+                action="re-verified records against the chain",
+                detail={"records": record_ids},
+            )
         labels = dict(Verdict.Outcome.choices)
         if outcomes:
             summary = ", ".join(f"{count} {labels[outcome]}" for outcome, count in outcomes.items())
@@ -136,6 +163,14 @@ class RecordAdmin(ReadOnlyAdmin):
             )
         if tampered:
             self.message_user(request, f"TAMPERED: {', '.join(tampered)}", messages.ERROR)
+
+
+def _ids_by_owner(pairs: Iterable[tuple[int, uuid.UUID]]) -> dict[int, list[str]]:
+    """Record ids grouped by owner, for one event per owner."""
+    grouped: dict[int, list[str]] = defaultdict(list)
+    for owner_id, record_id in pairs:
+        grouped[owner_id].append(str(record_id))
+    return dict(grouped)
 
 
 @admin.register(Grant)

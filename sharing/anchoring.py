@@ -3,7 +3,8 @@ transactions sent by their owner's EOA, a fair share of one owner per task run.
 
 A record moves pending -> anchored (or failed after ANCHOR_MAX_ATTEMPTS); only these services
 and the upload move it. Every run is idempotent: ids are write-once on chain, and a record
-found on chain with its digest counts as anchored.
+found on chain with its digest counts as anchored. Each batch transaction seen on chain is
+indexed for the owner's audit page (accounts.models.ChainActivity).
 """
 
 import logging
@@ -20,8 +21,9 @@ from redis.exceptions import LockError, RedisError
 from redis.lock import Lock
 from web3.types import TxReceipt
 
-from accounts.models import ChainState, Owner
+from accounts.models import ChainActivity, ChainState, Owner
 from accounts.selectors import owner_eoa_account
+from accounts.services import chain_activity_record
 from chainworker.chain import (
     AnchorItem,
     AuthROSChain,
@@ -160,11 +162,19 @@ def _anchor_round(client: AuthROSChain, owner: Owner, lock: Lock) -> tuple[int, 
     anchored = 0
     for batch, tx_hash in in_flight:
         receipt = _await_receipt(client, tx_hash, lock)
+        block = int(receipt["blockNumber"])
         Record.objects.filter(pk__in=[r.pk for r in batch], status=Record.Status.PENDING).update(
             status=Record.Status.ANCHORED,
             tx_hash=tx_hash,
-            block_number=int(receipt["blockNumber"]),
+            block_number=block,
             anchored_at=timezone.now(),
+        )
+        chain_activity_record(
+            owner=owner,
+            kind=ChainActivity.Kind.ANCHORED,
+            tx_hash=tx_hash,
+            block_number=block,
+            record_count=len(batch),
         )
         anchored += len(batch)
     if refusal is not None:
@@ -246,6 +256,15 @@ def _settle_attempted(
                 block_number=event.block_number if event else None,
                 anchored_at=timezone.now(),
             )
+            if event is not None:
+                # Found after the run that sent it died: its batch is counted from what we hold.
+                chain_activity_record(
+                    owner=owner,
+                    kind=ChainActivity.Kind.ANCHORED,
+                    tx_hash=event.tx_hash,
+                    block_number=event.block_number,
+                    record_count=Record.objects.filter(owner=owner, tx_hash=event.tx_hash).count(),
+                )
         else:
             _chain_digest_mismatch(record, on_chain.digest.hex(), on_chain.owner)
     return still_pending

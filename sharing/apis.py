@@ -2,7 +2,9 @@
 
 One view per route; each validates with its nested serializers, calls one service or
 selector, and answers. Refusals are `sharing.errors` (and DRF's), mapped to HTTP in
-`core.api_errors`.
+`core.api_errors`. Who may call what is `accounts.authentication.OwnerCredential`: a robot
+token uploads and reads its own uploads' status; everything else needs the owner (a session,
+or an owner API token with the `read` or `share` scope).
 """
 
 import base64
@@ -11,6 +13,7 @@ import uuid
 from typing import Any
 
 from django.core.validators import ProhibitNullCharactersValidator, RegexValidator
+from django.db.models import QuerySet
 from drf_spectacular.types import OpenApiTypes
 from drf_spectacular.utils import (
     OpenApiParameter,
@@ -27,7 +30,14 @@ from rest_framework.response import Response
 from rest_framework.throttling import BaseThrottle
 from rest_framework.views import APIView
 
-from accounts.authentication import RobotUploadRateThrottle, caller_owner, caller_robot
+from accounts.authentication import (
+    OwnerCredential,
+    RobotUploadRateThrottle,
+    caller_owner,
+    caller_owner_token,
+    caller_robot,
+)
+from accounts.models import OwnerToken
 from core.api_errors import error_responses
 from sharing.errors import RecordNotFound
 from sharing.models import Grant, Record
@@ -35,11 +45,12 @@ from sharing.selectors import (
     RECORD_FILTER_STATUSES,
     grant_list_given,
     grant_list_received,
-    record_get_visible,
     record_list_filtered,
+    record_list_uploaded_by,
     record_list_visible_to,
 )
 from sharing.services import (
+    GRANT_MADE_WITH,
     grant_create,
     grant_revoke,
     owner_resolve,
@@ -54,6 +65,13 @@ MAX_OWNER_IDENTIFIER = 150
 NO_NUL = "NUL characters are not allowed"
 
 ROBOT_ONLY = [{"robotToken": []}]
+# Content and grants: the owner, signed in or with an owner API token; never a robot token.
+OWNER_ONLY = [{"ownerToken": []}, {"cookieAuth": []}]
+READ, SHARE = OwnerToken.Scope.READ, OwnerToken.Scope.SHARE
+ROBOT_REFUSED = (
+    "`permission_denied`: a robot token (it only uploads and reads its own uploads); "
+    "`insufficient_scope`: an owner API token without the `{scope}` scope"
+)
 _RECORD_ID = OpenApiParameter(
     "record_id", OpenApiTypes.UUID, OpenApiParameter.PATH, description="the record's id"
 )
@@ -169,6 +187,11 @@ class GrantOutputSerializer(serializers.Serializer):
     revoke_block = serializers.IntegerField(allow_null=True)
     created_at = serializers.DateTimeField()
     updated_at = serializers.DateTimeField()
+    made_with = serializers.ChoiceField(
+        choices=GRANT_MADE_WITH,
+        help_text="the credential that made the grant: a browser session, an owner API "
+        "token, or an operator's command",
+    )
 
 
 class RecordPagination(LimitOffsetPagination):
@@ -281,7 +304,7 @@ class RecordsApi(APIView):
     def get_permissions(self) -> list[BasePermission]:
         if self.request.method == "POST":
             return [IsAuthenticated(), IsRobot()]
-        return super().get_permissions()
+        return [IsAuthenticated(), OwnerCredential(READ, "list records", robots=True)]
 
     def get_throttles(self) -> list[BaseThrottle]:
         return [*super().get_throttles(), RobotUploadRateThrottle()]
@@ -289,17 +312,26 @@ class RecordsApi(APIView):
     @extend_schema(
         operation_id="records_list",
         summary="Records the caller may read: its own and those shared with it",
+        description=(
+            "For the owner (a session, or an owner API token with the `read` scope): its own "
+            "records and those shared with it. For a robot token: that robot's own uploads."
+        ),
         parameters=[FilterSerializer],
         responses={
             200: RecordOutputSerializer(many=True),
-            **error_responses(400, 401, 403),
+            **error_responses(
+                400,
+                401,
+                403,
+                e403="`insufficient_scope`: an owner API token without the `read` scope",
+            ),
         },
     )
     def get(self, request: Request) -> Response:
         # A plain mapping, not form semantics: `?type=` is refused rather than ignored.
         filters = self.FilterSerializer(data=request.query_params.dict())
         filters.is_valid(raise_exception=True)
-        visible = record_list_visible_to(caller_owner(request))
+        visible = _records_of_caller(request)
         records = record_list_filtered(visible, **filters.validated_data)
         paginator = self.pagination_class()
         page = paginator.paginate_queryset(records, request, view=self)
@@ -368,17 +400,42 @@ def _record_uuid(record_id: str) -> uuid.UUID:
         raise RecordNotFound("no such record") from None
 
 
+def _records_of_caller(request: Request) -> QuerySet[Record]:
+    """A robot sees its own uploads; the owner its records and those shared with it."""
+    robot = caller_robot(request)
+    if robot is not None:
+        return record_list_uploaded_by(robot)
+    return record_list_visible_to(caller_owner(request))
+
+
 class RecordDetailApi(APIView):
     """`GET /api/v1/records/{id}/`: metadata and anchoring status."""
+
+    def get_permissions(self) -> list[BasePermission]:
+        return [IsAuthenticated(), OwnerCredential(READ, "read a record", robots=True)]
 
     @extend_schema(
         operation_id="records_detail",
         summary="A record's metadata and anchoring status",
+        description=(
+            "For the owner or a grantee (a session, or an owner API token with the `read` "
+            "scope), and for the robot that uploaded it (its token)."
+        ),
         parameters=[_RECORD_ID],
-        responses={200: RecordOutputSerializer, **error_responses(401, 403, 404)},
+        responses={
+            200: RecordOutputSerializer,
+            **error_responses(
+                401,
+                403,
+                404,
+                e403="`insufficient_scope`: an owner API token without the `read` scope",
+                e404="`not_found`: no such record, not shared with you, or (robot token) not "
+                "uploaded by this robot",
+            ),
+        },
     )
     def get(self, request: Request, record_id: str) -> Response:
-        record = record_get_visible(caller_owner(request), _record_uuid(record_id))
+        record = _records_of_caller(request).filter(pk=_record_uuid(record_id)).first()
         if record is None:
             raise RecordNotFound("no such record, or not shared with you")
         return Response(RecordOutputSerializer(record).data)
@@ -386,6 +443,9 @@ class RecordDetailApi(APIView):
 
 class RecordContentApi(APIView):
     """`GET /api/v1/records/{id}/content/`: integrity-checked, re-sealed for the caller."""
+
+    def get_permissions(self) -> list[BasePermission]:
+        return [IsAuthenticated(), OwnerCredential(READ, "read a record's content")]
 
     class OutputSerializer(serializers.Serializer):
         class Meta:
@@ -407,8 +467,11 @@ class RecordContentApi(APIView):
         description=(
             "The stored envelope is hashed again and compared with the digest on chain; access "
             "needs the owner, or a grant that is live in the portal and on chain. The content "
-            "comes back sealed under the caller's own current key, with the same header."
+            "comes back sealed under the caller's own current key, with the same header. "
+            "Needs the owner or grantee: a session, or an owner API token with the `read` "
+            "scope; never a robot token."
         ),
+        auth=OWNER_ONLY,
         parameters=[_RECORD_ID],
         responses={
             200: OutputSerializer,
@@ -418,7 +481,8 @@ class RecordContentApi(APIView):
                 404,
                 409,
                 503,
-                e403="`access_denied`: no live grant from the record's owner",
+                e403="`access_denied`: no live grant from the record's owner; "
+                + ROBOT_REFUSED.format(scope="read"),
                 e409="`integrity_check_failed`: the stored data differs from the chain; "
                 "`not_anchored_yet`: try again shortly",
             ),
@@ -459,10 +523,19 @@ class GrantsApi(APIView):
             max_length=MAX_OWNER_IDENTIFIER, help_text="the grantee's username or 0x address"
         )
 
+    def get_permissions(self) -> list[BasePermission]:
+        action = "grant access" if self.request.method == "POST" else "list grants"
+        return [IsAuthenticated(), OwnerCredential(SHARE, action)]
+
     @extend_schema(
         operation_id="grants_list",
         summary="Grants given and received",
-        responses={200: ListOutputSerializer, **error_responses(401, 403)},
+        description="A session, or an owner API token with the `share` scope.",
+        auth=OWNER_ONLY,
+        responses={
+            200: ListOutputSerializer,
+            **error_responses(401, 403, e403=ROBOT_REFUSED.format(scope="share")),
+        },
     )
     def get(self, request: Request) -> Response:
         owner = caller_owner(request)
@@ -472,7 +545,11 @@ class GrantsApi(APIView):
     @extend_schema(
         operation_id="grants_create",
         summary="Let another owner read your records",
-        description="Takes effect in the portal once `authorityGrant` is confirmed on chain.",
+        description=(
+            "Takes effect in the portal once `authorityGrant` is confirmed on chain. A session, "
+            "or an owner API token with the `share` scope; the grant records which."
+        ),
+        auth=OWNER_ONLY,
         request=InputSerializer,
         responses={
             201: GrantOutputSerializer,
@@ -484,6 +561,7 @@ class GrantsApi(APIView):
                 409,
                 415,
                 e400="`invalid_request`, or `self_grant`",
+                e403=ROBOT_REFUSED.format(scope="share"),
                 e404="`owner_not_found`: no owner with that username or address",
                 e409="`already_granted`, `not_registered_yet` (you), `grantee_not_registered`",
             ),
@@ -494,17 +572,30 @@ class GrantsApi(APIView):
         payload = self.InputSerializer(data=request.data)
         payload.is_valid(raise_exception=True)
         grantee = owner_resolve(payload.validated_data["grantee"])
-        grant = grant_create(owner=owner, grantee=grantee)
+        token = caller_owner_token(request)
+        grant = grant_create(
+            owner=owner,
+            grantee=grantee,
+            made_with="session" if token is None else "token",
+            made_with_token=token,
+        )
         return Response(GrantOutputSerializer(grant).data, status=status.HTTP_201_CREATED)
 
 
 class GrantRevokeApi(APIView):
     """`DELETE /api/v1/grants/{grantee}/`: take access away at once."""
 
+    def get_permissions(self) -> list[BasePermission]:
+        return [IsAuthenticated(), OwnerCredential(SHARE, "revoke a grant")]
+
     @extend_schema(
         operation_id="grants_revoke",
         summary="Revoke a grant",
-        description="Refused by the portal at once; `authorityRevoke` follows on chain.",
+        description=(
+            "Refused by the portal at once; `authorityRevoke` follows on chain. A session, or "
+            "an owner API token with the `share` scope."
+        ),
+        auth=OWNER_ONLY,
         parameters=[
             OpenApiParameter(
                 "grantee",
@@ -519,6 +610,7 @@ class GrantRevokeApi(APIView):
                 401,
                 403,
                 404,
+                e403=ROBOT_REFUSED.format(scope="share"),
                 e404="`owner_not_found`, or `no_grant`: nothing live to revoke",
             ),
         },

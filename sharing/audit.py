@@ -1,96 +1,84 @@
-"""The owner's audit trail as the audit page lists it, read from the contract's events.
+"""The owner's audit trail as the audit page lists it, read from the database's index of the
+owner's transactions (accounts.models.ChainActivity), never from the chain's logs.
 
-Events are decoded here (names for addresses, record ids for bytes32, the uploads of one
-transaction grouped), so the page only paginates and renders.
+The worker writes one row per transaction when it sees the receipt: registration steps, key
+rotations, anchoring batches, grants and revocations (the grantee sees those too). Here the
+rows of one page become entries with titles, and an anchoring entry lists its first records.
 """
 
 from dataclasses import dataclass, field
+from datetime import datetime
 
-from accounts.models import Owner
-from chainworker.chain import ChainEvent, bytes32_to_record_id
+from django.core.paginator import Page, Paginator
+
+from accounts.models import ChainActivity, Owner
 from sharing.models import Record
-from sharing.selectors import chain_events_of_owner, owners_by_address
+from sharing.selectors import chain_activity_of, records_anchored_in
 
-# Record ids listed under one upload transaction; the rest are counted.
+# Records listed under one anchoring transaction; the rest are counted.
 AUDIT_RECORDS_PER_UPLOAD = 10
+
+Kind = ChainActivity.Kind
+_TITLES = {
+    Kind.FUNDED: "EOA funded by the portal operator",
+    Kind.ENROLLED: "Enrolled in the AuthROS contract by the portal operator",
+    Kind.REGISTERED: "Registered the key commitment",
+    Kind.KEY_ROTATED: "Rotated the key",
+}
 
 
 @dataclass
 class AuditEntry:
-    block_number: int
+    at: datetime
+    block_number: int | None
     tx_hash: str
     kind: str
     title: str
     detail: str = ""
-    records: list[tuple[str, Record | None]] = field(default_factory=list)
+    records: list[Record] = field(default_factory=list)
     more_records: int = 0
 
 
-def audit_entries_of_owner(owner: Owner) -> list[AuditEntry]:
-    """The owner's events on chain, newest first; the uploads of one transaction are one entry.
+def audit_page_of_owner(owner: Owner, *, page: object, per_page: int) -> Page:
+    """One page of the owner's audit trail, newest first; its object_list holds AuditEntry.
 
-    Raises chainworker.chain.ChainError when the chain cannot be read.
+    A page past the last is the last page, as Paginator.get_page gives it.
     """
-    return audit_entries_from_events(owner, chain_events_of_owner(owner))
+    found = Paginator(chain_activity_of(owner), per_page).get_page(page)
+    found.object_list = audit_entries(owner, list(found.object_list))
+    return found
 
 
-def audit_entries_from_events(owner: Owner, events: list[ChainEvent]) -> list[AuditEntry]:
-    """Entries of `events` (oldest first, as the chain gives them), newest first."""
-    names = owners_by_address(
-        [str(e.args[arg]) for e in events for arg in ("owner", "grantee") if arg in e.args]
-    )
+def audit_entries(owner: Owner, activity: list[ChainActivity]) -> list[AuditEntry]:
+    """Entries of `activity` as `owner` sees them, in the same order; the records of every
+    anchoring transaction among them are read in one query."""
+    anchored = [row.tx_hash for row in activity if row.kind == Kind.ANCHORED]
+    listed: dict[str, list[Record]] = {}
+    if anchored:
+        for record in records_anchored_in(owner, anchored, per_tx=AUDIT_RECORDS_PER_UPLOAD):
+            listed.setdefault(record.tx_hash, []).append(record)
+    return [_entry(owner, row, listed.get(row.tx_hash, [])) for row in activity]
 
-    def who(address: object) -> str:
-        found = names.get(str(address).lower())
-        return found.username if found else str(address)
 
-    me = owner.eoa_address.lower()
-    entries: list[AuditEntry] = []
-    uploads: dict[str, AuditEntry] = {}
-    upload_ids: dict[str, list[str]] = {}
-    for event in events:
-        args = event.args
-        if event.name == "DataUploaded":
-            entry = uploads.get(event.tx_hash)
-            if entry is None:
-                entry = AuditEntry(event.block_number, event.tx_hash, "upload", "")
-                uploads[event.tx_hash] = entry
-                upload_ids[event.tx_hash] = []
-                entries.append(entry)
-            upload_ids[event.tx_hash].append(str(bytes32_to_record_id(args["id"])))
-            continue
-        entry = AuditEntry(event.block_number, event.tx_hash, event.name, "")
-        if event.name == "Enrolled":
-            entry.title = "Enrolled in the AuthROS contract by the portal operator"
-        elif event.name == "Registered":
-            entry.title = "Registered the key commitment"
-            entry.detail = "0x" + bytes(args["commitment"]).hex()
-        elif event.name == "KeyRotated":
-            entry.title = "Rotated the key"
-            entry.detail = (
-                f"0x{bytes(args['oldCommitment']).hex()} → 0x{bytes(args['newCommitment']).hex()}"
-            )
-        elif event.name in ("AuthorityGranted", "AuthorityRevoked"):
-            granted = event.name == "AuthorityGranted"
-            if str(args["owner"]).lower() == me:
-                verb = "Granted" if granted else "Revoked"
-                entry.title = f"{verb} access to {who(args['grantee'])}"
-                entry.kind = "grant-given" if granted else "revoke-given"
-            else:
-                verb = "granted you" if granted else "revoked your"
-                entry.title = f"{who(args['owner'])} {verb} access"
-                entry.kind = "grant-received" if granted else "revoke-received"
-        entries.append(entry)
-    known = {
-        str(record.pk): record
-        for record in Record.objects.filter(
-            owner=owner, pk__in=[i for ids in upload_ids.values() for i in ids]
-        )
-    }
-    for tx_hash, ids in upload_ids.items():
-        entry = uploads[tx_hash]
-        entry.title = f"Anchored {len(ids)} record{'s' if len(ids) != 1 else ''}"
-        entry.records = [(i, known.get(i)) for i in ids[:AUDIT_RECORDS_PER_UPLOAD]]
-        entry.more_records = max(len(ids) - AUDIT_RECORDS_PER_UPLOAD, 0)
-    entries.reverse()
-    return entries
+def _entry(owner: Owner, row: ChainActivity, records: list[Record]) -> AuditEntry:
+    entry = AuditEntry(row.at, row.block_number, row.tx_hash, row.kind, _TITLES.get(row.kind, ""))
+    detail = row.detail if isinstance(row.detail, dict) else {}
+    if row.kind in (Kind.REGISTERED, Kind.KEY_ROTATED) and detail.get("key_id"):
+        entry.detail = f"key {detail['key_id']}, commitment {detail.get('commitment', '-')}"
+    elif row.kind == Kind.ANCHORED:
+        count = row.record_count
+        entry.kind = "upload"
+        entry.title = f"Anchored {count} record{'s' if count != 1 else ''}"
+        entry.records = records
+        entry.more_records = max(count - len(records), 0)
+    elif row.kind in (Kind.GRANTED, Kind.REVOKED):
+        granted = row.kind == Kind.GRANTED
+        if row.owner_id == owner.pk:
+            other = row.counterpart.username if row.counterpart else "a former owner"
+            entry.title = f"{'Granted' if granted else 'Revoked'} access to {other}"
+            entry.kind = "grant-given" if granted else "revoke-given"
+        else:
+            verb = "granted you" if granted else "revoked your"
+            entry.title = f"{row.owner.username} {verb} access"
+            entry.kind = "grant-received" if granted else "revoke-received"
+    return entry

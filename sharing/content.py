@@ -2,26 +2,56 @@
 the trajectory plot of a topic's poses.
 
 Pure functions of the plaintext the integrity check let through: no request, no database.
+A verified record is still whatever its robot (or a thief of its key) sealed, so nothing here
+trusts its shape: numbers are parsed within bounds (at most MAX_INT_DIGITS digits, finite
+floats), nesting is limited, every formatting function takes any JSON value, and a record
+that cannot be interpreted is shown as raw text with a note instead of failing the page.
 """
 
 import base64
 import binascii
 import json
+import logging
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, TypeGuard
+
+logger = logging.getLogger(__name__)
 
 ODOMETRY = "nav_msgs/Odometry"
 IMAGE_TYPES = {"sensor_msgs/Image", "sensor_msgs/CompressedImage"}
 MISSING = "-"
+NOT_INTERPRETED = "this record's content could not be interpreted"
 _IMAGE_MAGIC = {b"\x89PNG\r\n\x1a\n": "image/png", b"\xff\xd8\xff": "image/jpeg"}
+
+# Digits of an integer in a record: more is no measurement, and float() of it overflows.
+MAX_INT_DIGITS = 30
+# Nesting of a record's JSON: the agent's records are a few levels deep.
+MAX_DEPTH = 64
+# Bytes of an uninterpretable record shown on its page; the download has all of it.
+RAW_SHOWN_BYTES = 64 * 1024
+# Characters of one text value in the odometry table.
+TEXT_SHOWN_CHARS = 200
+# Metres from the origin a plotted position may be: further is no robot's position.
+POSE_LIMIT = 1e9
+# Pixels an image's declared width or height may have to be used as the <img> size.
+IMAGE_SIDE_MAX = 100_000
 
 Pose = tuple[float, float, float | None]
 
 
+class Uninterpretable(ValueError):
+    """A record's plaintext that is not JSON the pages can show; the message says why."""
+
+
 @dataclass
 class Content:
-    """What the record page shows of a decrypted record."""
+    """What the record page shows of a decrypted record.
+
+    `problem` is set when the record could not be interpreted: then only `raw` (the first
+    `raw_shown_bytes` of the plaintext as text) is shown, `raw_truncated` if that is not all.
+    """
 
     document: Any = None
     pretty: str = ""
@@ -30,37 +60,77 @@ class Content:
     image_size: tuple[int | None, int | None] = (None, None)
     odometry: list[tuple[str, str]] = field(default_factory=list)
     is_odometry: bool = False
+    problem: str = ""
+    raw: str = ""
+    raw_shown_bytes: int = 0
+    raw_truncated: bool = False
 
 
 def document_parse(plaintext: bytes) -> Any:
-    """The record's JSON document, or None if it is not JSON."""
+    """The record's JSON document. Raises Uninterpretable: not UTF-8, not JSON, nested deeper
+    than MAX_DEPTH, an integer of more than MAX_INT_DIGITS digits, NaN, Infinity or 1e999."""
     try:
-        return json.loads(plaintext)
-    except (ValueError, UnicodeDecodeError):
-        return None
+        text = plaintext.decode("utf-8")
+    except UnicodeDecodeError:
+        raise Uninterpretable("it is not UTF-8 text") from None
+    try:
+        document = json.loads(
+            text,
+            parse_int=_bounded_int,
+            parse_float=_finite_float,
+            parse_constant=_no_constant,
+        )
+    except RecursionError:
+        raise Uninterpretable(f"it is nested more than {MAX_DEPTH} levels deep") from None
+    except Uninterpretable:
+        raise
+    except ValueError as exc:
+        raise Uninterpretable(f"it is not JSON ({_printable(str(exc))[:100]})") from None
+    if _depth_exceeds(document, MAX_DEPTH):
+        raise Uninterpretable(f"it is nested more than {MAX_DEPTH} levels deep")
+    return document
 
 
 def content_of(*, data_type: str, plaintext: bytes) -> Content:
-    """The page's view of a record's plaintext: pretty JSON, its image, its odometry."""
+    """The page's view of a record's plaintext: pretty JSON, its image, its odometry; or, for
+    a record that cannot be interpreted, the start of its raw content and why."""
     content = Content(size=len(plaintext))
-    document = document_parse(plaintext)
-    if document is None:
-        content.pretty = "(not JSON: download the raw record)"
-        return content
+    try:
+        _interpret(content, data_type=data_type, document=document_parse(plaintext))
+    except Uninterpretable as exc:
+        return _raw_content(plaintext, problem=str(exc))
+    except (RecursionError, ValueError, TypeError, OverflowError) as exc:
+        # A shape no check above foresaw: the page still answers; the plaintext is not logged.
+        logger.warning("a record's content could not be formatted: %s", type(exc).__name__)
+        return _raw_content(plaintext, problem="its structure could not be formatted")
+    return content
+
+
+def _interpret(content: Content, *, data_type: str, document: Any) -> None:
     content.document = document
     data = document.get("K") if isinstance(document, dict) else None
     shown = document
     if data_type in IMAGE_TYPES and isinstance(data, dict):
         content.image_url = image_data_url(data.get("data"))
-        content.image_size = (data.get("width"), data.get("height"))
         if content.image_url:
-            length = len(data.get("data", ""))
+            content.image_size = image_size(data.get("width"), data.get("height"))
+            length = len(data["data"])
             shown = {**document, "K": {**data, "data": f"<{length} base64 characters, above>"}}
     if data_type == ODOMETRY and isinstance(data, dict):
         content.is_odometry = True
         content.odometry = odometry_rows(data)
-    content.pretty = json.dumps(shown, indent=2, ensure_ascii=False)
-    return content
+    content.pretty = _printable(json.dumps(shown, indent=2, ensure_ascii=False))
+
+
+def _raw_content(plaintext: bytes, *, problem: str) -> Content:
+    shown = plaintext[:RAW_SHOWN_BYTES]
+    return Content(
+        size=len(plaintext),
+        problem=problem,
+        raw=shown.decode("utf-8", errors="replace"),
+        raw_shown_bytes=len(shown),
+        raw_truncated=len(plaintext) > len(shown),
+    )
 
 
 def image_data_url(encoded: object) -> str:
@@ -77,15 +147,26 @@ def image_data_url(encoded: object) -> str:
     return ""
 
 
-def odometry_rows(data: dict) -> list[tuple[str, str]]:
-    """(label, value) rows of an odometry record's extracted data (`K`)."""
+def image_size(width: object, height: object) -> tuple[int | None, int | None]:
+    """(width, height) for the <img> tag when both are plausible pixel counts, else neither."""
+    if _pixels(width) and _pixels(height):
+        return width, height
+    return None, None
+
+
+def _pixels(side: object) -> TypeGuard[int]:
+    return isinstance(side, int) and not isinstance(side, bool) and 0 < side <= IMAGE_SIDE_MAX
+
+
+def odometry_rows(data: object) -> list[tuple[str, str]]:
+    """(label, value) rows of an odometry record's extracted data (`K`), for any value."""
+    data = data if isinstance(data, dict) else {}
     header = data.get("header") if isinstance(data.get("header"), dict) else {}
     stamp = header.get("stamp") if isinstance(header.get("stamp"), dict) else {}
     yaw = _yaw(data.get("orientation"))
-    child_frame = data.get("child_frame_id") or MISSING
     return [
-        ("Stamp", str(stamp.get("iso", MISSING))),
-        ("Frame", f"{header.get('frame_id') or MISSING} to {child_frame}"),
+        ("Stamp", _text(stamp.get("iso"))),
+        ("Frame", f"{_text(header.get('frame_id'))} to {_text(data.get('child_frame_id'))}"),
         ("Position (m)", _vector(data.get("position"))),
         ("Orientation (quaternion)", _vector(data.get("orientation"), "xyzw")),
         ("Heading (yaw)", MISSING if yaw is None else f"{math.degrees(yaw):.1f}°"),
@@ -95,24 +176,33 @@ def odometry_rows(data: dict) -> list[tuple[str, str]]:
 
 
 def pose_of(plaintext: bytes) -> Pose | None:
-    """(x, y, yaw) of an odometry record's plaintext, or None."""
-    document = document_parse(plaintext)
+    """(x, y, yaw) of an odometry record's plaintext, or None if it has no plottable pose."""
+    try:
+        document = document_parse(plaintext)
+    except Uninterpretable:
+        return None
     data = document.get("K") if isinstance(document, dict) else None
     position = data.get("position") if isinstance(data, dict) else None
     if not isinstance(position, dict):
         return None
-    x, y = position.get("x"), position.get("y")
-    if not all(isinstance(v, int | float) and not isinstance(v, bool) for v in (x, y)):
+    x, y = _coordinate(position.get("x")), _coordinate(position.get("y"))
+    if x is None or y is None:
         return None
-    return float(x), float(y), _yaw(data.get("orientation"))
+    return x, y, _yaw(data.get("orientation"))
 
 
-def trajectory_plot(poses: list[Pose]) -> dict[str, object]:
-    """Screen coordinates of the poses on a square-scaled plot (y up), for trajectory.svg."""
+def trajectory_plot(poses: Sequence[Pose | None]) -> dict[str, object]:
+    """Screen coordinates of the poses on a square-scaled plot (y up), for trajectory.svg.
+
+    Poses that cannot be plotted (None, a coordinate that is not a finite number within
+    POSE_LIMIT) are left out and counted as `skipped`.
+    """
     width, height, margin = 480, 360, 36
-    if not poses:
-        return {"width": width, "height": height, "points": "", "count": 0}
-    xs, ys = [p[0] for p in poses], [p[1] for p in poses]
+    plotted = [pose for pose in map(_plottable, poses) if pose is not None]
+    skipped = len(poses) - len(plotted)
+    if not plotted:
+        return {"width": width, "height": height, "points": "", "count": 0, "skipped": skipped}
+    xs, ys = [p[0] for p in plotted], [p[1] for p in plotted]
     span = max(max(xs) - min(xs), max(ys) - min(ys), 0.5)
     scale = min(width - 2 * margin, height - 2 * margin) / span
     cx, cy = (max(xs) + min(xs)) / 2, (max(ys) + min(ys)) / 2
@@ -120,8 +210,8 @@ def trajectory_plot(poses: list[Pose]) -> dict[str, object]:
     def screen(x: float, y: float) -> tuple[float, float]:
         return round(width / 2 + (x - cx) * scale, 1), round(height / 2 - (y - cy) * scale, 1)
 
-    points = [screen(x, y) for x, y, _ in poses]
-    last_x, last_y, yaw = poses[-1]
+    points = [screen(x, y) for x, y, _ in plotted]
+    last_x, last_y, yaw = plotted[-1]
     end = points[-1]
     arrow = None
     if yaw is not None:
@@ -133,17 +223,93 @@ def trajectory_plot(poses: list[Pose]) -> dict[str, object]:
         "start": points[0],
         "end": end,
         "arrow": arrow,
-        "count": len(poses),
+        "count": len(plotted),
+        "skipped": skipped,
         "x_range": f"{min(xs):.2f} … {max(xs):.2f}",
         "y_range": f"{min(ys):.2f} … {max(ys):.2f}",
         "last": f"{last_x:.2f}, {last_y:.2f}",
     }
 
 
-def _number(value: object, digits: int = 4) -> str:
+# --- bounded parsing and formatting ------------------------------------------------------
+
+
+def _bounded_int(text: str) -> int:
+    digits = len(text.lstrip("-"))
+    if digits > MAX_INT_DIGITS:
+        raise Uninterpretable(f"it holds an integer of {digits} digits")
+    return int(text)
+
+
+def _finite_float(text: str) -> float:
+    value = float(text)
+    if not math.isfinite(value):
+        raise Uninterpretable(f"it holds {_printable(text)[:40]}, which is not a finite number")
+    return value
+
+
+def _no_constant(name: str) -> float:
+    raise Uninterpretable(f"it holds {name}, which is not a finite number")
+
+
+def _depth_exceeds(document: Any, limit: int) -> bool:
+    """Whether lists and dicts nest deeper than `limit` (walked without recursion)."""
+    stack = [(document, 1)]
+    while stack:
+        value, depth = stack.pop()
+        if isinstance(value, dict):
+            children = value.values()
+        elif isinstance(value, list):
+            children = value
+        else:
+            continue
+        if depth > limit:
+            return True
+        stack.extend((child, depth + 1) for child in children)
+    return False
+
+
+def _printable(text: str) -> str:
+    """Text that encodes as UTF-8: a lone surrogate (JSON "\\ud800") becomes its escape."""
+    return text.encode("utf-8", errors="backslashreplace").decode("utf-8")
+
+
+def _finite(value: object) -> float | None:
+    """A JSON number as a finite float; None for anything else (bool, huge int, NaN...)."""
     if isinstance(value, bool) or not isinstance(value, int | float):
-        return MISSING
-    return f"{value:.{digits}f}"
+        return None
+    try:
+        number = float(value)
+    except OverflowError:
+        return None
+    return number if math.isfinite(number) else None
+
+
+def _coordinate(value: object) -> float | None:
+    number = _finite(value)
+    return number if number is not None and abs(number) <= POSE_LIMIT else None
+
+
+def _plottable(pose: object) -> Pose | None:
+    if not isinstance(pose, tuple) or len(pose) != 3:
+        return None
+    x, y = _coordinate(pose[0]), _coordinate(pose[1])
+    if x is None or y is None:
+        return None
+    return x, y, _finite(pose[2])
+
+
+def _text(value: object) -> str:
+    """A short text or number of the record for the table; MISSING for anything else."""
+    if isinstance(value, str) and value:
+        return _printable(value[:TEXT_SHOWN_CHARS])
+    number = _finite(value)
+    return MISSING if number is None else f"{number:g}"
+
+
+def _number(value: object, digits: int = 4) -> str:
+    number = _finite(value)
+    return MISSING if number is None else f"{number:.{digits}f}"
 
 
 def _vector(value: object, names: str = "xyz") -> str:
@@ -156,8 +322,12 @@ def _yaw(orientation: object) -> float | None:
     """Heading about z (radians) of a quaternion dict, or None."""
     if not isinstance(orientation, dict):
         return None
-    try:
-        x, y, z, w = (float(orientation[name]) for name in "xyzw")
-    except (KeyError, TypeError, ValueError):
+    components = [_finite(orientation.get(name)) for name in "xyzw"]
+    if any(c is None for c in components):
         return None
-    return math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
+    x, y, z, w = components
+    try:
+        yaw = math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
+    except (OverflowError, ValueError):
+        return None
+    return yaw if math.isfinite(yaw) else None

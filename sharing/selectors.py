@@ -3,23 +3,11 @@
 import uuid
 from datetime import datetime
 
-from django.db.models import Q, QuerySet
+from django.db.models import F, Q, QuerySet, Window
+from django.db.models.functions import RowNumber
 
-from accounts.models import Owner
-from chainworker.chain import ChainEvent
-from chainworker.selectors import deployment_active
-from chainworker.services import chain_client
-from sharing.models import Grant, Record, Verdict
-
-# Contract events about an owner, and the argument that names the owner in each.
-OWNER_EVENT_ARGS = {
-    "Enrolled": ("eoa",),
-    "Registered": ("eoa",),
-    "KeyRotated": ("eoa",),
-    "DataUploaded": ("owner",),
-    "AuthorityGranted": ("owner", "grantee"),
-    "AuthorityRevoked": ("owner", "grantee"),
-}
+from accounts.models import ChainActivity, Owner, OwnerToken, Robot
+from sharing.models import Grant, Record, SecurityEvent, Verdict
 
 
 def owners_granting(viewer: Owner) -> QuerySet[Owner]:
@@ -100,7 +88,7 @@ def record_get_visible(viewer: Owner, record_id: uuid.UUID | str) -> Record | No
 
 
 def grant_list_given(owner: Owner) -> QuerySet[Grant]:
-    return Grant.objects.filter(owner=owner).select_related("grantee__user")
+    return Grant.objects.filter(owner=owner).select_related("grantee__user", "made_with_token")
 
 
 def grant_list_received(owner: Owner) -> QuerySet[Grant]:
@@ -143,30 +131,34 @@ def record_topic_history(record: Record, *, limit: int) -> list[Record]:
             captured_at__lte=record.captured_at,
         )
         .exclude(pk=record.pk)
+        .select_related("owner")
         .order_by("-captured_at", "-seq")[: max(limit - 1, 0)]
     )
     return [*reversed(list(earlier)), record]
 
 
-def owners_by_address(addresses: list[str]) -> dict[str, Owner]:
-    """Owners by lower-case EOA address."""
-    lowered = {address.lower() for address in addresses}
-    owners = Owner.objects.select_related("user").filter(
-        Q(eoa_address__in=addresses) | Q(eoa_address__in=lowered)
+def chain_activity_of(owner: Owner) -> QuerySet[ChainActivity]:
+    """The owner's transactions as the worker indexed them, and the grants and revocations
+    naming the owner as grantee; newest first."""
+    return (
+        ChainActivity.objects.filter(Q(owner=owner) | Q(counterpart=owner))
+        .select_related("owner__user", "counterpart__user")
+        .order_by("-at", "-id")
     )
-    return {owner.eoa_address.lower(): owner for owner in owners}
 
 
-def chain_events_of_owner(owner: Owner) -> list[ChainEvent]:
-    """The owner's history read from the contract's logs, oldest first.
-
-    Enrolment, registration, key rotations, uploads, and grants given and received.
-    Raises chainworker.chain.ChainError when the node is down or nothing is deployed.
-    """
-    client = chain_client()
-    deployment = deployment_active(chain_id=client.chain_id, genesis_hash=client.genesis_hash)
-    from_block = deployment.block_number if deployment else 0
-    return client.events_naming(owner.eoa_address, OWNER_EVENT_ARGS, from_block)
+def records_anchored_in(owner: Owner, tx_hashes: list[str], *, per_tx: int) -> list[Record]:
+    """The first `per_tx` records of the owner's in each anchoring transaction, in one query."""
+    first = Window(
+        RowNumber(), partition_by=[F("tx_hash")], order_by=[F("captured_at").asc(), F("seq")]
+    )
+    return list(
+        Record.objects.filter(owner=owner, tx_hash__in=tx_hashes)
+        .only("id", "topic", "seq", "tx_hash", "captured_at")
+        .annotate(position=first)
+        .filter(position__lte=per_tx)
+        .order_by("tx_hash", "position")
+    )
 
 
 def chain_backlog() -> dict[str, int]:
@@ -178,3 +170,28 @@ def chain_backlog() -> dict[str, int]:
             status__in=[Grant.Status.PENDING, Grant.Status.REVOKING]
         ).count(),
     }
+
+
+def security_events_of(owner: Owner, *, since: datetime | None = None) -> QuerySet[SecurityEvent]:
+    """Alarms about the owner's records (tampering, forged uploads), newest first; only
+    those since `since` if given."""
+    events = SecurityEvent.objects.filter(owner=owner)
+    if since is not None:
+        events = events.filter(created_at__gte=since)
+    return events.select_related("record").order_by("-created_at", "-id")
+
+
+def grant_list_made_with(token: OwnerToken) -> QuerySet[Grant]:
+    """Grants made with an owner API token that can still be revoked (pending or active)."""
+    return (
+        Grant.objects.filter(
+            made_with_token=token, status__in=(Grant.Status.PENDING, Grant.Status.ACTIVE)
+        )
+        .select_related("owner__user", "grantee__user")
+        .order_by("-created_at")
+    )
+
+
+def record_list_uploaded_by(robot: Robot) -> QuerySet[Record]:
+    """What a robot's own token may see: the records that robot uploaded."""
+    return record_list_owned(robot.owner).filter(robot=robot)

@@ -18,12 +18,13 @@ from django.core.files.base import ContentFile
 from django.db import IntegrityError, transaction
 from django.utils import timezone
 
-from accounts.models import ChainState, Owner, OwnerKey, Robot
+from accounts.models import ChainActivity, ChainState, Owner, OwnerKey, OwnerToken, Robot
 from accounts.selectors import (
     owner_by_identifier,
     owner_eoa_account,
     owner_key_bytes,
 )
+from accounts.services import chain_activity_record, owner_identity_check
 from chainworker.chain import TransactionReverted, TxResult
 from chainworker.services import chain_client
 from chainworker.work import ChainWorkNotReady, exclusive
@@ -45,6 +46,7 @@ from sharing.errors import (
     UnknownKey,
 )
 from sharing.models import Grant, Record, SecurityEvent
+from sharing.selectors import grant_list_made_with
 from sharing.storage import envelope_storage
 from smcrypto import CryptoError, envelope, sm3
 
@@ -80,6 +82,8 @@ def record_create_batch(*, robot: Robot, envelopes: Sequence[bytes]) -> list[Rec
     """
     if not envelopes:
         raise InvalidEnvelope("no envelopes in the upload")
+    # The owner's commitment on chain must be the key the envelopes are sealed under.
+    owner_identity_check(owner=robot.owner)
     checked = [_check_upload(robot, data) for data in envelopes]
     seqs = [c.header["seq"] for c in checked]
     if seqs != sorted(set(seqs)):
@@ -181,8 +185,27 @@ def owner_resolve(identifier: str) -> Owner:
     return owner
 
 
-def grant_create(*, owner: Owner, grantee: Owner) -> Grant:
-    """Let `grantee` read `owner`'s records; authorityGrant is sent on commit."""
+# Which credential made a grant (Grant.made_with): a browser session, an owner API token, or an
+# operator's command.
+GRANT_MADE_WITH = ("session", "token", "cli")
+
+
+def grant_create(
+    *,
+    owner: Owner,
+    grantee: Owner,
+    made_with: str = "session",
+    made_with_token: OwnerToken | None = None,
+) -> Grant:
+    """Let `grantee` read `owner`'s records; authorityGrant is sent on commit.
+
+    `made_with` says which credential asked, `made_with_token` which owner API token (exactly
+    when `made_with` is "token"), so that revoking the token can take its grants back.
+    """
+    if made_with not in GRANT_MADE_WITH or (made_with == "token") != (made_with_token is not None):
+        raise ValueError(f"made_with is one of {GRANT_MADE_WITH}, with a token for 'token' only")
+    if made_with_token is not None and made_with_token.owner_id != owner.pk:
+        raise ValueError("a grant is made with a token of its own owner")
     if grantee.pk == owner.pk:
         raise SelfGrant("an owner always reads its own records")
     if owner.chain_state != ChainState.CONFIRMED:
@@ -193,7 +216,9 @@ def grant_create(*, owner: Owner, grantee: Owner) -> Grant:
         with transaction.atomic():
             if Grant.objects.filter(owner=owner, grantee=grantee, status__in=Grant.LIVE).exists():
                 raise AlreadyGranted(f"{grantee} already has access")
-            grant = Grant.objects.create(owner=owner, grantee=grantee)
+            grant = Grant.objects.create(
+                owner=owner, grantee=grantee, made_with=made_with, made_with_token=made_with_token
+            )
             transaction.on_commit(lambda: enqueue("sharing.tasks.grant_sync", grant.pk))
     except IntegrityError:
         # A simultaneous grant for the same pair won the race (one live grant per pair).
@@ -215,6 +240,18 @@ def grant_revoke(*, owner: Owner, grantee: Owner) -> Grant:
         grant.save(update_fields=["status", "updated_at"])
         transaction.on_commit(lambda: enqueue("sharing.tasks.grant_sync", grant.pk))
     return grant
+
+
+def grants_revoke_made_with(*, token: OwnerToken) -> list[Grant]:
+    """Take back every grant made with `token` that is still pending or active (a token that
+    was revoked, perhaps stolen), each as grant_revoke does."""
+    revoked = []
+    for grant in grant_list_made_with(token):
+        try:
+            revoked.append(grant_revoke(owner=grant.owner, grantee=grant.grantee))
+        except NoGrant:
+            continue  # revoked meanwhile by someone else
+    return revoked
 
 
 # --- on chain (run by the worker) -----------------------------------------------------
@@ -256,6 +293,7 @@ def _grant_sync(grant: Grant) -> None:
             )
             if result is not None:
                 fields.update(grant_tx=result.tx_hash, grant_block=result.block_number)
+                _grant_activity_record(grant, ChainActivity.Kind.GRANTED, result)
         Grant.objects.filter(pk=grant.pk, status=Grant.Status.PENDING).update(**fields)
     elif grant.status == Grant.Status.REVOKING:
         fields = {"status": Grant.Status.REVOKED}
@@ -266,7 +304,19 @@ def _grant_sync(grant: Grant) -> None:
             )
             if result is not None:
                 fields.update(revoke_tx=result.tx_hash, revoke_block=result.block_number)
+                _grant_activity_record(grant, ChainActivity.Kind.REVOKED, result)
         Grant.objects.filter(pk=grant.pk, status=Grant.Status.REVOKING).update(**fields)
+
+
+def _grant_activity_record(grant: Grant, kind: str, result: TxResult) -> None:
+    """The audit page's entry of a grant or revocation, for the owner and the grantee."""
+    chain_activity_record(
+        owner=grant.owner,
+        counterpart=grant.grantee,
+        kind=kind,
+        tx_hash=result.tx_hash,
+        block_number=result.block_number,
+    )
 
 
 def _tolerating(error_name: str, send: Callable[[], TxResult]) -> TxResult | None:

@@ -39,3 +39,16 @@ def chain_work_sweep() -> dict[str, int]:
 def record_verify(record_id: str, viewer_id: int) -> dict[str, Any]:
     checked = verification.record_verify(record_id=record_id, viewer_id=viewer_id)
     return verification.verification_answer(checked)
+
+
+@shared_task(
+    name="sharing.tasks.records_verify",
+    autoretry_for=(ChainUnavailable,),
+    retry_backoff=1,
+    max_retries=3,
+    soft_time_limit=60,
+    time_limit=90,
+)
+def records_verify(record_ids: list[str], viewer_id: int) -> list[dict[str, Any]]:
+    checked = verification.records_verify(record_ids=record_ids, viewer_id=viewer_id)
+    return [verification.verification_answer(one) for one in checked]

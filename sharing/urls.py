@@ -17,4 +17,9 @@ urlpatterns = [
     path("grants/", views.grants, name="grants"),
     path("grants/revoke/", views.grant_revoke_view, name="grant-revoke"),
     path("audit/", views.audit, name="audit"),
+    path(
+        "account/tokens/<int:token_id>/revoke/",
+        views.api_token_revoke,
+        name="api-token-revoke",
+    ),
 ]

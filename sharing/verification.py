@@ -4,9 +4,11 @@ The worker runs `record_verify`: access on chain, one fetch of the stored envelo
 cache, else durable storage), one SM3 hash, compared with the digest on chain; it leaves a
 Verdict and hands back the bytes it checked. The web process (`record_open`) decrypts those
 very bytes, and only when the verdict is `verified`; a refusal carries its record and verdict.
+Several records for one viewer (a trajectory) are checked in one run, `records_verify`.
 """
 
 import base64
+import dataclasses
 import logging
 import uuid
 from collections.abc import Sequence
@@ -18,8 +20,10 @@ from django.conf import settings
 from django.utils import timezone
 from redis.exceptions import RedisError
 
+from accounts.errors import IdentityMismatch
 from accounts.models import Owner
 from accounts.selectors import owner_key_bytes, owner_key_current
+from accounts.services import owner_identity_check
 from chainworker.chain import AuthROSChain
 from chainworker.services import chain_client
 from core.outbox import dispatch
@@ -33,12 +37,14 @@ from sharing.errors import (
     VerificationUnavailable,
 )
 from sharing.models import Grant, Record, SecurityEvent, Verdict
+from sharing.selectors import record_topic_history
 from smcrypto import envelope, sm3
 
 logger = logging.getLogger(__name__)
 security_log = logging.getLogger("authros.security")
 
 VERIFY_TASK = "sharing.tasks.record_verify"
+VERIFY_MANY_TASK = "sharing.tasks.records_verify"
 
 
 # --- the check, in the worker ------------------------------------------------------------------
@@ -74,47 +80,81 @@ def record_verify(
             **fields,
         )
 
-    if not _may_view(record, viewer, client):
+    if not _may_view_identified(record, viewer, client):
         return Verification(verdict(Verdict.Outcome.NO_ACCESS), None)
+    fields, data = _digest_check(record, viewer, client)
+    return Verification(verdict(**fields), data)
+
+
+def records_verify(*, record_ids: Sequence[uuid.UUID | str], viewer_id: int) -> list[Verification]:
+    """record_verify for several records of one viewer in one run (a trajectory's poses).
+
+    One latest block, one access check per record owner, one digest read on chain per record,
+    and every verdict written in one INSERT. One Verification per record that exists, in the
+    order asked.
+    """
+    wanted = [uuid.UUID(str(record_id)) for record_id in record_ids]
+    found = Record.objects.select_related("owner").in_bulk(wanted)
+    records = [found[record_id] for record_id in wanted if record_id in found]
+    viewer = Owner.objects.get(pk=viewer_id)
+    client = chain_client()
+    block = client.latest_block()
+    may_view: dict[int, bool] = {}
+    checked: list[tuple[dict[str, object], bytes | None]] = []
+    for record in records:
+        if record.owner_id not in may_view:
+            may_view[record.owner_id] = _may_view_identified(record, viewer, client)
+        if may_view[record.owner_id]:
+            checked.append(_digest_check(record, viewer, client))
+        else:
+            checked.append(({"outcome": Verdict.Outcome.NO_ACCESS}, None))
+    verdicts = Verdict.objects.bulk_create(
+        Verdict(record=record, viewer=viewer, block_number=block, **fields)
+        for record, (fields, _data) in zip(records, checked, strict=True)
+    )
+    return [
+        Verification(verdict, data)
+        for verdict, (_fields, data) in zip(verdicts, checked, strict=True)
+    ]
+
+
+def _digest_check(
+    record: Record, viewer: Owner, client: AuthROSChain
+) -> tuple[dict[str, object], bytes | None]:
+    """The stored envelope's SM3 digest against the chain's: the verdict's fields, and the
+    bytes checked when they match."""
     data, source = envelope_fetch(record)
     computed = sm3.sm3_hex(data)
     on_chain = client.data_query(record.id)
     if on_chain is None:
-        return Verification(
-            verdict(Verdict.Outcome.NOT_ANCHORED_YET, computed_digest=computed, source=source),
-            None,
-        )
+        fields = {"computed_digest": computed, "source": source}
+        return {"outcome": Verdict.Outcome.NOT_ANCHORED_YET, **fields}, None
     chain_digest = on_chain.digest.hex()
+    fields = {"computed_digest": computed, "chain_digest": chain_digest, "source": source}
     if chain_digest != computed or on_chain.owner.lower() != record.owner.eoa_address.lower():
         _record_tampered(record, viewer, source=source, computed=computed, chain=chain_digest)
-        return Verification(
-            verdict(
-                Verdict.Outcome.TAMPERED,
-                computed_digest=computed,
-                chain_digest=chain_digest,
-                source=source,
-            ),
-            None,
-        )
-    return Verification(
-        verdict(
-            Verdict.Outcome.VERIFIED,
-            computed_digest=computed,
-            chain_digest=chain_digest,
-            source=source,
-        ),
-        data,
-    )
+        return {"outcome": Verdict.Outcome.TAMPERED, **fields}, None
+    return {"outcome": Verdict.Outcome.VERIFIED, **fields}, data
 
 
 def verification_answer(verification: Verification) -> dict[str, Any]:
     """What the worker hands back to the view (JSON through the result backend)."""
     data = verification.envelope
     return {
+        "record_id": str(verification.verdict.record_id),
         "verdict_id": verification.verdict.pk,
         "outcome": verification.verdict.outcome,
         "envelope": base64.b64encode(data).decode("ascii") if data is not None else None,
     }
+
+
+def _may_view_identified(record: Record, viewer: Owner, client: AuthROSChain) -> bool:
+    """_may_view, and for a viewer who may, the identity check of the record's owner: a
+    commitment on chain that is not the key the portal holds raises IdentityMismatch."""
+    if not _may_view(record, viewer, client):
+        return False
+    owner_identity_check(owner=record.owner)
+    return True
 
 
 def _may_view(record: Record, viewer: Owner, client: AuthROSChain) -> bool:
@@ -162,10 +202,16 @@ class OpenedRecord:
     header: dict
     plaintext: bytes
     envelope: bytes  # the bytes the worker checked against the chain
+    # With record_open(earlier=n): the earlier records of its topic, oldest first.
+    earlier: list["OpenedRecord | SharingError"] = dataclasses.field(default_factory=list)
 
 
-def record_open(*, record_id: uuid.UUID | str, viewer: Owner) -> OpenedRecord:
+def record_open(*, record_id: uuid.UUID | str, viewer: Owner, earlier: int = 0) -> OpenedRecord:
     """Have the worker check the record, then decrypt what it checked.
+
+    With `earlier`, up to that many earlier records of its topic (record_topic_history) are
+    checked in the same run and opened into `OpenedRecord.earlier`: a trajectory is one
+    check, not one per pose.
 
     Raises RecordNotFound, VerificationUnavailable, or (with the record and the verdict
     attached) AccessDenied, IntegrityCheckFailed or NotAnchoredYet.
@@ -174,20 +220,38 @@ def record_open(*, record_id: uuid.UUID | str, viewer: Owner) -> OpenedRecord:
         record = Record.objects.select_related("owner__user").get(pk=uuid.UUID(str(record_id)))
     except (ValueError, Record.DoesNotExist):
         raise RecordNotFound("no such record") from None
-    return _opened(record, viewer, _send_verify(record, viewer))
+    if earlier <= 0:
+        return _opened(record, viewer, _send(VERIFY_TASK, str(record.pk), viewer.pk))
+    *before, own = record_open_many(
+        records=record_topic_history(record, limit=earlier + 1), viewer=viewer
+    )
+    if isinstance(own, SharingError):
+        raise own
+    return dataclasses.replace(own, earlier=before)
 
 
 def record_open_many(
     *, records: Sequence[Record], viewer: Owner
 ) -> list[OpenedRecord | SharingError]:
-    """record_open for several records at once: every check is queued before any answer is
-    awaited, so they run side by side on the verify workers. One result per record, in
-    order: the opened record, or the SharingError record_open would have raised."""
-    sent = [(record, _send_verify(record, viewer)) for record in records]
+    """record_open for several records at once, in one check on the worker
+    (`records_verify`). One result per record, in order: the opened record, or the
+    SharingError record_open would have raised."""
+    if not records:
+        return []
+    pending = _send(VERIFY_MANY_TASK, [str(record.pk) for record in records], viewer.pk)
+    try:
+        answers = _await_answer(pending, f"{len(records)} records", viewer)
+    except VerificationUnavailable as exc:
+        return [VerificationUnavailable(str(exc)) for _ in records]
+    by_record = {answer["record_id"]: answer for answer in answers}
+    verdicts = Verdict.objects.in_bulk([answer["verdict_id"] for answer in answers])
     results: list[OpenedRecord | SharingError] = []
-    for record, pending in sent:
+    for record in records:
+        answer = by_record.get(str(record.pk))
         try:
-            results.append(_opened(record, viewer, pending))
+            if answer is None:  # deleted meanwhile
+                raise RecordNotFound("no such record")
+            results.append(_decrypted(record, verdicts[answer["verdict_id"]], _envelope_of(answer)))
         except SharingError as exc:
             results.append(exc)
     return results
@@ -200,16 +264,21 @@ def record_reseal_for(*, opened: OpenedRecord, viewer: Owner) -> bytes:
     )
 
 
-def _send_verify(record: Record, viewer: Owner) -> Any:
+def _send(task_name: str, *args: Any) -> Any:
     """Queue the worker's integrity check; an exception instead if it cannot be queued."""
     try:
-        return dispatch(VERIFY_TASK, str(record.pk), viewer.pk)
+        return dispatch(task_name, *args)
     except Exception as exc:  # the broker is down
         return exc
 
 
 def _opened(record: Record, viewer: Owner, pending: Any) -> OpenedRecord:
-    verdict, data = _worker_answer(record, viewer, pending)
+    answer = _await_answer(pending, str(record.pk), viewer)
+    return _decrypted(record, Verdict.objects.get(pk=answer["verdict_id"]), _envelope_of(answer))
+
+
+def _decrypted(record: Record, verdict: Verdict, data: bytes | None) -> OpenedRecord:
+    """The record decrypted from the bytes the worker checked, if its verdict allows."""
     if verdict.outcome == Verdict.Outcome.NO_ACCESS:
         raise AccessDenied("you have no live grant to this record", record=record, verdict=verdict)
     if verdict.outcome == Verdict.Outcome.TAMPERED:
@@ -225,8 +294,9 @@ def _opened(record: Record, viewer: Owner, pending: Any) -> OpenedRecord:
     return OpenedRecord(record, verdict, header, plaintext, data)
 
 
-def _worker_answer(record: Record, viewer: Owner, pending: Any) -> tuple[Verdict, bytes | None]:
-    """The verdict the worker left and the bytes it checked (when verified)."""
+def _await_answer(pending: Any, what: str, viewer: Owner) -> Any:
+    """The worker's answer (verification_answer, or a list of them); VerificationUnavailable
+    if it cannot be had."""
     try:
         if isinstance(pending, Exception):
             raise pending
@@ -237,11 +307,17 @@ def _worker_answer(record: Record, viewer: Owner, pending: Any) -> tuple[Verdict
             # failure to drop it only leaves it to expire with CELERY_RESULT_EXPIRES).
             with suppress(RedisError, OSError):
                 pending.forget()
+    except IdentityMismatch:
+        raise  # the worker's refusal: the owner's commitment on chain is not the portal's key
     except Exception as exc:  # timeout, broker down, or the worker's own failure
-        logger.warning("verification of %s for %s failed: %s", record.pk, viewer, exc)
+        logger.warning("verification of %s for %s failed: %s", what, viewer, exc)
         raise VerificationUnavailable(
             "the integrity check could not run now; nothing is shown: try again shortly"
         ) from exc
-    verdict = Verdict.objects.get(pk=answer["verdict_id"])
+    return answer
+
+
+def _envelope_of(answer: dict[str, Any]) -> bytes | None:
+    """The bytes the worker checked, when it found them verified."""
     encoded = answer.get("envelope")
-    return verdict, base64.b64decode(encoded) if encoded is not None else None
+    return base64.b64decode(encoded) if encoded is not None else None

@@ -14,12 +14,15 @@ from django.core.paginator import Paginator
 from django.db.models import QuerySet
 from django.http import Http404, HttpRequest, HttpResponse, JsonResponse
 from django.shortcuts import redirect, render
+from django.views.decorators.cache import never_cache
 from django.views.decorators.http import require_GET, require_http_methods, require_POST
 
-from accounts.decorators import no_store, owner_required
+from accounts.decorators import no_store, owner_required, page_throttle
+from accounts.errors import IdentityMismatch
 from accounts.models import Owner
-from chainworker.chain import ChainError
-from sharing.audit import audit_entries_of_owner
+from accounts.selectors import owner_token_of
+from accounts.services import owner_token_revoke
+from sharing.audit import audit_page_of_owner
 from sharing.content import ODOMETRY, content_of, pose_of, trajectory_plot
 from sharing.errors import (
     AccessDenied,
@@ -33,21 +36,25 @@ from sharing.forms import GrantForm, GrantRevokeForm, RecordFilterForm
 from sharing.models import Record, Verdict
 from sharing.selectors import (
     grant_list_given,
+    grant_list_made_with,
     grant_list_received,
     owners_granting,
     record_list_filtered,
     record_list_owned,
     record_list_shared_with,
-    record_topic_history,
 )
-from sharing.services import grant_create, grant_revoke, owner_resolve
-from sharing.verification import OpenedRecord, record_open, record_open_many
+from sharing.services import grant_create, grant_revoke, grants_revoke_made_with, owner_resolve
+from sharing.verification import OpenedRecord, record_open
 
 RECORDS_PER_PAGE = 25
 AUDIT_ENTRIES_PER_PAGE = 50
 # Poses on a trajectory plot: the record and the ones before it on its topic, each one
 # integrity-checked like any other view.
 TRAJECTORY_POINTS = 20
+# What a trajectory counts against PAGE_RATE_CONTENT, in single record checks: its poses are
+# checked in one batched run (one task, one block, one access check per owner), so it costs
+# the worker less than TRAJECTORY_POINTS single views but more than one.
+TRAJECTORY_COST = 5
 # A record page's refusal for a record whose anchoring failed (the worker's verdict says only
 # "not anchored yet").
 ANCHORING_FAILED = "anchoring_failed"
@@ -57,12 +64,14 @@ ANCHORING_FAILED = "anchoring_failed"
 
 
 @owner_required
+@page_throttle()
 @require_GET
 def my_records(request: HttpRequest) -> HttpResponse:
     return _record_list(request, record_list_owned(request.owner), shared=False)
 
 
 @owner_required
+@page_throttle()
 @require_GET
 def shared_records(request: HttpRequest) -> HttpResponse:
     return _record_list(request, record_list_shared_with(request.owner), shared=True)
@@ -96,9 +105,11 @@ class Refusal:
     verdict: Verdict | None = None
 
 
-def _open_or_refuse(request: HttpRequest, record_id: str) -> OpenedRecord | Refusal:
+def _open_or_refuse(
+    request: HttpRequest, record_id: str, *, earlier: int = 0
+) -> OpenedRecord | Refusal:
     try:
-        return record_open(record_id=record_id, viewer=request.owner)
+        return record_open(record_id=record_id, viewer=request.owner, earlier=earlier)
     except RecordNotFound as exc:
         return Refusal("not_found", 404, str(exc))
     except AccessDenied as exc:
@@ -115,9 +126,12 @@ def _open_or_refuse(request: HttpRequest, record_id: str) -> OpenedRecord | Refu
         return Refusal(Verdict.Outcome.NOT_ANCHORED_YET, 409, str(exc), record, exc.verdict)
     except VerificationUnavailable as exc:
         return Refusal("unavailable", 503, str(exc))
+    except IdentityMismatch as exc:
+        return Refusal(IdentityMismatch.code, IdentityMismatch.http_status, str(exc))
 
 
 @owner_required
+@page_throttle("content")
 @require_GET
 def record_detail(request: HttpRequest, record_id: str) -> HttpResponse:
     opened = _open_or_refuse(request, str(record_id))
@@ -138,6 +152,7 @@ def record_detail(request: HttpRequest, record_id: str) -> HttpResponse:
 
 
 @owner_required
+@page_throttle("content")
 @require_GET
 def record_raw(request: HttpRequest, record_id: str) -> HttpResponse:
     """The decrypted Fig. 4 JSON as a download, after the same integrity check."""
@@ -152,21 +167,20 @@ def record_raw(request: HttpRequest, record_id: str) -> HttpResponse:
 
 
 @owner_required
+@page_throttle("content", cost=TRAJECTORY_COST)
 @require_GET
 def record_trajectory(request: HttpRequest, record_id: str) -> HttpResponse:
     """An SVG plot of the poses on an odometry record's topic, up to this record."""
-    opened = _open_or_refuse(request, str(record_id))
+    # Every earlier pose is checked against the chain too, in the same one check.
+    opened = _open_or_refuse(request, str(record_id), earlier=TRAJECTORY_POINTS - 1)
     if isinstance(opened, Refusal):
         refused = HttpResponse(opened.message, status=opened.status, content_type="text/plain")
         return no_store(refused)
     if opened.record.data_type != ODOMETRY:
         raise Http404("only odometry records have a trajectory")
-    history = record_topic_history(opened.record, limit=TRAJECTORY_POINTS)
-    earlier = [record for record in history if record.pk != opened.record.pk]
-    # Every earlier pose is checked against the chain too, all checks queued at once.
-    results = [*record_open_many(records=earlier, viewer=request.owner), opened]
+    results = [*opened.earlier, opened]
     passed = [result for result in results if not isinstance(result, SharingError)]
-    plot = trajectory_plot([pose for o in passed if (pose := pose_of(o.plaintext)) is not None])
+    plot = trajectory_plot([pose_of(result.plaintext) for result in passed])
     plot["refused"] = len(results) - len(passed)
     plot["topic"] = opened.record.topic
     response = render(request, "sharing/trajectory.svg", plot, content_type="image/svg+xml")
@@ -182,6 +196,7 @@ def _download_name(record: Record) -> str:
 
 
 @owner_required
+@page_throttle()
 @require_http_methods(["GET", "POST"])
 def grants(request: HttpRequest) -> HttpResponse:
     owner: Owner = request.owner
@@ -189,7 +204,7 @@ def grants(request: HttpRequest) -> HttpResponse:
     if request.method == "POST" and form.is_valid():
         try:
             grantee = owner_resolve(form.cleaned_data["grantee"])
-            grant_create(owner=owner, grantee=grantee)
+            grant_create(owner=owner, grantee=grantee, made_with="session")
         except SharingError as exc:
             form.add_error("grantee", str(exc))
         else:
@@ -209,6 +224,7 @@ def grants(request: HttpRequest) -> HttpResponse:
 
 
 @owner_required
+@page_throttle()
 @require_POST
 def grant_revoke_view(request: HttpRequest) -> HttpResponse:
     form = GrantRevokeForm(request.POST)
@@ -233,13 +249,39 @@ def grant_revoke_view(request: HttpRequest) -> HttpResponse:
 
 
 @owner_required
+@page_throttle()
 @require_GET
 def audit(request: HttpRequest) -> HttpResponse:
     owner: Owner = request.owner
-    try:
-        entries = audit_entries_of_owner(owner)
-    except ChainError as exc:
-        context = {"problem": f"The chain cannot be read right now: {exc}", "owner": owner}
-        return render(request, "sharing/audit.html", context, status=503)
-    page = Paginator(entries, AUDIT_ENTRIES_PER_PAGE).get_page(request.GET.get("page"))
+    page = audit_page_of_owner(owner, page=request.GET.get("page"), per_page=AUDIT_ENTRIES_PER_PAGE)
     return render(request, "sharing/audit.html", {"page": page, "owner": owner})
+
+
+# --- revoking an owner API token, and what it granted ----------------------------------------
+# Here rather than in accounts: the page lists and revokes the grants the token made.
+
+
+@never_cache
+@owner_required
+@page_throttle()
+@require_http_methods(["GET", "POST"])
+def api_token_revoke(request: HttpRequest, token_id: int) -> HttpResponse:
+    """GET: what revoking the token does, with the live grants it made; POST: revoke it, and
+    those grants too unless the owner unticked them."""
+    token = owner_token_of(request.owner, token_id)
+    if token is None:
+        raise Http404("no such API token")
+    if request.method == "GET":
+        context = {"token": token, "grants": list(grant_list_made_with(token))}
+        return render(request, "accounts/api_token_revoke.html", context)
+    was_live = token.revoked_at is None
+    owner_token_revoke(token=token, actor=request.user)
+    revoked = []
+    if request.POST.get("revoke_grants") == "yes":
+        revoked = grants_revoke_made_with(token=token)
+    said = [f"The API token {token.name} {'is' if was_live else 'was already'} revoked."]
+    if revoked:
+        names = ", ".join(grant.grantee.username for grant in revoked)
+        said.append(f"The access it gave {names} is revoked too; the chain follows.")
+    messages.success(request, " ".join(said))
+    return redirect("api-tokens")

@@ -5,7 +5,9 @@
 
 The binary is the one pinned in package.json (node_modules/@foundry-rs/anvil-<os>-<arch>);
 ANVIL_BIN overrides it. Without a port each node listens on a free port of 127.0.0.1, so
-parallel test workers (pytest-xdist) do not collide.
+parallel test workers (pytest-xdist) do not collide. `make run` starts its node with
+zero_gas, as a private proof-of-authority network should run (docs/deployment.md): the portal
+then sends new owners' EOAs no ether at all.
 """
 
 from __future__ import annotations
@@ -33,6 +35,8 @@ HOST = "127.0.0.1"
 STARTUP_TIMEOUT = 15.0
 STOP_TIMEOUT = 10.0
 PORT_ATTEMPTS = 3
+# A base fee and gas price of zero, and no minimum tip suggested: gas costs nothing.
+ZERO_GAS_ARGS = ("--base-fee", "0", "--gas-price", "0", "--disable-min-priority-fee")
 
 _OS_NAMES = {"Linux": "linux", "Darwin": "darwin", "Windows": "win32"}
 _ARCH_NAMES = {"x86_64": "amd64", "AMD64": "amd64", "aarch64": "arm64", "arm64": "arm64"}
@@ -132,6 +136,7 @@ def start_anvil(
     state_interval: float | None = None,
     log_path: Path | None = None,
     die_with_parent: bool = False,
+    zero_gas: bool = False,
 ) -> AnvilProcess:
     """Start anvil on a free port and return once its JSON-RPC answers.
 
@@ -141,11 +146,14 @@ def start_anvil(
     state_interval: also write the state every this many seconds (survives a kill -9).
     log_path: anvil's output goes there (appended); else it is silent.
     die_with_parent: the kernel stops it if the process that started it dies (see Children).
+    zero_gas: gas costs nothing (ZERO_GAS_ARGS); else anvil's own fees (1 gwei base fee).
     """
 
     args = [str(anvil_binary()), "--host", HOST]
     if log_path is None:
         args.append("--silent")
+    if zero_gas:
+        args += ZERO_GAS_ARGS
     if block_time is not None:
         args += ["--block-time", str(block_time)]
     if state_path is not None:

@@ -248,6 +248,7 @@ class Stack:
             state_interval=ANVIL_STATE_INTERVAL,
             log_path=self.logs / "anvil.log",
             die_with_parent=True,
+            zero_gas=True,
         )
 
     def _start_web(self) -> None:

@@ -4,7 +4,7 @@ import json
 import uuid
 from collections.abc import Iterator
 from dataclasses import dataclass
-from datetime import UTC, datetime
+from datetime import UTC, datetime, timedelta
 
 import pytest
 import redis
@@ -12,8 +12,8 @@ from django.conf import settings as django_settings
 from eth_account import Account
 from eth_account.signers.local import LocalAccount
 
-from accounts.models import Owner, Robot
-from accounts.services import owner_create, robot_create
+from accounts.models import Owner, OwnerToken, Robot
+from accounts.services import owner_create, owner_token_create, robot_create
 from chainworker import services as chain_services
 from chainworker.chain import AuthROSChain, forget_in_process_chain
 from portal.celery import app as celery_app
@@ -198,3 +198,20 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
     for item in items:
         if str(item.path).removeprefix(root).startswith(_NO_DATABASE):
             item.add_marker(pytest.mark.nodb)
+
+
+@pytest.fixture
+def make_owner_token(db):
+    """An owner API token made through the service, and its key (shown once)."""
+
+    def make(
+        owner: Owner, *, scopes: tuple[str, ...] = ("read", "share"), days: int = 30
+    ) -> tuple[OwnerToken, str]:
+        return owner_token_create(
+            owner=owner,
+            name=f"script-{uuid.uuid4().hex[:6]}",
+            scopes=list(scopes),
+            expires_in=timedelta(days=days),
+        )
+
+    return make

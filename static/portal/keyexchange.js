@@ -1,11 +1,15 @@
 /*
- * The paper's key exchange, in the browser: the owner's SM4 key is encrypted to the portal's
- * SM2 public key (C1C3C2, sm-crypto's cipher mode 1) and only the ciphertext is submitted.
- * The key's text field has no name, so the key as typed never leaves the page.
+ * The owner's SM4 key, in the browser. The key is generated from the browser's cryptographic
+ * random generator (crypto.getRandomValues) as the page loads, shown once to be downloaded
+ * as a key file or copied; the owner may type their own instead (the portal refuses one that
+ * does not look random). On submit it is encrypted to the portal's SM2 public key (C1C3C2,
+ * sm-crypto's cipher mode 1, the paper's key exchange) and only the ciphertext is sent: the
+ * key's text field has no name, so the key itself never leaves the page.
  *
  * Markup: a form with data-sm2-public-key, holding [data-sm4-key], input[name=key_ciphertext],
- * [data-generate-key], [data-download-key], [data-key-error] and [data-needs-script] controls
- * (disabled until this script has checked that the browser can do the work).
+ * [data-generate-key], [data-type-own-key], [data-download-key], [data-copy-key],
+ * [data-key-error], [data-key-generated-note], [data-key-copied] and [data-needs-script]
+ * controls (disabled until this script has checked that the browser can do the work).
  */
 (function () {
   "use strict";
@@ -26,11 +30,19 @@
     return bytes;
   }
 
+  // The portal refuses a key whose bytes are all printable ASCII or NUL (it looks like text):
+  // one random key in 6.5 million does; draw another then (see accounts/services.py).
+  function looksLikeText(bytes) {
+    return Array.prototype.every.call(bytes, function (b) {
+      return b === 0 || (b >= 0x20 && b <= 0x7e);
+    });
+  }
+
   function randomKeyHex() {
     var bytes = new Uint8Array(16);
     do {
       window.crypto.getRandomValues(bytes);
-    } while (Array.prototype.every.call(bytes, function (b) { return b === 0; }));
+    } while (looksLikeText(bytes));
     return toHex(bytes);
   }
 
@@ -40,8 +52,11 @@
     var cipherField = form.querySelector("input[name='key_ciphertext']");
     var errorBox = form.querySelector("[data-key-error]");
     var generateButton = form.querySelector("[data-generate-key]");
+    var typeOwnButton = form.querySelector("[data-type-own-key]");
     var downloadButton = form.querySelector("[data-download-key]");
+    var copyButton = form.querySelector("[data-copy-key]");
     var generatedNote = form.querySelector("[data-key-generated-note]");
+    var copiedNote = form.querySelector("[data-key-copied]");
     var keptNote = form.querySelector("[data-key-kept]");
 
     function showError(text) {
@@ -54,8 +69,8 @@
     }
 
     if (!window.sm2 || !window.crypto || !window.crypto.getRandomValues || !publicKey) {
-      showError("This browser cannot encrypt the key (no Web Crypto or SM2 script), so " +
-                "nothing can be sent. Use a current browser.");
+      showError("This browser cannot generate or encrypt the key (no Web Crypto or SM2 " +
+                "script), so nothing can be sent. Use a current browser.");
       return;
     }
 
@@ -74,6 +89,8 @@
     function keyChanged() {
       var valid = KEY_HEX.test(typedKey());
       downloadButton.disabled = !valid;
+      copyButton.disabled = !valid;
+      copiedNote.hidden = true;
       if (typedKey()) {
         // A new key replaces the one kept (encrypted) from a previous attempt.
         cipherField.value = "";
@@ -82,12 +99,25 @@
       if (valid) { showError(""); }
     }
 
-    generateButton.addEventListener("click", function () {
+    function useGeneratedKey() {
+      keyInput.readOnly = true;
       keyInput.value = randomKeyHex();
       keyChanged();
-      if (generatedNote) { generatedNote.hidden = false; }
+      generatedNote.hidden = false;
+    }
+
+    generateButton.addEventListener("click", function () {
+      useGeneratedKey();
       keyInput.focus();
       keyInput.select();
+    });
+
+    typeOwnButton.addEventListener("click", function () {
+      keyInput.readOnly = false;
+      keyInput.value = "";
+      keyChanged();
+      generatedNote.hidden = true;
+      keyInput.focus();
     });
 
     downloadButton.addEventListener("click", function () {
@@ -103,6 +133,23 @@
         URL.revokeObjectURL(link.href);
         link.remove();
       }, 0);
+    });
+
+    copyButton.addEventListener("click", function () {
+      var hex = typedKey();
+      if (!KEY_HEX.test(hex)) { return; }
+      function copied() { copiedNote.hidden = false; }
+      function selectForCopy() {
+        // Without the Clipboard API (a page not served over HTTPS): the owner copies it.
+        keyInput.focus();
+        keyInput.select();
+        if (document.execCommand && document.execCommand("copy")) { copied(); }
+      }
+      if (navigator.clipboard && window.isSecureContext) {
+        navigator.clipboard.writeText(hex).then(copied, selectForCopy);
+      } else {
+        selectForCopy();
+      }
     });
 
     keyInput.addEventListener("input", keyChanged);
@@ -133,6 +180,9 @@
       }
       showError("");
     });
+
+    // A key from a previous attempt, kept encrypted, stays unless the owner picks another.
+    if (!cipherField.value) { useGeneratedKey(); }
 
     Array.prototype.forEach.call(form.querySelectorAll("[data-needs-script]"), function (el) {
       el.disabled = false;

@@ -34,6 +34,9 @@
         var item = document.getElementById("step-" + step);
         var hash = item && item.querySelector("[data-tx]");
         if (tx && hash) { hash.textContent = tx; }
+        if (!tx && hash && step === "fund" && status.chain_state === "confirmed") {
+          hash.textContent = "none needed (this chain charges no gas)";
+        }
         if (item && (tx || status.chain_state === "confirmed")) { item.classList.add("done"); }
       });
       registration.setAttribute("data-state", status.chain_state);
@@ -45,6 +48,10 @@
       if (status.chain_state === "failed") {
         summary.textContent = "Registration failed: " + (status.chain_error || "see the operator") + ".";
         return false;
+      }
+      if (status.chain_error) {
+        // e.g. waiting for the funding budget: the worker tries again by itself.
+        summary.textContent = "Not registered yet, " + status.chain_error + ". This page updates by itself.";
       }
       return true;
     });

@@ -18,6 +18,8 @@ from stack.anvil import start_anvil
 from tests.conftest import TEST_PASSWORD
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
+# A well-formed key that looks random, for tests about the other arguments.
+SOME_KEY_HEX = "5f0c9e27b3a1d84e6c72f19a0b3d5e88"
 pytestmark = pytest.mark.django_db
 
 
@@ -66,9 +68,9 @@ def test_owner_create_reads_the_key_from_a_file(deployed, tmp_path):
         (["--sm4-key-hex", "zz" * 16], TEST_PASSWORD, "32 hex digits"),
         (["--sm4-key-hex", "00" * 16], TEST_PASSWORD, "all-zero"),
         (["--sm4-key-file", "/nonexistent/key"], TEST_PASSWORD, "cannot read the key file"),
-        (["--sm4-key-hex", "11" * 16], "", "standard input"),
-        (["--sm4-key-hex", "11" * 16], "12345\n", "too weak"),
-        (["--sm4-key-hex", "11" * 16, "--username", "bad name!"], TEST_PASSWORD, "username"),
+        (["--sm4-key-hex", SOME_KEY_HEX], "", "standard input"),
+        (["--sm4-key-hex", SOME_KEY_HEX], "12345\n", "too weak"),
+        (["--sm4-key-hex", SOME_KEY_HEX, "--username", "bad name!"], TEST_PASSWORD, "username"),
     ],
 )
 def test_owner_create_refuses_bad_input_and_creates_nothing(deployed, args, password, message):
@@ -81,7 +83,7 @@ def test_owner_create_refuses_bad_input_and_creates_nothing(deployed, args, pass
 
 def test_the_password_is_never_taken_from_the_command_line(deployed):
     with pytest.raises(CommandError, match="unrecognized arguments"):
-        _owner_create("--username", "alice", "--sm4-key-hex", "11" * 16, "--password", "x")
+        _owner_create("--username", "alice", "--sm4-key-hex", SOME_KEY_HEX, "--password", "x")
     assert not Owner.objects.exists()
 
 
@@ -99,8 +101,9 @@ def test_owner_create_before_the_contract_is_deployed_creates_nothing(db):
 
 
 def test_owner_create_says_when_the_chain_did_not_confirm_in_time(deployed, settings):
-    # More than the operator holds: funding the EOA cannot succeed.
-    settings.CHAIN_EOA_FUNDING_WEI = 10**30
+    # More than the operator holds (within the budget): funding the EOA cannot succeed.
+    settings.CHAIN_EOA_FUNDING_GAS = settings.CHAIN_EOA_FUNDING_WEI = 10**30
+    settings.SIGNUP_FUNDING_BUDGET_WEI = 10**31
     with pytest.raises(CommandError, match="was created but is not registered"):
         _owner_create(
             "--username", "alice", "--sm4-key-hex", sm4.generate_key().hex(), "--timeout", "1"

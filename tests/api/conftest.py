@@ -1,4 +1,5 @@
-"""Clients of the REST API: a robot with its token, an owner's browser session, nobody."""
+"""Clients of the REST API: a robot with its token, an owner with an owner API token or a
+browser session, nobody."""
 
 import base64
 from collections.abc import Callable
@@ -59,6 +60,17 @@ def robot(make_robot) -> RobotSetup:
 @pytest.fixture
 def robot_api(robot) -> APIClient:
     return token_client(robot.token)
+
+
+@pytest.fixture
+def owner_api(make_owner_token) -> Callable[..., APIClient]:
+    """A client acting for an owner with an owner API token (both scopes unless told)."""
+
+    def client_for(owner: Owner, *, scopes: tuple[str, ...] = ("read", "share")) -> APIClient:
+        _, key = make_owner_token(owner, scopes=scopes)
+        return token_client(key)
+
+    return client_for
 
 
 @pytest.fixture

@@ -7,7 +7,7 @@ from accounts.models import ChainState
 from accounts.services import owner_create
 from sharing.models import Grant
 from smcrypto import sm4
-from tests.api.conftest import GRANTS, session_client, token_client
+from tests.api.conftest import GRANTS, session_client
 from tests.conftest import TEST_PASSWORD
 
 pytestmark = pytest.mark.django_db
@@ -49,8 +49,8 @@ def _grants() -> list[tuple[str, str, str]]:
     )
 
 
-def test_grant_list_and_revoke_by_username(alice, bob, grant, revoke):
-    alice_api, bob_api = token_client(alice.token), token_client(bob.token)
+def test_grant_list_and_revoke_by_username(alice, bob, grant, revoke, owner_api):
+    alice_api, bob_api = owner_api(alice.owner), owner_api(bob.owner)
     answer = grant(alice_api, "bob")
     assert answer.status_code == 201, answer.content
     created = answer.json()
@@ -73,8 +73,8 @@ def test_grant_list_and_revoke_by_username(alice, bob, grant, revoke):
     assert alice_api.get(GRANTS).json()["given"][0]["revoke_tx"].startswith("0x")
 
 
-def test_grant_and_revoke_by_address_in_any_case(alice, bob, grant, revoke):
-    alice_api = token_client(alice.token)
+def test_grant_and_revoke_by_address_in_any_case(alice, bob, grant, revoke, owner_api):
+    alice_api = owner_api(alice.owner)
     assert grant(alice_api, bob.owner.eoa_address.lower()).status_code == 201
     assert revoke(alice_api, bob.owner.eoa_address.upper().replace("0X", "0x")).status_code == 200
     assert _grants() == [("alice", "bob", "revoked")]
@@ -96,8 +96,8 @@ def test_a_browser_session_grants_with_its_csrf_token(alice, bob, grant):
     assert _grants() == [("alice", "bob", "active")]
 
 
-def test_grant_refusals_change_nothing(alice, bob, grant):
-    alice_api = token_client(alice.token)
+def test_grant_refusals_change_nothing(alice, bob, grant, owner_api):
+    alice_api = owner_api(alice.owner)
     assert grant(alice_api, "bob").status_code == 201
     with_no_chain = owner_create(
         username="carol", password=TEST_PASSWORD, sm4_key=sm4.generate_key()
@@ -120,17 +120,17 @@ def test_grant_refusals_change_nothing(alice, bob, grant):
     assert _grants() == before
 
 
-def test_an_owner_not_registered_yet_cannot_grant(bob, grant, make_robot):
+def test_an_owner_not_registered_yet_cannot_grant(bob, grant, make_robot, owner_api):
     newcomer = make_robot("dave")
     type(newcomer.owner).objects.filter(pk=newcomer.owner.pk).update(chain_state=ChainState.PENDING)
-    answer = grant(token_client(newcomer.token), "bob")
+    answer = grant(owner_api(newcomer.owner), "bob")
     assert answer.status_code == 409
     assert answer.json()["error"] == "not_registered_yet"
     assert _grants() == []
 
 
-def test_malformed_grant_requests_get_400(alice, grant):
-    alice_api = token_client(alice.token)
+def test_malformed_grant_requests_get_400(alice, grant, owner_api):
+    alice_api = owner_api(alice.owner)
     bodies = [b"{}", b"[]", b'{"grantee": 5}', b'{"grantee": ""}', b'{"grantee": null}']
     bodies += [b'{"grantee": "' + b"x" * 151 + b'"}', b'{"grantee": "a\\u0000b"}', b"{"]
     for body in bodies:
@@ -140,8 +140,8 @@ def test_malformed_grant_requests_get_400(alice, grant):
     assert _grants() == []
 
 
-def test_revoke_refusals(alice, bob, grant, revoke):
-    alice_api = token_client(alice.token)
+def test_revoke_refusals(alice, bob, grant, revoke, owner_api):
+    alice_api = owner_api(alice.owner)
     for grantee, error in [
         ("bob", "no_grant"),
         ("nobody", "owner_not_found"),
@@ -157,7 +157,7 @@ def test_revoke_refusals(alice, bob, grant, revoke):
     again = revoke(alice_api, "bob")
     assert (again.status_code, again.json()["error"]) == (404, "no_grant")
     # Bob cannot revoke what Alice gave him.
-    bob_side = revoke(token_client(bob.token), "alice")
+    bob_side = revoke(owner_api(bob.owner), "alice")
     assert (bob_side.status_code, bob_side.json()["error"]) == (404, "no_grant")
 
 

@@ -149,18 +149,19 @@ def _b64(data: bytes) -> str:
     return base64.b64encode(data).decode("ascii")
 
 
-def test_unknown_or_malformed_record_ids_get_a_json_404(robot_api):
+def test_unknown_or_malformed_record_ids_get_a_json_404(robot, owner_api):
+    reader = owner_api(robot.owner)
     for record_id in (str(uuid.uuid4()), "not-a-uuid", "%00", "1" * 300, "0" * 33, "%C3%A9"):
         for path in (f"{RECORDS}{record_id}/", f"{RECORDS}{record_id}/content/"):
-            answer = robot_api.get(path)
+            answer = reader.get(path)
             assert answer.status_code == 404, path
             assert answer.json()["error"] == "not_found", path
     assert not Verdict.objects.exists()
 
 
-def test_an_owner_reads_its_content_checked_and_sealed_under_its_key(robot, robot_api, fleet):
+def test_an_owner_reads_its_content_checked_and_sealed_under_its_key(robot, owner_api, fleet):
     record = Record.objects.get(seq=2)
-    answer = robot_api.get(f"{RECORDS}{record.id}/content/")
+    answer = owner_api(robot.owner, scopes=("read",)).get(f"{RECORDS}{record.id}/content/")
     assert answer.status_code == 200, answer.content
     body = answer.json()
     assert body["verified"] is True
@@ -184,10 +185,10 @@ def test_a_browser_session_reads_the_same(robot, fleet):
 
 
 def test_a_grantee_sees_and_reads_shared_records_under_its_own_key(
-    robot, fleet, make_robot, django_capture_on_commit_callbacks
+    robot, fleet, make_robot, owner_api, django_capture_on_commit_callbacks
 ):
     reader = make_robot()
-    reader_api = token_client(reader.token)
+    reader_api = owner_api(reader.owner, scopes=("read",))
     record = Record.objects.get(seq=3)
     content = f"{RECORDS}{record.id}/content/"
 
@@ -218,7 +219,7 @@ def test_a_grantee_sees_and_reads_shared_records_under_its_own_key(
     assert reader_api.get(content).status_code == 403
 
 
-def test_changed_stored_data_is_refused_with_409(robot, robot_api, fleet):
+def test_changed_stored_data_is_refused_with_409(robot, robot_api, owner_api, fleet):
     record = Record.objects.get(seq=1)
     with envelope_storage().open(record.storage_name, "rb") as handle:
         data = bytearray(handle.read())
@@ -227,7 +228,7 @@ def test_changed_stored_data_is_refused_with_409(robot, robot_api, fleet):
     with open(path, "wb") as handle:
         handle.write(bytes(data))
     envelope_cache_evict(record.id)
-    answer = robot_api.get(f"{RECORDS}{record.id}/content/")
+    answer = owner_api(robot.owner).get(f"{RECORDS}{record.id}/content/")
     assert answer.status_code == 409
     assert answer.json()["error"] == "integrity_check_failed"
     record.refresh_from_db()
@@ -235,19 +236,20 @@ def test_changed_stored_data_is_refused_with_409(robot, robot_api, fleet):
     assert robot_api.get(f"{RECORDS}{record.id}/").json()["tampered_at"] is not None
 
 
-def test_content_before_anchoring_is_409_not_anchored_yet(robot, robot_api):
+def test_content_before_anchoring_is_409_not_anchored_yet(robot, robot_api, owner_api):
     uploaded = robot_api.post(RECORDS, {"envelope": _b64(robot.seal(1))}, format="json").json()
-    answer = robot_api.get(f"{RECORDS}{uploaded['id']}/content/")
+    answer = owner_api(robot.owner).get(f"{RECORDS}{uploaded['id']}/content/")
     assert answer.status_code == 409
     assert answer.json()["error"] == "not_anchored_yet"
 
 
 def test_content_when_the_check_cannot_run_is_503_and_shows_nothing(
-    robot, robot_api, fleet, settings
+    robot, owner_api, fleet, settings
 ):
+    reader = owner_api(robot.owner)
     settings.CHAIN_RPC_URL = f"http://127.0.0.1:{free_port()}"
     record = Record.objects.get(seq=1)
-    answer = robot_api.get(f"{RECORDS}{record.id}/content/")
+    answer = reader.get(f"{RECORDS}{record.id}/content/")
     assert answer.status_code == 503
     assert answer.json()["error"] == "verification_unavailable"
     assert "envelope" not in answer.json()
@@ -271,13 +273,14 @@ def test_nobody_reads_without_credentials(robot, fleet, client):
         assert answer.json()["error"] == "not_authenticated"
 
 
-def test_another_owners_records_are_invisible(robot, fleet, make_robot):
+def test_another_owners_records_are_invisible(robot, fleet, make_robot, owner_api):
     stranger = make_robot()
     stranger_api = token_client(stranger.token)
-    assert _seqs(stranger_api.get(RECORDS)) == []
-    assert _seqs(stranger_api.get(RECORDS, {"owner": robot.owner.username})) == []
     record = Record.objects.get(seq=1)
-    assert stranger_api.get(f"{RECORDS}{record.id}/").status_code == 404
+    for reader in (stranger_api, owner_api(stranger.owner)):
+        assert _seqs(reader.get(RECORDS)) == []
+        assert _seqs(reader.get(RECORDS, {"owner": robot.owner.username})) == []
+        assert reader.get(f"{RECORDS}{record.id}/").status_code == 404
     # An envelope for someone else's robot cannot be planted through the stranger either.
     planted = seal_for(robot.robot, robot.key, seq=99)
     answer = stranger_api.post(RECORDS, {"envelope": _b64(planted)}, format="json")

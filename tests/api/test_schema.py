@@ -54,7 +54,21 @@ def test_the_served_schema_lists_exactly_the_fixed_endpoints(client):
     upload = schema["paths"]["/api/v1/records/"]["post"]
     assert upload["security"] == [{"robotToken": []}]
     assert {"400", "401", "403", "409", "413"} <= set(upload["responses"])
-    assert schema["components"]["securitySchemes"]["robotToken"]["name"] == "Authorization"
+    schemes = schema["components"]["securitySchemes"]
+    assert schemes["robotToken"]["name"] == schemes["ownerToken"]["name"] == "Authorization"
+    # Content and grants are the owner's: a session or an owner API token, never a robot's.
+    owner_only = [{"ownerToken": []}, {"cookieAuth": []}]
+    for path, method in [
+        ("/api/v1/records/{record_id}/content/", "get"),
+        ("/api/v1/grants/", "get"),
+        ("/api/v1/grants/", "post"),
+        ("/api/v1/grants/{grantee}/", "delete"),
+    ]:
+        assert schema["paths"][path][method]["security"] == owner_only, (path, method)
+    for path in ("/api/v1/records/", "/api/v1/records/{record_id}/"):
+        security = schema["paths"][path]["get"]["security"]
+        assert {"robotToken": []} in security, path
+        assert {"ownerToken": []} in security, path
     assert set(schema["components"]["schemas"]["Error"]["required"]) == {"error", "detail"}
 
 
@@ -82,9 +96,9 @@ def test_anything_else_under_api_is_a_json_404(client):
     assert "slash" in client.post("/api/v1/records").json()["detail"]
 
 
-def test_methods_the_api_does_not_have_get_405(client, make_robot):
-    setup = make_robot()
-    auth = {"HTTP_AUTHORIZATION": f"Token {setup.token}"}
+def test_methods_the_api_does_not_have_get_405(client, make_owner, make_owner_token):
+    _, key = make_owner_token(make_owner())
+    auth = {"HTTP_AUTHORIZATION": f"Token {key}"}
     for method, path in [
         ("put", "/api/v1/records/"),
         ("delete", "/api/v1/records/"),

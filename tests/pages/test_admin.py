@@ -4,7 +4,7 @@ import pytest
 from django.contrib.auth import get_user_model
 from django.urls import reverse
 
-from accounts.models import OwnerKey, Robot
+from accounts.models import AccountEvent, OwnerKey, Robot
 from sharing.models import Record, SecurityEvent, Verdict
 from sharing.selectors import verdict_latest
 from stack.anvil import free_port
@@ -17,6 +17,7 @@ MODELS = [
     "accounts_owner",
     "accounts_ownerkey",
     "accounts_robot",
+    "accounts_accountevent",
     "sharing_record",
     "sharing_grant",
     "sharing_verdict",
@@ -103,6 +104,11 @@ def test_reanchor_failed_records(
     assert failed.status == Record.Status.ANCHORED
     assert failed.anchor_attempts == 1
     assert failed.failure_reason == ""
+    # The owner sees the operator's repair, naming only the record that had failed.
+    event = AccountEvent.objects.get(owner=alice.owner)
+    assert event.kind == AccountEvent.Kind.ADMIN_ACTION
+    assert event.actor.username == "root"
+    assert event.detail == {"action": "re-anchored failed records", "records": [str(failed.pk)]}
 
 
 def test_reverify_records(admin_client, make_robot, upload):
@@ -128,6 +134,10 @@ def test_reverify_records(admin_client, make_robot, upload):
     assert verdict.checked_by.is_staff
     assert "checked by operator" in str(verdict)
     assert verdict_latest(good, alice.owner) is None
+    event = AccountEvent.objects.get(owner=alice.owner)
+    assert (event.kind, event.actor.username) == (AccountEvent.Kind.ADMIN_ACTION, "root")
+    assert event.detail["action"] == "re-verified records against the chain"
+    assert sorted(event.detail["records"]) == sorted(str(r.pk) for r in (good, bad, pending))
 
 
 def test_revoke_robot_tokens_from_the_admin(admin_client, make_robot):
@@ -137,6 +147,9 @@ def test_revoke_robot_tokens_from_the_admin(admin_client, make_robot):
         {"action": "revoke_tokens", "_selected_action": [str(alice.robot.pk)]},
     )
     assert not Robot.objects.get(pk=alice.robot.pk).is_active
+    event = AccountEvent.objects.get(owner=alice.owner)
+    assert (event.kind, event.actor.username) == (AccountEvent.Kind.ROBOT_TOKEN_REVOKED, "root")
+    assert event.detail["robot_id"] == str(alice.robot.pk)
 
 
 def test_chain_status_page(admin_client, make_robot, upload, deployed):

@@ -39,11 +39,14 @@ def test_image_record_shows_its_image_and_leaves_the_base64_out_of_the_json():
     assert "base64 characters, above" in content.pretty
 
 
-def test_anything_but_json_is_left_to_the_download():
+def test_anything_but_json_is_shown_as_raw_text_with_the_reason():
     content = content_of(data_type="std_msgs/String", plaintext=b"\xff\xfenot json")
     assert content.document is None
-    assert "download the raw record" in content.pretty
-    assert content.size == 10
+    assert content.pretty == ""
+    assert content.problem == "it is not UTF-8 text"
+    assert content.raw == "\ufffd\ufffdnot json"
+    assert content.size == content.raw_shown_bytes == 10
+    assert not content.raw_truncated
 
 
 @pytest.mark.parametrize(
@@ -82,4 +85,10 @@ def test_trajectory_plot_is_square_scaled_with_y_up():
     assert x1 - x0 == pytest.approx(y0 - y1)  # same scale on both axes, y grows upwards
     assert plot["arrow"] == (round(x1 + 22, 1), y1)  # heading 0 points right
     assert plot["last"] == "1.00, 1.00"
-    assert trajectory_plot([]) == {"width": 480, "height": 360, "points": "", "count": 0}
+    assert trajectory_plot([]) == {
+        "width": 480,
+        "height": 360,
+        "points": "",
+        "count": 0,
+        "skipped": 0,
+    }

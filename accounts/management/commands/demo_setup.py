@@ -17,9 +17,13 @@ from django.utils import timezone
 from accounts.agent_config import DEFAULT_TOPICS, agent_config_yaml
 from accounts.models import ChainState
 from accounts.selectors import owner_by_username, robot_by_token
-from accounts.services import owner_create, owner_register_on_chain, robot_create
+from accounts.services import (
+    owner_create,
+    owner_register_on_chain,
+    robot_create,
+    sm4_key_generate,
+)
 from chainworker.chain import ChainError
-from smcrypto import sm4
 
 # The demo agent sends often, so the simulated robot's data shows up within a second.
 DEMO_AGENT_OPTIONS = {"batch_size": 20, "flush_interval": 1.0, "spool_dir": "spool"}
@@ -39,7 +43,7 @@ class Command(BaseCommand):
         username = options["username"]
         owner = owner_by_username(username)
         if owner is None:
-            key = sm4.generate_key()
+            key = sm4_key_generate()
             password = secrets.token_urlsafe(12)
             owner = owner_create(username=username, password=password, sm4_key=key)
             _write_private(folder / "sm4.key", key.hex())

@@ -1,9 +1,11 @@
-"""`manage.py owner_create --username U --sm4-key-hex K`: a new owner, registered on chain.
+"""`manage.py owner_create --username U [--sm4-key-hex K]`: a new owner, registered on chain.
 
 The password is read from standard input (prompted twice on a terminal), never from the
-command line. The command returns once the owner's EOA is funded, enrolled and registered
-on chain, and prints JSON with the EOA (`eoa`, also as `address`); it exits non-zero if that
-cannot be done.
+command line. Without --sm4-key-hex or --sm4-key-file a random key is generated and printed
+once, as `sm4_key_hex` in the JSON output: keep it, the robots' key files need it. A given key
+that does not look random (a word, a pattern, a sequence) is refused. The command returns once
+the owner's EOA is funded, enrolled and registered on chain, and prints JSON with the EOA
+(`eoa`, also as `address`); it exits non-zero if that cannot be done.
 """
 
 import getpass
@@ -18,7 +20,7 @@ from django.core.management.base import BaseCommand, CommandError, CommandParser
 from accounts.errors import AccountError, WeakPassword
 from accounts.models import Owner
 from accounts.selectors import owner_key_current
-from accounts.services import owner_create, owner_register_on_chain
+from accounts.services import owner_create, owner_register_on_chain, sm4_key_generate
 from chainworker.chain import ChainError
 from chainworker.services import chain_client
 from chainworker.work import TRANSIENT
@@ -33,8 +35,11 @@ class Command(BaseCommand):
 
     def add_arguments(self, parser: CommandParser) -> None:
         parser.add_argument("--username", required=True)
-        key = parser.add_mutually_exclusive_group(required=True)
-        key.add_argument("--sm4-key-hex", help="the owner's SM4 key, 32 hex digits")
+        key = parser.add_mutually_exclusive_group()
+        key.add_argument(
+            "--sm4-key-hex",
+            help="the owner's SM4 key, 32 hex digits (default: a new random key, printed once)",
+        )
         key.add_argument(
             "--sm4-key-file",
             type=Path,
@@ -48,7 +53,11 @@ class Command(BaseCommand):
         )
 
     def handle(self, *args: Any, **options: Any) -> None:
-        sm4_key = _sm4_key(options["sm4_key_hex"], options["sm4_key_file"])
+        given = options["sm4_key_hex"] is not None or options["sm4_key_file"] is not None
+        if given:
+            sm4_key = _sm4_key(options["sm4_key_hex"], options["sm4_key_file"])
+        else:
+            sm4_key = sm4_key_generate()
         password = _password(options.get("stdin") or sys.stdin)
         try:
             chain_client().address  # noqa: B018 (fails early if the chain or contract is missing)
@@ -60,7 +69,13 @@ class Command(BaseCommand):
             raise CommandError("the password is too weak: " + " ".join(exc.messages)) from exc
         except AccountError as exc:
             raise CommandError(str(exc)) from exc
-        owner = _registered(owner, timeout=options["timeout"])
+        try:
+            owner = _registered(owner, timeout=options["timeout"])
+        except CommandError as exc:
+            if given:
+                raise
+            # The owner exists: without this one showing, nobody would know its key.
+            raise CommandError(f"{exc}; its generated SM4 key is {sm4_key.hex()}") from exc
         result = {
             "username": owner.username,
             "eoa": owner.eoa_address,
@@ -70,6 +85,9 @@ class Command(BaseCommand):
             "register_tx": owner.register_tx or None,
             "registered_block": owner.registered_block,
         }
+        if not given:
+            # Shown this once: the portal keeps it only wrapped under its master key.
+            result["sm4_key_hex"] = sm4_key.hex()
         self.stdout.write(json.dumps(result, sort_keys=True))
 
 

@@ -1,0 +1,195 @@
+"""The audit page reads the database's index of owners' transactions (F8), written when the
+worker sees each receipt: paged, with times, for the owner and the grantee, and without one
+call to the chain. The backfill migration builds the same index from what the database held."""
+
+import importlib
+import re
+
+import pytest
+from django.apps import apps
+from django.db import connection
+from django.test.utils import CaptureQueriesContext
+from django.urls import reverse
+
+from accounts.models import ChainActivity
+from accounts.services import chain_activity_record, key_rotate
+from chainworker import services as chain_services
+from sharing.models import Grant, Record
+from sharing.services import record_create_batch
+from smcrypto import sm4
+from stack.anvil import free_port
+
+pytestmark = pytest.mark.django_db
+
+backfill = importlib.import_module("accounts.migrations.0004_chain_activity_backfill")
+
+
+def _kinds(html: str) -> list[str]:
+    return re.findall(r'data-kind="([\w-]+)" data-testid="audit-entry"', html)
+
+
+@pytest.fixture
+def history(client, make_robot, make_owner, upload, django_capture_on_commit_callbacks):
+    """alice registered, uploaded twice (two anchoring transactions), rotated her key, granted
+    bob access and revoked it, through the pages and the worker's tasks (run inline)."""
+    alice = make_robot("alice")
+    bob = make_owner("bob")
+    upload(alice, 1)
+    upload(alice, 2)
+    with django_capture_on_commit_callbacks(execute=True):
+        key_rotate(owner=alice.owner, sm4_key=sm4.generate_key())
+    client.force_login(alice.owner.user)
+    with django_capture_on_commit_callbacks(execute=True):
+        client.post(reverse("grants"), {"grantee": "bob"})
+    with django_capture_on_commit_callbacks(execute=True):
+        client.post(reverse("grant-revoke"), {"grantee": "bob"})
+    assert Grant.objects.get(owner=alice.owner, grantee=bob).status == Grant.Status.REVOKED
+    return alice, bob
+
+
+@pytest.fixture
+def no_chain(monkeypatch, settings):
+    """Every way to the chain fails from here on."""
+
+    def unreachable(*args, **kwargs):
+        raise AssertionError("the audit page must not call the chain")
+
+    monkeypatch.setattr(chain_services, "chain_client", unreachable)
+    settings.CHAIN_RPC_URL = f"http://127.0.0.1:{free_port()}"
+    chain_services._clients.clear()
+
+
+def test_the_audit_page_lists_the_index_with_times_for_owner_and_grantee(client, history, no_chain):
+    alice, bob = history
+    owner = alice.owner
+    client.force_login(owner.user)
+    page = client.get(reverse("audit"))
+    html = page.content.decode()
+    assert page.status_code == 200
+    kinds = _kinds(html)
+    assert kinds[:4] == ["revoke-given", "grant-given", "key_rotated", "upload"]
+    assert kinds[4] == "upload"
+    assert kinds[-2:] == ["registered", "enrolled"] or kinds[-3:] == [
+        "registered",
+        "enrolled",
+        "funded",
+    ]
+    assert len(kinds) == ChainActivity.objects.filter(owner=owner).count()
+    assert "Revoked access to bob" in html
+    assert "Granted access to bob" in html
+    times = re.findall(r'data-testid="audit-time">(\d{4}-\d\d-\d\d \d\d:\d\d:\d\d) UTC', html)
+    assert len(times) == len(kinds)
+    assert times == sorted(times, reverse=True)
+    owner.refresh_from_db()
+    assert owner.register_tx in html
+    assert owner.enroll_tx in html
+    assert f"Block {owner.registered_block}" in html
+    for record in Record.objects.filter(owner=owner):
+        assert record.tx_hash in html
+        assert reverse("record-detail", args=[record.id]) in html
+    grant = Grant.objects.get(owner=owner, grantee=bob)
+    assert grant.grant_tx in html
+    assert grant.revoke_tx in html
+
+    client.force_login(bob.user)
+    received = client.get(reverse("audit")).content.decode()
+    assert _kinds(received)[:2] == ["revoke-received", "grant-received"]
+    assert "alice revoked your access" in received
+    assert "alice granted you access" in received
+    assert grant.revoke_tx in received
+    assert owner.register_tx not in received
+    assert "upload" not in _kinds(received)
+
+
+def test_the_audit_page_is_paged_in_the_database(client, history, no_chain, monkeypatch):
+    monkeypatch.setattr("sharing.views.AUDIT_ENTRIES_PER_PAGE", 3)
+    alice, _bob = history
+    client.force_login(alice.owner.user)
+    first = client.get(reverse("audit")).content.decode()
+    second = client.get(reverse("audit"), {"page": 2})
+    assert second.status_code == 200
+    total = ChainActivity.objects.filter(owner=alice.owner).count()
+    pages = -(-total // 3)
+    assert f"Page 1 of {pages}" in first
+    assert f"Page 2 of {pages}" in second.content.decode()
+    assert len(_kinds(first)) == 3
+    firsts = set(re.findall(r'class="hash">(0x[0-9a-f]{64})</span>', first))
+    seconds = set(re.findall(r'class="hash">(0x[0-9a-f]{64})</span>', second.content.decode()))
+    assert firsts
+    assert seconds
+    assert firsts.isdisjoint(seconds)
+    assert client.get(reverse("audit"), {"page": "junk"}).status_code == 200
+    assert client.get(reverse("audit"), {"page": 10**30}).status_code == 200
+
+
+def test_an_anchoring_entry_lists_its_first_records_read_in_one_query(
+    client, make_robot, monkeypatch, django_capture_on_commit_callbacks
+):
+    monkeypatch.setattr("sharing.audit.AUDIT_RECORDS_PER_UPLOAD", 2)
+    alice = make_robot("alice")
+    for seqs in ((1, 2, 3), (4,), (5, 6)):
+        with django_capture_on_commit_callbacks(execute=True):
+            record_create_batch(robot=alice.robot, envelopes=[alice.seal(seq) for seq in seqs])
+    anchored = ChainActivity.objects.filter(owner=alice.owner, kind="anchored")
+    assert sorted(anchored.values_list("record_count", flat=True)) == [1, 2, 3]
+    client.force_login(alice.owner.user)
+    with CaptureQueriesContext(connection) as queries:
+        html = client.get(reverse("audit")).content.decode()
+    record_queries = [q for q in queries.captured_queries if 'FROM "sharing_record"' in q["sql"]]
+    assert len(record_queries) == 1
+    assert "Anchored 3 records" in html
+    assert "Anchored 1 record<" in html
+    assert "and 1 more" in html
+    first = Record.objects.get(owner=alice.owner, seq=1)
+    assert reverse("record-detail", args=[first.id]) in html
+    assert reverse("record-detail", args=[Record.objects.get(seq=3).id]) not in html
+
+
+def test_a_retried_receipt_writes_no_second_row(history):
+    alice, _bob = history
+    row = ChainActivity.objects.filter(owner=alice.owner, kind="anchored").first()
+    again = chain_activity_record(
+        owner=alice.owner,
+        kind="anchored",
+        tx_hash=row.tx_hash,
+        block_number=row.block_number,
+        record_count=row.record_count,
+    )
+    assert again.pk == row.pk
+    assert again.at == row.at
+    assert ChainActivity.objects.filter(tx_hash=row.tx_hash).count() == 1
+
+
+def _index() -> set[tuple]:
+    """The index's rows, less what the database does not keep (the blocks of funding and
+    enrolment, the exact times)."""
+    return {
+        (
+            row.owner_id,
+            row.counterpart_id,
+            row.kind,
+            row.tx_hash,
+            None if row.kind in ("funded", "enrolled") else row.block_number,
+            row.record_count,
+            tuple(sorted(row.detail.items())),
+        )
+        for row in ChainActivity.objects.all()
+    }
+
+
+def test_the_backfill_builds_the_same_index_from_the_database(history):
+    written = _index()
+    assert {kind for _, _, kind, *_ in written} >= {
+        "enrolled",
+        "registered",
+        "key_rotated",
+        "anchored",
+        "granted",
+        "revoked",
+    }
+    ChainActivity.objects.all().delete()
+    backfill.chain_activity_backfill(apps, None)
+    assert _index() == written
+    backfill.chain_activity_backfill(apps, None)  # run again: nothing doubles
+    assert _index() == written
+    assert ChainActivity.objects.count() == len(written)
