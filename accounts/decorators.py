@@ -18,6 +18,7 @@ from django.shortcuts import render
 from redis.exceptions import RedisError
 
 from accounts.selectors import owner_for_user
+from core.rates import rate_parse
 from core.redis_client import get_redis, redis_key
 
 logger = logging.getLogger(__name__)
@@ -52,7 +53,6 @@ def no_store(response: HttpResponse) -> HttpResponse:
 
 # The settings holding each page scope's rate, "<requests>/<second|minute|hour|day>".
 PAGE_RATE_SETTINGS = {"page": "PAGE_RATE_USER", "content": "PAGE_RATE_CONTENT"}
-_PERIODS = {"s": 1, "m": 60, "h": 3600, "d": 86400}
 
 
 def page_throttle(scope: str = "page", *, cost: int = 1) -> Callable[[OwnerView], OwnerView]:
@@ -110,15 +110,6 @@ def page_rate_charge(*, scope: str, user_id: int, cost: int = 1) -> int | None:
     if used <= limit:
         return None
     return max(1, math.ceil((window + 1) * period - now))
-
-
-def rate_parse(rate: str) -> tuple[int, int]:
-    """(requests, seconds) of a rate such as "600/minute" (the API's format: s, m, h, d)."""
-    count, _, period = rate.partition("/")
-    try:
-        return int(count), _PERIODS[period.strip()[:1]]
-    except (ValueError, KeyError):
-        raise ValueError(f"a rate is <number>/<second|minute|hour|day>, not {rate!r}") from None
 
 
 def _too_many_requests(request: HttpRequest, wait: int) -> HttpResponse:

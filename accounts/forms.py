@@ -82,24 +82,33 @@ class RegisterForm(forms.Form):
         return cleaned
 
 
-class KeyRotateForm(forms.Form):
+class PasswordConfirmedForm(forms.Form):
+    """A sensitive change confirmed with the owner's password (`password`), checked against
+    `user`; subclasses say why in `why_confirm`."""
+
     password = forms.CharField(
         label="Your password",
         strip=False,
         widget=forms.PasswordInput(attrs={"autocomplete": "current-password"}),
-        help_text="Rotating the key is a sensitive change: confirm it is you.",
     )
-    key_ciphertext = EncryptedKeyField()
+    why_confirm = "Confirm it is you."
 
     def __init__(self, *args: object, user: object, **kwargs: object) -> None:
         self.user = user
         super().__init__(*args, **kwargs)
+        self.fields["password"].help_text = self.why_confirm
 
     def clean_password(self) -> str:
         password = self.cleaned_data["password"]
         if not self.user.check_password(password):
             raise ValidationError("This is not your password.", code="wrong_password")
         return password
+
+
+class KeyRotateForm(PasswordConfirmedForm):
+    why_confirm = "Rotating the key is a sensitive change: confirm it is you."
+
+    key_ciphertext = EncryptedKeyField()
 
 
 class RobotCreateForm(forms.Form):
@@ -142,7 +151,7 @@ class RobotCreateForm(forms.Form):
 API_TOKEN_LIFETIMES = (7, 30, 90, 365)
 
 
-class ApiTokenCreateForm(forms.Form):
+class ApiTokenCreateForm(PasswordConfirmedForm):
     """An owner API token: its name, scopes and lifetime, confirmed with the owner's password
     (a stolen session cookie must not mint a long-lived credential)."""
 
@@ -161,25 +170,11 @@ class ApiTokenCreateForm(forms.Form):
         coerce=int,
         initial=30,
     )
-    password = forms.CharField(
-        label="Your password",
-        strip=False,
-        widget=forms.PasswordInput(attrs={"autocomplete": "current-password"}),
-        help_text="An API token acts for you until it expires: confirm it is you.",
-    )
-
-    def __init__(self, *args: object, user: object, **kwargs: object) -> None:
-        self.user = user
-        super().__init__(*args, **kwargs)
+    why_confirm = "An API token acts for you until it expires: confirm it is you."
+    field_order = ("name", "scopes", "expires_in_days", "password")
 
     def clean_name(self) -> str:
         name = self.cleaned_data["name"].strip()
         if not name:
             raise ValidationError("Give the token a name.", code="required")
         return name
-
-    def clean_password(self) -> str:
-        password = self.cleaned_data["password"]
-        if not self.user.check_password(password):
-            raise ValidationError("This is not your password.", code="wrong_password")
-        return password

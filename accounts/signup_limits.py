@@ -18,11 +18,10 @@ from dataclasses import dataclass
 from django.conf import settings
 from redis.exceptions import RedisError
 
+from core.rates import rate_parse
 from core.redis_client import get_redis, redis_key
 
 logger = logging.getLogger(__name__)
-
-_PERIOD_SECONDS = {"s": 1, "m": 60, "h": 3600, "d": 86400}
 
 # KEYS: one sliding window each (a sorted set of attempts scored by time). ARGV: now, the
 # attempt's member, then the limit and the window (seconds) of each key. Returns "0" when the
@@ -64,12 +63,6 @@ class SignupSlot:
     member: str = ""
 
 
-def signup_rate(rate: str) -> tuple[int, int]:
-    """How many in how many seconds: "5/hour" is (5, 3600), DRF's rate notation."""
-    count, _, period = rate.partition("/")
-    return int(count), _PERIOD_SECONDS[period.strip()[0]]
-
-
 def signup_slot_take(*, address: str | None) -> SignupSlot:
     """Count a registration from `address` if both limits allow it."""
     windows = [
@@ -81,7 +74,7 @@ def signup_slot_take(*, address: str | None) -> SignupSlot:
     member = f"{now:.6f}:{uuid.uuid4().hex}"
     args: list[object] = [now, member]
     for _, rate in windows:
-        args.extend(signup_rate(rate))
+        args.extend(rate_parse(rate))
     try:
         wait = float(get_redis().register_script(_TAKE)(keys=list(keys), args=args))
     except (RedisError, OSError) as exc:

@@ -372,7 +372,9 @@ class RecordsApi(APIView):
                 e403="`permission_denied` (not a robot token), `header_mismatch` (another "
                 "owner or robot), `unknown_key` (not the owner's current key), "
                 "`forged_envelope` (does not open under the owner's key)",
-                e409="`replayed_sequence`: a seq not above the robot's last one",
+                e409="`replayed_sequence`: a seq not above the robot's last one; "
+                "`identity_check_failed`: the owner's key commitment on chain differs from "
+                "the key the portal holds (an operator must look)",
             ),
         },
     )
@@ -484,7 +486,8 @@ class RecordContentApi(APIView):
                 e403="`access_denied`: no live grant from the record's owner; "
                 + ROBOT_REFUSED.format(scope="read"),
                 e409="`integrity_check_failed`: the stored data differs from the chain; "
-                "`not_anchored_yet`: try again shortly",
+                "`not_anchored_yet`: try again shortly; `identity_check_failed`: the owner's "
+                "key commitment on chain differs from the key the portal holds",
             ),
         },
     )

@@ -8,6 +8,7 @@ from typing import Any
 
 from celery import shared_task
 
+from accounts.errors import IdentityMismatch
 from chainworker.chain import ChainUnavailable
 from chainworker.work import CHAIN_TASK
 from sharing import anchoring, services, verification
@@ -28,27 +29,24 @@ def chain_work_sweep() -> dict[str, int]:
     return services.chain_work_sweep()
 
 
-@shared_task(
-    name="sharing.tasks.record_verify",
-    autoretry_for=(ChainUnavailable,),
-    retry_backoff=1,
-    max_retries=3,
-    soft_time_limit=60,
-    time_limit=90,
-)
+# A view's check, on the verify queue; a refused identity is an answer, not a task failure.
+VERIFY_TASK = {
+    "autoretry_for": (ChainUnavailable,),
+    "throws": (IdentityMismatch,),
+    "retry_backoff": 1,
+    "max_retries": 3,
+    "soft_time_limit": 60,
+    "time_limit": 90,
+}
+
+
+@shared_task(name="sharing.tasks.record_verify", **VERIFY_TASK)
 def record_verify(record_id: str, viewer_id: int) -> dict[str, Any]:
     checked = verification.record_verify(record_id=record_id, viewer_id=viewer_id)
     return verification.verification_answer(checked)
 
 
-@shared_task(
-    name="sharing.tasks.records_verify",
-    autoretry_for=(ChainUnavailable,),
-    retry_backoff=1,
-    max_retries=3,
-    soft_time_limit=60,
-    time_limit=90,
-)
+@shared_task(name="sharing.tasks.records_verify", **VERIFY_TASK)
 def records_verify(record_ids: list[str], viewer_id: int) -> list[dict[str, Any]]:
     checked = verification.records_verify(record_ids=record_ids, viewer_id=viewer_id)
     return [verification.verification_answer(one) for one in checked]

@@ -17,6 +17,7 @@ from accounts.services import owner_create, owner_token_create, robot_create
 from chainworker import services as chain_services
 from chainworker.chain import AuthROSChain, forget_in_process_chain
 from portal.celery import app as celery_app
+from portal.middleware import service_checks_forget
 from smcrypto import envelope, key_commitment, sm4
 from stack.anvil import AnvilProcess, start_anvil
 
@@ -60,7 +61,10 @@ def isolated_portal(settings, tmp_path, redis_client, request) -> Iterator[str]:
     celery_app.conf.task_always_eager = eager
     celery_app.conf.task_eager_propagates = eager
     chain_services._clients.clear()
+    # The service checks' verdict is kept per process: each test's secrets are its own.
+    service_checks_forget()
     yield url
+    service_checks_forget()
     chain_services._clients.clear()
     forget_in_process_chain(url)
     for key in redis_client.scan_iter(f"{settings.REDIS_KEY_PREFIX}:*"):
