@@ -307,6 +307,14 @@ class UserAdmin(auth_admin.UserAdmin):
         user = self.get_object(request, unquote(id))
         if user is not None and is_owner_account(user):
             # Setting an owner's password would let the operator sign in as the owner.
+            if request.method == "POST":
+                # A refused attempt is still worth the owner's knowing.
+                admin_action_record(
+                    request,
+                    owner_id=user.owner.pk,
+                    action="tried to set your password (refused)",
+                    detail={},
+                )
             raise PermissionDenied
         return super().user_change_password(request, id, form_url)
 

@@ -65,6 +65,10 @@ def test_the_owner_password_change_page_is_refused(admin_client, pending_owner):
     assert page.status_code == 403
     owner.user.refresh_from_db()
     assert owner.user.password == before
+    # The refused attempt (the POST, not the look) is on the owner's security page.
+    (event,) = AccountEvent.objects.filter(owner=owner)
+    assert event.kind == AccountEvent.Kind.ADMIN_ACTION
+    assert "tried to set your password" in event.detail["action"]
 
 
 def test_an_operators_password_is_still_managed_in_the_admin(admin_client, operator_user):
