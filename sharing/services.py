@@ -18,13 +18,14 @@ from django.core.files.base import ContentFile
 from django.db import IntegrityError, transaction
 from django.utils import timezone
 
+from accounts.identity import owner_identity_check
 from accounts.models import ChainActivity, ChainState, Owner, OwnerKey, OwnerToken, Robot
 from accounts.selectors import (
     owner_by_identifier,
     owner_eoa_account,
     owner_key_bytes,
 )
-from accounts.services import chain_activity_record, owner_identity_check
+from accounts.services import chain_activity_record
 from chainworker.chain import TransactionReverted, TxResult
 from chainworker.services import chain_client
 from chainworker.work import ChainWorkNotReady, exclusive

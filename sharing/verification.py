@@ -21,9 +21,9 @@ from django.utils import timezone
 from redis.exceptions import RedisError
 
 from accounts.errors import IdentityMismatch
+from accounts.identity import owner_identity_check
 from accounts.models import Owner
 from accounts.selectors import owner_key_bytes, owner_key_current
-from accounts.services import owner_identity_check
 from chainworker.chain import AuthROSChain
 from chainworker.services import chain_client
 from core.outbox import dispatch

@@ -10,9 +10,10 @@ import pytest
 from django.test import Client
 
 from accounts.errors import IdentityMismatch
+from accounts.identity import owner_identity_check
 from accounts.models import AccountEvent, ChainState, Owner
 from accounts.selectors import owner_eoa_account, owner_key_current
-from accounts.services import key_rotate, owner_identity_check, owner_register_on_chain
+from accounts.services import key_rotate, owner_register_on_chain
 from chainworker.chain import AuthROSChain
 from chainworker.services import chain_client
 from portal.celery import app as celery_app

@@ -8,8 +8,9 @@ from django.contrib.auth import get_user_model
 from django.urls import reverse
 from django.utils import timezone
 
+from accounts.events import account_event_record
 from accounts.models import AccountEvent
-from accounts.services import account_event_record, owner_active_set, robot_create
+from accounts.services import owner_active_set, robot_create
 from sharing.errors import IntegrityCheckFailed
 from sharing.models import SecurityEvent
 from sharing.verification import record_open

@@ -1,0 +1,136 @@
+"""The identity check (the paper's, against DESIGN.md's commitment): the key commitment on
+chain for an owner is the one of the key the portal holds.
+
+It runs when a registration or a rotation is confirmed (accounts.services), before uploads
+(sharing.services) and before every view, in the worker (sharing.verification). The chain's
+answer is kept in Redis per owner and block, so a burst of requests costs one chain read.
+"""
+
+import logging
+from contextlib import suppress
+
+from django.conf import settings
+from django.db import transaction
+from redis.exceptions import RedisError
+
+from accounts.errors import IdentityMismatch
+from accounts.events import account_event_record
+from accounts.models import AccountEvent, ChainState, Owner
+from chainworker.chain import AuthROSChain, ChainError
+from chainworker.services import chain_client
+from core.redis_client import get_redis, redis_key
+
+logger = logging.getLogger(__name__)
+security_log = logging.getLogger("authros.security")
+# Seconds the chain's commitment for an owner at one block stays in Redis (blocks move on).
+IDENTITY_CACHE_TTL = 300
+
+
+def owner_identity_check(*, owner: Owner, fresh: bool = False) -> bool:
+    """The identity check: the key commitment on chain for `owner` is the one of the key the
+    portal holds (the newest confirmed one; while a rotation is on its way, the new one too).
+
+    True when it was checked and holds; False when it cannot be checked (the owner is not on
+    chain yet, no contract, the chain does not answer), which is accepted. Otherwise raises
+    IdentityMismatch, after an AccountEvent (one per commitment seen on chain) and a line on
+    the "authros.security" log. The chain's answer is kept in Redis per owner and block, so
+    checks in a burst of requests cost no chain call; `fresh` asks the chain itself (to read
+    back what a confirmed transaction wrote).
+    """
+    expected = _identity_expected(owner)
+    if not expected:
+        return False
+    try:
+        client = chain_client()
+        on_chain = _commitment_on_chain(client, owner, fresh=fresh)
+        if on_chain not in expected and not fresh:
+            # The cached block may predate a rotation just confirmed: ask the chain itself.
+            on_chain = _commitment_on_chain(client, owner, fresh=True)
+    except ChainError as exc:
+        logger.warning("the identity of %s was not checked: %s", owner, exc)
+        return False
+    if on_chain in expected:
+        return True
+    _identity_mismatch_record(owner, on_chain=on_chain, expected=expected[0])
+    raise IdentityMismatch(
+        f"the key commitment on chain for {owner} differs from the key the portal holds; "
+        "uploads and views are refused until an operator looks"
+    )
+
+
+def _identity_expected(owner: Owner) -> list[str]:
+    """The commitments that may be on chain for the owner, the newest confirmed key's first;
+    none while the owner is not on chain."""
+    if owner.chain_state != ChainState.CONFIRMED:
+        return []
+    newer_pending: list[str] = []
+    keys = owner.keys.order_by("-created_at", "-pk").values_list("commitment", "chain_state")
+    for commitment, state in keys:
+        if state == ChainState.CONFIRMED:
+            return [commitment.lower(), *newer_pending]
+        if state == ChainState.PENDING:
+            newer_pending.append(commitment.lower())
+    return []
+
+
+def _commitment_on_chain(client: AuthROSChain, owner: Owner, *, fresh: bool) -> str:
+    block = client.latest_block() if fresh else _latest_block(client)
+    key = redis_key("identity", client.chain_key, client.address, owner.eoa_address, block)
+    if not fresh and (cached := _cache_get(key)) is not None:
+        return cached
+    on_chain = "0x" + client.commitment_of(owner.eoa_address).hex()
+    _cache_set(key, on_chain, seconds=IDENTITY_CACHE_TTL)
+    return on_chain
+
+
+def _latest_block(client: AuthROSChain) -> int:
+    """The chain's latest block, reused for IDENTITY_BLOCK_CACHE_SECONDS by every process."""
+    seconds = settings.IDENTITY_BLOCK_CACHE_SECONDS
+    if seconds <= 0:
+        return client.latest_block()
+    key = redis_key("latest-block", client.chain_key)
+    if (cached := _cache_get(key)) is not None:
+        return int(cached)
+    block = client.latest_block()
+    _cache_set(key, str(block), seconds=seconds)
+    return block
+
+
+def _cache_get(key: str) -> str | None:
+    try:
+        value = get_redis().get(key)
+    except RedisError:
+        return None  # without Redis every check asks the chain
+    return value.decode() if value is not None else None
+
+
+def _cache_set(key: str, value: str, *, seconds: float) -> None:
+    with suppress(RedisError):
+        get_redis().set(key, value, px=max(1, int(seconds * 1000)))
+
+
+def _identity_mismatch_record(owner: Owner, *, on_chain: str, expected: str) -> None:
+    """One AccountEvent and one log line per commitment seen on chain, not one per request."""
+    with transaction.atomic():
+        # Checks running side by side for the owner write one event between them.
+        Owner.objects.select_for_update().filter(pk=owner.pk).first()
+        seen = AccountEvent.objects.filter(
+            owner=owner,
+            kind=AccountEvent.Kind.IDENTITY_MISMATCH,
+            detail__chain_commitment=on_chain,
+        ).exists()
+        if seen:
+            return
+        account_event_record(
+            owner=owner,
+            kind=AccountEvent.Kind.IDENTITY_MISMATCH,
+            detail={"chain_commitment": on_chain, "expected_commitment": expected},
+        )
+    security_log.error(
+        "identity check failed for %s (EOA %s): the key commitment on chain is %s, the key "
+        "the portal holds commits to %s; uploads and views are refused",
+        owner,
+        owner.eoa_address,
+        on_chain,
+        expected,
+    )
