@@ -17,7 +17,7 @@ from django.core.exceptions import PermissionDenied
 from django.db.models import QuerySet
 from django.http import HttpRequest, HttpResponse
 
-from accounts.models import AccountEvent, Owner, OwnerKey, Robot
+from accounts.models import AccountEvent, ChainActivity, Owner, OwnerKey, Robot
 from accounts.services import (
     account_event_record,
     owner_active_set,
@@ -326,3 +326,15 @@ class AccountEventAdmin(ReadOnlyAdmin):
     search_fields = ("owner__user__username", "actor__username")
     list_select_related = ("owner__user", "actor")
     readonly_fields = [f.name for f in AccountEvent._meta.fields]
+
+
+@admin.register(ChainActivity)
+class ChainActivityAdmin(ReadOnlyAdmin):
+    """The index of owners' transactions the audit pages read, as the worker wrote it."""
+
+    list_display = ("at", "owner", "kind", "record_count", "block_number", "tx_hash", "counterpart")
+    list_filter = ("kind", "at")
+    date_hierarchy = "at"
+    search_fields = ("owner__user__username", "tx_hash")
+    list_select_related = ("owner__user", "counterpart__user")
+    readonly_fields = [f.name for f in ChainActivity._meta.fields]

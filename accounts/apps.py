@@ -17,9 +17,12 @@ class AccountsConfig(AppConfig):
     def ready(self) -> None:
         # Models load only once the registry is ready, hence the imports here.
         from accounts.selectors import chain_backlog
+        from accounts.services import eoa_low_balances
         from chainworker.backlog import backlog_counter_register
+        from chainworker.gas import low_balance_lister_register
 
         backlog_counter_register(chain_backlog)
+        low_balance_lister_register(eoa_low_balances)
         checks.register(service_check, SERVICE_CHECKS, checks.Tags.database)
 
 

@@ -6,6 +6,7 @@ import logging
 import secrets
 from collections import Counter
 from collections.abc import Sequence
+from dataclasses import dataclass
 from datetime import timedelta
 from itertools import pairwise
 
@@ -16,7 +17,7 @@ from django.contrib.auth.password_validation import validate_password
 from django.contrib.auth.validators import UnicodeUsernameValidator
 from django.core.exceptions import ValidationError
 from django.db import IntegrityError, transaction
-from django.db.models import Sum
+from django.db.models import F, Max, Sum
 from django.utils import timezone
 from eth_account import Account
 from eth_account.signers.local import LocalAccount
@@ -24,6 +25,7 @@ from eth_account.signers.local import LocalAccount
 from accounts import keywrap
 from accounts.agent_config import Topic
 from accounts.errors import (
+    IdentityMismatch,
     InvalidKeyMaterial,
     InvalidOwnerToken,
     InvalidRobotName,
@@ -56,8 +58,18 @@ from accounts.selectors import (
     robot_token_hash,
     sm4_key_purpose,
 )
-from chainworker.chain import AuthROSChain
-from chainworker.services import chain_client, operator_account, operator_ensure_funded
+from chainworker.chain import AuthROSChain, ChainError, InsufficientFunds
+from chainworker.gas import LowBalance
+from chainworker.models import OperatorAlert
+from chainworker.services import (
+    chain_client,
+    chain_work_check,
+    operator_account,
+    operator_alert_raise,
+    operator_alert_resolve,
+    operator_balance_check,
+    operator_ensure_funded,
+)
 from chainworker.work import ChainWorkNotReady, exclusive
 from core.outbox import enqueue
 from smcrypto import key_commitment, key_id, sm4
@@ -179,6 +191,7 @@ def owner_register_on_chain(*, owner_id: int) -> Owner:
         owner = Owner.objects.select_related("user").get(pk=owner_id)
         if owner.chain_state == ChainState.CONFIRMED or owner.approval != Approval.APPROVED:
             return owner
+        chain_work_check()  # nothing goes to a reset chain
         client = chain_client()
         operator = operator_account()
         operator_ensure_funded(client=client, operator=operator)
@@ -241,12 +254,18 @@ def key_rotate_on_chain(*, owner_key_id: int) -> OwnerKey:
         raise ChainWorkNotReady(f"{owner} is not registered on chain yet")
     if owner.keys.filter(created_at__lt=key.created_at, chain_state=ChainState.PENDING).exists():
         raise ChainWorkNotReady(f"an older key of {owner} is not on chain yet")
+    chain_work_check()  # nothing goes to a reset chain
     with exclusive(f"owner:{owner.pk}", timeout=settings.CHAIN_RECEIPT_TIMEOUT + 30):
         client = chain_client()
         commitment = bytes.fromhex(key.commitment.removeprefix("0x"))
         fields: dict[str, object] = {"chain_state": ChainState.CONFIRMED}
         if client.commitment_of(owner.eoa_address) != commitment:
-            result = client.rotate_key(owner_eoa_account(owner), commitment)
+            try:
+                result = client.rotate_key(owner_eoa_account(owner), commitment)
+            except InsufficientFunds:
+                # Waits for gas, using up nothing: the task retries and the sweep queues it again.
+                enqueue("accounts.tasks.owner_top_up", owner.pk)
+                raise
             fields.update(tx_hash=result.tx_hash, block_number=result.block_number)
             chain_activity_record(
                 owner=owner,
@@ -282,7 +301,7 @@ def chain_work_sweep() -> dict[str, int]:
     )
     for key_pk in keys:
         enqueue("accounts.tasks.key_rotate", key_pk)
-    return {"registrations": len(registrations), "keys": len(keys)}
+    return {"registrations": len(registrations), "keys": len(keys), "top_ups": gas_sweep()}
 
 
 def _owner_key_add(owner: Owner, sm4_key: bytes) -> OwnerKey:
@@ -457,12 +476,15 @@ FUNDING_BUDGET_SPENT = (
     "waiting: the portal has funded as many new accounts as it may for now; registration "
     "continues by itself later"
 )
+# The subject of the operator alert raised while the funding budget is spent.
+FUNDING_BUDGET_SUBJECT = "eoa-funding-budget"
 
 
-def eoa_funding_amount(*, fee_per_gas: int) -> int:
-    """Wei a new EOA is sent: CHAIN_EOA_FUNDING_GAS gas units at `fee_per_gas` (the chain's
-    current max fee per gas), at most CHAIN_EOA_FUNDING_WEI; 0 on a zero-gas chain."""
-    return min(settings.CHAIN_EOA_FUNDING_GAS * max(fee_per_gas, 0), settings.CHAIN_EOA_FUNDING_WEI)
+def eoa_funding_amount(*, fee_per_gas: int, gas: int | None = None) -> int:
+    """Wei a new EOA is sent: CHAIN_EOA_FUNDING_GAS (or `gas`) gas units at `fee_per_gas` (the
+    chain's current max fee per gas), at most CHAIN_EOA_FUNDING_WEI; 0 on a zero-gas chain."""
+    units = settings.CHAIN_EOA_FUNDING_GAS if gas is None else gas
+    return min(units * max(fee_per_gas, 0), settings.CHAIN_EOA_FUNDING_WEI)
 
 
 def eoa_funding_spent() -> int:
@@ -473,10 +495,16 @@ def eoa_funding_spent() -> int:
 
 
 def _eoa_fund(
-    *, owner: Owner, client: AuthROSChain, operator: LocalAccount, amount_wei: int
+    *,
+    owner: Owner,
+    client: AuthROSChain,
+    operator: LocalAccount,
+    amount_wei: int,
+    reason: str = "registration",
 ) -> str | None:
     """Send `amount_wei` to the owner's EOA if the period's funding budget allows it, recorded
-    in EoaFunding; the transaction hash, or None (nothing sent) when the budget is spent."""
+    in EoaFunding; the transaction hash, or None (nothing sent) when the budget is spent (an
+    operator alert says so). Raises InsufficientFunds (and alerts) when the operator cannot pay."""
     # A row of an earlier attempt that did not get its transaction out is reused, not re-counted.
     entry = owner.fundings.filter(tx_hash="").order_by("created_at").first()
     if entry is None:
@@ -486,16 +514,40 @@ def _eoa_fund(
             budget = settings.SIGNUP_FUNDING_BUDGET_WEI
             if spent + amount_wei > budget:
                 logger.warning(
-                    "EOA funding budget spent (%s of %s wei in %.0f s): registration of %s waits",
+                    "EOA funding budget spent (%s of %s wei in %.0f s): %s of %s waits",
                     spent,
                     budget,
                     settings.SIGNUP_FUNDING_PERIOD,
+                    reason,
                     owner,
                 )
-                Owner.objects.filter(pk=owner.pk).update(chain_error=FUNDING_BUDGET_SPENT)
+                if reason == "registration":
+                    Owner.objects.filter(pk=owner.pk).update(chain_error=FUNDING_BUDGET_SPENT)
+                operator_alert_raise(
+                    kind=OperatorAlert.Kind.FUNDING_BUDGET_SPENT,
+                    subject=FUNDING_BUDGET_SUBJECT,
+                    detail={
+                        "spent_wei": str(spent),
+                        "budget_wei": str(budget),
+                        "period_seconds": settings.SIGNUP_FUNDING_PERIOD,
+                        "waiting": f"{reason} of {owner}",
+                    },
+                )
                 return None
-            entry = EoaFunding.objects.create(owner=owner, amount_wei=amount_wei)
-    tx_hash = client.transfer(operator, owner.eoa_address, int(entry.amount_wei)).tx_hash
+            entry = EoaFunding.objects.create(owner=owner, amount_wei=amount_wei, reason=reason)
+            operator_alert_resolve(
+                kind=OperatorAlert.Kind.FUNDING_BUDGET_SPENT, subject=FUNDING_BUDGET_SUBJECT
+            )
+    try:
+        tx_hash = client.transfer(operator, owner.eoa_address, int(entry.amount_wei)).tx_hash
+    except InsufficientFunds:
+        operator_alert_raise(
+            kind=OperatorAlert.Kind.OPERATOR_CANNOT_PAY,
+            subject=operator.address,
+            detail={"amount_wei": str(entry.amount_wei), "to": owner.eoa_address},
+        )
+        raise
+    operator_alert_resolve(kind=OperatorAlert.Kind.OPERATOR_CANNOT_PAY, subject=operator.address)
     EoaFunding.objects.filter(pk=entry.pk).update(tx_hash=tx_hash)
     return tx_hash
 
@@ -589,3 +641,216 @@ def secrets_verify() -> list[str]:
     except MasterKeyRefused as exc:
         return [str(exc)]
     return []
+
+
+# --- gas: owners' EOAs kept able to pay --------------------------------------------------------
+
+# EoaFunding.reason of a top-up (registration's is "registration").
+TOPUP_REASON = "top-up"
+# Owners whose balance one sweep or one admin page reads at most (one node call each).
+GAS_SCAN_MAX = 200
+# Owners who sent a transaction this recently are the ones the sweep keeps topped up.
+GAS_SCAN_ACTIVE = timedelta(hours=1)
+
+
+@dataclass(frozen=True)
+class EoaGas:
+    """An owner's EOA balance against the top-up threshold at the chain's current fee."""
+
+    owner: Owner
+    balance_wei: int
+    fee_per_gas: int
+
+    @property
+    def zero_gas(self) -> bool:
+        return self.fee_per_gas == 0
+
+    @property
+    def low_below_wei(self) -> int:
+        """CHAIN_EOA_TOPUP_BELOW_GAS gas units at the current fee; 0 on a zero-gas chain."""
+        return settings.CHAIN_EOA_TOPUP_BELOW_GAS * max(self.fee_per_gas, 0)
+
+    @property
+    def low(self) -> bool:
+        return self.balance_wei < self.low_below_wei
+
+
+def owner_eoa_gas(*, owner: Owner, client: AuthROSChain | None = None) -> EoaGas:
+    """What the owner's EOA holds and whether that is low; raises ChainError if the node is away."""
+    client = client or chain_client()
+    return EoaGas(owner, client.balance(owner.eoa_address), client.fee_per_gas())
+
+
+def owners_low_on_gas(*, active_since: timedelta | None = None) -> list[EoaGas]:
+    """Registered owners whose EOA is below the top-up threshold (none on a zero-gas chain):
+    the GAS_SCAN_MAX most recently active, or only those who sent within `active_since`."""
+    client = chain_client()
+    fee = client.fee_per_gas()
+    if fee == 0:
+        return []
+    owners = Owner.objects.select_related("user").filter(chain_state=ChainState.CONFIRMED)
+    if active_since is not None:
+        owners = owners.filter(chain_activity__at__gte=timezone.now() - active_since)
+    owners = owners.annotate(last_sent=Max("chain_activity__at")).order_by(
+        F("last_sent").desc(nulls_last=True), "-pk"
+    )
+    gas = (EoaGas(owner, client.balance(owner.eoa_address), fee) for owner in owners[:GAS_SCAN_MAX])
+    return [one for one in gas if one.low]
+
+
+def owner_top_up(*, owner_id: int) -> EoaFunding | None:
+    """Top a registered owner's EOA up to CHAIN_EOA_TOPUP_GAS gas units when it holds less than
+    CHAIN_EOA_TOPUP_BELOW_GAS, within the funding budget; the funding row, or None when nothing
+    was needed (a zero-gas chain, enough left) or the budget is spent (an operator alert says
+    so; the sweep asks again). Queued by chain work that met InsufficientFunds, and the sweep."""
+    # One top-up of an owner at a time (the one that waited finds the balance topped up); not
+    # the owner's registration lock, which a sender meeting InsufficientFunds may hold.
+    with exclusive(f"eoa-topup:{owner_id}", timeout=settings.CHAIN_RECEIPT_TIMEOUT + 30):
+        owner = Owner.objects.filter(pk=owner_id, chain_state=ChainState.CONFIRMED).first()
+        if owner is None:
+            return None  # registration funds it
+        client = chain_client()
+        gas = owner_eoa_gas(owner=owner, client=client)
+        if not gas.low:
+            return None
+        target = eoa_funding_amount(fee_per_gas=gas.fee_per_gas, gas=settings.CHAIN_EOA_TOPUP_GAS)
+        if target <= gas.balance_wei:
+            return None
+        operator = operator_account()
+        operator_ensure_funded(client=client, operator=operator)
+        tx_hash = _eoa_fund(
+            owner=owner,
+            client=client,
+            operator=operator,
+            amount_wei=target - gas.balance_wei,
+            reason=TOPUP_REASON,
+        )
+        if tx_hash is None:
+            return None
+        chain_activity_record(
+            owner=owner,
+            kind=ChainActivity.Kind.FUNDED,
+            tx_hash=tx_hash,
+            detail={"reason": TOPUP_REASON},
+        )
+    logger.info("topped up %s (%s) with %s wei", owner, owner.eoa_address, target - gas.balance_wei)
+    return owner.fundings.filter(tx_hash=tx_hash).first()
+
+
+def gas_sweep() -> int:
+    """Queue a top-up for owners who sent lately and are low, and alert while the operator
+    itself is low; how many were queued. Nothing when the node does not answer."""
+    try:
+        operator_balance_check()
+        low = owners_low_on_gas(active_since=GAS_SCAN_ACTIVE)
+    except ChainError as exc:
+        logger.warning("gas sweep skipped: the chain did not answer (%s)", exc)
+        return 0
+    for gas in low:
+        enqueue("accounts.tasks.owner_top_up", gas.owner.pk)
+    return len(low)
+
+
+# --- reconciliation with the chain (run by sharing.reconcile) ---------------------------------
+
+
+def owners_reconcile(*, owners: Sequence[Owner]) -> dict[str, int]:
+    """Put back on chain what the chain lost of these owners' registration and keys.
+
+    A confirmed owner the chain does not know as enrolled and registered goes back to pending
+    with its keys, and owner_register is queued (it skips what is on chain, then its later keys
+    are rotated in order). When the commitment on chain is an older key's than the newest
+    confirmed one (rotations lost), the keys after it go back to pending and key_rotate is
+    queued for each. Any other commitment on chain is the identity check's business: it is
+    called, and records the mismatch.
+    """
+    client = chain_client()
+    counts = {"owners_checked": 0, "registrations_lost": 0, "rotations_lost": 0, "mismatches": 0}
+    for owner in owners:
+        if owner.chain_state != ChainState.CONFIRMED:
+            continue
+        counts["owners_checked"] += 1
+        eoa = owner.eoa_address
+        if not (client.is_enrolled(eoa) and client.is_registered(eoa)):
+            _owner_registration_redo(client, owner)
+            counts["registrations_lost"] += 1
+            continue
+        on_chain = "0x" + client.commitment_of(eoa).hex()
+        keys = list(owner.keys.order_by("created_at", "pk"))
+        commitments = [key.commitment.lower() for key in keys]
+        confirmed = [i for i, key in enumerate(keys) if key.chain_state == ChainState.CONFIRMED]
+        if not confirmed or on_chain == commitments[confirmed[-1]]:
+            continue
+        if on_chain in commitments[: confirmed[-1]]:
+            _key_rotations_redo(client, owner, keys[commitments.index(on_chain) + 1 :])
+            counts["rotations_lost"] += 1
+            continue
+        try:
+            owner_identity_check(owner=owner, fresh=True)
+        except IdentityMismatch:
+            counts["mismatches"] += 1
+    return counts
+
+
+def owners_chain_reset() -> list[int]:
+    """After a chain reset: every approved owner goes back to pending registration with all its
+    keys (fund, enroll, register, then the later keys rotated in order), owner_register queued
+    on commit for each. Returns their ids."""
+    owners = Owner.objects.filter(approval=Approval.APPROVED).order_by("pk")
+    ids = list(owners.values_list("pk", flat=True))
+    with transaction.atomic():
+        Owner.objects.filter(pk__in=ids).update(
+            chain_state=ChainState.PENDING,
+            chain_error="",
+            fund_tx="",
+            enroll_tx="",
+            register_tx="",
+            registered_block=None,
+        )
+        OwnerKey.objects.filter(owner_id__in=ids).update(
+            chain_state=ChainState.PENDING, tx_hash="", block_number=None
+        )
+        for owner_id in ids:
+            transaction.on_commit(lambda o=owner_id: enqueue("accounts.tasks.owner_register", o))
+    client = chain_client()
+    for eoa in owners.values_list("eoa_address", flat=True):
+        client.resync_nonce(eoa)  # counters of the chain before the reset mean nothing now
+    return ids
+
+
+def _owner_registration_redo(client: AuthROSChain, owner: Owner) -> None:
+    with transaction.atomic():
+        changed = Owner.objects.filter(pk=owner.pk, chain_state=ChainState.CONFIRMED).update(
+            chain_state=ChainState.PENDING, chain_error=""
+        )
+        if changed:
+            OwnerKey.objects.filter(owner=owner).update(chain_state=ChainState.PENDING)
+            transaction.on_commit(lambda: enqueue("accounts.tasks.owner_register", owner.pk))
+    # Counters of transactions the chain lost: the owner's, and the operator's (funding, enrolment).
+    client.resync_nonce(owner.eoa_address)
+    client.resync_nonce(operator_account().address)
+    logger.warning("the chain lost the registration of %s: registering it again", owner)
+
+
+def _key_rotations_redo(client: AuthROSChain, owner: Owner, keys: Sequence[OwnerKey]) -> None:
+    with transaction.atomic():
+        OwnerKey.objects.filter(pk__in=[key.pk for key in keys]).update(
+            chain_state=ChainState.PENDING
+        )
+        for key in keys:
+            transaction.on_commit(lambda k=key.pk: enqueue("accounts.tasks.key_rotate", k))
+    client.resync_nonce(owner.eoa_address)
+    logger.warning("the chain lost %d key rotation(s) of %s: rotating again", len(keys), owner)
+
+
+def eoa_low_balances() -> list[LowBalance]:
+    """Owners' EOAs below the top-up threshold, as the admin's chain status page lists them."""
+    return [
+        LowBalance(
+            label=gas.owner.user.username,
+            address=gas.owner.eoa_address,
+            balance_wei=gas.balance_wei,
+            below_wei=gas.low_below_wei,
+        )
+        for gas in owners_low_on_gas()
+    ]

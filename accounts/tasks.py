@@ -19,3 +19,9 @@ def key_rotate(owner_key_id: int) -> str:
 @shared_task(name="accounts.tasks.chain_work_sweep", soft_time_limit=60, time_limit=90)
 def chain_work_sweep() -> dict[str, int]:
     return services.chain_work_sweep()
+
+
+@shared_task(name="accounts.tasks.owner_top_up", **CHAIN_TASK)
+def owner_top_up(owner_id: int) -> str | None:
+    funding = services.owner_top_up(owner_id=owner_id)
+    return funding.tx_hash if funding else None

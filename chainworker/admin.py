@@ -13,8 +13,9 @@ from redis.exceptions import RedisError
 
 from chainworker.backlog import backlog_counts
 from chainworker.chain import ChainError
-from chainworker.models import Deployment
-from chainworker.services import chain_status
+from chainworker.gas import LowBalance, low_balances
+from chainworker.models import Deployment, OperatorAlert
+from chainworker.services import chain_status, operator_gas
 from core.redis_client import get_redis
 
 WEI_PER_ETHER = Decimal(10) ** 18
@@ -45,15 +46,24 @@ class DeploymentAdmin(admin.ModelAdmin):
             problem = status.get("problem")
         except ChainError as exc:
             status, problem = None, f"The chain node is not reachable: {exc}"
-        balance = None
+        balance, operator_low, low_accounts = None, False, None
         if status is not None:
             balance = Decimal(int(status["operator_balance_wei"])) / WEI_PER_ETHER
+            try:
+                operator_low = operator_gas().low
+                low_accounts = [_in_ether(low) for low in low_balances()]
+            except ChainError:
+                pass  # the node went away meanwhile: the lists say "unavailable"
         context = {
             **self.admin_site.each_context(request),
             "title": "Chain status",
             "status": status,
             "problem": problem,
             "operator_balance": balance,
+            "operator_low": operator_low,
+            "operator_low_ether": Decimal(settings.CHAIN_OPERATOR_LOW_WEI) / WEI_PER_ETHER,
+            "low_accounts": low_accounts,
+            "alerts": OperatorAlert.objects.filter(resolved_at=None),
             "queue_name": settings.CELERY_TASK_DEFAULT_QUEUE,
             "queue_length": celery_queue_length(),
             "pending": backlog_counts(),
@@ -61,6 +71,34 @@ class DeploymentAdmin(admin.ModelAdmin):
         }
         status_code = 200 if status is not None else 503
         return TemplateResponse(request, "admin/chain_status.html", context, status=status_code)
+
+
+@admin.register(OperatorAlert)
+class OperatorAlertAdmin(admin.ModelAdmin):
+    """Read-only: alerts are raised and resolved by the chain work that meets their cause."""
+
+    list_display = ("kind", "subject", "created_at", "last_seen_at", "resolved_at")
+    list_filter = ("kind", ("resolved_at", admin.EmptyFieldListFilter))
+    search_fields = ("kind", "subject")
+    readonly_fields = [f.name for f in OperatorAlert._meta.fields]
+
+    def has_add_permission(self, request: HttpRequest) -> bool:
+        return False
+
+    def has_change_permission(self, request: HttpRequest, obj: OperatorAlert | None = None) -> bool:
+        return False
+
+    def has_delete_permission(self, request: HttpRequest, obj: OperatorAlert | None = None) -> bool:
+        return False
+
+
+def _in_ether(low: LowBalance) -> dict[str, object]:
+    return {
+        "label": low.label,
+        "address": low.address,
+        "balance": Decimal(low.balance_wei) / WEI_PER_ETHER,
+        "below": Decimal(low.below_wei) / WEI_PER_ETHER,
+    }
 
 
 def celery_queue_length() -> int | None:

@@ -2,23 +2,30 @@
 deploying the contract once per chain, and the status an operator reads. Nothing here knows
 owners, records or grants: the apps that own them call down into this layer."""
 
+import json
 import logging
 import threading
+from contextlib import suppress
 from dataclasses import dataclass
 
 from django.conf import settings
-from django.db import transaction
+from django.db import IntegrityError, transaction
+from django.db.models import QuerySet
+from django.utils import timezone
 from eth_account import Account
 from eth_account.signers.local import LocalAccount
+from redis.exceptions import RedisError
 
 from chainworker.chain import AuthROSChain, ContractNotDeployed
-from chainworker.models import Deployment
+from chainworker.models import Deployment, OperatorAlert
 from chainworker.selectors import deployment_active
-from chainworker.work import exclusive
-from core.redis_client import get_redis
+from chainworker.work import ChainWorkNotReady, exclusive
+from core.redis_client import get_redis, redis_key
 from core.secrets import SecretFileError, load_or_create_secret
 
 logger = logging.getLogger(__name__)
+# Where an operator looks for what needs them (docs/security.md).
+security_log = logging.getLogger("authros.security")
 
 # The operator pays for deployment and funds new EOAs; keep it topped up on dev chains.
 DEV_OPERATOR_FLOAT_WEI = 10_000 * 10**18
@@ -124,6 +131,7 @@ def contract_deploy(*, force: bool = False) -> DeployOutcome:
 
 def chain_status() -> dict[str, object]:
     """What an operator wants to know about the chain; raises ChainUnavailable if it is down."""
+    identity = chain_identity()  # first: it drops a client built for the chain before a reset
     client = chain_client()
     operator = operator_account()
     status: dict[str, object] = {
@@ -136,7 +144,17 @@ def chain_status() -> dict[str, object]:
         "operator": operator.address,
         "operator_balance_wei": client.balance(operator.address),
         "confirmations": settings.CHAIN_CONFIRMATIONS,
+        "chain_identity": identity.state,
     }
+    if identity.state == IDENTITY_RESET:
+        status["problem"] = f"chain reset: {identity.reason}; " + (
+            "this development chain is redeployed and re-created from the database by the "
+            "reconciliation job (or `manage.py chain_resync`)"
+            if identity.development
+            else "sending is stopped: check the node, then `manage.py chain_resync` deploys "
+            "and re-creates everything from the database"
+        )
+        return status
     try:
         status["contract_address"] = client.address
         status["admin"] = client.admin()
@@ -171,3 +189,202 @@ def operator_verify() -> list[str]:
             f"contract at {address} (admin {admin}): restore operator.key or CHAIN_OPERATOR_KEY"
         ]
     return []
+
+
+# --- operator alerts and the operator's gas ------------------------------------------------
+
+
+def operator_alert_raise(
+    *, kind: str, subject: str, detail: dict[str, object] | None = None
+) -> OperatorAlert:
+    """Open an alert for the operator, or refresh the open one of this kind and subject (one
+    at most); logged on "authros.security" when it opens."""
+    detail = detail or {}
+    open_alerts = OperatorAlert.objects.filter(kind=kind, subject=subject, resolved_at=None)
+    if not open_alerts.update(detail=detail, last_seen_at=timezone.now()):
+        try:
+            with transaction.atomic():
+                alert = OperatorAlert.objects.create(kind=kind, subject=subject, detail=detail)
+        except IntegrityError:
+            open_alerts.update(detail=detail, last_seen_at=timezone.now())  # lost a race
+        else:
+            security_log.error("operator alert %s on %s: %s", kind, subject, detail)
+            return alert
+    return open_alerts.get()
+
+
+def operator_alert_resolve(*, kind: str, subject: str) -> bool:
+    """Close the open alert of this kind and subject; whether there was one."""
+    resolved = OperatorAlert.objects.filter(kind=kind, subject=subject, resolved_at=None).update(
+        resolved_at=timezone.now()
+    )
+    if resolved:
+        security_log.warning("operator alert %s on %s resolved", kind, subject)
+    return bool(resolved)
+
+
+@dataclass(frozen=True)
+class OperatorGas:
+    address: str
+    balance_wei: int
+    fee_per_gas: int
+
+    @property
+    def low(self) -> bool:
+        """Below CHAIN_OPERATOR_LOW_WEI on a chain with gas prices (a zero-gas chain needs none)."""
+        return self.fee_per_gas > 0 and self.balance_wei < settings.CHAIN_OPERATOR_LOW_WEI
+
+
+def operator_gas() -> OperatorGas:
+    """The operator's balance and the chain's fee per gas; raises ChainError if the node is away."""
+    client = chain_client()
+    address = operator_account().address
+    return OperatorGas(address, client.balance(address), client.fee_per_gas())
+
+
+def operator_balance_check() -> OperatorGas:
+    """Raise the operator's low-balance alert while it is low, resolve it once it is not."""
+    gas = operator_gas()
+    kind = OperatorAlert.Kind.OPERATOR_LOW_BALANCE
+    if gas.low:
+        operator_alert_raise(
+            kind=kind,
+            subject=gas.address,
+            detail={
+                "balance_wei": str(gas.balance_wei),
+                "low_wei": str(settings.CHAIN_OPERATOR_LOW_WEI),
+            },
+        )
+    else:
+        operator_alert_resolve(kind=kind, subject=gas.address)
+    return gas
+
+
+# --- chain identity: is the node still the chain the portal deployed on? --------------------
+
+IDENTITY_SAME = "same"
+IDENTITY_RESET = "reset"
+IDENTITY_UNDEPLOYED = "undeployed"
+
+
+@dataclass(frozen=True)
+class ChainIdentity:
+    """The node compared with the active deployment: "same"; "reset" (another genesis or chain
+    id, or no contract code at the address); "undeployed" (no contract recorded yet)."""
+
+    state: str
+    reason: str
+    development: bool
+    deployment: Deployment | None
+
+
+def chain_is_development(client: AuthROSChain) -> bool:
+    """A chain the portal may fund and redeploy on by itself, as operator_ensure_funded decides:
+    CHAIN_DEV_FAUCET on, and the in-process EVM or anvil."""
+    if not settings.CHAIN_DEV_FAUCET:
+        return False
+    return client.is_in_process or client.client_version.lower().startswith("anvil")
+
+
+def chain_identity() -> ChainIdentity:
+    """Compare the node's chain id, genesis hash and contract code with the active deployment.
+
+    Reads the node afresh (a long-lived client caches its chain id and genesis); a client
+    built for another chain is dropped so the next chain_client() follows the node. Raises
+    ChainUnavailable when the node does not answer.
+    """
+    client = chain_client()
+    # The uncached reads of the client's cached properties.
+    chain_id = AuthROSChain.chain_id.func(client)
+    genesis = AuthROSChain.genesis_hash.func(client)
+    if (chain_id, genesis) != (client.chain_id, client.genesis_hash):
+        with _clients_lock:
+            _clients.pop(settings.CHAIN_RPC_URL, None)
+        client = chain_client()
+    development = chain_is_development(client)
+    active = Deployment.objects.filter(is_active=True).order_by("-created_at")
+    deployment = active.filter(chain_id=chain_id, genesis_hash=genesis).first() or active.first()
+    pinned = settings.CHAIN_CONTRACT_ADDRESS
+    if deployment is None and not pinned:
+        return ChainIdentity(IDENTITY_UNDEPLOYED, "no contract deployed yet", development, None)
+    if deployment is not None and (deployment.chain_id, deployment.genesis_hash) != (
+        chain_id,
+        genesis,
+    ):
+        reason = (
+            f"the node is chain id {chain_id} with genesis {genesis[:18]}…, but the contract "
+            f"was deployed on chain id {deployment.chain_id} with genesis "
+            f"{deployment.genesis_hash[:18]}… (a new chain or a reset)"
+        )
+        return ChainIdentity(IDENTITY_RESET, reason, development, deployment)
+    address = pinned or deployment.address
+    if not client.has_code(address):
+        reason = f"no contract code at {address} on chain id {chain_id} (the chain was reset)"
+        return ChainIdentity(IDENTITY_RESET, reason, development, deployment)
+    return ChainIdentity(IDENTITY_SAME, "", development, deployment)
+
+
+def _identity_cache_key() -> str:
+    return redis_key("chain-identity", settings.CHAIN_RPC_URL)
+
+
+def chain_work_check() -> None:
+    """Raise ChainWorkNotReady while the node is not the chain the portal deployed on, so that
+    nothing is sent to a reset chain. The verdict is kept in Redis for
+    CHAIN_IDENTITY_CACHE_SECONDS, so the senders of every process cost one chain look-up."""
+    cached = None
+    with suppress(RedisError):
+        cached = get_redis().get(_identity_cache_key())
+    if cached is not None:
+        verdict = json.loads(cached)
+    else:
+        identity = chain_identity()
+        verdict = {"state": identity.state, "reason": identity.reason}
+        with suppress(RedisError):
+            get_redis().set(
+                _identity_cache_key(),
+                json.dumps(verdict),
+                px=max(1, int(settings.CHAIN_IDENTITY_CACHE_SECONDS * 1000)),
+            )
+    if verdict["state"] == IDENTITY_RESET:
+        raise ChainWorkNotReady(f"sending is stopped: {verdict['reason']}")
+
+
+def chain_identity_forget() -> None:
+    """Drop the kept verdict of chain_work_check (after a redeployment)."""
+    with suppress(RedisError):
+        get_redis().delete(_identity_cache_key())
+
+
+def contract_redeploy_after_reset() -> DeployOutcome:
+    """Deploy the contract on the chain the node is now (a reset chain) and make it the only
+    active deployment; the operator's nonce counter starts again from the node."""
+    chain_identity()  # drops a client built for the chain before the reset
+    outcome = contract_deploy()
+    Deployment.objects.filter(is_active=True).exclude(pk=outcome.deployment.pk).update(
+        is_active=False
+    )
+    chain_client().resync_nonce(operator_account().address)
+    chain_identity_forget()
+    return outcome
+
+
+def reconcile_window(*, name: str, queryset: QuerySet, size: int) -> list:
+    """The next `size` rows of `queryset` in primary key order after a cursor kept in Redis,
+    from the start again once the end is reached: every row is seen within len/size calls.
+    Without Redis, the first `size` rows."""
+    key = redis_key("reconcile-cursor", name)
+    cursor = None
+    with suppress(RedisError):
+        cursor = get_redis().get(key)
+    ordered = queryset.order_by("pk")
+    rows = list(ordered.filter(pk__gt=cursor.decode())[:size]) if cursor else []
+    if len(rows) < size:
+        taken = {row.pk for row in rows}
+        rows += [row for row in ordered[: size - len(rows)] if row.pk not in taken]
+    with suppress(RedisError):
+        if rows:
+            get_redis().set(key, str(rows[-1].pk))
+        else:
+            get_redis().delete(key)
+    return rows

@@ -17,6 +17,14 @@ class ChainWorkNotReady(Exception):
     """What this work depends on is not on chain yet (e.g. the owner is not registered)."""
 
 
+# What chain work shows while its sender cannot pay for gas (InsufficientFunds): it waits, it
+# does not fail, and it uses up no attempt.
+WAITING_FOR_GAS = (
+    "waiting for gas: the owner's account cannot pay; the operator tops it up and it is sent "
+    "again by itself"
+)
+
+
 @contextmanager
 def exclusive(name: str, *, timeout: float = 60.0, wait: float = 30.0) -> Iterator[Lock]:
     """A Redis lock so only one worker does this piece of chain work at a time."""

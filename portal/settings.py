@@ -169,6 +169,14 @@ CHAIN_EOA_FUNDING_WEI = env.int("CHAIN_EOA_FUNDING_WEI", default=10**18)
 # past it wait (pending) until the period frees some.
 SIGNUP_FUNDING_BUDGET_WEI = env.int("SIGNUP_FUNDING_BUDGET_WEI", default=50 * 10**18)
 SIGNUP_FUNDING_PERIOD = env.float("SIGNUP_FUNDING_PERIOD", default=24 * 3600.0)
+# An owner's EOA holding less than CHAIN_EOA_TOPUP_BELOW_GAS gas units at the current max fee
+# per gas is topped up to CHAIN_EOA_TOPUP_GAS gas units (capped by CHAIN_EOA_FUNDING_WEI),
+# within the same funding budget; nothing on a zero-gas chain.
+CHAIN_EOA_TOPUP_BELOW_GAS = env.int("CHAIN_EOA_TOPUP_BELOW_GAS", default=2_000_000)
+CHAIN_EOA_TOPUP_GAS = env.int("CHAIN_EOA_TOPUP_GAS", default=CHAIN_EOA_FUNDING_GAS)
+# The admin warns (and an operator alert is raised) when the operator holds less than this
+# on a chain with gas prices.
+CHAIN_OPERATOR_LOW_WEI = env.int("CHAIN_OPERATOR_LOW_WEI", default=10**18)
 # Registrations (page POSTs that would create an owner) per client address and overall,
 # counted in Redis across web processes: "<count>/<second|minute|hour|day>".
 SIGNUP_RATE_PER_ADDRESS = env.str("SIGNUP_RATE_PER_ADDRESS", default="5/hour")
@@ -313,6 +321,12 @@ CELERY_BEAT_SCHEDULE = {
         "schedule": _SWEEP_INTERVAL,
         "options": {"expires": _SWEEP_INTERVAL},
     },
+    # Compares what the database says is on chain with the chain, and repairs (see below).
+    "reconcile-chain": {
+        "task": "sharing.tasks.chain_reconcile",
+        "schedule": env.float("RECONCILE_INTERVAL", default=60.0),
+        "options": {"expires": env.float("RECONCILE_INTERVAL", default=60.0)},
+    },
 }
 
 # --- Anchoring and the ciphertext cache ---------------------------------------------------
@@ -322,6 +336,14 @@ ANCHOR_MAX_WAIT = env.float("ANCHOR_MAX_WAIT", default=1.0)
 # Pending work older than this is queued again by the sweep (lost message, dead worker).
 ANCHOR_STALE_AFTER = env.float("ANCHOR_STALE_AFTER", default=60.0)
 ANCHOR_MAX_ATTEMPTS = env.int("ANCHOR_MAX_ATTEMPTS", default=20)
+# --- Reconciliation and chain resets (sharing/reconcile.py) ---
+# Seconds between runs of the job comparing the database with the chain (beat schedule above).
+RECONCILE_INTERVAL = env.float("RECONCILE_INTERVAL", default=60.0)
+# Rows (records, owners, grants) each run reads from the chain besides the recent records: all
+# of them are looked at within (rows / RECONCILE_CHUNK) runs.
+RECONCILE_CHUNK = env.int("RECONCILE_CHUNK", default=500)
+# Seconds every process reuses the verdict "is the node still the chain we deployed on".
+CHAIN_IDENTITY_CACHE_SECONDS = env.float("CHAIN_IDENTITY_CACHE_SECONDS", default=10.0)
 # Batch transactions one owner may have in flight at once (consecutive nonces).
 ANCHOR_INFLIGHT = env.int("ANCHOR_INFLIGHT", default=4)
 # Seconds an anchoring lock outlives a worker that died holding it (renewed while alive).

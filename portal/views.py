@@ -25,11 +25,11 @@ from accounts.models import AccountEvent, ChainState, Owner
 from accounts.selectors import (
     account_events_of,
     account_events_to_notice,
-    owner_balance_wei,
     owner_for_user,
     owner_key_current,
     robot_count_active,
 )
+from accounts.services import owner_eoa_gas
 from chainworker.chain import ChainError
 from sharing.models import SecurityEvent
 from sharing.selectors import (
@@ -60,15 +60,18 @@ def home(request: HttpRequest) -> HttpResponse:
 def dashboard(request: HttpRequest) -> HttpResponse:
     """The owner's identity on chain, with its EOA balance, and what it has and shares."""
     owner: Owner = request.owner
-    balance, chain_problem = None, None
+    balance, gas, chain_problem = None, None, None
     try:
-        balance = Decimal(owner_balance_wei(owner)) / WEI_PER_ETHER
+        gas = owner_eoa_gas(owner=owner)
+        balance = Decimal(gas.balance_wei) / WEI_PER_ETHER
     except ChainError as exc:
         chain_problem = f"The chain node is not reachable right now ({exc.__class__.__name__})."
     context = {
         "owner": owner,
         "key": owner_key_current(owner),
         "balance": balance,
+        "gas": gas,
+        "gas_low_below": Decimal(gas.low_below_wei) / WEI_PER_ETHER if gas else None,
         "chain_problem": chain_problem,
         "confirmed": owner.chain_state == ChainState.CONFIRMED,
         "failed": owner.chain_state == ChainState.FAILED,

@@ -28,11 +28,12 @@ from chainworker.chain import (
     AnchorItem,
     AuthROSChain,
     ChainUnavailable,
+    InsufficientFunds,
     TransactionReverted,
     TransactionTimeout,
 )
-from chainworker.services import chain_client
-from chainworker.work import ChainWorkNotReady
+from chainworker.services import chain_client, chain_work_check
+from chainworker.work import WAITING_FOR_GAS, ChainWorkNotReady
 from core.outbox import enqueue
 from core.redis_client import get_redis, redis_key
 from sharing.models import Record, SecurityEvent
@@ -79,6 +80,7 @@ def records_anchor(*, owner_id: int) -> int:
         return 0
     if owner.chain_state != ChainState.CONFIRMED:
         raise ChainWorkNotReady(f"{owner} is not registered on chain yet")
+    chain_work_check()  # nothing goes to a reset chain
     # Short, and renewed while waiting for receipts, so a killed worker frees it quickly.
     lock = get_redis().lock(
         redis_key("work", f"anchor:{owner_id}"), timeout=settings.ANCHOR_LOCK_TTL
@@ -129,6 +131,7 @@ def _anchor_round(client: AuthROSChain, owner: Owner, lock: Lock) -> tuple[int, 
     account = owner_eoa_account(owner)
     in_flight: list[tuple[list[Record], str]] = []
     refusal: TransactionReverted | None = None
+    cannot_pay: InsufficientFunds | None = None
     for _ in range(settings.ANCHOR_INFLIGHT):
         # "One sender per EOA": stop if our hold on the owner lapsed (a long wait before).
         if not _renew(lock):
@@ -150,6 +153,19 @@ def _anchor_round(client: AuthROSChain, owner: Owner, lock: Lock) -> tuple[int, 
                 anchor_attempts=F("anchor_attempts") - 1
             )
             raise
+        except InsufficientFunds as exc:
+            # The owner's account cannot pay for gas: an outage that waits, using up no attempt,
+            # with its reason shown; the operator tops the account up and the task (or the
+            # sweep) sends again.
+            Record.objects.filter(pk__in=batch_ids, anchor_attempts__gt=0).update(
+                anchor_attempts=F("anchor_attempts") - 1
+            )
+            Record.objects.filter(owner_id=owner.pk, status=Record.Status.PENDING).exclude(
+                pk__in=sent_ids
+            ).update(failure_reason=WAITING_FOR_GAS)
+            enqueue("accounts.tasks.owner_top_up", owner.pk)
+            cannot_pay = exc
+            break
         except TransactionReverted as exc:
             if exc.error_name != "RecordExists":
                 refusal = exc
@@ -158,6 +174,10 @@ def _anchor_round(client: AuthROSChain, owner: Owner, lock: Lock) -> tuple[int, 
             # rest go in the next run.
             _settle_attempted(client, owner, batch, force=True)
             break
+        if not in_flight:  # it can pay again: what waited for gas no longer does
+            Record.objects.filter(
+                owner_id=owner.pk, status=Record.Status.PENDING, failure_reason=WAITING_FOR_GAS
+            ).update(failure_reason="")
         in_flight.append((batch, tx_hash))
     anchored = 0
     for batch, tx_hash in in_flight:
@@ -179,6 +199,8 @@ def _anchor_round(client: AuthROSChain, owner: Owner, lock: Lock) -> tuple[int, 
         anchored += len(batch)
     if refusal is not None:
         raise refusal
+    if cannot_pay is not None:
+        raise cannot_pay
     return anchored, len(in_flight)
 
 
@@ -268,6 +290,12 @@ def _settle_attempted(
         else:
             _chain_digest_mismatch(record, on_chain.digest.hex(), on_chain.owner)
     return still_pending
+
+
+def record_chain_mismatch(*, record: Record, chain_digest: str, chain_owner: str) -> None:
+    """The chain holds another digest or owner under the record's id: the record is failed and
+    a SecurityEvent raised (found by anchoring or by the reconciliation)."""
+    _chain_digest_mismatch(record, chain_digest, chain_owner)
 
 
 def _chain_digest_mismatch(record: Record, chain_digest: str, chain_owner: str) -> None:

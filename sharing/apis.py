@@ -162,7 +162,9 @@ class RecordOutputSerializer(serializers.Serializer):
     tx_hash = NullIfBlankCharField(help_text="the anchoring transaction, once anchored")
     block_number = serializers.IntegerField(allow_null=True)
     anchored_at = serializers.DateTimeField(allow_null=True)
-    failure_reason = NullIfBlankCharField(help_text="why anchoring failed, if it did")
+    failure_reason = NullIfBlankCharField(
+        help_text="why anchoring failed, or why a pending record waits (e.g. for gas)"
+    )
     tampered_at = serializers.DateTimeField(
         allow_null=True, help_text="when a view found the stored data changed, if ever"
     )

@@ -6,10 +6,12 @@ rotations, anchoring batches, grants and revocations (the grantee sees those too
 rows of one page become entries with titles, and an anchoring entry lists its first records.
 """
 
+import uuid
 from dataclasses import dataclass, field
 from datetime import datetime
 
 from django.core.paginator import Page, Paginator
+from django.db.models import Exists, OuterRef
 
 from accounts.models import ChainActivity, Owner
 from sharing.models import Record
@@ -39,12 +41,35 @@ class AuditEntry:
     more_records: int = 0
 
 
-def audit_page_of_owner(owner: Owner, *, page: object, per_page: int) -> Page:
+def audit_page_of_owner(
+    owner: Owner,
+    *,
+    page: object,
+    per_page: int,
+    kind: str | None = None,
+    robot: uuid.UUID | str | None = None,
+    since: datetime | None = None,
+    until: datetime | None = None,
+) -> Page:
     """One page of the owner's audit trail, newest first; its object_list holds AuditEntry.
 
-    A page past the last is the last page, as Paginator.get_page gives it.
+    Filtered by `kind` (a ChainActivity kind), `robot` (the anchoring transactions holding a
+    record of that robot of the owner's) and the half-open period [since, until) of the
+    receipts, all in the page's one query. A page past the last is the last page, as
+    Paginator.get_page gives it.
     """
-    found = Paginator(chain_activity_of(owner), per_page).get_page(page)
+    activity = chain_activity_of(owner)
+    if kind:
+        activity = activity.filter(kind=kind)
+    if robot:
+        # An activity row names no robot: its anchoring transaction's records do.
+        of_robot = Record.objects.filter(owner=owner, robot_id=robot, tx_hash=OuterRef("tx_hash"))
+        activity = activity.filter(Exists(of_robot), owner=owner, kind=Kind.ANCHORED)
+    if since is not None:
+        activity = activity.filter(at__gte=since)
+    if until is not None:
+        activity = activity.filter(at__lt=until)
+    found = Paginator(activity, per_page).get_page(page)
     found.object_list = audit_entries(owner, list(found.object_list))
     return found
 

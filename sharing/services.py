@@ -26,9 +26,9 @@ from accounts.selectors import (
     owner_key_bytes,
 )
 from accounts.services import chain_activity_record
-from chainworker.chain import TransactionReverted, TxResult
-from chainworker.services import chain_client
-from chainworker.work import ChainWorkNotReady, exclusive
+from chainworker.chain import InsufficientFunds, TransactionReverted, TxResult
+from chainworker.services import chain_client, chain_work_check
+from chainworker.work import WAITING_FOR_GAS, ChainWorkNotReady, exclusive
 from core.outbox import enqueue
 from sharing.anchoring import anchor_schedule
 from sharing.cache import envelope_cache_put
@@ -264,11 +264,18 @@ def grant_sync_on_chain(*, grant_id: int) -> Grant:
     for party in (grant.owner, grant.grantee):
         if party.chain_state != ChainState.CONFIRMED:
             raise ChainWorkNotReady(f"{party} is not registered on chain yet")
+    chain_work_check()  # nothing goes to a reset chain
     pair = f"grant:{grant.owner_id}:{grant.grantee_id}"
     with exclusive(pair, timeout=settings.CHAIN_RECEIPT_TIMEOUT + 30):
         grant.refresh_from_db()
         try:
             _grant_sync(grant)
+        except InsufficientFunds:
+            # The owner's account cannot pay for gas: the grant waits (no failure), says why,
+            # and is sent again once the operator topped the account up.
+            Grant.objects.filter(pk=grant.pk).update(failure_reason=WAITING_FOR_GAS)
+            enqueue("accounts.tasks.owner_top_up", grant.owner_id)
+            raise
         except TransactionReverted as exc:
             if grant.status != Grant.Status.PENDING:
                 raise  # a revocation is never given up: it fails loudly and the sweep retries
@@ -277,6 +284,7 @@ def grant_sync_on_chain(*, grant_id: int) -> Grant:
                 status=Grant.Status.FAILED, failure_reason=str(exc)[:300]
             )
             logger.error("grant %s refused on chain: %s", grant.pk, exc)
+    Grant.objects.filter(pk=grant.pk, failure_reason=WAITING_FOR_GAS).update(failure_reason="")
     grant.refresh_from_db()
     return grant
 

@@ -11,7 +11,7 @@ from celery import shared_task
 from accounts.errors import IdentityMismatch
 from chainworker.chain import ChainUnavailable
 from chainworker.work import CHAIN_TASK
-from sharing import anchoring, services, verification
+from sharing import anchoring, reconcile, services, verification
 
 
 @shared_task(name="sharing.tasks.records_anchor", **CHAIN_TASK)
@@ -27,6 +27,15 @@ def grant_sync(grant_id: int) -> str:
 @shared_task(name="sharing.tasks.chain_work_sweep", soft_time_limit=60, time_limit=90)
 def chain_work_sweep() -> dict[str, int]:
     return services.chain_work_sweep()
+
+
+# Periodic (beat): it sends nothing itself but a redeployment on a reset development chain, and
+# the next run repeats whatever one that failed did not finish, so it is never retried.
+@shared_task(
+    name="sharing.tasks.chain_reconcile", acks_late=True, soft_time_limit=600, time_limit=660
+)
+def chain_reconcile() -> dict[str, object]:
+    return reconcile.chain_reconcile()
 
 
 # A view's check, on the verify queue; a refused identity is an answer, not a task failure.

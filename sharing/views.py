@@ -32,7 +32,7 @@ from sharing.errors import (
     SharingError,
     VerificationUnavailable,
 )
-from sharing.forms import GrantForm, GrantRevokeForm, RecordFilterForm
+from sharing.forms import AuditFilterForm, GrantForm, GrantRevokeForm, RecordFilterForm
 from sharing.models import Record, Verdict
 from sharing.selectors import (
     grant_list_given,
@@ -253,8 +253,14 @@ def grant_revoke_view(request: HttpRequest) -> HttpResponse:
 @require_GET
 def audit(request: HttpRequest) -> HttpResponse:
     owner: Owner = request.owner
-    page = audit_page_of_owner(owner, page=request.GET.get("page"), per_page=AUDIT_ENTRIES_PER_PAGE)
-    return render(request, "sharing/audit.html", {"page": page, "owner": owner})
+    form = AuditFilterForm(request.GET or None, owner=owner)
+    if form.is_bound and not form.is_valid():
+        return render(request, "sharing/audit.html", {"form": form, "owner": owner}, status=400)
+    page = audit_page_of_owner(
+        owner, page=request.GET.get("page"), per_page=AUDIT_ENTRIES_PER_PAGE, **form.filters()
+    )
+    context = {"form": form, "page": page, "owner": owner, "filtered": bool(form.filters())}
+    return render(request, "sharing/audit.html", context)
 
 
 # --- revoking an owner API token, and what it granted ----------------------------------------

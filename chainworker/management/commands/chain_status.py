@@ -1,4 +1,5 @@
-"""`manage.py chain_status`: node, chain id, latest block, contract, admin, operator balance."""
+"""`manage.py chain_status`: node, chain id, latest block, contract, admin, operator balance,
+and whether the node is still the chain the contract was deployed on (a reset stops sending)."""
 
 import json
 from typing import Any
@@ -29,6 +30,7 @@ class Command(BaseCommand):
             ("node", status["node_url"]),
             ("client", status["client_version"]),
             ("chain id", status["chain_id"]),
+            ("chain identity", status.get("chain_identity", "-")),
             ("latest block", status["latest_block"]),
             ("contract", status["contract_address"] or "not deployed"),
             ("admin", status["admin"] or "-"),
