@@ -33,6 +33,7 @@ from eth_utils import event_abi_to_log_topic, function_abi_to_4byte_selector, ke
 from hexbytes import HexBytes
 from web3 import Web3
 from web3.exceptions import (
+    BadFunctionCallOutput,
     ContractLogicError,
     ContractPanicError,
     ProviderConnectionError,
@@ -415,6 +416,23 @@ class AuthROSChain:
             return False
         return True
 
+    def head(self) -> tuple[int, int]:
+        """The latest block's number and timestamp (seconds since the epoch)."""
+        with _translated_errors():
+            block = self.w3.eth.get_block("latest")
+        return int(block["number"]), int(block["timestamp"])
+
+    def pending_transaction_count(self) -> int | None:
+        """Transactions the node holds ready to mine and has not mined: txpool_status's
+        "pending" (anvil, geth, Nethermind), else the pending block's; None if it tells neither."""
+        with _translated_errors():
+            status = self.w3.provider.make_request("txpool_status", []).get("result")
+            if isinstance(status, dict) and "pending" in status:
+                return int(str(status["pending"]), 0)
+            pending = self.w3.provider.make_request("eth_getBlockByNumber", ["pending", False])
+        block = pending.get("result")
+        return len(block.get("transactions") or []) if isinstance(block, dict) else None
+
     # contract -------------------------------------------------------------------------
 
     @property
@@ -676,6 +694,9 @@ class AuthROSChain:
                 return fn.call()
             except _REVERTS as exc:
                 raise self._reverted(exc, function) from exc
+            except BadFunctionCallOutput as exc:
+                # An empty answer: no code at the address (a reset chain), not a crash.
+                raise ContractNotDeployed(f"{function}: no contract at {self._address}") from exc
 
     def _transact(
         self, sender: LocalAccount, function: str, *args: Any, wait: bool

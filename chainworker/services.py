@@ -161,6 +161,16 @@ def chain_status() -> dict[str, object]:
         status["record_count"] = client.record_count()
     except ContractNotDeployed:
         status["problem"] = "contract not deployed: run `manage.py chain_deploy`"
+    stall = chain_stall_check()
+    status["chain_stalled"] = stall.stalled
+    status["seconds_since_block"] = round(stall.seconds_without_block)
+    if stall.stalled:
+        paused = (
+            f"chain stalled: {stall.reason}; sending is paused (no attempt is used up) and "
+            "resumes by itself once the node makes blocks again: check the node's miners or "
+            "validators"
+        )
+        status["problem"] = "; ".join(filter(None, [status.get("problem"), paused]))
     return status
 
 
@@ -330,8 +340,9 @@ def _identity_cache_key() -> str:
 
 def chain_work_check() -> None:
     """Raise ChainWorkNotReady while the node is not the chain the portal deployed on, so that
-    nothing is sent to a reset chain. The verdict is kept in Redis for
-    CHAIN_IDENTITY_CACHE_SECONDS, so the senders of every process cost one chain look-up."""
+    nothing is sent to a reset chain, and while the chain is stalled (chain_stalled). Each
+    verdict is kept in Redis for CHAIN_IDENTITY_CACHE_SECONDS, so the senders of every process
+    cost one chain look-up."""
     cached = None
     with suppress(RedisError):
         cached = get_redis().get(_identity_cache_key())
@@ -348,6 +359,9 @@ def chain_work_check() -> None:
             )
     if verdict["state"] == IDENTITY_RESET:
         raise ChainWorkNotReady(f"sending is stopped: {verdict['reason']}")
+    # A stalled chain: every sender pauses, using up no attempt, until blocks move again.
+    if stalled := _stall_reason():
+        raise ChainWorkNotReady(f"sending is paused, the chain is stalled: {stalled}")
 
 
 def chain_identity_forget() -> None:
@@ -388,3 +402,141 @@ def reconcile_window(*, name: str, queryset: QuerySet, size: int) -> list:
         else:
             get_redis().delete(key)
     return rows
+
+
+# --- a stalled chain: no new block while work waits -----------------------------------------
+
+# The operator alert of a stalled chain (subject: the chain id, never the node URL, which may
+# carry an API key).
+CHAIN_STALLED_ALERT = "chain-stalled"
+
+
+@dataclass(frozen=True)
+class ChainStall:
+    """The node's latest block and whether the chain has stopped making blocks."""
+
+    stalled: bool
+    reason: str
+    latest_block: int
+    seconds_without_block: float
+    waiting: int | None  # transactions the node holds ready and has not mined; None: unknown
+
+
+def _waiting_key() -> str:
+    return redis_key("chain-waiting-since", settings.CHAIN_RPC_URL)
+
+
+def _waiting_since(*, latest: int, waiting: bool, since: float | None, now: float) -> float | None:
+    """When work was first seen waiting on top of block `latest` (kept in Redis, so that a
+    check that sees a transaction just arrived on a long idle chain does not call it a stall);
+    None while nothing waits."""
+    if not waiting:
+        with suppress(RedisError):
+            get_redis().delete(_waiting_key())
+        return None
+    start = since if since is not None else now
+    with suppress(RedisError, ValueError, KeyError, TypeError):
+        kept = get_redis().get(_waiting_key())
+        seen = json.loads(kept) if kept else None
+        if seen and seen["block"] == latest:
+            start = min(start, float(seen["since"]))
+    with suppress(RedisError):
+        get_redis().set(
+            _waiting_key(), json.dumps({"block": latest, "since": start}), ex=7 * 24 * 3600
+        )
+    return start
+
+
+def chain_stalled(*, since: float | None = None) -> ChainStall:
+    """Whether the chain has stopped making blocks; `since`: the caller has a transaction of
+    its own waiting to be mined since then (epoch seconds), e.g. a receipt that timed out.
+
+    "No new block for CHAIN_STALL_AFTER seconds" alone cannot be the test: a node that mines
+    only when transactions arrive (anvil's automine, `make run`'s default; a proof-of-authority
+    network without empty blocks) makes no block at all while the portal is idle. So:
+    - CHAIN_BLOCK_TIME set (the operator says the node makes a block every so often even with
+      nothing to mine, as anvil --block-time or a Besu/geth PoA network does): the latest
+      block older than CHAIN_STALL_AFTER is a stall, idle or not;
+    - else (the default): only while work waits, that is the node holds transactions ready to
+      mine (txpool_status, else its pending block) or the caller has one of its own (`since`):
+      no new block for CHAIN_STALL_AFTER since both the latest block and the moment the
+      waiting was first seen is a stall.
+    Raises ChainUnavailable when the node does not answer (that is an outage, not a stall).
+    """
+    client = chain_client()
+    latest, timestamp = client.head()
+    now = timezone.now().timestamp()
+    after = settings.CHAIN_STALL_AFTER
+    pending = client.pending_transaction_count()
+    if settings.CHAIN_BLOCK_TIME > 0:
+        quiet = max(0.0, now - timestamp)
+        expected = f"a block every {settings.CHAIN_BLOCK_TIME:g} s is expected"
+    else:
+        # A node that cannot tell its pool: what we saw waiting on this block still waits.
+        waiting = bool(pending) or since is not None or (pending is None and _still_waiting(latest))
+        start = _waiting_since(latest=latest, waiting=waiting, since=since, now=now)
+        quiet = 0.0 if start is None else max(0.0, now - max(timestamp, start))
+        expected = f"{pending if pending is not None else 'some'} transaction(s) wait"
+    if quiet < after:
+        return ChainStall(False, "", latest, max(0.0, now - timestamp), pending)
+    reason = (
+        f"no new block for {quiet:.0f} s after block {latest} while {expected} "
+        f"(CHAIN_STALL_AFTER {after:g} s)"
+    )
+    return ChainStall(True, reason, latest, max(0.0, now - timestamp), pending)
+
+
+def _still_waiting(latest: int) -> bool:
+    with suppress(RedisError, ValueError, KeyError, TypeError):
+        kept = get_redis().get(_waiting_key())
+        return bool(kept) and json.loads(kept)["block"] == latest
+    return False
+
+
+def _stall_cache_key() -> str:
+    return redis_key("chain-stall", settings.CHAIN_RPC_URL)
+
+
+def chain_stall_check(*, since: float | None = None) -> ChainStall:
+    """chain_stalled, with its consequences: the operator alert raised while the chain is
+    stalled and resolved once blocks move again, and the verdict kept in Redis for
+    CHAIN_IDENTITY_CACHE_SECONDS for chain_work_check. Raises ChainUnavailable."""
+    stall = chain_stalled(since=since)
+    subject = f"chain {chain_client().chain_id}"
+    if stall.stalled:
+        operator_alert_raise(
+            kind=CHAIN_STALLED_ALERT,
+            subject=subject,
+            detail={
+                "reason": stall.reason,
+                "latest_block": stall.latest_block,
+                "seconds_without_block": round(stall.seconds_without_block),
+                "waiting": stall.waiting,
+            },
+        )
+    else:
+        operator_alert_resolve(kind=CHAIN_STALLED_ALERT, subject=subject)
+    with suppress(RedisError):
+        get_redis().set(
+            _stall_cache_key(),
+            stall.reason if stall.stalled else "",
+            px=max(1, int(settings.CHAIN_IDENTITY_CACHE_SECONDS * 1000)),
+        )
+    return stall
+
+
+def chain_stall_forget() -> None:
+    """Drop the kept stall verdict of chain_work_check (e.g. once the operator restarted mining)."""
+    with suppress(RedisError):
+        get_redis().delete(_stall_cache_key())
+
+
+def _stall_reason() -> str:
+    """Why the chain is stalled ("" if it is not), from Redis or asked afresh."""
+    cached = None
+    with suppress(RedisError):
+        cached = get_redis().get(_stall_cache_key())
+    if cached is not None:
+        return cached.decode()
+    stall = chain_stall_check()
+    return stall.reason if stall.stalled else ""

@@ -344,6 +344,16 @@ RECONCILE_INTERVAL = env.float("RECONCILE_INTERVAL", default=60.0)
 RECONCILE_CHUNK = env.int("RECONCILE_CHUNK", default=500)
 # Seconds every process reuses the verdict "is the node still the chain we deployed on".
 CHAIN_IDENTITY_CACHE_SECONDS = env.float("CHAIN_IDENTITY_CACHE_SECONDS", default=10.0)
+# Seconds between the blocks the node makes even with nothing to mine (a proof-of-authority
+# network's block period, anvil --block-time); 0: blocks only when transactions arrive (anvil's
+# automine, `make run`'s default). See chainworker.services.chain_stalled.
+CHAIN_BLOCK_TIME = env.float("CHAIN_BLOCK_TIME", default=0.0)
+# No new block for this long (while work waits, or ever if CHAIN_BLOCK_TIME is set) is a stall:
+# sending pauses, using up no attempt, and an operator alert is raised. Keep it below
+# CHAIN_RECEIPT_TIMEOUT, so a receipt timeout on a stalled chain costs no attempt either.
+CHAIN_STALL_AFTER = env.float(
+    "CHAIN_STALL_AFTER", default=10 * CHAIN_BLOCK_TIME if CHAIN_BLOCK_TIME > 0 else 60.0
+)
 # Batch transactions one owner may have in flight at once (consecutive nonces).
 ANCHOR_INFLIGHT = env.int("ANCHOR_INFLIGHT", default=4)
 # Seconds an anchoring lock outlives a worker that died holding it (renewed while alive).

@@ -32,7 +32,7 @@ from chainworker.chain import (
     TransactionReverted,
     TransactionTimeout,
 )
-from chainworker.services import chain_client, chain_work_check
+from chainworker.services import chain_client, chain_stall_check, chain_work_check
 from chainworker.work import WAITING_FOR_GAS, ChainWorkNotReady
 from core.outbox import enqueue
 from core.redis_client import get_redis, redis_key
@@ -180,8 +180,19 @@ def _anchor_round(client: AuthROSChain, owner: Owner, lock: Lock) -> tuple[int, 
             ).update(failure_reason="")
         in_flight.append((batch, tx_hash))
     anchored = 0
-    for batch, tx_hash in in_flight:
-        receipt = _await_receipt(client, tx_hash, lock)
+    for position, (batch, tx_hash) in enumerate(in_flight):
+        try:
+            receipt = _await_receipt(client, tx_hash, lock)
+        except TransactionTimeout:
+            # Waited the whole receipt timeout: if the chain made no block meanwhile it is
+            # stalled, which is not these records' fault, so (as for ChainUnavailable) the
+            # attempts go back; chain_stall_check pauses every sender and tells the operator.
+            if chain_stall_check(since=time.time() - client.receipt_timeout).stalled:
+                unmined = [r.pk for waiting, _tx in in_flight[position:] for r in waiting]
+                Record.objects.filter(
+                    pk__in=unmined, status=Record.Status.PENDING, anchor_attempts__gt=0
+                ).update(anchor_attempts=F("anchor_attempts") - 1)
+            raise
         block = int(receipt["blockNumber"])
         Record.objects.filter(pk__in=[r.pk for r in batch], status=Record.Status.PENDING).update(
             status=Record.Status.ANCHORED,

@@ -8,10 +8,18 @@ ANVIL_BIN overrides it. Without a port each node listens on a free port of 127.0
 parallel test workers (pytest-xdist) do not collide. `make run` starts its node with
 zero_gas, as a private proof-of-authority network should run (docs/deployment.md): the portal
 then sends new owners' EOAs no ether at all.
+
+The chain state (state_path) is written by this module, not by anvil's own --state: anvil
+truncates its state file and writes it in place (File::create), so a kill -9 during a write
+leaves a file it then refuses to start from. A StateKeeper thread asks the node for its state
+(anvil_dumpState) every state_interval seconds and on stop(), writes it to a temporary file,
+keeps the last good copy as <state>.prev and renames the new one into place; at start a state
+file that does not parse is set aside (<state>.bad) and the .prev copy is loaded instead.
 """
 
 from __future__ import annotations
 
+import gzip
 import json
 import os
 import platform
@@ -20,6 +28,7 @@ import signal
 import socket
 import subprocess
 import tempfile
+import threading
 import time
 import urllib.error
 import urllib.request
@@ -35,6 +44,10 @@ HOST = "127.0.0.1"
 STARTUP_TIMEOUT = 15.0
 STOP_TIMEOUT = 10.0
 PORT_ATTEMPTS = 3
+# As anvil's own --state: the state is written every minute unless told otherwise.
+DEFAULT_STATE_INTERVAL = 60.0
+PREVIOUS_SUFFIX = ".prev"
+BAD_SUFFIX = ".bad"
 # A base fee and gas price of zero, and no minimum tip suggested: gas costs nothing.
 ZERO_GAS_ARGS = ("--base-fee", "0", "--gas-price", "0", "--disable-min-priority-fee")
 
@@ -100,13 +113,16 @@ class AnvilProcess:
     port: int
     process: subprocess.Popen[bytes]
     output: IO[bytes]
+    keeper: StateKeeper | None = None
 
     @property
     def url(self) -> str:
         return f"http://{HOST}:{self.port}"
 
     def stop(self) -> None:
-        """Stop the node gracefully (so --state is written), killing it if it hangs."""
+        """Stop the node gracefully (its state written first), killing it if it hangs."""
+        if self.keeper is not None:
+            self.keeper.stop()  # a last write while the node still answers
         if self.process.poll() is None:
             self.process.send_signal(signal.SIGTERM)
             try:
@@ -141,9 +157,11 @@ def start_anvil(
     """Start anvil on a free port and return once its JSON-RPC answers.
 
     block_time: seconds between blocks (interval mining); None mines one block per transaction.
-    state_path: file the chain state is loaded from (if present) and written to on stop().
+    state_path: file the chain state is loaded from (if present; else its .prev copy if it does
+        not parse) and written to, atomically, on stop() and every state_interval seconds.
     port: a fixed port (e.g. to restart a node where its clients expect it); else a free one.
-    state_interval: also write the state every this many seconds (survives a kill -9).
+    state_interval: seconds between writes of the state (a kill -9 loses what came after the
+        last one); DEFAULT_STATE_INTERVAL if None.
     log_path: anvil's output goes there (appended); else it is silent.
     die_with_parent: the kernel stops it if the process that started it dies (see Children).
     zero_gas: gas costs nothing (ZERO_GAS_ARGS); else anvil's own fees (1 gwei base fee).
@@ -156,10 +174,8 @@ def start_anvil(
         args += ZERO_GAS_ARGS
     if block_time is not None:
         args += ["--block-time", str(block_time)]
-    if state_path is not None:
-        args += ["--state", str(state_path)]
-        if state_interval is not None:
-            args += ["--state-interval", str(state_interval)]
+    if state_path is not None and (loaded := usable_state(Path(state_path))) is not None:
+        args += ["--load-state", str(loaded)]
     last_error = ""
     # The free port may be taken by someone else before anvil binds it: try a few.
     fixed_port = port
@@ -184,6 +200,9 @@ def start_anvil(
             node.stop()
             last_error = str(error)
             continue
+        if state_path is not None:
+            node.keeper = StateKeeper(node, Path(state_path), state_interval)
+            node.keeper.start()
         return node
     raise AnvilError(f"anvil did not start after {PORT_ATTEMPTS} attempts: {last_error}")
 
@@ -199,3 +218,89 @@ def _wait_until_ready(node: AnvilProcess, log_start: int) -> None:
             return
         time.sleep(0.05)
     raise AnvilError(f"anvil did not answer on {node.url} within {STARTUP_TIMEOUT} s")
+
+
+def usable_state(path: Path) -> Path | None:
+    """The state file to start from: `path` if it parses, else its .prev copy (a bad `path`,
+    e.g. cut short by a kill -9 of an older anvil writing it, is kept as .bad). No `path` is a
+    new chain: None, and a .prev left from a chain dropped with it is removed."""
+    previous = path.with_name(path.name + PREVIOUS_SUFFIX)
+    if not path.exists():
+        previous.unlink(missing_ok=True)
+        return None
+    for candidate in (path, previous):
+        if not candidate.exists():
+            continue
+        try:
+            json.loads(candidate.read_bytes())
+        except ValueError:
+            candidate.replace(candidate.with_name(candidate.name + BAD_SUFFIX))
+            continue
+        return candidate
+    return None
+
+
+class StateKeeper(threading.Thread):
+    """Writes the node's state to a file every `interval` seconds and once more on stop(), each
+    time atomically: a temporary file renamed into place, the previous one kept as .prev."""
+
+    def __init__(self, node: AnvilProcess, path: Path, interval: float | None) -> None:
+        super().__init__(name=f"anvil-state-{node.port}", daemon=True)
+        self.node = node
+        self.path = path
+        self.interval = DEFAULT_STATE_INTERVAL if interval is None else interval
+        self._stopping = threading.Event()
+        self._lock = threading.Lock()
+        self._written: bytes | None = None
+
+    def run(self) -> None:
+        while not self._stopping.wait(self.interval):
+            if self.node.process.poll() is not None:
+                return  # killed: what was written last is what a restart loads
+            self.write()
+
+    def stop(self) -> None:
+        """Stop writing periodically, after a last write if the node still answers."""
+        self._stopping.set()
+        if self.is_alive() and self is not threading.current_thread():
+            self.join(timeout=STOP_TIMEOUT)
+        if self.node.process.poll() is None:
+            self.write()
+
+    def write(self) -> bool:
+        """Write the node's state now if it changed; False if the node did not answer."""
+        with self._lock:
+            state = _dump_state(self.node.url)
+            if state is None:
+                return False
+            if state == self._written:
+                return True
+            partial = self.path.with_name(self.path.name + ".partial")
+            with partial.open("wb") as out:
+                out.write(state)
+                out.flush()
+                os.fsync(out.fileno())
+            if self.path.exists():
+                # A second name for the current copy, so the state file is never missing.
+                spare = self.path.with_name(self.path.name + PREVIOUS_SUFFIX + ".partial")
+                spare.unlink(missing_ok=True)
+                os.link(self.path, spare)
+                spare.replace(self.path.with_name(self.path.name + PREVIOUS_SUFFIX))
+            partial.replace(self.path)
+            self._written = state
+            return True
+
+
+def _dump_state(url: str) -> bytes | None:
+    """The node's state as anvil's --load-state reads it (anvil_dumpState gives it gzipped)."""
+    body = json.dumps({"jsonrpc": "2.0", "id": 1, "method": "anvil_dumpState", "params": []})
+    # A node URL from our own configuration, never from a request.
+    rpc = urllib.request.Request(  # noqa: S310
+        url, data=body.encode(), headers={"Content-Type": "application/json"}
+    )
+    try:
+        with urllib.request.urlopen(rpc, timeout=STOP_TIMEOUT) as response:  # noqa: S310
+            answer = json.loads(response.read())
+        return gzip.decompress(bytes.fromhex(answer["result"].removeprefix("0x")))
+    except (urllib.error.URLError, ConnectionError, TimeoutError, ValueError, KeyError, OSError):
+        return None

@@ -51,7 +51,9 @@ BANNER = "AuthROS portal is up."
 STATE_FILE = "stack.json"
 WEB_START_TIMEOUT = 90.0
 ROS_START_TIMEOUT = 30.0
-ANVIL_STATE_INTERVAL = 5
+# Seconds between writes of the chain state (stack/anvil.py StateKeeper): a crash of anvil
+# loses at most the last second, about the last block.
+ANVIL_STATE_INTERVAL = 1.0
 # Stopped one at a time in this order (anvil and Redis after them): nothing new is
 # scheduled while workers finish, and the chain outlives everything that writes to it.
 STOP_ORDER = (("beat",), ("web",), ("worker", "verify"), ("agent",), ("sim",), ("roscore",))

@@ -1,5 +1,6 @@
 """`manage.py chain_status`: node, chain id, latest block, contract, admin, operator balance,
-and whether the node is still the chain the contract was deployed on (a reset stops sending)."""
+and whether the node is still the chain the contract was deployed on (a reset stops sending)
+and still makes blocks (a stall pauses sending)."""
 
 import json
 from typing import Any
@@ -32,6 +33,8 @@ class Command(BaseCommand):
             ("chain id", status["chain_id"]),
             ("chain identity", status.get("chain_identity", "-")),
             ("latest block", status["latest_block"]),
+            ("since last block", f"{status.get('seconds_since_block', '-')} s"),
+            ("chain stalled", "yes" if status.get("chain_stalled") else "no"),
             ("contract", status["contract_address"] or "not deployed"),
             ("admin", status["admin"] or "-"),
             ("records anchored", status.get("record_count", "-")),
