@@ -12,12 +12,16 @@ the node is still the chain the portal deployed on (chainworker.services.chain_i
 """
 
 import logging
+import threading
+from collections.abc import Iterator
+from contextlib import contextmanager, suppress
 from datetime import timedelta
 
 from django.conf import settings
 from django.db import transaction
 from django.db.models import Exists, OuterRef
 from django.utils import timezone
+from redis.exceptions import LockError, RedisError
 
 from accounts.models import ChainState, Owner
 from accounts.services import owners_chain_reset, owners_reconcile
@@ -30,23 +34,25 @@ from chainworker.services import (
     contract_redeploy_after_reset,
     reconcile_window,
 )
-from chainworker.work import ChainWorkNotReady, exclusive
+from chainworker.work import ChainWorkNotReady
 from core.outbox import enqueue
+from core.redis_client import get_redis, redis_key
 from sharing.anchoring import anchor_schedule, record_chain_mismatch
 from sharing.models import Grant, Record
 
 logger = logging.getLogger(__name__)
 
-# One reconciliation or resync at a time; a run past its soft time limit frees the lock.
+# One reconciliation or resync at a time. The lock is short and renewed while a run goes on:
+# a worker killed in the middle frees it within RECONCILE_LOCK_TTL seconds.
 RECONCILE_LOCK = "reconcile"
-RECONCILE_LOCK_TTL = 660
+RECONCILE_LOCK_TTL = 30
 
 
 def chain_reconcile() -> dict[str, object]:
     """The periodic job: repair what the chain lost, or handle a reset chain (see above).
     Returns what it found; a run while another is under way does nothing."""
     try:
-        with exclusive(RECONCILE_LOCK, timeout=RECONCILE_LOCK_TTL, wait=0):
+        with _reconcile_lock(wait=0):
             identity = chain_identity()
             if identity.state == IDENTITY_UNDEPLOYED:
                 return {"identity": identity.state}
@@ -78,8 +84,38 @@ def chain_resync() -> dict[str, object]:
     on a reset chain the contract is deployed first; then every owner goes back to pending
     registration, every active grant to pending, every anchored record to pending, and the
     normal tasks send them again (idempotent: what is on chain already is skipped)."""
-    with exclusive(RECONCILE_LOCK, timeout=RECONCILE_LOCK_TTL, wait=30):
+    with _reconcile_lock(wait=30):
         return _resync()
+
+
+@contextmanager
+def _reconcile_lock(*, wait: float) -> Iterator[None]:
+    """Hold the reconciliation lock, renewed every RECONCILE_LOCK_TTL / 3 seconds by a thread
+    while the run goes on; ChainWorkNotReady if another run holds it after `wait` seconds."""
+    lock = get_redis().lock(
+        redis_key("work", RECONCILE_LOCK),
+        timeout=RECONCILE_LOCK_TTL,
+        blocking_timeout=wait,
+        thread_local=False,  # renewed from another thread
+    )
+    if not lock.acquire():
+        raise ChainWorkNotReady("a reconciliation is under way in another worker")
+    done = threading.Event()
+
+    def renew() -> None:
+        while not done.wait(RECONCILE_LOCK_TTL / 3):
+            with suppress(LockError, RedisError):
+                lock.reacquire()
+
+    renewer = threading.Thread(target=renew, name="reconcile-lock", daemon=True)
+    renewer.start()
+    try:
+        yield
+    finally:
+        done.set()
+        renewer.join()
+        with suppress(LockError, RedisError):
+            lock.release()
 
 
 def _resync() -> dict[str, object]:

@@ -14,6 +14,7 @@ import uuid
 from collections.abc import Callable
 from pathlib import Path
 
+import redis
 import requests
 from django.conf import settings
 from django.db import connection
@@ -161,6 +162,38 @@ class WorkerStack:
         self.anvil = start_anvil(
             block_time=self.block_time, state_path=self.state_path, port=self.port
         )
+
+    def kill_anvil(self) -> None:
+        """kill -9 the node: it writes no state, so what it mined since its last dump is lost."""
+        self.anvil.process.kill()
+        self.anvil.process.wait(timeout=10)
+        self.anvil.output.close()
+
+    def reset_anvil(self) -> None:
+        """Kill the node and start a new one on the same port with no state at all (a dev
+        chain reset: an empty chain where the old one was)."""
+        self.kill_anvil()
+        self.state_path.unlink(missing_ok=True)
+        self.restart_anvil()
+
+    def anvil_rpc(self, method: str, *params: object) -> object:
+        """A JSON-RPC call to the node (anvil_*, evm_* test methods); its result."""
+        body = {"jsonrpc": "2.0", "id": 1, "method": method, "params": list(params)}
+        answer = requests.post(self.anvil.url, json=body, timeout=30).json()
+        if "error" in answer:
+            raise AssertionError(f"{method}: {answer['error']}")
+        return answer["result"]
+
+    def redis_flush_own(self) -> int:
+        """Flush what this test holds in the shared test Redis (its key prefix, its Celery
+        queues), as a FLUSHDB would, leaving other tests' keys alone; how many keys went."""
+        client = redis.Redis.from_url(self.redis_url)
+        names = [
+            *client.scan_iter(f"{settings.REDIS_KEY_PREFIX}:*"),
+            *client.scan_iter(f"{self.queue}*"),
+            *client.scan_iter(f"_kombu.binding.{self.queue}*"),
+        ]
+        return client.delete(*names) if names else 0
 
     def worker_logs(self) -> str:
         return "\n".join(path.read_text(errors="replace") for path in self.logs.glob("*.log"))
