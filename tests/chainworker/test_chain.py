@@ -340,3 +340,10 @@ def test_unreachable_node_raises_chain_unavailable(redis_client):
 def test_unsupported_url_is_refused(redis_client):
     with pytest.raises(ValueError, match="unsupported chain URL"):
         AuthROSChain("ftp://example.invalid", redis_client=redis_client)
+
+
+def test_a_read_at_an_address_without_code_is_contract_not_deployed(chain):
+    # A chain reset leaves the recorded address empty: reads must say so, not crash.
+    chain.use_contract(Account.create().address)
+    with pytest.raises(ContractNotDeployed):
+        chain.commitment_of(Account.create().address)
