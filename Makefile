@@ -1,5 +1,5 @@
 # AuthROS portal. `make run` starts the stack, `make test` runs the whole suite.
-.PHONY: run test bench install lint format contracts lock clean
+.PHONY: run test bench soak install lint format contracts lock clean
 
 install:
 	bash scripts/bootstrap.sh
@@ -12,6 +12,10 @@ test:
 
 bench: install
 	.venv/bin/python -m bench
+
+# An hour of make run's stack with its simulated robot, sampled (not part of `make bench`).
+soak: install
+	.venv/bin/python -m bench soak
 
 lint: install
 	.venv/bin/ruff check .

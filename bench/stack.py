@@ -3,7 +3,8 @@
 Each run gets a fresh work folder (SQLite database, secrets, logs, anvil state), anvil on a
 free port (automine or a block time), the portal on a free port under gunicorn exactly as
 `make run` serves it, a chain worker with W pool processes, a verify worker and beat, all
-sharing a Redis database of the benchmark's own (flushed first); the ROS side is not started.
+sharing a Redis database of the benchmark's own (flushed first); the ROS side only with
+StackOptions.ros (the soak: roscore on a free port, the simulated robot, the demo agent).
 The benchmark's process then points its own Django at the same database, Redis, chain and
 secrets (from <workdir>/stack.json), to create owners and robots through the services and to
 watch records; it must be a fresh interpreter (bench.run_in_child), as Django reads its settings
@@ -59,6 +60,7 @@ class StackOptions:
     redis_url: str
     web: bool = True
     web_workers: int = 0  # 0: as make run sizes it
+    ros: bool = False  # roscore, the simulated robot and the demo agent, as make run
 
     @classmethod
     def for_run(
@@ -99,7 +101,8 @@ def web_description(web_workers: int = 0) -> str:
 
 
 class BenchStack:
-    """`python -m stack run --no-ros` in workdir; start(), use, stop() (always)."""
+    """`python -m stack run` in workdir (`--no-ros` unless options.ros); start(), use, stop()
+    (always)."""
 
     def __init__(self, options: StackOptions, workdir: Path) -> None:
         self.options = options
@@ -145,7 +148,7 @@ class BenchStack:
             "-m",
             "stack",
             "run",
-            "--no-ros",
+            "--ros" if options.ros else "--no-ros",
             "--workdir",
             str(self.var),
             "--port",
