@@ -703,6 +703,7 @@ def owner_top_up(*, owner_id: int) -> EoaFunding | None:
     CHAIN_EOA_TOPUP_BELOW_GAS, within the funding budget; the funding row, or None when nothing
     was needed (a zero-gas chain, enough left) or the budget is spent (an operator alert says
     so; the sweep asks again). Queued by chain work that met InsufficientFunds, and the sweep."""
+    chain_work_check()  # no ether goes to a reset or stalled chain
     # One top-up of an owner at a time (the one that waited finds the balance topped up); not
     # the owner's registration lock, which a sender meeting InsufficientFunds may hold.
     with exclusive(f"eoa-topup:{owner_id}", timeout=settings.CHAIN_RECEIPT_TIMEOUT + 30):

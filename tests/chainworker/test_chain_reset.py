@@ -8,6 +8,7 @@ import pytest
 from django.core.management import call_command
 from django.urls import reverse
 
+from accounts.services import owner_top_up
 from chainworker import services as chain_services
 from chainworker.chain import forget_in_process_chain
 from chainworker.models import Deployment
@@ -95,6 +96,8 @@ def test_on_a_real_network_a_reset_stops_sending_and_says_why(
         anchoring.records_anchor(owner_id=setup.owner.pk)
     with pytest.raises(ChainWorkNotReady, match="sending is stopped"):
         grant_sync_on_chain(grant_id=grant.pk)
+    with pytest.raises(ChainWorkNotReady, match="sending is stopped"):
+        owner_top_up(owner_id=setup.owner.pk)  # no ether to a chain that is not ours
     record.refresh_from_db()
     assert (record.status, record.anchor_attempts) == (Record.Status.PENDING, 0)
     assert Grant.objects.get(pk=grant.pk).status == Grant.Status.PENDING
