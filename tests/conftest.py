@@ -1,8 +1,10 @@
 """Fixtures shared by the whole suite: real Redis, an in-process EVM, a real anvil."""
 
 import json
+import logging
 import uuid
 from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from datetime import UTC, datetime, timedelta
 
@@ -219,3 +221,34 @@ def make_owner_token(db):
         )
 
     return make
+
+
+@contextmanager
+def logged_by(name: str) -> Iterator[list[logging.LogRecord]]:
+    """What the logger `name` logs meanwhile (pytest's caplog loses its handler when the first
+    task run inline sets Django's logging up again)."""
+    records: list[logging.LogRecord] = []
+    handler = logging.Handler()
+    handler.emit = records.append
+    logger = logging.getLogger(name)
+    logger.addHandler(handler)
+    try:
+        yield records
+    finally:
+        logger.removeHandler(handler)
+
+
+@pytest.fixture
+def fresh_chain(settings):
+    """Point the portal at a new, empty in-process chain (a reset); freed afterwards."""
+    urls = []
+
+    def reset() -> None:
+        url = f"eth-tester://reset-{uuid.uuid4().hex}"
+        urls.append(url)
+        settings.CHAIN_RPC_URL = url
+        chain_services._clients.clear()
+
+    yield reset
+    for url in urls:
+        forget_in_process_chain(url)

@@ -3,8 +3,7 @@ when a registration or rotation is confirmed, before uploads and before views; a
 changed on chain behind the portal's back refuses both (409) and is written down once."""
 
 import logging
-from collections.abc import Callable, Iterator
-from contextlib import contextmanager
+from collections.abc import Callable
 
 import pytest
 from django.test import Client
@@ -21,24 +20,9 @@ from sharing.models import Record
 from smcrypto import key_commitment, sm4
 from stack.anvil import free_port
 from tests.api.conftest import RECORDS, Snapshot, b64, session_client, token_client
-from tests.conftest import RobotSetup, seal_for
+from tests.conftest import RobotSetup, logged_by, seal_for
 
 pytestmark = pytest.mark.django_db
-
-
-@contextmanager
-def logged_by(name: str) -> Iterator[list[logging.LogRecord]]:
-    """What the logger `name` logs meanwhile (pytest's caplog loses its handler when the first
-    task run inline sets Django's logging up again)."""
-    records: list[logging.LogRecord] = []
-    handler = logging.Handler()
-    handler.emit = records.append
-    logger = logging.getLogger(name)
-    logger.addHandler(handler)
-    try:
-        yield records
-    finally:
-        logger.removeHandler(handler)
 
 
 @pytest.fixture

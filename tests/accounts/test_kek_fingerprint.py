@@ -6,8 +6,6 @@ import logging
 import os
 import subprocess
 import sys
-from collections.abc import Iterator
-from contextlib import contextmanager
 from pathlib import Path
 
 import pytest
@@ -26,7 +24,7 @@ from chainworker.services import operator_account, operator_verify
 from portal.middleware import service_checks_forget
 from smcrypto import sm4
 from stack.anvil import free_port
-from tests.conftest import TEST_PASSWORD
+from tests.conftest import TEST_PASSWORD, logged_by
 from tests.stack import wait_for
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
@@ -39,21 +37,6 @@ def fresh_checks(settings):
     service_checks_forget()
     yield
     service_checks_forget()
-
-
-@contextmanager
-def logged_by(name: str) -> Iterator[list[logging.LogRecord]]:
-    """What the logger `name` logs meanwhile (pytest's caplog loses its handler when the first
-    task run inline sets Django's logging up again)."""
-    records: list[logging.LogRecord] = []
-    handler = logging.Handler()
-    handler.emit = records.append
-    logger = logging.getLogger(name)
-    logger.addHandler(handler)
-    try:
-        yield records
-    finally:
-        logger.removeHandler(handler)
 
 
 def _master_key_path(settings) -> Path:

@@ -2,7 +2,6 @@
 does on a real network (stops sending and tells the operator)."""
 
 import logging
-import uuid
 
 import pytest
 from django.core.management import call_command
@@ -10,42 +9,15 @@ from django.urls import reverse
 
 from accounts.services import owner_top_up
 from chainworker import services as chain_services
-from chainworker.chain import forget_in_process_chain
 from chainworker.models import Deployment
 from chainworker.work import ChainWorkNotReady
 from sharing import anchoring
 from sharing.models import Grant, Record
 from sharing.reconcile import chain_reconcile
 from sharing.services import grant_create, grant_sync_on_chain, record_create
+from tests.conftest import logged_by
 
 pytestmark = pytest.mark.django_db
-
-
-@pytest.fixture
-def fresh_chain(settings):
-    """Point the portal at a new, empty in-process chain (a reset); freed afterwards."""
-    urls = []
-
-    def reset() -> None:
-        url = f"eth-tester://reset-{uuid.uuid4().hex}"
-        urls.append(url)
-        settings.CHAIN_RPC_URL = url
-        chain_services._clients.clear()
-
-    yield reset
-    for url in urls:
-        forget_in_process_chain(url)
-
-
-class _Collect(logging.Handler):
-    """Keeps the records of one logger (the portal's logging setup replaces caplog's handler)."""
-
-    def __init__(self) -> None:
-        super().__init__(logging.DEBUG)
-        self.records: list[logging.LogRecord] = []
-
-    def emit(self, record: logging.LogRecord) -> None:
-        self.records.append(record)
 
 
 def test_identity_before_and_after_deployment(db):
@@ -79,16 +51,11 @@ def test_on_a_real_network_a_reset_stops_sending_and_says_why(
     fresh_chain()
     settings.CHAIN_DEV_FAUCET = False  # a real network: no faucet, no redeployment by itself
 
-    seen = _Collect()
-    logging.getLogger("sharing.reconcile").addHandler(seen)
-    try:
+    with logged_by("sharing.reconcile") as seen:
         outcome = chain_reconcile()
-    finally:
-        logging.getLogger("sharing.reconcile").removeHandler(seen)
     assert outcome["identity"] == "reset"
     assert any(
-        r.levelno == logging.ERROR and "chain reset detected" in r.getMessage()
-        for r in seen.records
+        r.levelno == logging.ERROR and "chain reset detected" in r.getMessage() for r in seen
     )
     assert Deployment.objects.count() == 1  # nothing deployed by itself
 

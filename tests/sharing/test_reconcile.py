@@ -5,7 +5,6 @@ says, by the periodic job (sharing.reconcile.chain_reconcile) or `manage.py chai
 in-process chain.
 """
 
-import uuid
 from collections import Counter
 
 import pytest
@@ -15,7 +14,7 @@ from accounts.models import ChainState, OwnerKey
 from accounts.selectors import owner_eoa_account
 from accounts.services import key_rotate
 from chainworker import services as chain_services
-from chainworker.chain import AnchorItem, bytes32_to_record_id, forget_in_process_chain
+from chainworker.chain import AnchorItem, bytes32_to_record_id
 from sharing.models import Grant, Record, SecurityEvent, Verdict
 from sharing.reconcile import chain_reconcile
 from sharing.services import grant_create, grant_revoke
@@ -43,22 +42,6 @@ def on_commit(django_capture_on_commit_callbacks):
             return action()
 
     return run
-
-
-@pytest.fixture
-def fresh_chain(settings):
-    """Point the portal at a new, empty in-process chain (a reset); freed afterwards."""
-    urls = []
-
-    def reset() -> None:
-        url = f"eth-tester://reset-{uuid.uuid4().hex}"
-        urls.append(url)
-        settings.CHAIN_RPC_URL = url
-        chain_services._clients.clear()
-
-    yield reset
-    for url in urls:
-        forget_in_process_chain(url)
 
 
 def _uploaded_ids(client) -> Counter:
