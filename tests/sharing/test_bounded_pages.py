@@ -11,25 +11,11 @@ from django.urls import reverse
 
 from sharing import verification
 from sharing.models import Verdict
-from sharing.services import grant_create
 from sharing.views import TRAJECTORY_COST
 from stack.anvil import free_port
 from tests.pages.conftest import odometry, tamper
 
 pytestmark = pytest.mark.django_db
-
-
-@pytest.fixture
-def alice(make_robot):
-    return make_robot("alice")
-
-
-@pytest.fixture
-def bob(make_owner, alice, django_capture_on_commit_callbacks):
-    bob = make_owner("bob")
-    with django_capture_on_commit_callbacks(execute=True):
-        grant_create(owner=alice.owner, grantee=bob)
-    return bob
 
 
 @pytest.fixture

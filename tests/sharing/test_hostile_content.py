@@ -20,7 +20,6 @@ from sharing.content import (
     pose_of,
     trajectory_plot,
 )
-from sharing.services import grant_create
 from tests.pages.conftest import image, odometry
 
 
@@ -217,19 +216,6 @@ def test_a_pose_is_finite_or_none(plaintext):
 
 
 # --- through the pages, for the owner and a grantee ------------------------------------------
-
-
-@pytest.fixture
-def alice(make_robot):
-    return make_robot("alice")
-
-
-@pytest.fixture
-def bob(make_owner, alice, django_capture_on_commit_callbacks):
-    bob = make_owner("bob")
-    with django_capture_on_commit_callbacks(execute=True):
-        grant_create(owner=alice.owner, grantee=bob)
-    return bob
 
 
 PAGE_CASES = [
