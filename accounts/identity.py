@@ -9,7 +9,6 @@ answer is kept in Redis per owner and block, so a burst of requests costs one ch
 import logging
 from contextlib import suppress
 
-from django.conf import settings
 from django.db import transaction
 from redis.exceptions import RedisError
 
@@ -17,13 +16,15 @@ from accounts.errors import IdentityMismatch
 from accounts.events import account_event_record
 from accounts.models import AccountEvent, ChainState, Owner
 from chainworker.chain import AuthROSChain, ChainError
-from chainworker.services import chain_client
+from chainworker.services import chain_client, chain_head
 from core.redis_client import get_redis, redis_key
 
 logger = logging.getLogger(__name__)
 security_log = logging.getLogger("authros.security")
 # Seconds the chain's commitment for an owner at one block stays in Redis (blocks move on).
 IDENTITY_CACHE_TTL = 300
+# What the contract answers for an EOA that has no commitment on it.
+NOT_REGISTERED = "0x" + "00" * 32
 
 
 def owner_identity_check(*, owner: Owner, fresh: bool = False) -> bool:
@@ -31,7 +32,8 @@ def owner_identity_check(*, owner: Owner, fresh: bool = False) -> bool:
     portal holds (the newest confirmed one; while a rotation is on its way, the new one too).
 
     True when it was checked and holds; False when it cannot be checked (the owner is not on
-    chain yet, no contract, the chain does not answer), which is accepted. Otherwise raises
+    chain yet, or not on this chain any more: a reset or lost blocks, which reconciliation
+    repairs; no contract; the chain does not answer), which is accepted. Otherwise raises
     IdentityMismatch, after an AccountEvent (one per commitment seen on chain) and a line on
     the "authros.security" log. The chain's answer is kept in Redis per owner and block, so
     checks in a burst of requests cost no chain call; `fresh` asks the chain itself (to read
@@ -51,6 +53,10 @@ def owner_identity_check(*, owner: Owner, fresh: bool = False) -> bool:
         return False
     if on_chain in expected:
         return True
+    if on_chain == NOT_REGISTERED:
+        # Nobody's key: the chain lost the registration. Not another key, so not refused.
+        logger.warning("%s is not registered on the live chain; reconciliation repairs it", owner)
+        return False
     _identity_mismatch_record(owner, on_chain=on_chain, expected=expected[0])
     raise IdentityMismatch(
         f"the key commitment on chain for {owner} differs from the key the portal holds; "
@@ -74,26 +80,13 @@ def _identity_expected(owner: Owner) -> list[str]:
 
 
 def _commitment_on_chain(client: AuthROSChain, owner: Owner, *, fresh: bool) -> str:
-    block = client.latest_block() if fresh else _latest_block(client)
+    block = client.latest_block() if fresh else chain_head(client)
     key = redis_key("identity", client.chain_key, client.address, owner.eoa_address, block)
     if not fresh and (cached := _cache_get(key)) is not None:
         return cached
     on_chain = "0x" + client.commitment_of(owner.eoa_address).hex()
     _cache_set(key, on_chain, seconds=IDENTITY_CACHE_TTL)
     return on_chain
-
-
-def _latest_block(client: AuthROSChain) -> int:
-    """The chain's latest block, reused for IDENTITY_BLOCK_CACHE_SECONDS by every process."""
-    seconds = settings.IDENTITY_BLOCK_CACHE_SECONDS
-    if seconds <= 0:
-        return client.latest_block()
-    key = redis_key("latest-block", client.chain_key)
-    if (cached := _cache_get(key)) is not None:
-        return int(cached)
-    block = client.latest_block()
-    _cache_set(key, str(block), seconds=seconds)
-    return block
 
 
 def _cache_get(key: str) -> str | None:

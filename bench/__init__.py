@@ -34,6 +34,7 @@ BENCHMARKS = (
     "message_size",
     "pipeline",
     "report",
+    "roots",
     "sustained",
 )
 T = TypeVar("T")

@@ -61,6 +61,9 @@ ZERO_ADDRESS = "0x" + "00" * 20
 ZERO_BYTES32 = b"\x00" * 32
 # Gas estimates are taken against the pending state; a margin absorbs small state changes.
 GAS_MARGIN = 1.2
+# Gas for anchorRoot sent without an estimate (a root following one in flight): a sender's
+# first root takes about 70,000, the next ones about 55,000, whatever the tree's size.
+ANCHOR_ROOT_GAS = 120_000
 _INSUFFICIENT_FUNDS = re.compile(
     r"insufficient funds|cannot afford|not have enough balance", re.IGNORECASE
 )
@@ -216,6 +219,17 @@ class OnChainRecord:
     digest: bytes
     time: datetime
     data_type: str
+
+
+@dataclass(frozen=True)
+class OnChainRoot:
+    """A Merkle root as its sender anchored it (rootOf)."""
+
+    sender: str
+    root: bytes
+    size: int
+    time: datetime
+    block_number: int
 
 
 @dataclass(frozen=True)
@@ -494,6 +508,29 @@ class AuthROSChain:
         columns = list(zip(*(item.as_args() for item in items), strict=True))
         return self._transact(owner, "dataUploadBatch", *map(list, columns), wait=wait)
 
+    def anchor_root(
+        self,
+        sender: LocalAccount,
+        root: bytes,
+        size: int,
+        prev_root: bytes = bytes(32),
+        *,
+        wait: bool = True,
+        estimate: bool = True,
+    ) -> TxResult | str:
+        """Anchor the root of a tree of `size` records; `prev_root` is the sender's last root
+        (zeros for its first): anything else is refused with WrongPrevRoot.
+
+        estimate=False sends with ANCHOR_ROOT_GAS instead of estimating against the latest
+        block: for a root that follows one still in flight, which the latest block would
+        refuse (its prevRoot is not on chain yet)."""
+        if size < 1:
+            raise ValueError("a tree has at least one leaf")
+        args = (_bytes32(root), size, _bytes32(prev_root))
+        return self._transact(
+            sender, "anchorRoot", *args, wait=wait, gas=None if estimate else ANCHOR_ROOT_GAS
+        )
+
     def authority_grant(
         self, owner: LocalAccount, grantee: str, *, wait: bool = True
     ) -> TxResult | str:
@@ -529,6 +566,32 @@ class AuthROSChain:
             time=chain_time_to_datetime(when),
             data_type=bytes32_to_data_type(data_type),
         )
+
+    def root_of(self, sender: str, root: bytes) -> OnChainRoot | None:
+        """The root as `sender` anchored it, or None if it never did (on this chain)."""
+        size, when, block = self._call("rootOf", Web3.to_checksum_address(sender), _bytes32(root))
+        if int(size) == 0:
+            return None
+        return OnChainRoot(
+            sender=Web3.to_checksum_address(sender),
+            root=bytes(root),
+            size=int(size),
+            time=chain_time_to_datetime(when),
+            block_number=int(block),
+        )
+
+    def transaction_pending(self, tx_hash: str) -> bool:
+        """Whether the node holds the transaction and has not mined it yet (its pool)."""
+        with _translated_errors():
+            try:
+                tx = self.w3.eth.get_transaction(HexBytes(tx_hash))
+            except TransactionNotFound:
+                return False
+        return tx.get("blockNumber") is None
+
+    def last_root_of(self, sender: str) -> bytes:
+        """The last root `sender` anchored (zeros before its first)."""
+        return bytes(self._call("lastRootOf", Web3.to_checksum_address(sender)))
 
     def data_check(self, record_id: uuid.UUID | str, digest: bytes) -> bool:
         return bool(self._call("dataCheck", record_id_to_bytes32(record_id), _bytes32(digest)))
@@ -620,6 +683,23 @@ class AuthROSChain:
         events = [event for log in logs if (event := self._decode_log(log)) is not None]
         return events[0] if events else None
 
+    def root_event(self, sender: str, root: bytes) -> ChainEvent | None:
+        """The RootAnchored event of a sender's root (its transaction and block), if the node
+        still holds it."""
+        topic = "0x" + bytes(self._topic_by_event["RootAnchored"]).hex()
+        word = "0x" + Web3.to_checksum_address(sender).lower().removeprefix("0x").rjust(64, "0")
+        with _translated_errors():
+            logs = self.w3.eth.get_logs(
+                {
+                    "address": self.address,
+                    "fromBlock": 0,
+                    "toBlock": "latest",
+                    "topics": [topic, word, "0x" + _bytes32(root).hex()],
+                }
+            )
+        events = [event for log in logs if (event := self._decode_log(log)) is not None]
+        return events[0] if events else None
+
     def receipt_events(self, receipt: TxReceipt) -> list[ChainEvent]:
         if self._address is None:
             return []
@@ -699,10 +779,10 @@ class AuthROSChain:
                 raise ContractNotDeployed(f"{function}: no contract at {self._address}") from exc
 
     def _transact(
-        self, sender: LocalAccount, function: str, *args: Any, wait: bool
+        self, sender: LocalAccount, function: str, *args: Any, wait: bool, gas: int | None = None
     ) -> TxResult | str:
         fn = getattr(self.contract.functions, function)(*args)
-        tx_hash = self._send(sender, fn, label=function)
+        tx_hash = self._send(sender, fn, label=function, gas=gas)
         if not wait:
             return tx_hash
         return self._result(self.wait_for_receipt(tx_hash, function=function))
@@ -732,6 +812,7 @@ class AuthROSChain:
         to: str | None = None,
         value: int = 0,
         attempts: int = 3,
+        gas: int | None = None,
     ) -> str:
         """Sign and submit one transaction under the sender's nonce lock; return its hash.
 
@@ -739,7 +820,7 @@ class AuthROSChain:
         nonce, sign and hand the transaction to the node.
         """
         with _translated_errors(label):
-            tx = self._build(sender, fn, to=to, value=value, label=label)
+            tx = self._build(sender, fn, to=to, value=value, label=label, gas=gas)
         with (
             _translated_errors(label),
             self.nonces.reserve(sender.address, self._pending_nonce) as slot,
@@ -778,9 +859,16 @@ class AuthROSChain:
         return int(self.w3.eth.get_transaction_count(address, "pending"))
 
     def _build(
-        self, sender: LocalAccount, fn: Any, *, to: str | None, value: int, label: str
+        self,
+        sender: LocalAccount,
+        fn: Any,
+        *,
+        to: str | None,
+        value: int,
+        label: str,
+        gas: int | None = None,
     ) -> dict[str, Any]:
-        """The transaction without its nonce: gas estimated, fees filled."""
+        """The transaction without its nonce: gas estimated (unless given), fees filled."""
         params: dict[str, Any] = {"from": sender.address, "chainId": self.chain_id}
         if value:
             params["value"] = value
@@ -792,7 +880,8 @@ class AuthROSChain:
             else:
                 # Estimated at zero fees: the gas does not depend on them, and a sender funded
                 # for the gas it needs cannot cover a node's estimate at the block gas limit.
-                gas = int(fn.estimate_gas({**params, "gasPrice": 0}) * GAS_MARGIN)
+                if gas is None:
+                    gas = int(fn.estimate_gas({**params, "gasPrice": 0}) * GAS_MARGIN)
                 tx = fn.build_transaction(self._fill_fees({**params, "gas": gas}))
         except _REVERTS as exc:
             raise self._reverted(exc, label) from exc

@@ -65,6 +65,22 @@ def chain_client() -> AuthROSChain:
     return client
 
 
+def chain_head(client: AuthROSChain) -> int:
+    """The chain's latest block, as every process saw it at most IDENTITY_BLOCK_CACHE_SECONDS
+    ago (kept in Redis): a burst of views and uploads costs one eth_blockNumber."""
+    seconds = settings.IDENTITY_BLOCK_CACHE_SECONDS
+    if seconds <= 0:
+        return client.latest_block()
+    key = redis_key("latest-block", client.chain_key)
+    with suppress(RedisError):
+        if (cached := get_redis().get(key)) is not None:
+            return int(cached)
+    block = client.latest_block()
+    with suppress(RedisError):
+        get_redis().set(key, str(block), px=max(1, int(seconds * 1000)))
+    return block
+
+
 def _recorded_address(client: AuthROSChain) -> str | None:
     deployment = deployment_active(chain_id=client.chain_id, genesis_hash=client.genesis_hash)
     return deployment.address if deployment else None

@@ -13,6 +13,13 @@ contract AuthROS {
         bytes32 dataType;
     }
 
+    /// @dev A Merkle root as anchored by its sender; size 0 means "never anchored".
+    struct Root {
+        uint64 size;
+        uint64 time;
+        uint64 blockNumber;
+    }
+
     /// @notice Largest batch accepted by dataUploadBatch (keeps a full batch well under 30M gas).
     uint256 public constant MAX_BATCH = 256;
 
@@ -28,14 +35,22 @@ contract AuthROS {
     /// @notice Current key commitment of each registered EOA (zero until registered).
     mapping(address eoa => bytes32) public commitmentOf;
 
+    /// @notice The last root each sender anchored (zero before its first): the next root of
+    /// that sender must name it as prevRoot, so a sender's roots form one chain.
+    mapping(address sender => bytes32) public lastRootOf;
+
     mapping(bytes32 id => Record) private _records;
     mapping(address owner => mapping(address grantee => bool)) private _granted;
+    mapping(address sender => mapping(bytes32 root => Root)) private _roots;
 
     event Enrolled(address indexed eoa);
     event Registered(address indexed eoa, bytes32 commitment);
     event KeyRotated(address indexed eoa, bytes32 oldCommitment, bytes32 newCommitment);
     event DataUploaded(
         bytes32 indexed id, address indexed owner, bytes32 digest, uint64 time, bytes32 dataType
+    );
+    event RootAnchored(
+        address indexed sender, bytes32 indexed root, uint64 size, bytes32 prevRoot, uint64 time
     );
     event AuthorityGranted(address indexed owner, address indexed grantee);
     event AuthorityRevoked(address indexed owner, address indexed grantee);
@@ -58,6 +73,10 @@ contract AuthROS {
     error SelfGrant();
     error AlreadyGranted(address grantee);
     error NoGrant(address grantee);
+    error EmptyRoot();
+    error EmptyTree();
+    error RootExists(bytes32 root);
+    error WrongPrevRoot(bytes32 expected, bytes32 given);
 
     modifier onlyRegistered() {
         if (commitmentOf[msg.sender] == 0) revert NotRegistered(msg.sender);
@@ -132,6 +151,25 @@ contract AuthROS {
         }
     }
 
+    /// @notice Anchor the root of a Merkle tree of `size` records (DESIGN.md: SM3 leaves that
+    /// bind owner, record id and digest). Roots are kept per sender, so nobody can take
+    /// another sender's root first; `prevRoot` must be the sender's last root (zero for its
+    /// first), so a lost or reordered root is refused rather than silently skipped.
+    function anchorRoot(bytes32 root, uint64 size, bytes32 prevRoot) external {
+        if (msg.sender != admin && commitmentOf[msg.sender] == 0) {
+            revert NotRegistered(msg.sender);
+        }
+        if (root == 0) revert EmptyRoot();
+        if (size == 0) revert EmptyTree();
+        if (_roots[msg.sender][root].size != 0) revert RootExists(root);
+        bytes32 last = lastRootOf[msg.sender];
+        if (prevRoot != last) revert WrongPrevRoot(last, prevRoot);
+        uint64 time = uint64(block.timestamp);
+        _roots[msg.sender][root] = Root(size, time, uint64(block.number));
+        lastRootOf[msg.sender] = root;
+        emit RootAnchored(msg.sender, root, size, prevRoot, time);
+    }
+
     /// @notice Let a registered grantee read the caller's records.
     function authorityGrant(address grantee) external onlyRegistered {
         if (grantee == msg.sender) revert SelfGrant();
@@ -168,6 +206,16 @@ contract AuthROS {
     function hasAccess(address owner, address viewer) external view returns (bool) {
         if (owner == viewer) return commitmentOf[owner] != 0;
         return _granted[owner][viewer];
+    }
+
+    /// @notice A root as `sender` anchored it: size 0 if it never did.
+    function rootOf(address sender, bytes32 root)
+        external
+        view
+        returns (uint64 size, uint64 time, uint64 blockNumber)
+    {
+        Root storage r = _roots[sender][root];
+        return (r.size, r.time, r.blockNumber);
     }
 
     /// @notice True iff the EOA has registered a key commitment.

@@ -5,13 +5,21 @@ from drf_spectacular.views import SpectacularAPIView, SpectacularSwaggerView
 
 from accounts.apis import Sm2PublicKeyApi
 from core.api_errors import api_not_found
-from sharing.apis import GrantRevokeApi, GrantsApi, RecordContentApi, RecordDetailApi, RecordsApi
+from sharing.apis import (
+    GrantRevokeApi,
+    GrantsApi,
+    RecordContentApi,
+    RecordDetailApi,
+    RecordProofApi,
+    RecordsApi,
+)
 
 v1 = [
     path("sm2-public-key/", Sm2PublicKeyApi.as_view(), name="sm2-public-key"),
     path("records/", RecordsApi.as_view(), name="records"),
     path("records/<str:record_id>/", RecordDetailApi.as_view(), name="record-detail"),
     path("records/<str:record_id>/content/", RecordContentApi.as_view(), name="record-content"),
+    path("records/<str:record_id>/proof/", RecordProofApi.as_view(), name="record-proof"),
     path("grants/", GrantsApi.as_view(), name="grants"),
     path("grants/<str:grantee>/", GrantRevokeApi.as_view(), name="grant-revoke"),
 ]

@@ -9,6 +9,7 @@ import os
 from pathlib import Path
 
 import environ
+from django.core.exceptions import ImproperlyConfigured
 from kombu import Queue
 
 from core.secrets import load_or_create_secret
@@ -330,7 +331,15 @@ CELERY_BEAT_SCHEDULE = {
 }
 
 # --- Anchoring and the ciphertext cache ---------------------------------------------------
+# "records": one slot per record (dataUploadBatch, the paper's interface and the benchmarks'
+# baseline); "root": one Merkle root per tree of an owner's records (anchorRoot, DESIGN.md).
+ANCHOR_MODE = env.str("ANCHOR_MODE", default="root")
+if ANCHOR_MODE not in ("records", "root"):
+    raise ImproperlyConfigured(f"ANCHOR_MODE must be records or root, not {ANCHOR_MODE!r}")
+# Records per dataUploadBatch transaction (records mode; the contract takes at most 256).
 ANCHOR_BATCH_MAX = env.int("ANCHOR_BATCH_MAX", default=100)
+# Records per Merkle tree (root mode): a root costs the same gas whatever its size.
+ANCHOR_ROOT_MAX = env.int("ANCHOR_ROOT_MAX", default=4096)
 # Seconds a new record may wait for others of its owner to fill a batch.
 ANCHOR_MAX_WAIT = env.float("ANCHOR_MAX_WAIT", default=1.0)
 # Pending work older than this is queued again by the sweep (lost message, dead worker).

@@ -9,6 +9,8 @@ one `{"id", "digest", "status"}` per envelope. What the uploader does with each 
 | 201 with one result per envelope      | delivered: removed from the spool                     |
 | 409 replayed_sequence, one envelope   | delivered before (its 201 was lost): removed          |
 | 409 replayed_sequence, a batch        | the batch is sent again one by one, to see which      |
+| 409 sequence_conflict, one envelope   | the portal holds other data under that seq: refused,  |
+|                                       | moved to rejected/, an error that names a stolen token|
 | 400/403/413/other 4xx, one envelope   | refused for good: moved to rejected/, counted failed  |
 | 400/403/413/other 4xx, a batch        | sent again one by one, so only the bad one is refused |
 | 401, 404, 405                         | our token or URL is wrong: kept, retried with backoff |
@@ -40,6 +42,7 @@ from ros_agent.spool import Spool, SpoolItem
 logger = logging.getLogger(f"{LOGGER_NAME}.uploader")
 
 REPLAYED_SEQUENCE = "replayed_sequence"
+SEQUENCE_CONFLICT = "sequence_conflict"
 _OUR_MISTAKE = frozenset({401, 404, 405})
 _TRANSIENT = frozenset({408, 425, 429})
 BACKOFF_BASE = 0.5
@@ -305,6 +308,13 @@ class Uploader:
             },
         )
         failed = self._counters.add("failed", len(items))
+        if answer.error == SEQUENCE_CONFLICT:
+            logger.error(
+                "the portal holds other data under seq %s of this robot: the robot lost its "
+                "state, or someone else uploads with its token and key. Check the robot, and "
+                "revoke its token in the portal if it is not in your hands",
+                _seq_range(items),
+            )
         logger.error(
             "the portal refused seq %s for good (%s): moved to %s/rejected (%d failed so far)",
             _seq_range(items),

@@ -1,5 +1,6 @@
 """Anchoring: the SM3 digests of pending records go on chain in `dataUploadBatch`
-transactions sent by their owner's EOA, a fair share of one owner per task run.
+transactions sent by their owner's EOA (ANCHOR_MODE=records), or under Merkle roots sent with
+`anchorRoot` (ANCHOR_MODE=root, sharing/roots.py), a fair share of one owner per task run.
 
 A record moves pending -> anchored (or failed after ANCHOR_MAX_ATTEMPTS); only these services
 and the upload move it. Every run is idempotent: ids are write-once on chain, and a record
@@ -19,7 +20,6 @@ from django.db.models import F
 from django.utils import timezone
 from redis.exceptions import LockError, RedisError
 from redis.lock import Lock
-from web3.types import TxReceipt
 
 from accounts.models import ChainActivity, ChainState, Owner
 from accounts.selectors import owner_eoa_account
@@ -33,10 +33,12 @@ from chainworker.chain import (
     TransactionTimeout,
 )
 from chainworker.services import chain_client, chain_stall_check, chain_work_check
-from chainworker.work import WAITING_FOR_GAS, ChainWorkNotReady
+from chainworker.work import ChainWorkNotReady
 from core.outbox import enqueue
 from core.redis_client import get_redis, redis_key
+from sharing.anchor_wait import gas_wait_end, gas_wait_start, lock_renew, receipt_await
 from sharing.models import Record, SecurityEvent
+from sharing.roots import roots_anchor_round
 
 logger = logging.getLogger(__name__)
 security_log = logging.getLogger("authros.security")
@@ -92,7 +94,8 @@ def records_anchor(*, owner_id: int) -> int:
         raise ChainWorkNotReady(f"cannot lock owner {owner_id} in Redis: {exc}") from exc
     try:
         _wait_for_batch_to_fill(owner_id)
-        anchored, sent = _anchor_round(chain_client(), owner, lock)
+        anchor_round = roots_anchor_round if settings.ANCHOR_MODE == "root" else _anchor_round
+        anchored, sent = anchor_round(chain_client(), owner, lock)
     finally:
         with suppress(LockError, RedisError):
             lock.release()
@@ -119,7 +122,8 @@ def _wait_for_batch_to_fill(owner_id: int) -> None:
     is ANCHOR_MAX_WAIT old, unless a full batch is already waiting."""
     pending = Record.objects.filter(owner_id=owner_id, status=Record.Status.PENDING)
     oldest = pending.order_by("created_at").values_list("created_at", flat=True).first()
-    if oldest is None or pending.count() >= settings.ANCHOR_BATCH_MAX:
+    full = settings.ANCHOR_ROOT_MAX if settings.ANCHOR_MODE == "root" else settings.ANCHOR_BATCH_MAX
+    if oldest is None or pending.count() >= full:
         return
     remaining = settings.ANCHOR_MAX_WAIT - (timezone.now() - oldest).total_seconds()
     if remaining > 0:
@@ -134,7 +138,7 @@ def _anchor_round(client: AuthROSChain, owner: Owner, lock: Lock) -> tuple[int, 
     cannot_pay: InsufficientFunds | None = None
     for _ in range(settings.ANCHOR_INFLIGHT):
         # "One sender per EOA": stop if our hold on the owner lapsed (a long wait before).
-        if not _renew(lock):
+        if not lock_renew(lock):
             break
         sent_ids = [r.pk for batch, _tx in in_flight for r in batch]
         batch = _settle_attempted(client, owner, _next_batch(owner.pk, exclude=sent_ids))
@@ -160,10 +164,8 @@ def _anchor_round(client: AuthROSChain, owner: Owner, lock: Lock) -> tuple[int, 
             Record.objects.filter(pk__in=batch_ids, anchor_attempts__gt=0).update(
                 anchor_attempts=F("anchor_attempts") - 1
             )
-            Record.objects.filter(owner_id=owner.pk, status=Record.Status.PENDING).exclude(
-                pk__in=sent_ids
-            ).update(failure_reason=WAITING_FOR_GAS)
-            enqueue("accounts.tasks.owner_top_up", owner.pk)
+            pending = Record.objects.filter(owner_id=owner.pk, status=Record.Status.PENDING)
+            gas_wait_start(owner.pk, pending.exclude(pk__in=sent_ids))
             cannot_pay = exc
             break
         except TransactionReverted as exc:
@@ -174,15 +176,13 @@ def _anchor_round(client: AuthROSChain, owner: Owner, lock: Lock) -> tuple[int, 
             # rest go in the next run.
             _settle_attempted(client, owner, batch, force=True)
             break
-        if not in_flight:  # it can pay again: what waited for gas no longer does
-            Record.objects.filter(
-                owner_id=owner.pk, status=Record.Status.PENDING, failure_reason=WAITING_FOR_GAS
-            ).update(failure_reason="")
+        if not in_flight:
+            gas_wait_end(owner.pk)
         in_flight.append((batch, tx_hash))
     anchored = 0
     for position, (batch, tx_hash) in enumerate(in_flight):
         try:
-            receipt = _await_receipt(client, tx_hash, lock)
+            receipt = receipt_await(client, tx_hash, lock)
         except TransactionTimeout:
             # Waited the whole receipt timeout: if the chain made no block meanwhile it is
             # stalled, which is not these records' fault, so (as for ChainUnavailable) the
@@ -215,20 +215,6 @@ def _anchor_round(client: AuthROSChain, owner: Owner, lock: Lock) -> tuple[int, 
     return anchored, len(in_flight)
 
 
-def _renew(lock: Lock) -> bool:
-    """Extend our hold on a lock; False if it expired meanwhile (another worker may own it).
-
-    Losing it is safe, not fatal: ids are write-once on chain and a duplicate send is
-    settled as already anchored. We stop after the batch in hand.
-    """
-    try:
-        lock.reacquire()
-    except (LockError, RedisError) as exc:
-        logger.warning("lost lock %s (%s); finishing the batch in hand", lock.name, exc)
-        return False
-    return True
-
-
 def _next_batch(owner_id: int, *, exclude: list[uuid.UUID]) -> list[Record]:
     pending = Record.objects.filter(owner_id=owner_id, status=Record.Status.PENDING)
     exhausted = pending.filter(anchor_attempts__gte=settings.ANCHOR_MAX_ATTEMPTS)
@@ -247,19 +233,6 @@ def anchor_item(record: Record) -> AnchorItem:
         time=record.captured_at,
         data_type=record.data_type,
     )
-
-
-def _await_receipt(client: AuthROSChain, tx_hash: str, lock: Lock) -> TxReceipt:
-    """Wait for the receipt in short steps, keeping the owner's anchoring lock alive."""
-    deadline = time.monotonic() + client.receipt_timeout
-    while True:
-        step = min(settings.ANCHOR_LOCK_TTL / 3, max(deadline - time.monotonic(), 0.1))
-        try:
-            return client.wait_for_receipt(tx_hash, timeout=step)
-        except TransactionTimeout:
-            if time.monotonic() >= deadline:
-                raise
-            _renew(lock)
 
 
 def _settle_attempted(

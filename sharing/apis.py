@@ -38,8 +38,9 @@ from accounts.authentication import (
     caller_robot,
 )
 from accounts.models import OwnerToken
+from chainworker.services import chain_client
 from core.api_errors import error_responses
-from sharing.errors import RecordNotFound
+from sharing.errors import NotAnchoredYet, RecordNotFound
 from sharing.models import Grant, Record
 from sharing.selectors import (
     RECORD_FILTER_STATUSES,
@@ -48,6 +49,7 @@ from sharing.selectors import (
     record_list_filtered,
     record_list_uploaded_by,
     record_list_visible_to,
+    record_proof,
 )
 from sharing.services import (
     GRANT_MADE_WITH,
@@ -374,7 +376,9 @@ class RecordsApi(APIView):
                 e403="`permission_denied` (not a robot token), `header_mismatch` (another "
                 "owner or robot), `unknown_key` (not the owner's current key), "
                 "`forged_envelope` (does not open under the owner's key)",
-                e409="`replayed_sequence`: a seq not above the robot's last one; "
+                e409="`replayed_sequence`: these very envelopes are stored already (a lost 201); "
+                "`sequence_conflict`: a seq not above the robot's last one, with other data "
+                "(the owner is told: a robot that lost its state, or a stolen token and key); "
                 "`identity_check_failed`: the owner's key commitment on chain differs from "
                 "the key the portal holds (an operator must look)",
             ),
@@ -505,6 +509,80 @@ class RecordContentApi(APIView):
             "envelope": resealed,
         }
         return Response(self.OutputSerializer(data).data)
+
+
+class ProofAnchorSerializer(serializers.Serializer):
+    class Meta:
+        ref_name = "ProofAnchor"
+
+    chain_id = serializers.IntegerField()
+    contract = serializers.CharField(help_text="the AuthROS contract's address")
+    sender = serializers.CharField(help_text="the account that anchored it (the owner's)")
+    tx = serializers.CharField()
+    block = serializers.IntegerField(allow_null=True)
+
+
+class RecordProofApi(APIView):
+    """`GET /api/v1/records/{id}/proof/`: the record's anchoring proof."""
+
+    def get_permissions(self) -> list[BasePermission]:
+        return [IsAuthenticated(), OwnerCredential(READ, "read a record's proof")]
+
+    class OutputSerializer(serializers.Serializer):
+        class Meta:
+            ref_name = "RecordProof"
+
+        record = serializers.UUIDField()
+        owner = serializers.CharField(help_text="the owner's EOA")
+        digest = serializers.CharField(help_text="SM3 of the envelope, 0x hex")
+        mode = serializers.ChoiceField(choices=["root", "record"])
+        leaf_index = serializers.IntegerField()
+        tree_size = serializers.IntegerField()
+        path = serializers.ListField(
+            child=serializers.CharField(), help_text="the audit path, leaf up (RFC 9162 2.1.3)"
+        )
+        root = serializers.CharField(help_text="the anchored root (record mode: the digest)")
+        anchor = ProofAnchorSerializer()
+
+    @extend_schema(
+        operation_id="records_proof",
+        summary="The record's anchoring proof, to check it without the portal",
+        description=(
+            "Root mode: SM3 the envelope, make the leaf SM3(0x00 || owner || record id || "
+            "digest), fold the path (RFC 9162 2.1.3.2) to the root, and call "
+            "rootOf(sender, root) on the contract: its size must be tree_size. Record mode: "
+            "dataQuery(record id) holds the digest. For the owner or a grantee (a session, or "
+            "an owner API token with the `read` scope)."
+        ),
+        auth=OWNER_ONLY,
+        parameters=[_RECORD_ID],
+        responses={
+            200: OutputSerializer,
+            **error_responses(
+                401,
+                403,
+                404,
+                409,
+                e403=ROBOT_REFUSED.format(scope="read"),
+                e404="`not_found`: no such record, or not shared with you",
+                e409="`not_anchored_yet`: the record is not on chain yet",
+            ),
+        },
+    )
+    def get(self, request: Request, record_id: str) -> Response:
+        record = (
+            record_list_visible_to(caller_owner(request))
+            .select_related("owner", "anchor_root")
+            .filter(pk=_record_uuid(record_id))
+            .first()
+        )
+        if record is None:
+            raise RecordNotFound("no such record, or not shared with you")
+        if record.status != Record.Status.ANCHORED:
+            raise NotAnchoredYet("the record is not anchored yet; try again shortly")
+        client = chain_client()
+        proof = record_proof(record, chain_id=client.chain_id, contract=client.address)
+        return Response(self.OutputSerializer(proof).data)
 
 
 # --- grants ----------------------------------------------------------------------------------

@@ -15,6 +15,7 @@ must never be evicted. Beside each entry `<prefix>:envelope:<id>`:
 import logging
 import time
 import uuid
+from collections.abc import Sequence
 from functools import lru_cache
 
 import redis
@@ -88,27 +89,44 @@ def _script(client: redis.Redis, source: str) -> Script:
 
 def _run(script: str, *args: object, now_ms: int | None = None) -> int:
     now = int(time.time() * 1000) if now_ms is None else now_ms
-    return _script(get_redis(), script)(
-        keys=_bookkeeping(),
-        args=[
-            redis_key("envelope", ""),
-            now,
-            settings.ENVELOPE_CACHE_TTL,
-            settings.ENVELOPE_CACHE_MAX_BYTES,
-            *args,
-        ],
-    )
+    return _script(get_redis(), script)(keys=_bookkeeping(), args=[*_fixed_args(now), *args])
+
+
+def _fixed_args(now_ms: int) -> list[object]:
+    """The arguments every script call starts with: entry key prefix, now, ttl, max bytes."""
+    return [
+        redis_key("envelope", ""),
+        now_ms,
+        settings.ENVELOPE_CACHE_TTL,
+        settings.ENVELOPE_CACHE_MAX_BYTES,
+    ]
 
 
 def envelope_cache_put(
     record_id: uuid.UUID | str, data: bytes, *, now_ms: int | None = None
 ) -> None:
-    if len(data) > min(settings.ENVELOPE_CACHE_MAX_ITEM_BYTES, settings.ENVELOPE_CACHE_MAX_BYTES):
+    envelope_cache_put_many([(record_id, data)], now_ms=now_ms)
+
+
+def envelope_cache_put_many(
+    items: Sequence[tuple[uuid.UUID | str, bytes]], *, now_ms: int | None = None
+) -> None:
+    """Cache each (record id, data), in one round trip to Redis; one too big is not cached."""
+    limit = min(settings.ENVELOPE_CACHE_MAX_ITEM_BYTES, settings.ENVELOPE_CACHE_MAX_BYTES)
+    items = [(record_id, data) for record_id, data in items if len(data) <= limit]
+    if not items:
         return
+    now = int(time.time() * 1000) if now_ms is None else now_ms
     try:
-        evicted = _run(_PUT, str(record_id), data, now_ms=now_ms)
+        client = get_redis()
+        script = _script(client, _PUT)
+        with client.pipeline(transaction=False) as pipe:
+            for record_id, data in items:
+                args = [*_fixed_args(now), str(record_id), data]
+                script(keys=_bookkeeping(), args=args, client=pipe)
+            evicted = sum(int(n or 0) for n in pipe.execute())
     except RedisError as exc:
-        logger.warning("envelope cache unavailable (put %s): %s", record_id, exc)
+        logger.warning("envelope cache unavailable (put %d envelopes): %s", len(items), exc)
         return
     if evicted:
         logger.debug("envelope cache full: evicted the %d oldest entries", evicted)

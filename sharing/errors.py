@@ -45,8 +45,22 @@ class ForgedEnvelope(SharingError):
 
 
 class ReplayedSequence(SharingError):
+    """These very envelopes are stored already (a retransmission whose 201 was lost)."""
+
     code = "replayed_sequence"
     http_status = 409
+
+
+class SequenceConflict(SharingError):
+    """A sequence number this robot used already, for other data (or skipped): a robot that
+    lost its state, or someone else uploading with its token and key."""
+
+    code = "sequence_conflict"
+    http_status = 409
+
+    def __init__(self, message: str, *, detail: dict[str, Any] | None = None) -> None:
+        super().__init__(message)
+        self.detail = detail or {}
 
 
 class OwnerNotFound(SharingError):

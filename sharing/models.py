@@ -8,6 +8,44 @@ from django.db import models
 from accounts.models import Owner, OwnerToken, Robot
 
 
+class AnchorRoot(models.Model):
+    """A Merkle tree of one owner's records (smcrypto.merkle), its root anchored by the
+    owner's EOA with anchorRoot; roots of one sender are chained by prev_root on chain."""
+
+    class Status(models.TextChoices):
+        SENT = "sent", "sent"  # built and sent (or about to be): may still land
+        ANCHORED = "anchored", "anchored"
+        DROPPED = "dropped", "dropped"  # can never land: its records went into another tree
+
+    owner = models.ForeignKey(Owner, on_delete=models.PROTECT, related_name="anchor_roots")
+    sender = models.CharField(max_length=42, help_text="the EOA that anchors it")
+    root = models.CharField(max_length=64, help_text="hex SM3 Merkle root")
+    prev_root = models.CharField(max_length=64, help_text="the sender's root before it")
+    size = models.PositiveIntegerField()
+    # The records' ids (16 bytes each) in leaf order: the tree can be rebuilt from these.
+    leaves = models.BinaryField()
+    status = models.CharField(max_length=16, choices=Status.choices, default=Status.SENT)
+    tx_hash = models.CharField(max_length=66, blank=True)
+    block_number = models.BigIntegerField(null=True, blank=True)
+    anchored_at = models.DateTimeField(null=True, blank=True)
+    created_at = models.DateTimeField(auto_now_add=True)
+
+    class Meta:
+        ordering = ["-created_at"]
+        constraints = [
+            # A dropped tree's records may form the same tree again, after another root.
+            models.UniqueConstraint(
+                fields=["sender", "root"],
+                condition=~models.Q(status="dropped"),
+                name="anchor_root_unique",
+            ),
+        ]
+        indexes = [models.Index(fields=["owner", "status"], name="anchor_root_owner_status")]
+
+    def __str__(self) -> str:
+        return f"{self.owner} root {self.root[:12]} ({self.size}, {self.status})"
+
+
 class Record(models.Model):
     """One envelope: its bytes live in durable storage, its SM3 digest on chain."""
 
@@ -34,6 +72,13 @@ class Record(models.Model):
     anchor_attempts = models.PositiveIntegerField(default=0)
     failure_reason = models.CharField(max_length=300, blank=True)
     tampered_at = models.DateTimeField(null=True, blank=True)
+    # Anchoring by Merkle root (ANCHOR_MODE=root): the tree the record is in (while pending:
+    # the tree in flight), its leaf index and audit path (32-byte hashes, leaf up).
+    anchor_root = models.ForeignKey(
+        AnchorRoot, on_delete=models.PROTECT, null=True, blank=True, related_name="records"
+    )
+    leaf_index = models.PositiveIntegerField(null=True, blank=True)
+    merkle_path = models.BinaryField(default=b"", blank=True)
     created_at = models.DateTimeField(auto_now_add=True)
 
     class Meta:
@@ -137,6 +182,7 @@ class SecurityEvent(models.Model):
         TAMPERED_ON_VIEW = "tampered_on_view", "stored data differs from the chain"
         CHAIN_DIGEST_MISMATCH = "chain_digest_mismatch", "chain holds another digest for the id"
         FORGED_UPLOAD = "forged_upload", "upload refused as forged"
+        SEQUENCE_CONFLICT = "sequence_conflict", "a robot's sequence number used for other data"
 
     kind = models.CharField(max_length=32, choices=Kind.choices)
     record = models.ForeignKey(Record, on_delete=models.SET_NULL, null=True, blank=True)

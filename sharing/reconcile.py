@@ -2,10 +2,11 @@
 
 A periodic job (`chain_reconcile`, Celery beat every RECONCILE_INTERVAL) first asks whether
 the node is still the chain the portal deployed on (chainworker.services.chain_identity):
-- the same chain: anchored records (the recent ones every run, all of them in chunks of
-  RECONCILE_CHUNK with a cursor in Redis), owners' registration and keys, and grants are
-  read back from the chain. What the chain lacks goes back to pending and is sent again by
-  the normal tasks; another digest or owner under a record id is a SecurityEvent;
+- the same chain: anchored records and Merkle roots (the recent ones every run, all of them
+  in chunks of RECONCILE_CHUNK with a cursor in Redis), owners' registration and keys, and
+  grants are read back from the chain. What the chain lacks goes back to pending and is sent
+  again by the normal tasks; another digest or owner under a record id, or another size
+  under a root, is a SecurityEvent;
 - a reset chain (new genesis or chain id, no contract code): on a development chain the
   contract is deployed again and everything re-created from the database (`chain_resync`);
   on a real network nothing is sent (chain_work_check) and the operator is told.
@@ -16,10 +17,11 @@ import threading
 from collections.abc import Iterator
 from contextlib import contextmanager, suppress
 from datetime import timedelta
+from typing import Any
 
 from django.conf import settings
 from django.db import transaction
-from django.db.models import Exists, OuterRef
+from django.db.models import Exists, OuterRef, QuerySet
 from django.utils import timezone
 from redis.exceptions import LockError, RedisError
 
@@ -38,7 +40,8 @@ from chainworker.work import ChainWorkNotReady
 from core.outbox import enqueue
 from core.redis_client import get_redis, redis_key
 from sharing.anchoring import anchor_schedule, record_chain_mismatch
-from sharing.models import Grant, Record
+from sharing.models import AnchorRoot, Grant, Record, SecurityEvent
+from sharing.roots import tree_lost
 
 logger = logging.getLogger(__name__)
 
@@ -73,6 +76,7 @@ def chain_reconcile() -> dict[str, object]:
             counts: dict[str, object] = {"identity": identity.state}
             counts.update(owners_reconcile(owners=_owners_window()))
             counts.update(records_reconcile())
+            counts.update(roots_reconcile())
             counts.update(grants_reconcile())
             return counts
     except ChainWorkNotReady:
@@ -138,6 +142,10 @@ def _resync() -> dict[str, object]:
         for grant in grants:
             transaction.on_commit(lambda g=grant.pk: enqueue("sharing.tasks.grant_sync", g))
         counts["grants"] = len(grants)
+        # Trees go back to sent: each is sent again as it was, after the same previous root.
+        counts["roots"] = AnchorRoot.objects.filter(status=AnchorRoot.Status.ANCHORED).update(
+            status=AnchorRoot.Status.SENT, tx_hash="", block_number=None, anchored_at=None
+        )
         counts["records"] = Record.objects.filter(status=Record.Status.ANCHORED).update(
             status=Record.Status.PENDING,
             anchor_attempts=0,
@@ -154,13 +162,10 @@ def records_reconcile() -> dict[str, int]:
     ANCHOR_STALE_AFTER * 10 seconds (at most RECONCILE_CHUNK) and the next RECONCILE_CHUNK of
     all of them. One missing on chain goes back to pending and anchoring is queued; another
     digest or owner under its id fails it with a SecurityEvent."""
-    anchored = Record.objects.filter(status=Record.Status.ANCHORED).select_related("owner")
-    since = timezone.now() - timedelta(seconds=settings.ANCHOR_STALE_AFTER * 10)
-    recent = list(
-        anchored.filter(anchored_at__gte=since).order_by("-anchored_at")[: settings.RECONCILE_CHUNK]
-    )
-    window = reconcile_window(name="records", queryset=anchored, size=settings.RECONCILE_CHUNK)
-    records = {record.pk: record for record in [*recent, *window]}
+    anchored = Record.objects.filter(
+        status=Record.Status.ANCHORED, anchor_root__isnull=True
+    ).select_related("owner")  # records under a root: roots_reconcile
+    records = _recent_and_window(anchored, name="records")
     client = chain_client()
     lost: list[Record] = []
     mismatches = 0
@@ -192,6 +197,53 @@ def records_reconcile() -> dict[str, int]:
     if lost:
         logger.warning("the chain lost %d anchored record(s): anchoring them again", len(lost))
     return {"records_checked": len(records), "records_lost": requeued, "digests": mismatches}
+
+
+def roots_reconcile() -> dict[str, int]:
+    """Read back anchored Merkle roots, as records_reconcile reads records: a root its sender
+    has not anchored on this chain goes back to sent, with its records, and anchoring is
+    queued; one anchored with another size is also a SecurityEvent."""
+    anchored = AnchorRoot.objects.filter(status=AnchorRoot.Status.ANCHORED).select_related("owner")
+    trees = _recent_and_window(anchored, name="roots")
+    client = chain_client()
+    lost: list[AnchorRoot] = []
+    for tree in trees.values():
+        on_chain = client.root_of(tree.sender, bytes.fromhex(tree.root))
+        if on_chain is not None and on_chain.size == tree.size:
+            continue
+        if on_chain is not None:
+            SecurityEvent.objects.create(
+                kind=SecurityEvent.Kind.CHAIN_DIGEST_MISMATCH,
+                owner=tree.owner,
+                detail={"root": tree.root, "size": tree.size, "chain_size": on_chain.size},
+            )
+            logger.error(
+                "root %s: the chain holds size %s, we hold %s", tree.root, on_chain.size, tree.size
+            )
+        lost.append(tree)
+    requeued = 0
+    for owner_id in sorted({tree.owner_id for tree in lost}):
+        mine = [tree for tree in lost if tree.owner_id == owner_id]
+        requeued += sum(tree_lost(tree) for tree in mine)
+        client.resync_nonce(mine[0].sender)
+        anchor_schedule(owner_id=owner_id)
+    if lost:
+        logger.warning(
+            "the chain lost %d root(s) of %d record(s): anchoring them again", len(lost), requeued
+        )
+    return {"roots_checked": len(trees), "roots_lost": len(lost)}
+
+
+def _recent_and_window(anchored: QuerySet, *, name: str) -> dict[Any, Any]:
+    """The rows of `anchored` (by primary key) a run reads back: those anchored in the last
+    ANCHOR_STALE_AFTER * 10 seconds (at most RECONCILE_CHUNK) and the next RECONCILE_CHUNK of
+    all of them (a cursor per `name`)."""
+    since = timezone.now() - timedelta(seconds=settings.ANCHOR_STALE_AFTER * 10)
+    recent = list(
+        anchored.filter(anchored_at__gte=since).order_by("-anchored_at")[: settings.RECONCILE_CHUNK]
+    )
+    window = reconcile_window(name=name, queryset=anchored, size=settings.RECONCILE_CHUNK)
+    return {row.pk: row for row in [*recent, *window]}
 
 
 def grants_reconcile() -> dict[str, int]:

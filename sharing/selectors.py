@@ -8,6 +8,7 @@ from django.db.models.functions import RowNumber
 
 from accounts.models import ChainActivity, Owner, OwnerToken, Robot
 from sharing.models import Grant, Record, SecurityEvent, Verdict
+from smcrypto.merkle import path_split
 
 
 def owners_granting(viewer: Owner) -> QuerySet[Owner]:
@@ -195,3 +196,33 @@ def grant_list_made_with(token: OwnerToken) -> QuerySet[Grant]:
 def record_list_uploaded_by(robot: Robot) -> QuerySet[Record]:
     """What a robot's own token may see: the records that robot uploaded."""
     return record_list_owned(robot.owner).filter(robot=robot)
+
+
+def record_proof(record: Record, *, chain_id: int, contract: str) -> dict[str, object]:
+    """The anchoring proof of an anchored record (DESIGN.md "Anchoring by Merkle roots"), hex
+    with 0x: enough for anyone to check the record against the chain without the portal."""
+    tree = record.anchor_root
+    if tree is not None:
+        path = ["0x" + step.hex() for step in path_split(record.merkle_path)]
+        mode, index, size, root = "root", record.leaf_index, tree.size, tree.root
+        sender, tx, block = tree.sender, tree.tx_hash, tree.block_number
+    else:  # records mode: dataQuery holds the digest itself
+        path, mode, index, size, root = [], "record", 0, 1, record.digest
+        sender, tx, block = record.owner.eoa_address, record.tx_hash, record.block_number
+    return {
+        "record": str(record.id),
+        "owner": record.owner.eoa_address,
+        "digest": "0x" + record.digest,
+        "mode": mode,
+        "leaf_index": index,
+        "tree_size": size,
+        "path": path,
+        "root": "0x" + root,
+        "anchor": {
+            "chain_id": chain_id,
+            "contract": contract,
+            "sender": sender,
+            "tx": tx,
+            "block": block,
+        },
+    }

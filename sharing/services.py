@@ -14,7 +14,6 @@ from dataclasses import dataclass
 from datetime import UTC, datetime, timedelta
 
 from django.conf import settings
-from django.core.files.base import ContentFile
 from django.db import IntegrityError, transaction
 from django.utils import timezone
 
@@ -31,7 +30,7 @@ from chainworker.services import chain_client, chain_work_check
 from chainworker.work import WAITING_FOR_GAS, ChainWorkNotReady, exclusive
 from core.outbox import enqueue
 from sharing.anchoring import anchor_schedule
-from sharing.cache import envelope_cache_put
+from sharing.cache import envelope_cache_put_many
 from sharing.errors import (
     AlreadyGranted,
     EnvelopeTooLarge,
@@ -44,11 +43,12 @@ from sharing.errors import (
     OwnerNotFound,
     ReplayedSequence,
     SelfGrant,
+    SequenceConflict,
     UnknownKey,
 )
 from sharing.models import Grant, Record, SecurityEvent
 from sharing.selectors import grant_list_made_with
-from sharing.storage import envelope_storage
+from sharing.storage import envelope_storage, envelopes_save
 from smcrypto import CryptoError, envelope, sm3
 
 logger = logging.getLogger(__name__)
@@ -67,6 +67,7 @@ class _CheckedUpload:
     header: dict
     key: OwnerKey
     captured_at: datetime
+    digest: str  # SM3 of data, hex
 
 
 def record_create(*, robot: Robot, data: bytes) -> Record:
@@ -85,27 +86,24 @@ def record_create_batch(*, robot: Robot, envelopes: Sequence[bytes]) -> list[Rec
         raise InvalidEnvelope("no envelopes in the upload")
     # The owner's commitment on chain must be the key the envelopes are sealed under.
     owner_identity_check(owner=robot.owner)
-    checked = [_check_upload(robot, data) for data in envelopes]
+    keys: dict[str, tuple[OwnerKey, bytes] | None] = {}
+    checked = [_check_upload(robot, data, keys) for data in envelopes]
     seqs = [c.header["seq"] for c in checked]
     if seqs != sorted(set(seqs)):
         raise InvalidEnvelope("sequence numbers in one upload must strictly increase")
-    storage = envelope_storage()
-    saved: list[str] = []
+    names: list[str] = []
     try:
         with transaction.atomic():
             locked = Robot.objects.select_for_update().get(pk=robot.pk)
             if seqs[0] <= locked.last_seq:
-                raise ReplayedSequence(
-                    f"seq {seqs[0]} is not above {locked.last_seq}, the last one of this robot"
-                )
-            records = []
-            for upload in checked:
-                name = storage.save(
-                    f"{robot.owner_id}/{upload.record_id}.env", ContentFile(upload.data)
-                )
-                saved.append(name)
-                records.append(
-                    Record.objects.create(
+                _sequence_check(robot, checked, last_seq=locked.last_seq)
+            names = envelopes_save(
+                envelope_storage(),
+                [(f"{robot.owner_id}/{c.record_id}.env", c.data) for c in checked],
+            )
+            records = Record.objects.bulk_create(
+                [
+                    Record(
                         id=upload.record_id,
                         owner_id=robot.owner_id,
                         robot=robot,
@@ -114,29 +112,86 @@ def record_create_batch(*, robot: Robot, envelopes: Sequence[bytes]) -> list[Rec
                         seq=upload.header["seq"],
                         captured_at=upload.captured_at,
                         key_id=upload.key.key_id,
-                        digest=sm3.sm3_hex(upload.data),
+                        digest=upload.digest,
                         size=len(upload.data),
                         storage_name=name,
                     )
-                )
+                    for upload, name in zip(checked, names, strict=True)
+                ]
+            )
             Robot.objects.filter(pk=robot.pk).update(last_seq=seqs[-1])
             transaction.on_commit(lambda: _after_upload(robot.owner_id, checked))
+    except SequenceConflict as conflict:
+        _sequence_conflict_alarm(robot, conflict.detail)  # outside the refused transaction
+        raise
     except BaseException:
         # Nothing of a refused or failed upload stays behind, not even its files.
-        for name in saved:
-            with suppress(OSError):
-                storage.delete(name)
+        _files_forget(names)
         raise
     return records
 
 
+def _sequence_check(robot: Robot, checked: Sequence[_CheckedUpload], *, last_seq: int) -> None:
+    """An upload whose first seq is not above the robot's last: ReplayedSequence if these very
+    envelopes are stored (the agent counts them delivered), else SequenceConflict and a
+    SecurityEvent (the agent keeps them as refused, and the owner is told)."""
+    stored = dict(
+        Record.objects.filter(robot=robot, seq__in=[c.header["seq"] for c in checked]).values_list(
+            "seq", "digest"
+        )
+    )
+    if all(stored.get(c.header["seq"]) == c.digest for c in checked):
+        raise ReplayedSequence(f"seq {checked[0].header['seq']} is stored already, as sent")
+    seq = checked[0].header["seq"]
+    raise SequenceConflict(
+        f"seq {seq} is not above {last_seq}, the last one of this robot, and is not data this "
+        "robot uploaded: check the robot, and revoke its token if it is not in your hands",
+        detail={"robot": str(robot.id), "seq": seq, "last_seq": last_seq},
+    )
+
+
+def _sequence_conflict_alarm(robot: Robot, detail: dict) -> None:
+    SecurityEvent.objects.create(
+        kind=SecurityEvent.Kind.SEQUENCE_CONFLICT, owner=robot.owner, detail=detail
+    )
+    security_log.warning(
+        "robot %s uploaded seq %s, not above its last %s, with other data than it stored",
+        detail["robot"],
+        detail["seq"],
+        detail["last_seq"],
+    )
+
+
+def _files_forget(names: Sequence[str]) -> None:
+    storage = envelope_storage()
+    for name in names:
+        with suppress(OSError):
+            storage.delete(name)
+
+
 def _after_upload(owner_id: int, uploads: Sequence[_CheckedUpload]) -> None:
-    for upload in uploads:
-        envelope_cache_put(upload.record_id, upload.data)
+    envelope_cache_put_many([(upload.record_id, upload.data) for upload in uploads])
     anchor_schedule(owner_id=owner_id)
 
 
-def _check_upload(robot: Robot, data: bytes) -> _CheckedUpload:
+def _upload_key(
+    owner: Owner, key_id: str, keys: dict[str, tuple[OwnerKey, bytes] | None]
+) -> tuple[OwnerKey, bytes] | None:
+    """The owner's key `key_id` and its bytes, if an upload may be sealed under it (the current
+    key, or one retired within KEY_ROTATION_GRACE); looked up and unwrapped once per upload."""
+    if key_id not in keys:
+        key = owner.keys.filter(key_id=key_id).first()
+        grace_start = timezone.now() - KEY_ROTATION_GRACE
+        usable = key is not None and (
+            key.is_current or (key.retired_at is not None and key.retired_at > grace_start)
+        )
+        keys[key_id] = (key, owner_key_bytes(key)) if usable else None
+    return keys[key_id]
+
+
+def _check_upload(
+    robot: Robot, data: bytes, keys: dict[str, tuple[OwnerKey, bytes] | None]
+) -> _CheckedUpload:
     if len(data) > settings.ENVELOPE_MAX_BYTES:
         raise EnvelopeTooLarge(
             f"envelope of {len(data)} bytes is above the limit of {settings.ENVELOPE_MAX_BYTES}"
@@ -154,12 +209,12 @@ def _check_upload(robot: Robot, data: bytes) -> _CheckedUpload:
             raise InvalidEnvelope(f"{field} is longer than {MAX_FIELD_LENGTH} characters")
         if "\x00" in header[field]:
             raise InvalidEnvelope(f"{field} contains a NUL character")
-    key = owner.keys.filter(key_id=info.key_id.hex()).first()
-    grace_start = timezone.now() - KEY_ROTATION_GRACE
-    if key is None or not (key.is_current or (key.retired_at and key.retired_at > grace_start)):
+    usable = _upload_key(owner, info.key_id.hex(), keys)
+    if usable is None:
         raise UnknownKey("the envelope is not sealed under the owner's current key")
+    key, key_bytes = usable
     try:
-        envelope.open(owner_key_bytes(key), data)
+        envelope.open(key_bytes, data)
     except CryptoError:
         SecurityEvent.objects.create(
             kind=SecurityEvent.Kind.FORGED_UPLOAD,
@@ -172,7 +227,8 @@ def _check_upload(robot: Robot, data: bytes) -> _CheckedUpload:
     if captured_at < EPOCH:
         # The chain stores capture times as unsigned microseconds since 1970.
         raise InvalidEnvelope("the capture time must be 1970-01-01T00:00:00Z or later")
-    return _CheckedUpload(uuid.uuid4(), bytes(data), header, key, captured_at)
+    data = bytes(data)
+    return _CheckedUpload(uuid.uuid4(), data, header, key, captured_at, sm3.sm3_hex(data))
 
 
 # --- grants ----------------------------------------------------------------------------------

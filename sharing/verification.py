@@ -25,7 +25,7 @@ from accounts.identity import owner_identity_check
 from accounts.models import Owner
 from accounts.selectors import owner_key_bytes, owner_key_current
 from chainworker.chain import AuthROSChain
-from chainworker.services import chain_client
+from chainworker.services import chain_client, chain_head
 from core.outbox import dispatch
 from sharing.cache import envelope_cache_evict, envelope_fetch
 from sharing.errors import (
@@ -37,8 +37,10 @@ from sharing.errors import (
     VerificationUnavailable,
 )
 from sharing.models import Grant, Record, SecurityEvent, Verdict
+from sharing.roots import record_path
 from sharing.selectors import record_topic_history
 from smcrypto import envelope, sm3
+from smcrypto.merkle import leaf_hash, proof_holds
 
 logger = logging.getLogger(__name__)
 security_log = logging.getLogger("authros.security")
@@ -61,14 +63,15 @@ def record_verify(
 ) -> Verification:
     """Check access on chain and the stored envelope's SM3 digest against the chain.
 
-    Every check leaves a Verdict: the audit trail of who viewed what, when, at which block.
+    Every check leaves a Verdict: the audit trail of who viewed what, when, and the chain's
+    head then (as last seen by the portal, at most IDENTITY_BLOCK_CACHE_SECONDS old).
     `checked_by_id` names the operator running the check with the viewer's rights (the admin
     console's re-verify), so that it is not recorded as the viewer's own view.
     """
-    record = Record.objects.select_related("owner").get(pk=record_id)
+    record = Record.objects.select_related("owner", "anchor_root").get(pk=record_id)
     viewer = Owner.objects.get(pk=viewer_id)
     client = chain_client()
-    block = client.latest_block()
+    block = chain_head(client)
 
     def verdict(outcome: str, **fields: object) -> Verdict:
         return Verdict.objects.create(
@@ -76,7 +79,7 @@ def record_verify(
             viewer=viewer,
             checked_by_id=checked_by_id,
             outcome=outcome,
-            block_number=block,
+            block_number=max(block, record.block_number or 0),
             **fields,
         )
 
@@ -89,16 +92,16 @@ def record_verify(
 def records_verify(*, record_ids: Sequence[uuid.UUID | str], viewer_id: int) -> list[Verification]:
     """record_verify for several records of one viewer in one run (a trajectory's poses).
 
-    One latest block, one access check per record owner, one digest read on chain per record,
+    One chain head, one access check per record owner, one digest read on chain per record,
     and every verdict written in one INSERT. One Verification per record that exists, in the
     order asked.
     """
     wanted = [uuid.UUID(str(record_id)) for record_id in record_ids]
-    found = Record.objects.select_related("owner").in_bulk(wanted)
+    found = Record.objects.select_related("owner", "anchor_root").in_bulk(wanted)
     records = [found[record_id] for record_id in wanted if record_id in found]
     viewer = Owner.objects.get(pk=viewer_id)
     client = chain_client()
-    block = client.latest_block()
+    block = chain_head(client)
     may_view: dict[int, bool] = {}
     checked: list[tuple[dict[str, object], bytes | None]] = []
     for record in records:
@@ -109,7 +112,12 @@ def records_verify(*, record_ids: Sequence[uuid.UUID | str], viewer_id: int) -> 
         else:
             checked.append(({"outcome": Verdict.Outcome.NO_ACCESS}, None))
     verdicts = Verdict.objects.bulk_create(
-        Verdict(record=record, viewer=viewer, block_number=block, **fields)
+        Verdict(
+            record=record,
+            viewer=viewer,
+            block_number=max(block, record.block_number or 0),
+            **fields,
+        )
         for record, (fields, _data) in zip(records, checked, strict=True)
     )
     return [
@@ -125,6 +133,8 @@ def _digest_check(
     bytes checked when they match."""
     data, source = envelope_fetch(record)
     computed = sm3.sm3_hex(data)
+    if record.anchor_root_id is not None:
+        return _proof_check(record, viewer, client, data=data, source=source, computed=computed)
     on_chain = client.data_query(record.id)
     if on_chain is None:
         fields = {"computed_digest": computed, "source": source}
@@ -132,6 +142,44 @@ def _digest_check(
     chain_digest = on_chain.digest.hex()
     fields = {"computed_digest": computed, "chain_digest": chain_digest, "source": source}
     if chain_digest != computed or on_chain.owner.lower() != record.owner.eoa_address.lower():
+        _record_tampered(record, viewer, source=source, computed=computed, chain=chain_digest)
+        return {"outcome": Verdict.Outcome.TAMPERED, **fields}, None
+    return {"outcome": Verdict.Outcome.VERIFIED, **fields}, data
+
+
+def _proof_check(
+    record: Record,
+    viewer: Owner,
+    client: AuthROSChain,
+    *,
+    data: bytes,
+    source: str,
+    computed: str,
+) -> tuple[dict[str, object], bytes | None]:
+    """Root mode: the record's leaf (owner, id, the stored envelope's SM3) folded up its audit
+    path must give its tree's root, which the owner's account anchored with the same size:
+    one eth_call (rootOf), no per-record storage on chain."""
+    tree = record.anchor_root
+    fields = {"computed_digest": computed, "source": source}
+    on_chain = client.root_of(tree.sender, bytes.fromhex(tree.root))
+    if on_chain is None:
+        return {"outcome": Verdict.Outcome.NOT_ANCHORED_YET, **fields}, None
+    # The digest the portal stored is the one its tree holds iff the stored proof folds to
+    # the anchored root; the envelope is intact iff it hashes to that digest.
+    anchored = (
+        proof_holds(
+            leaf_hash(tree.sender, record.id, bytes.fromhex(record.digest)),
+            record.leaf_index if record.leaf_index is not None else -1,
+            on_chain.size,
+            record_path(record),
+            bytes.fromhex(tree.root),
+        )
+        and on_chain.size == tree.size
+        and tree.sender.lower() == record.owner.eoa_address.lower()
+    )
+    chain_digest = record.digest if anchored else ""
+    fields["chain_digest"] = chain_digest
+    if computed != chain_digest:
         _record_tampered(record, viewer, source=source, computed=computed, chain=chain_digest)
         return {"outcome": Verdict.Outcome.TAMPERED, **fields}, None
     return {"outcome": Verdict.Outcome.VERIFIED, **fields}, data

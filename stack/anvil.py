@@ -19,10 +19,11 @@ file that does not parse is set aside (<state>.bad) and the .prev copy is loaded
 
 from __future__ import annotations
 
-import gzip
+import hashlib
 import json
 import os
 import platform
+import re
 import shutil
 import signal
 import socket
@@ -32,6 +33,7 @@ import threading
 import time
 import urllib.error
 import urllib.request
+import zlib
 from dataclasses import dataclass
 from pathlib import Path
 from types import TracebackType
@@ -153,6 +155,7 @@ def start_anvil(
     log_path: Path | None = None,
     die_with_parent: bool = False,
     zero_gas: bool = False,
+    transaction_blocks: int | None = None,
 ) -> AnvilProcess:
     """Start anvil on a free port and return once its JSON-RPC answers.
 
@@ -165,6 +168,9 @@ def start_anvil(
     log_path: anvil's output goes there (appended); else it is silent.
     die_with_parent: the kernel stops it if the process that started it dies (see Children).
     zero_gas: gas costs nothing (ZERO_GAS_ARGS); else anvil's own fees (1 gwei base fee).
+    transaction_blocks: keep the transactions (and their receipts and logs) of only this many
+        latest blocks; else all of them. The node's memory and its state file then grow with
+        block headers alone (about 1.7 KiB a block, against several KiB with transactions).
     """
 
     args = [str(anvil_binary()), "--host", HOST]
@@ -174,6 +180,8 @@ def start_anvil(
         args += ZERO_GAS_ARGS
     if block_time is not None:
         args += ["--block-time", str(block_time)]
+    if transaction_blocks is not None:
+        args += ["--transaction-block-keeper", str(transaction_blocks)]
     if state_path is not None and (loaded := usable_state(Path(state_path))) is not None:
         args += ["--load-state", str(loaded)]
     last_error = ""
@@ -242,7 +250,14 @@ def usable_state(path: Path) -> Path | None:
 
 class StateKeeper(threading.Thread):
     """Writes the node's state to a file every `interval` seconds and once more on stop(), each
-    time atomically: a temporary file renamed into place, the previous one kept as .prev."""
+    time atomically: a temporary file renamed into place, the previous one kept as .prev.
+
+    The state is streamed from the node to the file, never held whole in memory (it grows with
+    the chain), and a write that finds the state unchanged (same SHA-256) replaces nothing. The
+    pause after a write is at least PACE times what the write took, so the node never spends
+    more than about 1/PACE of its time answering anvil_dumpState."""
+
+    PACE = 4
 
     def __init__(self, node: AnvilProcess, path: Path, interval: float | None) -> None:
         super().__init__(name=f"anvil-state-{node.port}", daemon=True)
@@ -251,10 +266,11 @@ class StateKeeper(threading.Thread):
         self.interval = DEFAULT_STATE_INTERVAL if interval is None else interval
         self._stopping = threading.Event()
         self._lock = threading.Lock()
-        self._written: bytes | None = None
+        self._written: str | None = None  # the SHA-256 of what the file holds
+        self.last_duration = 0.0
 
     def run(self) -> None:
-        while not self._stopping.wait(self.interval):
+        while not self._stopping.wait(max(self.interval, self.PACE * self.last_duration)):
             if self.node.process.poll() is not None:
                 return  # killed: what was written last is what a restart loads
             self.write()
@@ -270,37 +286,72 @@ class StateKeeper(threading.Thread):
     def write(self) -> bool:
         """Write the node's state now if it changed; False if the node did not answer."""
         with self._lock:
-            state = _dump_state(self.node.url)
-            if state is None:
-                return False
-            if state == self._written:
-                return True
+            started = time.monotonic()
             partial = self.path.with_name(self.path.name + ".partial")
-            with partial.open("wb") as out:
-                out.write(state)
-                out.flush()
-                os.fsync(out.fileno())
-            if self.path.exists():
-                # A second name for the current copy, so the state file is never missing.
-                spare = self.path.with_name(self.path.name + PREVIOUS_SUFFIX + ".partial")
-                spare.unlink(missing_ok=True)
-                os.link(self.path, spare)
-                spare.replace(self.path.with_name(self.path.name + PREVIOUS_SUFFIX))
-            partial.replace(self.path)
-            self._written = state
-            return True
+            try:
+                with partial.open("wb") as out:
+                    digest = _stream_state(self.node.url, out)
+                    if digest is not None and digest != self._written:
+                        out.flush()
+                        os.fsync(out.fileno())
+                if digest is None or digest == self._written:
+                    partial.unlink(missing_ok=True)
+                    return digest is not None
+                if self.path.exists():
+                    # A second name for the current copy, so the state file is never missing.
+                    spare = self.path.with_name(self.path.name + PREVIOUS_SUFFIX + ".partial")
+                    spare.unlink(missing_ok=True)
+                    os.link(self.path, spare)
+                    spare.replace(self.path.with_name(self.path.name + PREVIOUS_SUFFIX))
+                partial.replace(self.path)
+                self._written = digest
+                return True
+            finally:
+                self.last_duration = time.monotonic() - started
 
 
-def _dump_state(url: str) -> bytes | None:
-    """The node's state as anvil's --load-state reads it (anvil_dumpState gives it gzipped)."""
+# anvil's answer: {"jsonrpc":"2.0","id":1,"result":"0x<hex of the gzipped state>"}
+_RESULT_START = re.compile(rb'"result"\s*:\s*"(?:0x)?')
+_HEAD_LIMIT = 4096
+_CHUNK = 1 << 18
+
+
+def _stream_state(url: str, out: IO[bytes]) -> str | None:
+    """Write the node's state, as anvil's --load-state reads it (anvil_dumpState gives it
+    gzipped, in hex), to `out` a chunk at a time; its SHA-256, or None if the node did not
+    answer with a whole state."""
     body = json.dumps({"jsonrpc": "2.0", "id": 1, "method": "anvil_dumpState", "params": []})
     # A node URL from our own configuration, never from a request.
     rpc = urllib.request.Request(  # noqa: S310
         url, data=body.encode(), headers={"Content-Type": "application/json"}
     )
+    inflate = zlib.decompressobj(wbits=16 + zlib.MAX_WBITS)
+    digest = hashlib.sha256()
     try:
         with urllib.request.urlopen(rpc, timeout=STOP_TIMEOUT) as response:  # noqa: S310
-            answer = json.loads(response.read())
-        return gzip.decompress(bytes.fromhex(answer["result"].removeprefix("0x")))
-    except (urllib.error.URLError, ConnectionError, TimeoutError, ValueError, KeyError, OSError):
+            head = b""
+            while (found := _RESULT_START.search(head)) is None:
+                chunk = response.read(256)
+                if not chunk or len(head) > _HEAD_LIMIT:
+                    return None  # an error answer, or not anvil's
+                head += chunk
+            pending = head[found.end() :]
+            while True:
+                end = pending.find(b'"')
+                text = pending if end < 0 else pending[:end]
+                even = len(text) - len(text) % 2
+                data = inflate.decompress(bytes.fromhex(text[:even].decode("ascii")))
+                out.write(data)
+                digest.update(data)
+                if end >= 0:
+                    break
+                more = response.read(_CHUNK)
+                if not more:
+                    return None  # cut short
+                pending = text[even:] + more
+        data = inflate.flush()
+        out.write(data)
+        digest.update(data)
+    except (urllib.error.URLError, ConnectionError, TimeoutError, ValueError, OSError, zlib.error):
         return None
+    return digest.hexdigest() if inflate.eof else None

@@ -32,6 +32,11 @@ WEB_BACKLOG = 2048
 WEB_TIMEOUT = 120
 WEB_MAX_WORKERS = 8
 WEB_MAX_THREADS = 8
+# Each web process is replaced after about this many requests (give or take the jitter, so
+# they are not all replaced at once), finishing what it serves first: a process that serves
+# for weeks keeps its memory where it started (the one-hour soak saw +11% without it).
+WEB_MAX_REQUESTS = 2000
+WEB_MAX_REQUESTS_JITTER = 200
 _PR_SET_PDEATHSIG = 1
 
 
@@ -206,6 +211,10 @@ def gunicorn(
         str(WEB_TIMEOUT),
         "--graceful-timeout",
         "10",
+        "--max-requests",
+        str(WEB_MAX_REQUESTS),
+        "--max-requests-jitter",
+        str(WEB_MAX_REQUESTS_JITTER),
         *(["--access-logfile", "-"] if access_log else []),
         "--error-logfile",
         "-",

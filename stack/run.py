@@ -54,6 +54,10 @@ ROS_START_TIMEOUT = 30.0
 # Seconds between writes of the chain state (stack/anvil.py StateKeeper): a crash of anvil
 # loses at most the last second, about the last block.
 ANVIL_STATE_INTERVAL = 1.0
+# The development node keeps the transactions, receipts and logs of the latest blocks only
+# (about 17 minutes of make run's traffic): the portal reads the chain's state and recent
+# receipts, never old logs, and the state written every second stays a few MiB.
+ANVIL_TRANSACTION_BLOCKS = 1024
 # Stopped one at a time in this order (anvil and Redis after them): nothing new is
 # scheduled while workers finish, and the chain outlives everything that writes to it.
 STOP_ORDER = (("beat",), ("web",), ("worker", "verify"), ("agent",), ("sim",), ("roscore",))
@@ -248,6 +252,7 @@ class Stack:
             state_path=state,
             port=config.anvil_port,
             state_interval=ANVIL_STATE_INTERVAL,
+            transaction_blocks=ANVIL_TRANSACTION_BLOCKS,
             log_path=self.logs / "anvil.log",
             die_with_parent=True,
             zero_gas=True,

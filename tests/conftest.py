@@ -18,8 +18,12 @@ from accounts.models import Owner, OwnerToken, Robot
 from accounts.services import owner_create, owner_token_create, robot_create
 from chainworker import services as chain_services
 from chainworker.chain import AuthROSChain, forget_in_process_chain
+from core.redis_client import get_redis
 from portal.celery import app as celery_app
 from portal.middleware import service_checks_forget
+from sharing.cache import _key as cache_key
+from sharing.models import Record
+from sharing.storage import envelope_storage
 from smcrypto import envelope, key_commitment, sm4
 from stack.anvil import AnvilProcess, start_anvil
 
@@ -171,6 +175,36 @@ class RobotSetup:
 
 
 @pytest.fixture
+def records_mode(settings):
+    """Anchor one record per slot (ANCHOR_MODE=records, the paper's interface): for tests of
+    that mode's own behaviour (dataUploadBatch, write-once ids)."""
+    settings.ANCHOR_MODE = "records"
+
+
+@pytest.fixture
+def worker_stack(tmp_path, settings):
+    """Start real Celery workers and beat on an anvil of their own (tests.stack.WorkerStack):
+    worker_stack(workers=N, block_time=None, env_overrides=None); stopped after the test."""
+    from tests.stack import WorkerStack
+
+    stacks = []
+
+    def make(
+        *,
+        workers: int,
+        block_time: float | None = None,
+        env_overrides: dict[str, str] | None = None,
+    ) -> WorkerStack:
+        stack = WorkerStack(tmp_path, block_time=block_time, env_overrides=env_overrides)
+        stacks.append(stack)
+        return stack.start(settings, workers=workers)
+
+    yield make
+    for stack in stacks:
+        stack.stop()
+
+
+@pytest.fixture
 def make_robot(make_owner):
     """An owner (registered on chain) with one robot, and the owner's SM4 key."""
 
@@ -252,3 +286,14 @@ def fresh_chain(settings):
     yield reset
     for url in urls:
         forget_in_process_chain(url)
+
+
+def tamper(record: Record) -> None:
+    """Flip one byte of the stored envelope (durable copy), and drop the cached one."""
+    get_redis().delete(cache_key(record.id))
+    path = envelope_storage().path(record.storage_name)
+    with open(path, "r+b") as handle:
+        handle.seek(40)
+        byte = handle.read(1)
+        handle.seek(40)
+        handle.write(bytes([byte[0] ^ 0x01]))

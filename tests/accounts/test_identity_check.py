@@ -14,7 +14,7 @@ from accounts.models import AccountEvent, ChainState, Owner
 from accounts.selectors import owner_eoa_account, owner_key_current
 from accounts.services import key_rotate, owner_register_on_chain
 from chainworker.chain import AuthROSChain
-from chainworker.services import chain_client
+from chainworker.services import chain_client, contract_deploy
 from portal.celery import app as celery_app
 from sharing.models import Record
 from smcrypto import key_commitment, sm4
@@ -184,6 +184,23 @@ def test_an_owner_not_on_chain_yet_is_not_checked(make_owner, deployed, monkeypa
     asked = _calls_counted(chain_client(), "commitment_of", monkeypatch)
     assert owner_identity_check(owner=owner) is False
     assert asked == []
+
+
+def test_an_owner_the_chain_lost_is_not_a_mismatch(make_robot, deployed, fresh_chain):
+    """After a chain reset (or lost blocks) the owner has no commitment on the live chain:
+    reconciliation registers it again; meanwhile uploads go on and nothing is written down as
+    a changed key."""
+    robot = make_robot()
+    assert owner_identity_check(owner=robot.owner, fresh=True) is True
+    fresh_chain()
+    contract_deploy(force=True)
+    assert not chain_client().is_registered(robot.owner.eoa_address)
+    assert owner_identity_check(owner=robot.owner, fresh=True) is False
+    answer = token_client(robot.token).post(
+        RECORDS, {"envelope": b64(robot.seal(1))}, format="json"
+    )
+    assert answer.status_code == 201
+    assert not AccountEvent.objects.filter(kind=AccountEvent.Kind.IDENTITY_MISMATCH).exists()
 
 
 def test_a_chain_that_does_not_answer_does_not_stop_uploads(make_robot, settings):

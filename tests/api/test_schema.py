@@ -19,6 +19,7 @@ FIXED_OPERATIONS = {
     ("/api/v1/records/", "post"),
     ("/api/v1/records/{record_id}/", "get"),
     ("/api/v1/records/{record_id}/content/", "get"),
+    ("/api/v1/records/{record_id}/proof/", "get"),
     ("/api/v1/grants/", "get"),
     ("/api/v1/grants/", "post"),
     ("/api/v1/grants/{grantee}/", "delete"),
@@ -60,6 +61,7 @@ def test_the_served_schema_lists_exactly_the_fixed_endpoints(client):
     owner_only = [{"ownerToken": []}, {"cookieAuth": []}]
     for path, method in [
         ("/api/v1/records/{record_id}/content/", "get"),
+        ("/api/v1/records/{record_id}/proof/", "get"),
         ("/api/v1/grants/", "get"),
         ("/api/v1/grants/", "post"),
         ("/api/v1/grants/{grantee}/", "delete"),

@@ -93,8 +93,14 @@ def test_a_forged_node_on_the_same_topic_is_rejected_and_nothing_stored(make_rob
             403,
             "unknown_key",
         ),
-        ("stale seq: the last one again", victim_api, victim.seal(5), 409, "replayed_sequence"),
-        ("stale seq: an earlier one", victim_api, victim.seal(2), 409, "replayed_sequence"),
+        (
+            "stale seq: the last one, other data",
+            victim_api,
+            victim.seal(5),
+            409,
+            "sequence_conflict",
+        ),
+        ("stale seq: an earlier one", victim_api, victim.seal(2), 409, "sequence_conflict"),
         (
             "another robot's token, same owner",
             token_client(sibling_token),

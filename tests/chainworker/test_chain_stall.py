@@ -22,6 +22,7 @@ from sharing import anchoring
 from sharing.models import Record
 from sharing.services import record_create
 from stack.anvil import AnvilProcess, start_anvil
+from tests.anchoring_checks import assert_anchored_exactly_once, records_on_chain
 
 pytestmark = [pytest.mark.django_db, pytest.mark.anvil]
 
@@ -131,11 +132,8 @@ def test_records_wait_on_a_stalled_chain_without_using_attempts(
     anchoring.records_anchor(owner_id=setup.owner.pk)
 
     assert set(Record.objects.values_list("status", flat=True)) == {Record.Status.ANCHORED}
-    for record in records:
-        on_chain = deployed.data_query(record.id)
-        assert on_chain is not None
-        assert on_chain.digest.hex() == record.digest
-    assert deployed.record_count() == len(records)  # each id once: no second copy sent
+    assert_anchored_exactly_once(deployed)  # no second copy sent
+    assert records_on_chain(deployed) == len(records)
     anchored = ChainActivity.objects.filter(kind=ChainActivity.Kind.ANCHORED)
     assert list(anchored.values_list("record_count", flat=True)) == [len(records)]
     [alert] = stall_alerts()

@@ -30,6 +30,7 @@ from sharing import services as sharing_services
 from sharing.models import Grant, Record
 from sharing.services import grant_create, record_create_batch
 from stack.anvil import start_anvil
+from tests.anchoring_checks import assert_anchored_exactly_once
 from tests.conftest import TEST_PASSWORD, RobotSetup
 
 pytestmark = pytest.mark.django_db
@@ -55,7 +56,7 @@ def _assert_anchored_once(client: AuthROSChain, records: list[Record]) -> None:
         assert record.status == Record.Status.ANCHORED
         assert record.failure_reason == ""
         assert record.anchor_attempts == 1  # InsufficientFunds used up none
-        assert client.data_query(record.id).digest.hex() == record.digest
+    assert_anchored_exactly_once(client)
 
 
 def test_an_account_emptied_mid_run_is_topped_up_and_every_record_anchored(

@@ -9,7 +9,6 @@ import re
 import threading
 import time
 import uuid
-from collections import Counter
 
 import pytest
 import redis
@@ -19,7 +18,6 @@ from accounts import services as accounts_services
 from accounts.models import ChainState, Owner
 from accounts.services import owner_create, robot_create
 from chainworker import services as chain_services
-from chainworker.chain import record_id_to_bytes32
 from sharing import anchoring as sharing_anchoring
 from sharing import services as sharing_services
 from sharing.cache import _key as cache_key
@@ -28,6 +26,7 @@ from sharing.services import grant_create, grant_revoke, record_create, record_c
 from sharing.storage import envelope_storage
 from sharing.tasks import record_verify
 from smcrypto import sm4
+from tests.anchoring_checks import assert_anchored_exactly_once, records_on_chain
 from tests.conftest import TEST_PASSWORD, RobotSetup
 from tests.stack import WorkerStack, wait_for
 
@@ -39,38 +38,6 @@ pytestmark = [
     pytest.mark.slow,
     pytest.mark.django_db(transaction=True),
 ]
-
-
-def _stack(
-    tmp_path,
-    settings,
-    *,
-    workers: int,
-    block_time: float | None = None,
-    env_overrides: dict[str, str] | None = None,
-) -> WorkerStack:
-    stack = WorkerStack(tmp_path, block_time=block_time, env_overrides=env_overrides)
-    stack.configure_test_process(settings)
-    redis.Redis.from_url(stack.redis_url).flushdb()
-    chain_services._clients.clear()
-    chain_services.contract_deploy()
-    for index in range(workers):
-        stack.start_worker(f"w{index}")
-    stack.start_beat()
-    return stack
-
-
-@pytest.fixture
-def stack_factory(tmp_path, settings):
-    stacks = []
-
-    def make(**kwargs) -> WorkerStack:
-        stacks.append(_stack(tmp_path, settings, **kwargs))
-        return stacks[-1]
-
-    yield make
-    for stack in stacks:
-        stack.stop()
 
 
 def _robots(count: int) -> list[RobotSetup]:
@@ -104,19 +71,16 @@ def _all_anchored(count: int, *, timeout: float) -> None:
 
 def _assert_each_anchored_exactly_once(stack: WorkerStack) -> None:
     client = chain_services.chain_client()
-    uploads = Counter(bytes(e.args["id"]) for e in client.events(names=["DataUploaded"]))
-    expected = {record_id_to_bytes32(pk) for pk in Record.objects.values_list("pk", flat=True)}
-    assert set(uploads) == expected
-    assert max(uploads.values()) == 1
-    assert client.record_count() == len(expected)
     assert not Record.objects.exclude(status=Record.Status.ANCHORED).exists()
+    assert_anchored_exactly_once(client)
+    assert records_on_chain(client) == Record.objects.count()
     logs = stack.worker_logs()
     assert "NonceError" not in logs
     assert "nonce" not in logs.lower() or "refused for" not in logs
 
 
-def test_thousand_uploads_from_ten_owners_with_two_workers(stack_factory):
-    stack = stack_factory(workers=2)
+def test_thousand_uploads_from_ten_owners_with_two_workers(worker_stack):
+    stack = worker_stack(workers=2)
     setups = _robots(10)
     next_seq = dict.fromkeys(range(10), 1)
     for round_number in range(10):
@@ -138,8 +102,8 @@ def test_thousand_uploads_from_ten_owners_with_two_workers(stack_factory):
     assert transactions < 500
 
 
-def test_worker_killed_in_the_middle_of_a_batch(stack_factory):
-    stack = stack_factory(workers=1, block_time=2)
+def test_worker_killed_in_the_middle_of_a_batch(worker_stack):
+    stack = worker_stack(workers=1, block_time=2)
     (setup,) = _robots(1)
     record_create_batch(robot=setup.robot, envelopes=[setup.seal(s) for s in range(1, 51)])
     # The batch is sent and the worker waits for its block: kill it there.
@@ -157,8 +121,8 @@ def test_worker_killed_in_the_middle_of_a_batch(stack_factory):
     _assert_each_anchored_exactly_once(stack)
 
 
-def test_chain_down_for_twenty_seconds(stack_factory):
-    stack = stack_factory(workers=1)
+def test_chain_down_for_twenty_seconds(worker_stack):
+    stack = worker_stack(workers=1)
     (setup,) = _robots(1)
     stop_uploading = threading.Event()
     uploaded = []
@@ -191,21 +155,20 @@ def test_chain_down_for_twenty_seconds(stack_factory):
     _assert_each_anchored_exactly_once(stack)
 
 
-def test_redis_flushed_during_uploads(stack_factory):
-    stack = stack_factory(workers=2)
+def test_redis_flushed_during_uploads(worker_stack):
+    stack = worker_stack(workers=2)
     setups = _robots(2)
-    broker = redis.Redis.from_url(stack.redis_url)
     for seq in range(1, 101):
         for setup in setups:
             record_create(robot=setup.robot, data=setup.seal(seq))
         if seq == 50:
-            broker.flushdb()
+            stack.redis_flush_own()
     _all_anchored(200, timeout=180)
     _assert_each_anchored_exactly_once(stack)
 
 
-def test_tampered_cache_and_durable_copy_are_refused(stack_factory):
-    stack = stack_factory(workers=1)
+def test_tampered_cache_and_durable_copy_are_refused(worker_stack):
+    stack = worker_stack(workers=1)
     (setup,) = _robots(1)
     first = record_create(robot=setup.robot, data=setup.seal(1))
     second = record_create(robot=setup.robot, data=setup.seal(2))
@@ -232,9 +195,9 @@ def test_tampered_cache_and_durable_copy_are_refused(stack_factory):
     assert verdict(second) == "tampered"
 
 
-def test_views_are_checked_on_their_own_queue_with_no_chain_worker_left(stack_factory):
+def test_views_are_checked_on_their_own_queue_with_no_chain_worker_left(worker_stack):
     """A worker on the verify queue alone answers views; chain work never reaches it."""
-    stack = stack_factory(workers=1)
+    stack = worker_stack(workers=1)
     stack.start_worker("verifier", queues=[f"{stack.queue}-verify"])
     (setup,) = _robots(1)
     record = record_create(robot=setup.robot, data=setup.seal(1))
@@ -252,8 +215,8 @@ def test_views_are_checked_on_their_own_queue_with_no_chain_worker_left(stack_fa
     assert Record.objects.get(pk=later.pk).status == Record.Status.PENDING
 
 
-def test_revoked_viewer_is_refused_at_the_next_view(stack_factory):
-    stack_factory(workers=1)
+def test_revoked_viewer_is_refused_at_the_next_view(worker_stack):
+    worker_stack(workers=1)
     alice, bob = _robots(2)
     record = record_create(robot=alice.robot, data=alice.seal(1))
     _all_anchored(1, timeout=60)
@@ -277,13 +240,13 @@ def test_revoked_viewer_is_refused_at_the_next_view(stack_factory):
     assert not client.has_access(alice.owner.eoa_address, bob.owner.eoa_address)
 
 
-def test_owners_take_turns_and_transactions_share_blocks(stack_factory):
+def test_owners_take_turns_and_transactions_share_blocks(worker_stack):
     """A long backlog of one owner does not hold up another, and one owner has several
     batch transactions in flight at once (so they share blocks)."""
-    stack_factory(
+    worker_stack(
         workers=1,
         block_time=1,
-        env_overrides={"ANCHOR_BATCH_MAX": "5", "ANCHOR_INFLIGHT": "4"},
+        env_overrides={"ANCHOR_BATCH_MAX": "5", "ANCHOR_ROOT_MAX": "5", "ANCHOR_INFLIGHT": "4"},
     )
     busy, quiet = _robots(2)
     record_create_batch(robot=busy.robot, envelopes=[busy.seal(s) for s in range(1, 101)])
@@ -303,9 +266,9 @@ def test_owners_take_turns_and_transactions_share_blocks(stack_factory):
 
 
 def test_work_whose_messages_the_broker_lost_is_queued_again_by_the_beat_sweep(
-    stack_factory, monkeypatch
+    worker_stack, monkeypatch
 ):
-    stack = stack_factory(workers=1)
+    stack = worker_stack(workers=1)
     alice, bob = _robots(2)
     # A registration ends by queueing an anchoring run for its owner; let those runs finish,
     # or one still running would itself queue the anchoring the broker is about to "lose".

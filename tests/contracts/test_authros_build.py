@@ -19,6 +19,7 @@ needs_node = pytest.mark.skipif(NODE is None, reason="node is not installed")
 FUNCTIONS = {
     "MAX_BATCH()",
     "admin()",
+    "anchorRoot(bytes32,uint64,bytes32)",
     "authorityGrant(address)",
     "authorityRevoke(address)",
     "commitmentOf(address)",
@@ -30,8 +31,10 @@ FUNCTIONS = {
     "hasAccess(address,address)",
     "isEnrolled(address)",
     "isRegistered(address)",
+    "lastRootOf(address)",
     "recordCount()",
     "register(bytes32)",
+    "rootOf(address,bytes32)",
     "rotateKey(bytes32)",
 }
 EVENTS = {
@@ -41,6 +44,7 @@ EVENTS = {
     "Enrolled(address)",
     "KeyRotated(address,bytes32,bytes32)",
     "Registered(address,bytes32)",
+    "RootAnchored(address,bytes32,uint64,bytes32,uint64)",
 }
 
 
@@ -107,4 +111,4 @@ def test_abi_is_the_fixed_interface(artifact):
             signatures[entry["type"]].add(abi_to_signature(entry))
     assert signatures["function"] == FUNCTIONS
     assert signatures["event"] == EVENTS
-    assert len(signatures["error"]) == 18
+    assert len(signatures["error"]) == 22

@@ -13,11 +13,8 @@ from django.test import Client
 from accounts.keyexchange import portal_sm2_public_key
 from accounts.models import Owner
 from accounts.services import owner_create
-from core.redis_client import get_redis
-from sharing.cache import _key as cache_key
 from sharing.models import Record
 from sharing.services import record_create
-from sharing.storage import envelope_storage
 from smcrypto import sm2, sm4
 from tests.conftest import TEST_PASSWORD, RobotSetup
 
@@ -127,14 +124,3 @@ def image(owner: str) -> bytes:
             "data": base64.b64encode(tiny_png()).decode(),
         },
     )
-
-
-def tamper(record: Record) -> None:
-    """Flip one byte of the stored envelope (durable copy), and drop the cached one."""
-    get_redis().delete(cache_key(record.id))
-    path = envelope_storage().path(record.storage_name)
-    with open(path, "r+b") as handle:
-        handle.seek(40)
-        byte = handle.read(1)
-        handle.seek(40)
-        handle.write(bytes([byte[0] ^ 0x01]))

@@ -8,8 +8,7 @@ from accounts.models import AccountEvent, OwnerKey, Robot
 from sharing.models import Record, SecurityEvent, Verdict
 from sharing.selectors import verdict_latest
 from stack.anvil import free_port
-from tests.conftest import TEST_PASSWORD
-from tests.pages.conftest import tamper
+from tests.conftest import TEST_PASSWORD, tamper
 
 pytestmark = pytest.mark.django_db
 
@@ -83,6 +82,7 @@ def test_every_model_is_listed_searchable_and_never_shows_secrets(admin_client, 
     assert admin_client.get(reverse("admin:sharing_record_add")).status_code == 403
 
 
+@pytest.mark.usefixtures("records_mode")  # one failed record beside an anchored one
 def test_reanchor_failed_records(
     admin_client, make_robot, upload, django_capture_on_commit_callbacks
 ):

@@ -14,7 +14,7 @@ from accounts.services import owner_active_set, robot_create
 from sharing.errors import IntegrityCheckFailed
 from sharing.models import SecurityEvent
 from sharing.verification import record_open
-from tests.pages.conftest import tamper
+from tests.conftest import tamper
 
 pytestmark = pytest.mark.django_db
 

@@ -3,7 +3,8 @@
 It keeps the contract the agent relies on: `POST /api/v1/records/` with `Authorization:
 Token <token>` and `{"envelope": b64}` or `{"envelopes": [b64, ...]}`; every envelope must
 parse, name this robot and owner, open under the owner's key, and the batch's sequence numbers
-must strictly increase and lie above every one stored before (else 409 replayed_sequence). A
+must strictly increase and lie above every one stored before (else 409: replayed_sequence
+if these very envelopes are stored already, sequence_conflict if not). A
 batch is stored all or nothing; 201 answers one `{"id", "digest", "status"}` per envelope.
 Errors are `{"error": code, "detail": text}`.
 
@@ -121,9 +122,13 @@ class RecordsServer:
             )
         with self._lock:
             if seqs[0] <= self.last_seq:
+                held = {record.seq: record.envelope for record in self.records}
+                replay = all(
+                    held.get(seq) == data for seq, data in zip(seqs, envelopes, strict=True)
+                )
                 raise PortalRefusal(
                     409,
-                    "replayed_sequence",
+                    "replayed_sequence" if replay else "sequence_conflict",
                     f"seq {seqs[0]} is not above {self.last_seq}, the last one of this robot",
                 )
             stored = []

@@ -27,11 +27,11 @@ import yaml
 from accounts.models import ChainState, Owner
 from accounts.services import owner_create, robot_create
 from chainworker import services as chain_services
-from chainworker.chain import record_id_to_bytes32
 from ros_agent import sim
 from sharing.models import Record
 from sharing.verification import record_open
 from smcrypto import sm4
+from tests.anchoring_checks import assert_anchored_exactly_once
 from tests.conftest import TEST_PASSWORD
 from tests.ros_agent.conftest import (
     OWNER,
@@ -186,10 +186,7 @@ def test_the_agent_delivers_to_the_real_portal_exactly_once_across_an_outage(
         what=f"all {len(records)} records anchored",
         interval=0.5,
     )
-    client = chain_services.chain_client()
-    anchored = Counter(bytes(e.args["id"]) for e in client.events(names=["DataUploaded"]))
-    assert set(anchored) == {record_id_to_bytes32(record.id) for record in records}
-    assert max(anchored.values()) == 1
+    assert_anchored_exactly_once(chain_services.chain_client())
 
     owner = records[0].owner
     published = published_odometry(tmp_path / "sim.log")
@@ -232,7 +229,7 @@ FORGERIES = {
     # mode of tests/ros_agent/forged_node.py: (status, error) the portal must answer
     "no_key": (400, "invalid_envelope"),
     "wrong_key": (403, "unknown_key"),
-    "stale_seq": (409, "replayed_sequence"),
+    "stale_seq": (409, "sequence_conflict"),
     "other_token": (403, "header_mismatch"),
 }
 

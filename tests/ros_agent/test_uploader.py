@@ -166,6 +166,27 @@ def test_a_lost_confirmation_does_not_make_a_duplicate(robot, portal, caplog):
     assert len(robot.spool) == 0
 
 
+def test_other_data_under_a_used_seq_is_refused_not_counted_delivered(
+    tmp_path, owner_key, portal, robot, caplog
+):
+    """Someone with the robot's token and key uploaded first, under the same seqs: the robot's
+    own envelopes are other data under seqs the portal holds, refused and kept, never counted
+    delivered in silence."""
+    thief = Robot(tmp_path / "thief", owner_key, portal)
+    thief.publish(3)
+    assert thief.uploader.drain() is EMPTY
+    robot.publish(2)
+
+    with caplog.at_level(logging.ERROR):
+        robot.uploader.drain()
+
+    assert [upload.status for upload in portal.uploads[-2:]] == [409, 409]
+    assert robot.counters.sent == 0
+    assert robot.counters.failed == 2
+    assert "someone else uploads with its token and key" in caplog.text
+    assert _texts(portal) == thief.published  # the robot's own data was not taken for stored
+
+
 def test_after_a_crash_the_stored_part_of_a_batch_is_acknowledged_and_the_rest_sent(robot, portal):
     robot.publish(3)
     portal.store([item.envelope for item in robot.spool.peek(3)])  # reached the portal before

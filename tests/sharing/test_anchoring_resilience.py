@@ -12,7 +12,7 @@ from sharing.anchoring import anchor_item, records_anchor
 from sharing.models import Grant, Record
 from sharing.services import grant_create, grant_revoke, grant_sync_on_chain, record_create
 
-pytestmark = pytest.mark.django_db
+pytestmark = [pytest.mark.django_db, pytest.mark.usefixtures("records_mode")]
 
 
 @pytest.fixture

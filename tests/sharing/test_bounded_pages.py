@@ -13,7 +13,8 @@ from sharing import verification
 from sharing.models import Verdict
 from sharing.views import TRAJECTORY_COST
 from stack.anvil import free_port
-from tests.pages.conftest import odometry, tamper
+from tests.conftest import tamper
+from tests.pages.conftest import odometry
 
 pytestmark = pytest.mark.django_db
 

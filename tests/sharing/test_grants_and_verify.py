@@ -16,6 +16,7 @@ from sharing.services import (
 )
 from sharing.storage import envelope_storage
 from sharing.verification import record_verify
+from tests.conftest import tamper
 
 pytestmark = pytest.mark.django_db
 
@@ -152,13 +153,7 @@ def test_changed_cache_is_tampered(anchored):
 
 def test_changed_durable_copy_is_tampered(anchored):
     setup, record = anchored
-    get_redis().delete(cache_key(record.id))
-    path = envelope_storage().path(record.storage_name)
-    with open(path, "r+b") as handle:
-        handle.seek(40)
-        byte = handle.read(1)
-        handle.seek(40)
-        handle.write(bytes([byte[0] ^ 0x01]))
+    tamper(record)
     verification = record_verify(record_id=record.id, viewer_id=setup.owner.pk)
     assert verification.verdict.outcome == Verdict.Outcome.TAMPERED
     assert verification.verdict.source == "storage"
@@ -175,6 +170,7 @@ def test_not_anchored_yet(make_robot, deployed):
     assert verification.envelope is None
 
 
+@pytest.mark.usefixtures("records_mode")
 def test_anchoring_is_idempotent(make_robot, deployed):
     setup = make_robot()
     records = [record_create(robot=setup.robot, data=setup.seal(seq)) for seq in range(1, 6)]
@@ -194,6 +190,7 @@ def test_anchoring_is_idempotent(make_robot, deployed):
     assert records_anchor(owner_id=setup.owner.pk) == 0
 
 
+@pytest.mark.usefixtures("records_mode")
 def test_taken_id_without_a_recorded_attempt_is_settled(make_robot, deployed):
     setup = make_robot()
     records = [record_create(robot=setup.robot, data=setup.seal(seq)) for seq in range(1, 4)]
@@ -206,6 +203,7 @@ def test_taken_id_without_a_recorded_attempt_is_settled(make_robot, deployed):
     assert len(deployed.events(names=["DataUploaded"])) == 3
 
 
+@pytest.mark.usefixtures("records_mode")
 def test_other_digest_on_chain_fails_the_record_and_raises_an_alarm(make_robot, deployed):
     setup = make_robot()
     record = record_create(robot=setup.robot, data=setup.seal(1))

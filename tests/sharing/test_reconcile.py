@@ -16,23 +16,12 @@ from accounts.services import key_rotate
 from chainworker import services as chain_services
 from chainworker.chain import AnchorItem, bytes32_to_record_id
 from sharing.models import Grant, Record, SecurityEvent, Verdict
-from sharing.reconcile import chain_reconcile
 from sharing.services import grant_create, grant_revoke
 from sharing.verification import record_verify
 from smcrypto import sm4
 
-pytestmark = pytest.mark.django_db
-
-
-@pytest.fixture
-def reconcile(django_capture_on_commit_callbacks):
-    """Run the periodic job once; the tasks it queues run inline."""
-
-    def run() -> dict[str, object]:
-        with django_capture_on_commit_callbacks(execute=True):
-            return chain_reconcile()
-
-    return run
+# Records mode: what the chain holds per record id. Roots: tests/sharing/test_roots.py.
+pytestmark = [pytest.mark.django_db, pytest.mark.usefixtures("records_mode")]
 
 
 @pytest.fixture

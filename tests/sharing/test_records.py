@@ -9,6 +9,7 @@ from django.utils import timezone
 
 from accounts.services import key_rotate
 from sharing import errors
+from sharing import storage as storage_module
 from sharing.cache import envelope_cache_get
 from sharing.models import Record, SecurityEvent
 from sharing.services import record_create, record_create_batch
@@ -20,11 +21,12 @@ pytestmark = pytest.mark.django_db
 
 
 def _nothing_stored() -> bool:
-    storage = envelope_storage()
-    stored_files = storage.exists("") and any(storage.listdir("")[0])
-    return Record.objects.count() == 0 and not stored_files
+    """No record and no envelope file (an empty folder is not data)."""
+    root = Path(envelope_storage().location)
+    return Record.objects.count() == 0 and not any(p.is_file() for p in root.rglob("*"))
 
 
+@pytest.mark.usefixtures("records_mode")
 def test_upload_is_stored_cached_and_anchored(
     make_robot, deployed, django_capture_on_commit_callbacks
 ):
@@ -52,6 +54,7 @@ def test_upload_is_stored_cached_and_anchored(
     assert setup.robot.last_seq == 1
 
 
+@pytest.mark.usefixtures("records_mode")
 def test_batch_goes_in_one_transaction(make_robot, deployed, django_capture_on_commit_callbacks):
     setup = make_robot()
     with django_capture_on_commit_callbacks(execute=True):
@@ -111,12 +114,22 @@ def test_too_large_is_refused(make_robot, settings):
 
 
 def test_replayed_or_stale_sequence_is_refused(make_robot):
+    """The same envelope again is a replay (its 201 was lost: the agent counts it delivered);
+    other data under a used or skipped seq is a conflict the owner hears about (a robot that
+    lost its state, or its token and key in someone else's hands pushing the seq ahead)."""
     setup = make_robot()
-    record_create(robot=setup.robot, data=setup.seal(7))
+    sent = setup.seal(7)
+    record_create(robot=setup.robot, data=sent)
+    with pytest.raises(errors.ReplayedSequence):
+        record_create(robot=setup.robot, data=sent)
+    assert not SecurityEvent.objects.exists()
     for seq in (7, 3):
-        with pytest.raises(errors.ReplayedSequence):
+        with pytest.raises(errors.SequenceConflict):
             record_create(robot=setup.robot, data=setup.seal(seq))
     assert Record.objects.count() == 1
+    events = SecurityEvent.objects.filter(kind=SecurityEvent.Kind.SEQUENCE_CONFLICT)
+    assert sorted(e.detail["seq"] for e in events) == [3, 7]
+    assert {e.owner for e in events} == {setup.owner}
 
 
 def test_batch_is_all_or_nothing(make_robot):
@@ -142,22 +155,52 @@ def test_recently_rotated_key_is_accepted_then_expires(
         record_create(robot=setup.robot, data=setup.seal(2))
 
 
-def test_a_batch_that_fails_half_way_leaves_no_file_behind(make_robot, monkeypatch):
-    setup = make_robot()
-    real_create = Record.objects.create
-    created = []
-
-    def fails_on_the_third(**fields):
-        if len(created) == 2:
-            raise DatabaseError("disk full")
-        created.append(fields["id"])
-        return real_create(**fields)
-
-    monkeypatch.setattr(Record.objects, "create", fails_on_the_third)
-    with pytest.raises(DatabaseError):
-        record_create_batch(robot=setup.robot, envelopes=[setup.seal(seq) for seq in (1, 2, 3)])
-    root = Path(envelope_storage().location)
-    assert [path for path in root.rglob("*") if path.is_file()] == []
-    assert Record.objects.count() == 0
+def _batch_left_nothing(setup) -> None:
+    assert _nothing_stored()
     setup.robot.refresh_from_db()
     assert setup.robot.last_seq == -1  # unchanged: nothing was accepted
+
+
+def test_a_batch_the_database_refuses_leaves_no_file_behind(make_robot, monkeypatch):
+    setup = make_robot()
+
+    def disk_full(*args, **kwargs):
+        raise DatabaseError("disk full")
+
+    monkeypatch.setattr(Record.objects, "bulk_create", disk_full)
+    with pytest.raises(DatabaseError):
+        record_create_batch(robot=setup.robot, envelopes=[setup.seal(seq) for seq in (1, 2, 3)])
+    _batch_left_nothing(setup)
+
+
+def test_a_batch_whose_third_file_fails_leaves_no_file_behind(make_robot, monkeypatch):
+    setup = make_robot()
+    real_write = storage_module.os.write
+    written = []
+
+    def fails_on_the_third(fd: int, data: bytes) -> int:
+        if len(written) == 2:
+            raise OSError(28, "No space left on device")
+        written.append(fd)
+        return real_write(fd, data)
+
+    monkeypatch.setattr(storage_module.os, "write", fails_on_the_third)
+    with pytest.raises(OSError, match="No space"):
+        record_create_batch(robot=setup.robot, envelopes=[setup.seal(seq) for seq in (1, 2, 3)])
+    monkeypatch.undo()
+    assert len(written) == 2
+    _batch_left_nothing(setup)
+
+
+def test_without_syncfs_every_file_and_folder_is_fsynced(make_robot, monkeypatch):
+    """Where there is no syncfs (not Linux), the batch fsyncs each file and its folder."""
+    setup = make_robot()
+    monkeypatch.setattr(storage_module, "_SYNCFS", None)
+    synced = []
+    real_fsync = storage_module._fsync
+    monkeypatch.setattr(
+        storage_module, "_fsync", lambda path: synced.append(path) or real_fsync(path)
+    )
+    records = record_create_batch(robot=setup.robot, envelopes=[setup.seal(seq) for seq in (1, 2)])
+    files = {envelope_storage().path(record.storage_name) for record in records}
+    assert set(synced) == files | {str(Path(next(iter(files))).parent)}

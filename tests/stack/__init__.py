@@ -91,6 +91,20 @@ class WorkerStack:
         self._queue_before = celery_app.conf.task_default_queue
         celery_app.conf.task_default_queue = self.queue
 
+    def start(self, django_settings, *, workers: int) -> WorkerStack:
+        """Point the test process at this stack, clear what an earlier run left in Redis under
+        its names, deploy the contract and start `workers` workers (w0, w1, ...) and beat."""
+        from chainworker import services as chain_services
+
+        self.configure_test_process(django_settings)
+        self.redis_flush_own()
+        chain_services._clients.clear()
+        chain_services.contract_deploy()
+        for index in range(workers):
+            self.start_worker(f"w{index}")
+        self.start_beat()
+        return self
+
     def env(self) -> dict[str, str]:
         return {
             **os.environ,

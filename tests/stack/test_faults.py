@@ -7,19 +7,21 @@ anchored exactly once on the chain that is live at the end, every grant as its o
 nothing lost and nothing failed. Reconciliation runs every 3 s here (RECONCILE_INTERVAL).
 """
 
-from collections import Counter
+import base64
 
 import pytest
+import requests
 
 from accounts.models import ChainState, EoaFunding, Owner
 from accounts.services import TOPUP_REASON, key_rotate
 from chainworker import services as chain_services
-from chainworker.chain import ChainError, record_id_to_bytes32
+from chainworker.chain import ChainError
 from core.redis_client import get_redis, redis_key
 from sharing.models import Grant, Record
 from sharing.reconcile import RECONCILE_LOCK, chain_resync
 from sharing.services import grant_create, grant_revoke, record_create, record_create_batch
 from smcrypto import sm4
+from tests.anchoring_checks import assert_anchored_exactly_once, records_on_chain
 from tests.chainworker.test_worker_reliability import _robots
 from tests.conftest import RobotSetup
 from tests.stack import WorkerStack, wait_for
@@ -37,26 +39,16 @@ SETTLE_TIMEOUT = 300
 
 
 @pytest.fixture
-def fault_stack(tmp_path, settings):
-    """A WorkerStack with fast reconciliation; unlike the reliability tests' stack it never
-    flushes the whole test Redis (other test runs share it)."""
-    stacks: list[WorkerStack] = []
+def fault_stack(worker_stack, settings):
+    """A worker_stack with fast reconciliation, in the test process too."""
 
     def make(*, workers: int, env_overrides: dict[str, str] | None = None) -> WorkerStack:
-        stack = WorkerStack(tmp_path, env_overrides={**FAST_RECONCILE, **(env_overrides or {})})
-        stacks.append(stack)
-        stack.configure_test_process(settings)
         settings.CHAIN_IDENTITY_CACHE_SECONDS = 1
-        chain_services._clients.clear()
-        chain_services.contract_deploy()
-        for index in range(workers):
-            stack.start_worker(f"w{index}")
-        stack.start_beat()
-        return stack
+        return worker_stack(
+            workers=workers, env_overrides={**FAST_RECONCILE, **(env_overrides or {})}
+        )
 
-    yield make
-    for stack in stacks:
-        stack.stop()
+    return make
 
 
 def _upload(setups: list[RobotSetup], *, rounds: range, per_batch: int) -> None:
@@ -68,6 +60,24 @@ def _upload(setups: list[RobotSetup], *, rounds: range, per_batch: int) -> None:
                 robot=setup.robot,
                 envelopes=[setup.seal(seq) for seq in range(first, first + per_batch)],
             )
+
+
+def _upload_http(
+    stack: WorkerStack, setups: list[RobotSetup], *, rounds: range, per_batch: int
+) -> None:
+    """As `_upload`, but as the robots' agents do it: batch POSTs to the portal (gunicorn)."""
+    for round_number in rounds:
+        for setup in setups:
+            first = round_number * per_batch + 1
+            envelopes = [setup.seal(seq) for seq in range(first, first + per_batch)]
+            answer = requests.post(
+                f"{stack.web_url}/api/v1/records/",
+                json={"envelopes": [base64.b64encode(e).decode() for e in envelopes]},
+                headers={"Authorization": f"Token {setup.token}"},
+                timeout=60,
+            )
+            assert answer.status_code == 201, answer.text
+            assert len(answer.json()) == per_batch
 
 
 def _grants_set(alice: RobotSetup, bob: RobotSetup, carol: RobotSetup, dave: RobotSetup) -> dict:
@@ -99,7 +109,7 @@ def _settled(records: int) -> bool:
     try:
         if chain_services.chain_identity().state != chain_services.IDENTITY_SAME:
             return False
-        return chain_services.chain_client().record_count() == records
+        return records_on_chain(chain_services.chain_client()) == records
     except ChainError:
         return False
 
@@ -124,16 +134,8 @@ def _assert_end_state(records: int, grants: dict[tuple[Owner, Owner], bool]) -> 
     assert Record.objects.count() == records
     assert not Record.objects.exclude(status=Record.Status.ANCHORED).exists()
     assert not Record.objects.exclude(failure_reason="").exists()
-    for record in Record.objects.select_related("owner"):
-        on_chain = client.data_query(record.id)
-        assert on_chain is not None, f"record {record.pk} is not on the live chain"
-        assert on_chain.digest.hex() == record.digest
-        assert on_chain.owner.lower() == record.owner.eoa_address.lower()
-    uploads = Counter(bytes(e.args["id"]) for e in client.events(names=["DataUploaded"]))
-    expected = {record_id_to_bytes32(pk) for pk in Record.objects.values_list("pk", flat=True)}
-    assert set(uploads) == expected
-    assert set(uploads.values()) == {1}
-    assert client.record_count() == records
+    assert_anchored_exactly_once(client)
+    assert records_on_chain(client) == records
     for (owner, grantee), access in grants.items():
         assert client.has_access(owner.eoa_address, grantee.eoa_address) is access
     for owner in Owner.objects.all():
@@ -144,13 +146,15 @@ def _assert_end_state(records: int, grants: dict[tuple[Owner, Owner], bool]) -> 
 
 def test_anvil_killed_and_restarted_empty_during_a_thousand_uploads(fault_stack):
     """A development chain lost everything mid-run: the portal sees the reset, deploys again
-    and re-creates owners, grants and records from the database, while uploads go on."""
+    and re-creates owners, grants and records from the database, while the robots' uploads
+    go on through the portal (gunicorn)."""
     stack = fault_stack(workers=2)
+    stack.start_web()
     setups = _robots(4)
     grants = _grants_set(*setups)
-    _upload(setups, rounds=range(5), per_batch=25)  # 500 records
+    _upload_http(stack, setups, rounds=range(5), per_batch=25)  # 500 records
     stack.reset_anvil()
-    _upload(setups, rounds=range(5, 10), per_batch=25)  # 500 more, while the portal recovers
+    _upload_http(stack, setups, rounds=range(5, 10), per_batch=25)  # 500 more, while it recovers
     assert Record.objects.count() == 1000
     _wait_settled(stack, 1000)
     _assert_end_state(1000, grants)

@@ -1,0 +1,634 @@
+"""Anchoring by Merkle roots against one slot per record (issue 13; no paper figure, the
+paper's numbers for scale).
+
+For each ANCHOR_MODE (`records`, the paper's one slot per record and the baseline, and `root`,
+make run's default), each in its own process with a fresh `make run` stack (bench/stack.py,
+gunicorn as make run serves it, anvil with automine):
+
+- ingest: C clients (one robot each, robots round-robin over the owners) POST batches of 100
+  sealed 1 KB envelopes to `/api/v1/records/` as fast as they are answered, for D seconds;
+  then the run waits for every record to be anchored. Ingest = envelopes accepted / seconds
+  from the first POST to the last answer. Anchoring throughput = records anchored / seconds
+  from the first record created to the last anchored (it cannot be faster than the ingest
+  that feeds it); latency = Record.anchored_at - Record.created_at, p50 and p95.
+- view, idle: V verified views one after another, `GET /api/v1/records/{id}/content/` with
+  the owner's API token (the worker checks the record against the chain; in root mode the
+  proof folds to a root read with one `rootOf`), p50 and p95.
+- view under load: the same views while one robot uploads 100 records/s (10 per POST every
+  0.1 s), for L seconds; p50 and p95, and the anchoring latency of those records.
+- profile: cProfile of one 100-envelope upload and one view, in this process (Django's test
+  client against the stack's database and workers), the top functions by own time; and of
+  the worker's check alone (sharing.verification.record_verify).
+- limits: SM3 and SM4-GCM over 1 KB per core, the database's insert rate through the upload
+  service (no HTTP), the chain's gas per block against the gas of what each mode sends.
+
+Then the paper's 700 concurrent 1 KB uploads (bench/rest.py, as `python -m bench concurrency`
+does them), in each mode, on a fresh stack: first POST to last record anchored.
+
+Ratios are root mode against records mode of this run. These are figures, not assertions.
+
+Run: `python -m bench roots [--quick]`. Writes bench/results/roots.json, roots.csv, roots.png.
+"""
+
+import argparse
+import base64
+import cProfile
+import io
+import pstats
+import secrets
+import tempfile
+import threading
+import time
+from dataclasses import asdict, dataclass
+from datetime import timedelta
+from pathlib import Path
+from typing import Any
+
+import requests
+
+from bench import now_iso, run_in_child, summarize
+from bench.common import print_table, seal_record, write_results
+from bench.plotting import machine_line, plt, save_figure
+from bench.rest import UploadRun, add_arguments, check_arguments, report_header
+from bench.rest import measure as concurrent_measure
+from bench.stack import POLL_INTERVAL, BenchStack, StackOptions, owners_register, run_finished
+
+NAME = "roots"
+MODES = ("records", "root")
+BATCH = 100
+PLAINTEXT_BYTES = 1024
+PAPER = {"anchored_per_s": 63.0, "concurrent_700_total_s": 11.09}
+GOALS = {
+    "anchored_per_s": 2000.0,
+    "latency_p95_s": 3.0,
+    "ingest_per_s": 1500.0,
+    "view_idle_p50_ms": 20.0,
+    "view_load_p95_ms": 250.0,
+    "concurrent_700_total_s": 2.2,
+}
+RATIO_KEYS = (
+    "ingest_per_s",
+    "anchored_per_s",
+    "latency_p95_s",
+    "view_idle_p50_ms",
+    "view_load_p95_ms",
+    "concurrent_700_total_s",
+    "gas_per_record",
+)
+FIELDS = (
+    "anchor_mode",
+    "ingested",
+    "ingest_per_s",
+    "anchored",
+    "failed",
+    "anchored_per_s",
+    "latency_p50_s",
+    "latency_p95_s",
+    "transactions",
+    "gas_per_record",
+    "records_per_block_limit",
+    "view_idle_p50_ms",
+    "view_idle_p95_ms",
+    "view_load_p50_ms",
+    "view_load_p95_ms",
+    "view_load_errors",
+    "load_latency_p95_s",
+    "concurrent_700_anchored",
+    "concurrent_700_total_s",
+    *(f"{key}_ratio_vs_records" for key in RATIO_KEYS),
+)
+COLUMNS = (
+    ("mode", "anchor_mode", ""),
+    ("ingest/s", "ingest_per_s", ".0f"),
+    ("anchored/s", "anchored_per_s", ".0f"),
+    ("lat p95 s", "latency_p95_s", ".2f"),
+    ("gas/rec", "gas_per_record", ".0f"),
+    ("view p50 ms", "view_idle_p50_ms", ".1f"),
+    ("load p95 ms", "view_load_p95_ms", ".1f"),
+    ("700 total s", "concurrent_700_total_s", ".2f"),
+)
+
+
+@dataclass(frozen=True)
+class RootsRun:
+    anchor_mode: str
+    clients: int
+    owners: int
+    ingest_seconds: float
+    views: int
+    load_seconds: float
+    workers: int
+    web_workers: int
+    max_wait: float
+    timeout: float
+    redis_url: str
+    keep_logs: bool
+    block_time: float | None = None
+    batch_max: int = 100
+
+    def describe(self) -> str:
+        return (
+            f"ANCHOR_MODE={self.anchor_mode}: {self.clients} clients x {BATCH}-envelope POSTs "
+            f"for {self.ingest_seconds:g}s, {self.views} views, {self.load_seconds:g}s at "
+            "100 records/s"
+        )
+
+    def stack_options(self) -> StackOptions:
+        options = StackOptions.for_run(self, web_workers=self.web_workers)
+        return StackOptions(**{**asdict(options), "anchor_mode": self.anchor_mode})
+
+
+# --- one mode, in a child process --------------------------------------------------------------
+
+
+def measure(run: RootsRun) -> dict[str, Any]:
+    workdir = Path(tempfile.mkdtemp(prefix="authros-bench-roots-"))
+    stack = BenchStack(run.stack_options(), workdir)
+    try:
+        stack.start()
+        robots = owners_register(stack, run.owners)
+        clients = _clients_create(robots, run.clients)
+        row: dict[str, Any] = {"anchor_mode": run.anchor_mode}
+        row |= _ingest(stack, run, clients)
+        row |= _gas(run)
+        viewer = _viewer(robots[0][0].owner)
+        row |= _views(stack.web_url, viewer, robots[0][0].owner, run.views, "idle")
+        row |= _under_load(stack, run, clients[0], viewer, robots[0][0].owner)
+        row |= _limits(robots[0])
+        row["profiles"] = _profiles(stack, clients[0], viewer, robots[0][0].owner)
+    finally:
+        stack.stop()
+    return run_finished(row, stack, keep_logs=run.keep_logs)
+
+
+@dataclass
+class Client:
+    robot: Any
+    key: bytes
+    token: str
+    next_seq: int = 1
+
+    def bodies(self, count: int, per_post: int) -> list[dict[str, list[str]]]:
+        """`count` POST bodies of `per_post` envelopes each, sealed now (not timed)."""
+        bodies = []
+        for _ in range(count):
+            envelopes = []
+            for _ in range(per_post):
+                data = seal_record(
+                    self.robot, self.key, seq=self.next_seq, plaintext_bytes=PLAINTEXT_BYTES
+                )
+                envelopes.append(base64.b64encode(data).decode())
+                self.next_seq += 1
+            bodies.append({"envelopes": envelopes})
+        return bodies
+
+
+def _clients_create(robots: list[tuple[Any, bytes]], clients: int) -> list[Client]:
+    from accounts.services import robot_create
+
+    made = []
+    for number in range(clients):
+        robot, key = robots[number % len(robots)]
+        new_robot, token = robot_create(owner=robot.owner, name=f"ingest-{number}")
+        made.append(Client(new_robot, key, token))
+    return made
+
+
+def _ingest(stack: BenchStack, run: RootsRun, clients: list[Client]) -> dict[str, Any]:
+    """The clients POST sealed batches for run.ingest_seconds; then every record anchored."""
+    from sharing.models import Record
+
+    url = f"{stack.web_url}/api/v1/records/"
+    # Enough sealed bodies for 4,000 envelopes/s, sealed before the clock starts.
+    per_client = max(2, int(run.ingest_seconds * 4000 / BATCH / len(clients)))
+    bodies = [client.bodies(per_client, BATCH) for client in clients]
+    accepted = [0] * len(clients)
+    refused: list[str] = []
+    answered_at = [0.0] * len(clients)
+    barrier = threading.Barrier(len(clients) + 1)
+    stop_at = [0.0]
+
+    def post(number: int) -> None:
+        session = requests.Session()
+        session.headers["Authorization"] = f"Token {clients[number].token}"
+        barrier.wait()
+        for body in bodies[number]:
+            if time.time() >= stop_at[0]:
+                break
+            answer = session.post(url, json=body, timeout=300)
+            answered_at[number] = time.time()
+            if answer.status_code == 201:
+                accepted[number] += len(answer.json())
+            else:
+                refused.append(f"{answer.status_code} {answer.text[:200]}")
+        session.close()
+
+    threads = [threading.Thread(target=post, args=(n,)) for n in range(len(clients))]
+    for thread in threads:
+        thread.start()
+    started = time.time()
+    stop_at[0] = started + run.ingest_seconds
+    barrier.wait()
+    for thread in threads:
+        thread.join()
+    ingested = sum(accepted)
+    ingest_seconds = max(answered_at) - started
+    deadline = time.monotonic() + run.timeout
+    while Record.objects.filter(status=Record.Status.PENDING).exists():
+        stack.check_alive()
+        if time.monotonic() > deadline:
+            break
+        time.sleep(POLL_INTERVAL)
+    anchored = list(
+        Record.objects.filter(status=Record.Status.ANCHORED).values_list(
+            "created_at", "anchored_at"
+        )
+    )
+    latencies = [(done - made).total_seconds() * 1000 for made, done in anchored]
+    latency = summarize(latencies) if latencies else {}
+    first_created = min((made for made, _ in anchored), default=None)
+    last_anchored = max((done for _, done in anchored), default=None)
+    span = (last_anchored - first_created).total_seconds() if anchored else None
+    return {
+        "ingested": ingested,
+        "ingest_seconds": ingest_seconds,
+        "ingest_per_s": ingested / ingest_seconds,
+        "ingest_refused": refused[:5],
+        "anchored": len(anchored),
+        "failed": Record.objects.filter(status=Record.Status.FAILED).count(),
+        "pending_at_timeout": Record.objects.filter(status=Record.Status.PENDING).count(),
+        "anchor_span_s": span,
+        "anchored_per_s": len(anchored) / span if span else None,
+        "latency_p50_s": latency.get("median_ms", 0) / 1000 or None,
+        "latency_p95_s": latency.get("p95_ms", 0) / 1000 or None,
+    }
+
+
+def _gas(run: RootsRun) -> dict[str, Any]:
+    """Gas the anchoring transactions used, per record; the block gas limit and how many
+    records one block can anchor at that price."""
+    from chainworker.services import chain_client
+    from sharing.models import AnchorRoot, Record
+
+    client = chain_client()
+    if run.anchor_mode == "root":
+        hashes = set(AnchorRoot.objects.exclude(tx_hash="").values_list("tx_hash", flat=True))
+    else:
+        hashes = set(Record.objects.exclude(tx_hash="").values_list("tx_hash", flat=True))
+    gas = sum(client.w3.eth.get_transaction_receipt(h)["gasUsed"] for h in hashes)
+    records = Record.objects.filter(status=Record.Status.ANCHORED).count()
+    limit = client.w3.eth.get_block("latest")["gasLimit"]
+    per_record = gas / records if records else None
+    return {
+        "transactions": len(hashes),
+        "gas_total": gas,
+        "gas_per_record": per_record,
+        "block_gas_limit": limit,
+        "records_per_block_limit": limit / per_record if per_record else None,
+    }
+
+
+def _viewer(owner: Any) -> str:
+    from accounts.services import owner_token_create
+
+    _token, key = owner_token_create(
+        owner=owner, name="bench views", scopes=["read"], expires_in=timedelta(days=1)
+    )
+    return key
+
+
+def _anchored_ids(owner: Any, limit: int) -> list[str]:
+    from sharing.models import Record
+
+    ids = Record.objects.filter(owner=owner, status=Record.Status.ANCHORED).values_list(
+        "pk", flat=True
+    )
+    return [str(pk) for pk in ids.order_by("?")[:limit]]
+
+
+def _views(url: str, token: str, owner: Any, count: int, name: str) -> dict[str, Any]:
+    """`count` verified views one after another (each of another record), in ms."""
+    ids = _anchored_ids(owner, count)
+    session = requests.Session()
+    session.headers["Authorization"] = f"Token {token}"
+    times, errors = [], 0
+    for record_id in ids:
+        sent = time.perf_counter()
+        answer = session.get(f"{url}/api/v1/records/{record_id}/content/", timeout=60)
+        times.append((time.perf_counter() - sent) * 1000)
+        errors += answer.status_code != 200
+    session.close()
+    stats = summarize(times)
+    return {
+        f"view_{name}_count": len(times),
+        f"view_{name}_p50_ms": stats["median_ms"],
+        f"view_{name}_p95_ms": stats["p95_ms"],
+        f"view_{name}_mean_ms": stats["mean_ms"],
+        f"view_{name}_errors": errors,
+    }
+
+
+def _under_load(
+    stack: BenchStack, run: RootsRun, client: Client, token: str, owner: Any
+) -> dict[str, Any]:
+    """Views one after another while `client` uploads 100 records/s (10 per POST every
+    0.1 s) for run.load_seconds; and the anchoring latency of those uploads."""
+    from sharing.models import Record
+
+    posts = int(run.load_seconds * 10)
+    bodies = client.bodies(posts, 10)
+    ids: list[str] = []
+    done = threading.Event()
+
+    def upload() -> None:
+        session = requests.Session()
+        session.headers["Authorization"] = f"Token {client.token}"
+        start = time.monotonic()
+        for number, body in enumerate(bodies):
+            time.sleep(max(0.0, start + number * 0.1 - time.monotonic()))
+            answer = session.post(f"{stack.web_url}/api/v1/records/", json=body, timeout=60)
+            if answer.status_code == 201:
+                ids.extend(item["id"] for item in answer.json())
+        session.close()
+        done.set()
+
+    uploader = threading.Thread(target=upload)
+    uploader.start()
+    times, errors = [], 0
+    session = requests.Session()
+    session.headers["Authorization"] = f"Token {token}"
+    candidates = _anchored_ids(owner, 2000)
+    number = 0
+    while not done.is_set():
+        record_id = candidates[number % len(candidates)]
+        number += 1
+        sent = time.perf_counter()
+        answer = session.get(f"{stack.web_url}/api/v1/records/{record_id}/content/", timeout=60)
+        times.append((time.perf_counter() - sent) * 1000)
+        errors += answer.status_code != 200
+    session.close()
+    uploader.join()
+    deadline = time.monotonic() + 120
+    while Record.objects.filter(pk__in=ids, status=Record.Status.PENDING).exists():
+        if time.monotonic() > deadline:
+            break
+        time.sleep(POLL_INTERVAL)
+    latencies = [
+        (anchored - created).total_seconds() * 1000
+        for created, anchored in Record.objects.filter(
+            pk__in=ids, status=Record.Status.ANCHORED
+        ).values_list("created_at", "anchored_at")
+    ]
+    stats = summarize(times)
+    return {
+        "load_uploaded": len(ids),
+        "view_load_count": len(times),
+        "view_load_p50_ms": stats["median_ms"],
+        "view_load_p95_ms": stats["p95_ms"],
+        "view_load_errors": errors,
+        "load_latency_p95_s": summarize(latencies)["p95_ms"] / 1000 if latencies else None,
+    }
+
+
+def _limits(robot_key: tuple[Any, bytes]) -> dict[str, Any]:
+    """What the hardware allows: SM3 and SM4-GCM of 1 KB on one core, and the database's
+    insert rate through the upload service (no HTTP, no JSON, no base64)."""
+    from sharing.services import record_create_batch
+    from smcrypto import sm3, sm4
+
+    robot, key = robot_key
+    data = secrets.token_bytes(PLAINTEXT_BYTES)
+
+    def rate(function: Any, seconds: float = 1.0) -> float:
+        count, start = 0, time.perf_counter()
+        while time.perf_counter() - start < seconds:
+            for _ in range(200):
+                function()
+            count += 200
+        return count / (time.perf_counter() - start)
+
+    sm3_rate = rate(lambda: sm3.sm3_digest(data))
+    nonce = secrets.token_bytes(12)
+    sm4_rate = rate(lambda: sm4.gcm_encrypt(key, nonce, data))
+    envelopes = [
+        seal_record(robot, key, seq=1_000_000 + n, plaintext_bytes=PLAINTEXT_BYTES)
+        for n in range(2000)
+    ]
+    start = time.perf_counter()
+    for first in range(0, len(envelopes), BATCH):
+        record_create_batch(robot=robot, envelopes=envelopes[first : first + BATCH])
+    service_rate = len(envelopes) / (time.perf_counter() - start)
+    return {
+        "sm3_1kb_per_s_one_core": sm3_rate,
+        "sm4_gcm_1kb_per_s_one_core": sm4_rate,
+        "service_ingest_per_s_one_process": service_rate,
+    }
+
+
+def _profiles(stack: BenchStack, client: Client, token: str, owner: Any) -> dict[str, str]:
+    """Where one 100-envelope upload and one view spend their time (cProfile, top 15 by own
+    time), through Django's test client in this process; and the worker's check alone."""
+    from django.test import Client as DjangoClient
+
+    from sharing.verification import record_verify
+
+    web = DjangoClient(HTTP_HOST="127.0.0.1")
+    body = client.bodies(1, BATCH)[0]
+    record_id = _anchored_ids(owner, 1)[0]
+    profiles = {}
+    for name, call in (
+        (
+            "upload_100",
+            lambda: web.post(
+                "/api/v1/records/",
+                body,
+                content_type="application/json",
+                HTTP_AUTHORIZATION=f"Token {client.token}",
+            ),
+        ),
+        (
+            "view",
+            lambda: web.get(
+                f"/api/v1/records/{record_id}/content/", HTTP_AUTHORIZATION=f"Token {token}"
+            ),
+        ),
+        ("worker_check", lambda: record_verify(record_id=record_id, viewer_id=owner.pk)),
+    ):
+        call()  # warm: the first call of each opens connections
+        profiler = cProfile.Profile()
+        started = time.perf_counter()
+        profiler.runcall(call)
+        elapsed = (time.perf_counter() - started) * 1000
+        out = io.StringIO()
+        pstats.Stats(profiler, stream=out).sort_stats("tottime").print_stats(15)
+        profiles[name] = f"{elapsed:.1f} ms in all\n" + _trimmed(out.getvalue())
+    return profiles
+
+
+def _trimmed(text: str) -> str:
+    """pstats output from its table's header on, paths shortened to the repository's."""
+    lines = text.splitlines()
+    start = next((n for n, line in enumerate(lines) if "ncalls" in line), 0)
+    root = str(Path(__file__).resolve().parents[1]) + "/"
+    return "\n".join(line.replace(root, "") for line in lines[start:] if line.strip())
+
+
+# --- the paper's 700 concurrent uploads, per mode ----------------------------------------------
+
+
+@dataclass(frozen=True)
+class ConcurrentRun(UploadRun):
+    anchor_mode: str = "records"
+
+    def describe(self) -> str:
+        return f"ANCHOR_MODE={self.anchor_mode}: {super().describe()}"
+
+    def stack_options(self) -> StackOptions:
+        options = super().stack_options()
+        return StackOptions(**{**asdict(options), "anchor_mode": self.anchor_mode})
+
+
+# --- the benchmark -----------------------------------------------------------------------------
+
+
+def main(argv: list[str]) -> int:
+    parser = argparse.ArgumentParser(prog="python -m bench roots", description=__doc__)
+    add_arguments(parser)
+    parser.add_argument("--clients", type=int, default=4, help="ingest clients (default 4)")
+    parser.add_argument("--ingest-seconds", type=float, default=20.0)
+    parser.add_argument("--views", type=int, default=300, help="idle views (default 300)")
+    parser.add_argument("--load-seconds", type=float, default=60.0)
+    parser.add_argument("--agents", type=int, default=700, help="concurrent uploads (700)")
+    parser.add_argument("--modes", nargs="+", choices=MODES, default=list(MODES))
+    args = parser.parse_args(argv)
+    check_arguments(parser, args)
+    if args.quick:
+        args.ingest_seconds, args.views, args.load_seconds, args.agents = 3.0, 30, 5.0, 50
+    started = now_iso()
+    rows = []
+    for mode in args.modes:
+        run = RootsRun(
+            anchor_mode=mode,
+            clients=args.clients,
+            owners=min(args.owners, args.clients),
+            ingest_seconds=args.ingest_seconds,
+            views=args.views,
+            load_seconds=args.load_seconds,
+            workers=args.workers,
+            web_workers=args.web_workers,
+            max_wait=args.max_wait,
+            timeout=args.timeout,
+            redis_url=args.redis_url,
+            keep_logs=args.keep_logs,
+        )
+        print(f"== {run.describe()}", flush=True)
+        row = run_in_child(measure, run)
+        concurrent = ConcurrentRun(
+            block_time=None,
+            batch_max=100,
+            agents=args.agents,
+            plaintext_bytes=PLAINTEXT_BYTES,
+            owners=args.owners,
+            workers=args.workers,
+            web_workers=args.web_workers,
+            verifiers=args.verifiers,
+            max_wait=args.max_wait,
+            timeout=args.timeout,
+            redis_url=args.redis_url,
+            keep_logs=args.keep_logs,
+            anchor_mode=mode,
+        )
+        print(f"== {concurrent.describe()}", flush=True)
+        burst = run_in_child(concurrent_measure, concurrent)
+        row["concurrent_700_anchored"] = burst.get("anchored")
+        row["concurrent_700_sent"] = burst.get("sent")
+        row["concurrent_700_total_s"] = burst.get("total_to_anchored_s")
+        row["concurrent_700_total_response_s"] = burst.get("total_response_s")
+        row["concurrent_agents"] = args.agents
+        rows.append(row)
+    _ratios(rows)
+    report = report_header(NAME, args, started)
+    report["settings"] |= {
+        "clients": args.clients,
+        "batch_per_post": BATCH,
+        "ingest_seconds": args.ingest_seconds,
+        "idle_views": args.views,
+        "load_seconds": args.load_seconds,
+        "concurrent_agents": args.agents,
+        "chain": "anvil, automine",
+    }
+    report["paper"] = PAPER
+    report["goals"] = GOALS
+    report["results"] = rows
+    report["goals_met"] = {
+        row["anchor_mode"]: _goals_met(row) for row in rows if row["anchor_mode"] == "root"
+    }
+    print_table(report, COLUMNS)
+    write_results(NAME, report, FIELDS, args.results_dir, plot=_plot)
+    return 0
+
+
+def _ratios(rows: list[dict[str, Any]]) -> None:
+    baseline = next((row for row in rows if row["anchor_mode"] == "records"), None)
+    for row in rows:
+        for key in RATIO_KEYS:
+            ours, theirs = row.get(key), baseline.get(key) if baseline else None
+            row[f"{key}_ratio_vs_records"] = ours / theirs if ours and theirs else None
+
+
+def _goals_met(row: dict[str, Any]) -> dict[str, bool | None]:
+    """Each goal of issue 13: met, not met, or not measured."""
+    higher = ("anchored_per_s", "ingest_per_s")
+    met = {}
+    for key, goal in GOALS.items():
+        value = row.get(key)
+        met[key] = None if value is None else (value >= goal if key in higher else value <= goal)
+    met["all_anchored"] = row.get("failed") == 0 and row.get("pending_at_timeout") == 0
+    met["concurrent_all_anchored"] = row.get("concurrent_700_anchored") == row.get(
+        "concurrent_700_sent"
+    )
+    return met
+
+
+def _plot(report: dict[str, Any], path: Path) -> None:
+    rows = report["results"]
+    panels = (
+        ("ingest and anchoring, records/s", ("ingest_per_s", "anchored_per_s"), "log"),
+        (
+            "anchoring latency p95 and 700 uploads to anchored, s",
+            ("latency_p95_s", "concurrent_700_total_s"),
+            "linear",
+        ),
+        ("verified view, ms", ("view_idle_p50_ms", "view_load_p95_ms"), "log"),
+    )
+    figure, axes = plt.subplots(1, len(panels), figsize=(13, 4))
+    width = 0.8 / len(rows)
+    for axis, (title, keys, scale) in zip(axes, panels, strict=True):
+        for number, row in enumerate(rows):
+            values = [row.get(key) or 0 for key in keys]
+            positions = [k + number * width for k in range(len(keys))]
+            axis.bar(positions, values, width, label=f"ANCHOR_MODE={row['anchor_mode']}")
+        for k, key in enumerate(keys):
+            if key in GOALS:
+                axis.hlines(
+                    GOALS[key],
+                    k - width / 2,
+                    k + width * len(rows) - width / 2,
+                    colors="black",
+                    linestyles="dashed",
+                )
+        axis.set_xticks(
+            [k + width * (len(rows) - 1) / 2 for k in range(len(keys))], keys, fontsize=7
+        )
+        axis.set_yscale(scale)
+        axis.set_title(title, fontsize=9)
+    axes[0].legend(fontsize=7)
+    save_figure(
+        figure,
+        path,
+        f"Merkle roots against one slot per record (dashed: goals); {machine_line(report)}",
+    )
+
+
+if __name__ == "__main__":
+    raise SystemExit(main(__import__("sys").argv[1:]))

@@ -1,0 +1,61 @@
+"""What anchoring runs (one record per slot, or Merkle roots) share while they wait: their
+hold on an owner's lock, receipts awaited in steps that keep that hold alive, and an owner's
+account that cannot pay for gas."""
+
+import logging
+import time
+
+from django.conf import settings
+from django.db.models import QuerySet
+from redis.exceptions import LockError, RedisError
+from redis.lock import Lock
+from web3.types import TxReceipt
+
+from chainworker.chain import AuthROSChain, TransactionTimeout
+from chainworker.work import WAITING_FOR_GAS
+from core.outbox import enqueue
+from sharing.models import Record
+
+logger = logging.getLogger("sharing.anchoring")
+
+
+def lock_renew(lock: Lock) -> bool:
+    """Extend our hold on a lock; False if it expired meanwhile (another worker may own it).
+
+    Losing it is safe, not fatal: a record id is written once on chain (records mode) and a
+    sender's roots are chained by prevRoot (root mode), so a duplicate send is refused and
+    settled from the chain. We stop after the batch in hand.
+    """
+    try:
+        lock.reacquire()
+    except (LockError, RedisError) as exc:
+        logger.warning("lost lock %s (%s); finishing the batch in hand", lock.name, exc)
+        return False
+    return True
+
+
+def receipt_await(client: AuthROSChain, tx_hash: str, lock: Lock) -> TxReceipt:
+    """Wait for the receipt in short steps, keeping the owner's anchoring lock alive."""
+    deadline = time.monotonic() + client.receipt_timeout
+    while True:
+        step = min(settings.ANCHOR_LOCK_TTL / 3, max(deadline - time.monotonic(), 0.1))
+        try:
+            return client.wait_for_receipt(tx_hash, timeout=step)
+        except TransactionTimeout:
+            if time.monotonic() >= deadline:
+                raise
+            lock_renew(lock)
+
+
+def gas_wait_start(owner_id: int, waiting: QuerySet) -> None:
+    """The owner's account cannot pay for gas: an outage that waits, using up no attempt. The
+    `waiting` records say why, and the operator is asked to top the account up."""
+    waiting.update(failure_reason=WAITING_FOR_GAS)
+    enqueue("accounts.tasks.owner_top_up", owner_id)
+
+
+def gas_wait_end(owner_id: int) -> None:
+    """The owner's account paid again: what waited for gas no longer does."""
+    Record.objects.filter(
+        owner_id=owner_id, status=Record.Status.PENDING, failure_reason=WAITING_FOR_GAS
+    ).update(failure_reason="")
