@@ -1,7 +1,7 @@
 """bench/REPORT.md from whatever results exist in bench/results/, beside the paper's figures.
 
 Reads crypto.json, pipeline.json, concurrency.json, message_size.json, block_interval.json and
-sustained.json and soak.json (any may be missing) and writes one Markdown report: per
+sustained.json, roots.json and soak.json (any may be missing) and writes one Markdown report: per
 experiment, what the paper says (quoted, with its figure numbers), the machine and date of our
 run, and our measurements. Nothing here is a result: every number comes from the JSON files.
 
@@ -39,6 +39,7 @@ def main(argv: list[str]) -> int:
         _section_crypto,
         _section_pipeline,
         _section_sustained,
+        _section_roots,
         _section_soak,
     ]
     parts = [
@@ -484,6 +485,114 @@ def _section_sustained(results: Path) -> str | None:
         plot="sustained.png",
         comparison=comparison,
     )
+
+
+# What each goal of issue 13 is, from a roots.json row: (goal, key, unit, digits, higher wins).
+ROOTS_GOALS = (
+    ("anchoring throughput", "anchored_per_s", "records/s", 0, True),
+    ("anchoring latency p95", "latency_p95_s", "s", 2, False),
+    ("batch ingest (100 x 1 KB per POST)", "ingest_per_s", "envelopes/s", 0, True),
+    ("verified view p50, idle", "view_idle_p50_ms", "ms", 1, False),
+    ("verified view p95, at 100 records/s", "view_load_p95_ms", "ms", 1, False),
+    (
+        "700 concurrent uploads, first POST to last anchored",
+        "concurrent_700_total_s",
+        "s",
+        2,
+        False,
+    ),
+)
+
+
+def _section_roots(results: Path) -> str | None:
+    """Merkle roots against one slot per record (issue 13): each goal, both modes, the ratio,
+    the paper where it has a number; the physical limits; the profiles."""
+    report = _load(results, "roots")
+    if report is None:
+        return None
+    rows = {row["anchor_mode"]: row for row in report["results"]}
+    records, root = rows.get("records", {}), rows.get("root", {})
+    goals, paper = report["goals"], report.get("paper", {})
+    verdicts = {True: "met", False: "**not met**", None: "not measured"}
+    met = report.get("goals_met", {}).get("root", {})
+
+    def value(row: dict[str, Any], key: str, digits: int) -> str:
+        return _num(row.get(key), digits)
+
+    table = _table(
+        [
+            dict(zip(("goal", "key", "unit", "digits", "higher"), g, strict=True))
+            for g in ROOTS_GOALS
+        ],
+        (
+            ("figure", lambda g: g["goal"]),
+            ("goal", lambda g: f"{'>=' if g['higher'] else '<='} {goals[g['key']]:g} {g['unit']}"),
+            ("records mode", lambda g: value(records, g["key"], g["digits"])),
+            ("root mode", lambda g: value(root, g["key"], g["digits"])),
+            ("root / records", lambda g: _ratio(root.get(f"{g['key']}_ratio_vs_records"))),
+            ("paper", lambda g: f"{paper[g['key']]:g}" if g["key"] in paper else "-"),
+            ("verdict (root mode)", lambda g: verdicts[met.get(g["key"])]),
+        ),
+    )
+    settings = report["settings"]
+    limits = _table(
+        [row for row in (records, root) if row],
+        (
+            ("mode", lambda r: r["anchor_mode"]),
+            ("SM3 1 KB/s, one core", lambda r: _num(r.get("sm3_1kb_per_s_one_core"), 0)),
+            ("SM4-GCM 1 KB/s, one core", lambda r: _num(r.get("sm4_gcm_1kb_per_s_one_core"), 0)),
+            (
+                "upload service, no HTTP, /s",
+                lambda r: _num(r.get("service_ingest_per_s_one_process"), 0),
+            ),
+            ("gas per record", lambda r: _num(r.get("gas_per_record"), 0)),
+            ("block gas limit", lambda r: _num(r.get("block_gas_limit"), 0)),
+            ("records per block at most", lambda r: _num(r.get("records_per_block_limit"), 0)),
+        ),
+    )
+    counts = "; ".join(
+        f"{mode}: {row.get('ingested')} envelopes taken in {_num(row.get('ingest_seconds'), 1)} s, "
+        f"{row.get('anchored')} anchored in {row.get('transactions')} transactions, "
+        f"{row.get('failed')} failed, {row.get('pending_at_timeout')} left pending; "
+        f"{row.get('concurrent_700_anchored')} of {row.get('concurrent_700_sent')} concurrent "
+        "uploads anchored"
+        for mode, row in rows.items()
+    )
+    quick = " Quick (smoke) run." if settings.get("quick") else ""
+    profiles = []
+    for mode, row in rows.items():
+        for name, text in row.get("profiles", {}).items():
+            summary = f"<summary>{mode} mode: {name}</summary>"
+            profiles.append(f"<details>{summary}\n\n```\n{text}\n```\n\n</details>\n")
+    lines = [
+        "## Merkle roots against one slot per record (issue 13; the paper's numbers for scale)\n",
+        f"**Our run:** {_machine(report)}{quick}\n",
+        f"Each mode on a fresh `make run` stack ({settings['chain']}; the portal served by "
+        f"`{settings['web_command']}`). Ingest: {settings['clients']} clients POST "
+        f"{settings['batch_per_post']} sealed 1 KB envelopes at a time for "
+        f"{settings['ingest_seconds']:g} s, then every record is awaited on chain; anchoring "
+        "throughput is records anchored over the seconds from the first created to the last "
+        "anchored, latency is anchored_at - created_at. Views: "
+        f"{settings['idle_views']} `GET /api/v1/records/{{id}}/content/` one after another "
+        "with the owner's API token, then the same for "
+        f"{settings['load_seconds']:g} s while a robot uploads 100 records/s. Then the paper's "
+        f"{settings['concurrent_agents']} concurrent 1 KB uploads on a fresh stack. Ratios are "
+        "root mode over records mode of this run; the paper: about 63 records/s, 11.09 s for "
+        "700 uploads.\n",
+        table,
+        f"{counts}.\n",
+        "Physical limits beside them (measured in the same run, in the benchmark's process):\n",
+        limits,
+        "Where the time goes: cProfile of one 100-envelope upload and one view through Django's "
+        "test client against the running stack, and of the worker's check alone, the top "
+        "functions by cumulative time:\n",
+        *profiles,
+        "![Merkle roots](results/roots.png)\n",
+    ]
+    notes = report.get("notes", [])
+    if notes:
+        lines.insert(-1, "Notes:\n\n" + "\n".join(f"- {note}" for note in notes) + "\n")
+    return "\n".join(lines)
 
 
 def _section_soak(results: Path) -> str | None:

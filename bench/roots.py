@@ -57,6 +57,7 @@ NAME = "roots"
 MODES = ("records", "root")
 BATCH = 100
 PLAINTEXT_BYTES = 1024
+PROFILE_LINES = 30
 PAPER = {"anchored_per_s": 63.0, "concurrent_700_total_s": 11.09}
 GOALS = {
     "anchored_per_s": 2000.0,
@@ -426,8 +427,8 @@ def _limits(robot_key: tuple[Any, bytes]) -> dict[str, Any]:
 
 
 def _profiles(stack: BenchStack, client: Client, token: str, owner: Any) -> dict[str, str]:
-    """Where one 100-envelope upload and one view spend their time (cProfile, top 15 by own
-    time), through Django's test client in this process; and the worker's check alone."""
+    """Where one 100-envelope upload and one view spend their time (cProfile, the top
+    PROFILE_LINES functions by cumulative time), through Django's test client in this process; and the worker's check alone."""
     from django.test import Client as DjangoClient
 
     from sharing.verification import record_verify
@@ -460,7 +461,7 @@ def _profiles(stack: BenchStack, client: Client, token: str, owner: Any) -> dict
         profiler.runcall(call)
         elapsed = (time.perf_counter() - started) * 1000
         out = io.StringIO()
-        pstats.Stats(profiler, stream=out).sort_stats("tottime").print_stats(15)
+        pstats.Stats(profiler, stream=out).sort_stats("cumulative").print_stats(PROFILE_LINES)
         profiles[name] = f"{elapsed:.1f} ms in all\n" + _trimmed(out.getvalue())
     return profiles
 

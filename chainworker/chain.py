@@ -310,7 +310,15 @@ def connect(url: str, *, timeout: float = 10.0) -> Web3:
                 _in_process_chains[url] = Web3(EthereumTesterProvider(tester))
             return _in_process_chains[url]
     if url.startswith(("http://", "https://")):
-        w3 = Web3(Web3.HTTPProvider(url, request_kwargs={"timeout": timeout}))
+        # web3 asks the node for its chain id before every eth_call and transaction; a node's
+        # chain id does not change, so it is asked once per connection (a view is one eth_call).
+        provider = Web3.HTTPProvider(
+            url,
+            request_kwargs={"timeout": timeout},
+            cache_allowed_requests=True,
+            cacheable_requests={"eth_chainId"},
+        )
+        w3 = Web3(provider)
         # Proof-of-authority networks (geth clique) carry signer data in extraData.
         w3.middleware_onion.inject(ExtraDataToPOAMiddleware, layer=0)
         return w3

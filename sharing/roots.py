@@ -20,7 +20,7 @@ import time
 from collections.abc import Sequence
 
 from django.conf import settings
-from django.db import transaction
+from django.db import connections, transaction
 from django.db.models import F
 from django.utils import timezone
 from eth_account.signers.local import LocalAccount
@@ -212,14 +212,30 @@ def tree_build(
             size=tree.size,
             leaves=b"".join(r.id.bytes for r in records),
         )
-        for index, record in enumerate(records):
-            record.anchor_root = row
-            record.leaf_index = index
-            record.merkle_path = b"".join(tree.path(index))
-        Record.objects.bulk_update(
-            records, ["anchor_root", "leaf_index", "merkle_path"], batch_size=500
-        )
+        _paths_write(row, records, tree)
     return row
+
+
+def _paths_write(row: AnchorRoot, records: Sequence[Record], tree: MerkleTree) -> None:
+    """Each record's tree, leaf index and audit path: one prepared UPDATE run for every record
+    (executemany), not bulk_update's CASE over up to ANCHOR_ROOT_MAX ids."""
+    connection = connections[Record.objects.db]
+    table = connection.ops.quote_name(Record._meta.db_table)
+    columns = [
+        connection.ops.quote_name(Record._meta.get_field(name).column)
+        for name in ("anchor_root", "leaf_index", "merkle_path", "id")
+    ]
+    pk = Record._meta.pk
+    rows = []
+    for index, record in enumerate(records):
+        path = b"".join(tree.path(index))
+        record.anchor_root, record.leaf_index, record.merkle_path = row, index, path
+        rows.append((row.pk, index, path, pk.get_db_prep_value(record.id, connection)))
+    assignments = ", ".join(f"{column} = %s" for column in columns[:3])
+    # Only the model's own quoted names go into the text; every value is a parameter.
+    sql = f"UPDATE {table} SET {assignments} WHERE {columns[3]} = %s"  # noqa: S608
+    with connection.cursor() as cursor:
+        cursor.executemany(sql, rows)
 
 
 def _tree_anchored(tree: AnchorRoot, *, tx_hash: str, block: int) -> int:

@@ -7,6 +7,7 @@ from datetime import UTC, datetime
 
 import pytest
 import redis
+import requests
 from eth_account import Account
 from web3 import Web3
 
@@ -167,3 +168,25 @@ def test_node_going_away_raises_chain_unavailable(redis_client):
         client.record_count()
     assert not client.is_connected()
     assert Web3.is_checksum_address(client.address)
+
+
+def test_a_read_is_one_request_to_the_node(anvil, redis_client, monkeypatch):
+    """web3 asks for the chain id before an eth_call; it is asked once per connection, so a
+    view's rootOf or dataQuery is one HTTP request."""
+    client, operator = _deployed(anvil.url, redis_client)
+    owner = _registered(client, operator)
+    item = _item()
+    client.data_upload(owner, item)
+    client.data_query(item.record_id)  # the connection has asked its chain id by now
+    methods = []
+    session_post = requests.Session.post
+
+    def post(session, url, *args, **kwargs):
+        methods.append(kwargs["json"]["method"] if "json" in kwargs else kwargs.get("data"))
+        return session_post(session, url, *args, **kwargs)
+
+    monkeypatch.setattr(requests.Session, "post", post)
+    assert client.data_query(item.record_id).digest == item.digest
+    assert client.root_of(owner.address, b"\x01" * 32) is None
+    assert len(methods) == 2
+    assert all(b"eth_call" in m if isinstance(m, bytes) else m == "eth_call" for m in methods)
