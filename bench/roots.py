@@ -428,7 +428,8 @@ def _limits(robot_key: tuple[Any, bytes]) -> dict[str, Any]:
 
 def _profiles(stack: BenchStack, client: Client, token: str, owner: Any) -> dict[str, str]:
     """Where one 100-envelope upload and one view spend their time (cProfile, the top
-    PROFILE_LINES functions by cumulative time), through Django's test client in this process; and the worker's check alone."""
+    PROFILE_LINES functions by cumulative time), through Django's test client in this process;
+    and the worker's check alone."""
     from django.test import Client as DjangoClient
 
     from sharing.verification import record_verify
