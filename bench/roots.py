@@ -8,9 +8,11 @@ gunicorn as make run serves it, anvil with automine):
 - ingest: C clients (one robot each, robots round-robin over the owners) POST batches of 100
   sealed 1 KB envelopes to `/api/v1/records/` as fast as they are answered, for D seconds;
   then the run waits for every record to be anchored. Ingest = envelopes accepted / seconds
-  from the first POST to the last answer. Anchoring throughput = records anchored / seconds
-  from the first record created to the last anchored (it cannot be faster than the ingest
-  that feeds it); latency = Record.anchored_at - Record.created_at, p50 and p95.
+  from the first POST to the last answer.
+- sustained anchoring: the same clients paced together at 2,000 envelopes/s (`--rate`) for S
+  seconds, then every record awaited. Anchoring throughput = records anchored / seconds from
+  the first of them created to the last anchored; latency = Record.anchored_at -
+  Record.created_at, p50 and p95.
 - view, idle: V verified views one after another, `GET /api/v1/records/{id}/content/` with
   the owner's API token (the worker checks the record against the chain; in root mode the
   proof folds to a root read with one `rootOf`), p50 and p95.
@@ -58,6 +60,7 @@ MODES = ("records", "root")
 BATCH = 100
 PLAINTEXT_BYTES = 1024
 PROFILE_LINES = 30
+SUSTAINED_RATE = 2000.0  # issue 13: anchoring sustained at 2,000 records/s
 PAPER = {"anchored_per_s": 63.0, "concurrent_700_total_s": 11.09}
 GOALS = {
     "anchored_per_s": 2000.0,
@@ -116,6 +119,8 @@ class RootsRun:
     clients: int
     owners: int
     ingest_seconds: float
+    sustained_seconds: float
+    rate: float
     views: int
     load_seconds: float
     workers: int
@@ -196,26 +201,63 @@ def _clients_create(robots: list[tuple[Any, bytes]], clients: int) -> list[Clien
 
 
 def _ingest(stack: BenchStack, run: RootsRun, clients: list[Client]) -> dict[str, Any]:
-    """The clients POST sealed batches for run.ingest_seconds; then every record anchored."""
+    """Two phases, each until every record is anchored: the clients as fast as they are
+    answered (the ingest figure), then paced at SUSTAINED_RATE records/s (the anchoring
+    figures: throughput and latency under that offered load)."""
+    burst = _upload_phase(stack, run, clients, seconds=run.ingest_seconds, rate=None)
+    sustained = _upload_phase(stack, run, clients, seconds=run.sustained_seconds, rate=run.rate)
+    return {
+        "ingested": burst["uploaded"],
+        "ingest_seconds": burst["seconds"],
+        "ingest_per_s": burst["uploaded"] / burst["seconds"],
+        "ingest_refused": burst["refused"],
+        "burst_anchored_per_s": burst["anchored_per_s"],
+        "burst_latency_p95_s": burst["latency_p95_s"],
+        "offered_per_s": run.rate,
+        "sustained_uploaded": sustained["uploaded"],
+        "sustained_uploaded_per_s": sustained["uploaded"] / sustained["seconds"],
+        "sustained_refused": sustained["refused"],
+        "anchored": burst["anchored"] + sustained["anchored"],
+        "failed": burst["failed"] + sustained["failed"],
+        "pending_at_timeout": sustained["pending"],
+        "anchor_span_s": sustained["span_s"],
+        "anchored_per_s": sustained["anchored_per_s"],
+        "latency_p50_s": sustained["latency_p50_s"],
+        "latency_p95_s": sustained["latency_p95_s"],
+    }
+
+
+def _upload_phase(
+    stack: BenchStack, run: RootsRun, clients: list[Client], *, seconds: float, rate: float | None
+) -> dict[str, Any]:
+    """The clients POST sealed batches of BATCH for `seconds`, each as fast as it is answered
+    or, with `rate`, together at `rate` envelopes/s; then every record is awaited."""
+    from django.utils import timezone
+
     from sharing.models import Record
 
     url = f"{stack.web_url}/api/v1/records/"
-    # Enough sealed bodies for 4,000 envelopes/s, sealed before the clock starts.
-    per_client = max(2, int(run.ingest_seconds * 4000 / BATCH / len(clients)))
+    # Enough sealed bodies for 4,000 envelopes/s (or the rate), sealed before the clock starts.
+    per_client = max(2, int(seconds * (rate or 4000) / BATCH / len(clients)) + 1)
+    interval = BATCH * len(clients) / rate if rate else 0.0  # seconds between a client's POSTs
     bodies = [client.bodies(per_client, BATCH) for client in clients]
     accepted = [0] * len(clients)
     refused: list[str] = []
     answered_at = [0.0] * len(clients)
     barrier = threading.Barrier(len(clients) + 1)
-    stop_at = [0.0]
+    start = [0.0]
 
     def post(number: int) -> None:
         session = requests.Session()
         session.headers["Authorization"] = f"Token {clients[number].token}"
         barrier.wait()
-        for body in bodies[number]:
-            if time.time() >= stop_at[0]:
+        # Paced clients start a fraction of an interval apart, so the POSTs spread out.
+        offset = start[0] + interval * number / len(clients)
+        for sent, body in enumerate(bodies[number]):
+            due = offset + sent * interval
+            if due >= start[0] + seconds or time.time() >= start[0] + seconds:
                 break
+            time.sleep(max(0.0, due - time.time()))
             answer = session.post(url, json=body, timeout=300)
             answered_at[number] = time.time()
             if answer.status_code == 201:
@@ -227,41 +269,38 @@ def _ingest(stack: BenchStack, run: RootsRun, clients: list[Client]) -> dict[str
     threads = [threading.Thread(target=post, args=(n,)) for n in range(len(clients))]
     for thread in threads:
         thread.start()
-    started = time.time()
-    stop_at[0] = started + run.ingest_seconds
+    began = timezone.now()
+    start[0] = time.time()
     barrier.wait()
     for thread in threads:
         thread.join()
-    ingested = sum(accepted)
-    ingest_seconds = max(answered_at) - started
     deadline = time.monotonic() + run.timeout
     while Record.objects.filter(status=Record.Status.PENDING).exists():
         stack.check_alive()
         if time.monotonic() > deadline:
             break
         time.sleep(POLL_INTERVAL)
+    phase = Record.objects.filter(created_at__gte=began)
     anchored = list(
-        Record.objects.filter(status=Record.Status.ANCHORED).values_list(
-            "created_at", "anchored_at"
-        )
+        phase.filter(status=Record.Status.ANCHORED).values_list("created_at", "anchored_at")
     )
-    latencies = [(done - made).total_seconds() * 1000 for made, done in anchored]
-    latency = summarize(latencies) if latencies else {}
-    first_created = min((made for made, _ in anchored), default=None)
-    last_anchored = max((done for _, done in anchored), default=None)
-    span = (last_anchored - first_created).total_seconds() if anchored else None
+    latency = summarize([(done - made).total_seconds() * 1000 for made, done in anchored])
+    span = (
+        (max(done for _, done in anchored) - min(made for made, _ in anchored)).total_seconds()
+        if anchored
+        else None
+    )
     return {
-        "ingested": ingested,
-        "ingest_seconds": ingest_seconds,
-        "ingest_per_s": ingested / ingest_seconds,
-        "ingest_refused": refused[:5],
+        "uploaded": sum(accepted),
+        "seconds": max(answered_at) - start[0],
+        "refused": refused[:5],
         "anchored": len(anchored),
-        "failed": Record.objects.filter(status=Record.Status.FAILED).count(),
-        "pending_at_timeout": Record.objects.filter(status=Record.Status.PENDING).count(),
-        "anchor_span_s": span,
+        "failed": phase.filter(status=Record.Status.FAILED).count(),
+        "pending": phase.filter(status=Record.Status.PENDING).count(),
+        "span_s": span,
         "anchored_per_s": len(anchored) / span if span else None,
-        "latency_p50_s": latency.get("median_ms", 0) / 1000 or None,
-        "latency_p95_s": latency.get("p95_ms", 0) / 1000 or None,
+        "latency_p50_s": latency["median_ms"] / 1000 if anchored else None,
+        "latency_p95_s": latency["p95_ms"] / 1000 if anchored else None,
     }
 
 
@@ -497,7 +536,11 @@ def main(argv: list[str]) -> int:
     parser = argparse.ArgumentParser(prog="python -m bench roots", description=__doc__)
     add_arguments(parser)
     parser.add_argument("--clients", type=int, default=4, help="ingest clients (default 4)")
-    parser.add_argument("--ingest-seconds", type=float, default=20.0)
+    parser.add_argument("--ingest-seconds", type=float, default=15.0, help="flat out")
+    parser.add_argument("--sustained-seconds", type=float, default=30.0, help="paced")
+    parser.add_argument(
+        "--rate", type=float, default=SUSTAINED_RATE, help="paced envelopes/s (2,000)"
+    )
     parser.add_argument("--views", type=int, default=300, help="idle views (default 300)")
     parser.add_argument("--load-seconds", type=float, default=60.0)
     parser.add_argument("--agents", type=int, default=700, help="concurrent uploads (700)")
@@ -506,6 +549,7 @@ def main(argv: list[str]) -> int:
     check_arguments(parser, args)
     if args.quick:
         args.ingest_seconds, args.views, args.load_seconds, args.agents = 3.0, 30, 5.0, 50
+        args.sustained_seconds = 3.0
     started = now_iso()
     rows = []
     for mode in args.modes:
@@ -514,6 +558,8 @@ def main(argv: list[str]) -> int:
             clients=args.clients,
             owners=min(args.owners, args.clients),
             ingest_seconds=args.ingest_seconds,
+            sustained_seconds=args.sustained_seconds,
+            rate=args.rate,
             views=args.views,
             load_seconds=args.load_seconds,
             workers=args.workers,
@@ -554,6 +600,8 @@ def main(argv: list[str]) -> int:
         "clients": args.clients,
         "batch_per_post": BATCH,
         "ingest_seconds": args.ingest_seconds,
+        "sustained_seconds": args.sustained_seconds,
+        "sustained_rate_per_s": args.rate,
         "idle_views": args.views,
         "load_seconds": args.load_seconds,
         "concurrent_agents": args.agents,

@@ -91,16 +91,17 @@ def record_create_batch(*, robot: Robot, envelopes: Sequence[bytes]) -> list[Rec
     seqs = [c.header["seq"] for c in checked]
     if seqs != sorted(set(seqs)):
         raise InvalidEnvelope("sequence numbers in one upload must strictly increase")
-    names: list[str] = []
+    # The files first, durable before the transaction starts: the robot's row lock (and
+    # SQLite's write lock) is then held for the rows alone, not for a disk sync. Files of an
+    # upload refused or failed below are removed again.
+    names = envelopes_save(
+        envelope_storage(), [(f"{robot.owner_id}/{c.record_id}.env", c.data) for c in checked]
+    )
     try:
         with transaction.atomic():
             locked = Robot.objects.select_for_update().get(pk=robot.pk)
             if seqs[0] <= locked.last_seq:
                 _sequence_check(robot, checked, last_seq=locked.last_seq)
-            names = envelopes_save(
-                envelope_storage(),
-                [(f"{robot.owner_id}/{c.record_id}.env", c.data) for c in checked],
-            )
             records = Record.objects.bulk_create(
                 [
                     Record(
@@ -121,12 +122,11 @@ def record_create_batch(*, robot: Robot, envelopes: Sequence[bytes]) -> list[Rec
             )
             Robot.objects.filter(pk=robot.pk).update(last_seq=seqs[-1])
             transaction.on_commit(lambda: _after_upload(robot.owner_id, checked))
-    except SequenceConflict as conflict:
-        _sequence_conflict_alarm(robot, conflict.detail)  # outside the refused transaction
-        raise
-    except BaseException:
+    except BaseException as refused:
         # Nothing of a refused or failed upload stays behind, not even its files.
         _files_forget(names)
+        if isinstance(refused, SequenceConflict):
+            _sequence_conflict_alarm(robot, refused.detail)  # outside the refused transaction
         raise
     return records
 

@@ -127,6 +127,9 @@ def test_replayed_or_stale_sequence_is_refused(make_robot):
         with pytest.raises(errors.SequenceConflict):
             record_create(robot=setup.robot, data=setup.seal(seq))
     assert Record.objects.count() == 1
+    # The refused uploads' files (written before the sequence is checked) are gone again.
+    root = Path(envelope_storage().location)
+    assert [p.name for p in root.rglob("*.env")] == [f"{Record.objects.get().pk}.env"]
     events = SecurityEvent.objects.filter(kind=SecurityEvent.Kind.SEQUENCE_CONFLICT)
     assert sorted(e.detail["seq"] for e in events) == [3, 7]
     assert {e.owner for e in events} == {setup.owner}
