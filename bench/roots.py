@@ -9,10 +9,10 @@ gunicorn as make run serves it, anvil with automine):
   sealed 1 KB envelopes to `/api/v1/records/` as fast as they are answered, for D seconds;
   then the run waits for every record to be anchored. Ingest = envelopes accepted / seconds
   from the first POST to the last answer.
-- sustained anchoring: the same clients paced together at 2,000 envelopes/s (`--rate`) for S
-  seconds, then every record awaited. Anchoring throughput = records anchored / seconds from
-  the first of them created to the last anchored; latency = Record.anchored_at -
-  Record.created_at, p50 and p95.
+- sustained anchoring: the same clients paced together at 2,200 envelopes/s (`--rate`, a
+  tenth above the goal) for S seconds, then every record awaited. Anchoring throughput =
+  records anchored / seconds from the first of them created to the last anchored; latency =
+  Record.anchored_at - Record.created_at, p50 and p95.
 - view, idle: V verified views one after another, `GET /api/v1/records/{id}/content/` with
   the owner's API token (the worker checks the record against the chain; in root mode the
   proof folds to a root read with one `rootOf`), p50 and p95.
@@ -60,7 +60,9 @@ MODES = ("records", "root")
 BATCH = 100
 PLAINTEXT_BYTES = 1024
 PROFILE_LINES = 30
-SUSTAINED_RATE = 2000.0  # issue 13: anchoring sustained at 2,000 records/s
+# Issue 13 asks for anchoring sustained at 2,000 records/s: offered a tenth above, so that
+# keeping up shows in the throughput (which cannot exceed what is offered).
+SUSTAINED_RATE = 2200.0
 PAPER = {"anchored_per_s": 63.0, "concurrent_700_total_s": 11.09}
 GOALS = {
     "anchored_per_s": 2000.0,
@@ -474,7 +476,7 @@ def _profiles(stack: BenchStack, client: Client, token: str, owner: Any) -> dict
     from sharing.verification import record_verify
 
     web = DjangoClient(HTTP_HOST="127.0.0.1")
-    body = client.bodies(1, BATCH)[0]
+    bodies = iter(client.bodies(2, BATCH))  # one to warm up with, one to profile: no replay
     record_id = _anchored_ids(owner, 1)[0]
     profiles = {}
     for name, call in (
@@ -482,7 +484,7 @@ def _profiles(stack: BenchStack, client: Client, token: str, owner: Any) -> dict
             "upload_100",
             lambda: web.post(
                 "/api/v1/records/",
-                body,
+                next(bodies),
                 content_type="application/json",
                 HTTP_AUTHORIZATION=f"Token {client.token}",
             ),
@@ -498,11 +500,12 @@ def _profiles(stack: BenchStack, client: Client, token: str, owner: Any) -> dict
         call()  # warm: the first call of each opens connections
         profiler = cProfile.Profile()
         started = time.perf_counter()
-        profiler.runcall(call)
+        answer = profiler.runcall(call)
         elapsed = (time.perf_counter() - started) * 1000
         out = io.StringIO()
         pstats.Stats(profiler, stream=out).sort_stats("cumulative").print_stats(PROFILE_LINES)
-        profiles[name] = f"{elapsed:.1f} ms in all\n" + _trimmed(out.getvalue())
+        status = f", HTTP {answer.status_code}" if hasattr(answer, "status_code") else ""
+        profiles[name] = f"{elapsed:.1f} ms in all{status}\n" + _trimmed(out.getvalue())
     return profiles
 
 
@@ -539,7 +542,7 @@ def main(argv: list[str]) -> int:
     parser.add_argument("--ingest-seconds", type=float, default=15.0, help="flat out")
     parser.add_argument("--sustained-seconds", type=float, default=30.0, help="paced")
     parser.add_argument(
-        "--rate", type=float, default=SUSTAINED_RATE, help="paced envelopes/s (2,000)"
+        "--rate", type=float, default=SUSTAINED_RATE, help="paced envelopes/s (2,200)"
     )
     parser.add_argument("--views", type=int, default=300, help="idle views (default 300)")
     parser.add_argument("--load-seconds", type=float, default=60.0)

@@ -347,3 +347,5 @@ def test_a_read_at_an_address_without_code_is_contract_not_deployed(chain):
     chain.use_contract(Account.create().address)
     with pytest.raises(ContractNotDeployed):
         chain.commitment_of(Account.create().address)
+    with pytest.raises(ContractNotDeployed):  # the lean read of every view, too
+        chain.root_of(Account.create().address, b"\x01" * 32)

@@ -15,6 +15,7 @@ from chainworker.chain import (
     AnchorItem,
     AuthROSChain,
     ChainUnavailable,
+    ContractNotDeployed,
     TransactionReverted,
     TransactionTimeout,
 )
@@ -177,6 +178,7 @@ def test_a_read_is_one_request_to_the_node(anvil, redis_client, monkeypatch):
     owner = _registered(client, operator)
     item = _item()
     client.data_upload(owner, item)
+    client.anchor_root(owner, b"\x02" * 32, 5)
     client.data_query(item.record_id)  # the connection has asked its chain id by now
     methods = []
     session_post = requests.Session.post
@@ -188,5 +190,17 @@ def test_a_read_is_one_request_to_the_node(anvil, redis_client, monkeypatch):
     monkeypatch.setattr(requests.Session, "post", post)
     assert client.data_query(item.record_id).digest == item.digest
     assert client.root_of(owner.address, b"\x01" * 32) is None
-    assert len(methods) == 2
+    anchored = client.root_of(owner.address, b"\x02" * 32)
+    assert anchored.size == 5
+    assert anchored.sender == owner.address
+    assert len(methods) == 3
     assert all(b"eth_call" in m if isinstance(m, bytes) else m == "eth_call" for m in methods)
+
+
+def test_the_views_read_at_an_address_without_code_is_contract_not_deployed(anvil, redis_client):
+    """rootOf goes past web3's contract layer over HTTP: an empty answer (a reset chain) is
+    still ContractNotDeployed, not a crash."""
+    client = AuthROSChain(anvil.url, redis_client=redis_client)
+    client.use_contract(Account.create().address)
+    with pytest.raises(ContractNotDeployed):
+        client.root_of(Account.create().address, b"\x01" * 32)
