@@ -844,7 +844,10 @@ def _pct(value: float | None) -> str:
 
 
 def _ratio(value: float | None) -> str:
-    return "-" if value is None else f"{value:.2f}x"
+    """Two decimals; two significant digits below 0.1, so a 400x gain is not "0.00x"."""
+    if value is None:
+        return "-"
+    return f"{value:.2f}x" if value >= 0.1 else f"{value:.2g}x"
 
 
 def _relative(path: Path) -> str:

@@ -513,3 +513,85 @@ def test_the_concurrency_section_names_the_stack_that_served_the_uploads(tmp_pat
         "Stack of every configuration: python -m stack run --no-ros; the portal was "
         "served by `gunicorn -k x`."
     ) in output.read_text()
+
+
+def _roots_row(mode: str, **values: float) -> dict:
+    row = {
+        "anchor_mode": mode,
+        "ingested": 300,
+        "ingest_seconds": 0.2,
+        "sustained_uploaded": 440,
+        "sustained_uploaded_per_s": 2200.0,
+        "transactions": 3,
+        "failed": 0,
+        "pending_at_timeout": 0,
+        "concurrent_700_anchored": 700,
+        "concurrent_700_sent": 700,
+        "profiles": {"view": "12.0 ms in all\n   ncalls  tottime"},
+    }
+    return row | values
+
+
+def test_the_roots_section_judges_each_goal_of_issue_13_from_the_root_mode_row(tmp_path):
+    results = tmp_path / "results"
+    results.mkdir()
+    figures = {
+        "anchored_per_s": (600.0, 2179.0),
+        "latency_p95_s": (230.0, 0.54),
+        "ingest_per_s": (2500.0, 2863.0),
+        "view_idle_p50_ms": (23.7, 22.0),
+        "view_load_p95_ms": (404.5, 39.8),
+        "concurrent_700_total_s": (7.7, 8.6),
+    }
+    records = _roots_row("records", **{key: pair[0] for key, pair in figures.items()})
+    root = _roots_row("root", **{key: pair[1] for key, pair in figures.items()})
+    for key, (theirs, ours) in figures.items():
+        root[f"{key}_ratio_vs_records"] = ours / theirs
+    settings = {
+        "chain": "anvil, automine",
+        "web_command": "gunicorn",
+        "clients": 4,
+        "batch_per_post": 100,
+        "ingest_seconds": 15,
+        "sustained_rate_per_s": 2200,
+        "sustained_seconds": 30,
+        "idle_views": 300,
+        "load_seconds": 60,
+        "concurrent_agents": 700,
+    }
+    goals_met = {"anchored_per_s": True, "latency_p95_s": True, "view_idle_p50_ms": False}
+    (results / "roots.json").write_text(
+        json.dumps(
+            {
+                "benchmark": "roots",
+                "date": "2031-02-03T04:05:06Z",
+                "machine": _machine(),
+                "settings": settings,
+                "paper": {"anchored_per_s": 63.0, "concurrent_700_total_s": 11.09},
+                "goals": {
+                    "anchored_per_s": 2000.0,
+                    "latency_p95_s": 3.0,
+                    "ingest_per_s": 1500.0,
+                    "view_idle_p50_ms": 20.0,
+                    "view_load_p95_ms": 250.0,
+                    "concurrent_700_total_s": 2.2,
+                },
+                "goals_met": {"root": goals_met},
+                "results": [records, root],
+            }
+        )
+    )
+    output = tmp_path / "REPORT.md"
+    assert report.main(["--results-dir", str(results), "--output", str(output)]) == 0
+    text = output.read_text()
+    assert "## Merkle roots against one slot per record" in text
+    assert "| anchoring throughput | >= 2000 records/s | 600 | 2179 | 3.63x | 63 | met |" in text
+    assert "| anchoring latency p95 | <= 3 s | 230.00 | 0.54 | 0.0023x | - | met |" in text
+    assert "| verified view p50, idle | <= 20 ms | 23.7 | 22.0 | 0.93x | - | **not met** |" in text
+    # A goal the run has no verdict for says so, never "met".
+    assert "| batch ingest (100 x 1 KB per POST) | >= 1500 envelopes/s | 2500 | 2863 | 1.15x " in (
+        text
+    )
+    assert "- | not measured |" in text
+    assert "440 paced (2200/s)" in text
+    assert "<summary>root mode: view</summary>" in text
