@@ -7,6 +7,8 @@ import tempfile
 from contextlib import suppress
 from pathlib import Path
 
+from core.files import fsync_path
+
 
 class SecretFileError(RuntimeError):
     """A secret file exists but cannot be trusted (wrong permissions or content)."""
@@ -41,16 +43,8 @@ def _create_secret(path: Path, *, nbytes: int) -> None:
     finally:
         with suppress(FileNotFoundError):
             os.unlink(temporary)
-    _fsync_directory(path.parent)
-
-
-def _fsync_directory(directory: Path) -> None:
-    """Make the new name durable: a crash after this keeps the file that was handed out."""
-    fd = os.open(directory, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
+    # The new name durable: a crash after this keeps the file that was handed out.
+    fsync_path(path.parent)
 
 
 def _read_secret(path: Path, *, nbytes: int) -> bytes:

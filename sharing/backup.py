@@ -43,6 +43,7 @@ from django.db.models import Model
 
 from accounts.keywrap import KEK_FINGERPRINT, kek_fingerprint
 from accounts.models import SecretFingerprint
+from core.files import fsync_path
 from core.secrets import SecretFileError, load_or_create_secret
 from sharing.errors import SharingError
 from sharing.models import Record
@@ -432,8 +433,4 @@ def _write_atomically(path: Path, data: bytes, *, mode: int) -> None:
     finally:
         with suppress(FileNotFoundError):
             os.unlink(temporary)
-    directory = os.open(path.parent, os.O_RDONLY)
-    try:
-        os.fsync(directory)
-    finally:
-        os.close(directory)
+    fsync_path(path.parent)

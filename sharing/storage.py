@@ -10,6 +10,8 @@ from pathlib import Path
 from django.core.files.base import ContentFile
 from django.core.files.storage import FileSystemStorage, Storage, storages
 
+from core.files import fsync_path
+
 
 class DurableFileSystemStorage(FileSystemStorage):
     """Local disk, with the file and its directory fsync'd before save() returns."""
@@ -17,8 +19,8 @@ class DurableFileSystemStorage(FileSystemStorage):
     def _save(self, name: str, content) -> str:
         name = super()._save(name, content)
         path = self.path(name)
-        _fsync(path)
-        _fsync(os.path.dirname(path))
+        fsync_path(path)
+        fsync_path(os.path.dirname(path))
         return name
 
     def save_durably(self, files: Sequence[tuple[str, bytes]]) -> list[str]:
@@ -69,14 +71,6 @@ def envelope_storage() -> Storage:
     return storages["envelopes"]
 
 
-def _fsync(path: str) -> None:
-    fd = os.open(path, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-
-
 def _syncfs() -> object | None:
     """libc's syncfs(2) where there is one (Linux), else None."""
     if not sys.platform.startswith("linux"):
@@ -103,6 +97,6 @@ def _sync(paths: Sequence[str], location: str) -> None:
         finally:
             os.close(fd)
     for path in paths:
-        _fsync(path)
+        fsync_path(path)
     for directory in {os.path.dirname(path) for path in paths}:
-        _fsync(directory)
+        fsync_path(directory)

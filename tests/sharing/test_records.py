@@ -200,9 +200,9 @@ def test_without_syncfs_every_file_and_folder_is_fsynced(make_robot, monkeypatch
     setup = make_robot()
     monkeypatch.setattr(storage_module, "_SYNCFS", None)
     synced = []
-    real_fsync = storage_module._fsync
+    real_fsync = storage_module.fsync_path
     monkeypatch.setattr(
-        storage_module, "_fsync", lambda path: synced.append(path) or real_fsync(path)
+        storage_module, "fsync_path", lambda path: synced.append(path) or real_fsync(path)
     )
     records = record_create_batch(robot=setup.robot, envelopes=[setup.seal(seq) for seq in (1, 2)])
     files = {envelope_storage().path(record.storage_name) for record in records}
