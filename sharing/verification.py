@@ -79,7 +79,7 @@ def record_verify(
             viewer=viewer,
             checked_by_id=checked_by_id,
             outcome=outcome,
-            block_number=max(block, record.block_number or 0),
+            block_number=_verdict_block(block, record),
             **fields,
         )
 
@@ -115,7 +115,7 @@ def records_verify(*, record_ids: Sequence[uuid.UUID | str], viewer_id: int) -> 
         Verdict(
             record=record,
             viewer=viewer,
-            block_number=max(block, record.block_number or 0),
+            block_number=_verdict_block(block, record),
             **fields,
         )
         for record, (fields, _data) in zip(records, checked, strict=True)
@@ -124,6 +124,12 @@ def records_verify(*, record_ids: Sequence[uuid.UUID | str], viewer_id: int) -> 
         Verification(verdict, data)
         for verdict, (_fields, data) in zip(verdicts, checked, strict=True)
     ]
+
+
+def _verdict_block(head: int, record: Record) -> int:
+    """The block a verdict states: the chain's head as the portal last saw it, never below the
+    block the record was anchored in (which the chain answering for it must have)."""
+    return max(head, record.block_number or 0)
 
 
 def _digest_check(
