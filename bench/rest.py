@@ -71,6 +71,7 @@ class UploadRun:
     redis_url: str
     keep_logs: bool
     uploads_per_agent: int = 1
+    anchor_mode: str = "records"  # the baseline; bench/roots.py measures "root" too
 
     @property
     def mode(self) -> str:
@@ -92,13 +93,16 @@ class UploadRun:
         return f"{agents} x {self.uploads_per_agent} uploads in a row"
 
     def describe(self) -> str:
-        return (
+        mode = "" if self.anchor_mode == "records" else f"ANCHOR_MODE={self.anchor_mode}: "
+        return mode + (
             f"{self.mode}, ANCHOR_BATCH_MAX={self.batch_max}, {self.describe_agents()}, "
             f"{self.plaintext_bytes} B"
         )
 
     def stack_options(self) -> StackOptions:
-        return StackOptions.for_run(self, web_workers=self.web_workers)
+        return StackOptions.for_run(
+            self, web_workers=self.web_workers, anchor_mode=self.anchor_mode
+        )
 
     def settings(self) -> dict[str, Any]:
         return {key: value for key, value in asdict(self).items() if key != "keep_logs"}
@@ -147,6 +151,7 @@ def upload_run(
     agents: int,
     plaintext_bytes: int,
     uploads_per_agent: int = 1,
+    anchor_mode: str = "records",
 ) -> UploadRun:
     """One configuration: `agents` agents, each POSTing `uploads_per_agent` envelopes in a row."""
     return UploadRun(
@@ -163,6 +168,7 @@ def upload_run(
         redis_url=args.redis_url,
         keep_logs=args.keep_logs,
         uploads_per_agent=uploads_per_agent,
+        anchor_mode=anchor_mode,
     )
 
 

@@ -36,12 +36,13 @@ import argparse
 import base64
 import cProfile
 import io
+import itertools
 import pstats
 import secrets
 import tempfile
 import threading
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from datetime import timedelta
 from pathlib import Path
 from typing import Any
@@ -51,7 +52,7 @@ import requests
 from bench import now_iso, run_in_child, summarize
 from bench.common import print_table, seal_record, write_results
 from bench.plotting import machine_line, plt, save_figure
-from bench.rest import UploadRun, add_arguments, check_arguments, report_header
+from bench.rest import add_arguments, check_arguments, report_header, upload_run
 from bench.rest import measure as concurrent_measure
 from bench.stack import POLL_INTERVAL, BenchStack, StackOptions, owners_register, run_finished
 
@@ -142,8 +143,9 @@ class RootsRun:
         )
 
     def stack_options(self) -> StackOptions:
-        options = StackOptions.for_run(self, web_workers=self.web_workers)
-        return StackOptions(**{**asdict(options), "anchor_mode": self.anchor_mode})
+        return StackOptions.for_run(
+            self, web_workers=self.web_workers, anchor_mode=self.anchor_mode
+        )
 
 
 # --- one mode, in a child process --------------------------------------------------------------
@@ -160,7 +162,7 @@ def measure(run: RootsRun) -> dict[str, Any]:
         row |= _ingest(stack, run, clients)
         row |= _gas(run)
         viewer = _viewer(robots[0][0].owner)
-        row |= _views(stack.web_url, viewer, robots[0][0].owner, run.views, "idle")
+        row |= _views(stack.web_url, viewer, _anchored_ids(robots[0][0].owner, run.views), "idle")
         row |= _under_load(stack, run, clients[0], viewer, robots[0][0].owner)
         row |= _limits(robots[0])
         row["profiles"] = _profiles(stack, clients[0], viewer, robots[0][0].owner)
@@ -230,19 +232,27 @@ def _ingest(stack: BenchStack, run: RootsRun, clients: list[Client]) -> dict[str
 
 
 def _upload_phase(
-    stack: BenchStack, run: RootsRun, clients: list[Client], *, seconds: float, rate: float | None
+    stack: BenchStack,
+    run: RootsRun,
+    clients: list[Client],
+    *,
+    seconds: float,
+    rate: float | None,
+    per_post: int = BATCH,
+    posted: threading.Event | None = None,
 ) -> dict[str, Any]:
-    """The clients POST sealed batches of BATCH for `seconds`, each as fast as it is answered
-    or, with `rate`, together at `rate` envelopes/s; then every record is awaited."""
+    """The clients POST sealed batches of `per_post` for `seconds`, each as fast as it is
+    answered or, with `rate`, together at `rate` envelopes/s; then every record is awaited.
+    `posted` is set once the last POST was answered."""
     from django.utils import timezone
 
     from sharing.models import Record
 
     url = f"{stack.web_url}/api/v1/records/"
     # Enough sealed bodies for 4,000 envelopes/s (or the rate), sealed before the clock starts.
-    per_client = max(2, int(seconds * (rate or 4000) / BATCH / len(clients)) + 1)
-    interval = BATCH * len(clients) / rate if rate else 0.0  # seconds between a client's POSTs
-    bodies = [client.bodies(per_client, BATCH) for client in clients]
+    per_client = max(2, int(seconds * (rate or 4000) / per_post / len(clients)) + 1)
+    interval = per_post * len(clients) / rate if rate else 0.0  # between a client's POSTs
+    bodies = [client.bodies(per_client, per_post) for client in clients]
     accepted = [0] * len(clients)
     refused: list[str] = []
     answered_at = [0.0] * len(clients)
@@ -269,13 +279,17 @@ def _upload_phase(
         session.close()
 
     threads = [threading.Thread(target=post, args=(n,)) for n in range(len(clients))]
-    for thread in threads:
-        thread.start()
-    began = timezone.now()
-    start[0] = time.time()
-    barrier.wait()
-    for thread in threads:
-        thread.join()
+    try:
+        for thread in threads:
+            thread.start()
+        began = timezone.now()
+        start[0] = time.time()
+        barrier.wait()
+        for thread in threads:
+            thread.join()
+    finally:
+        if posted is not None:
+            posted.set()
     deadline = time.monotonic() + run.timeout
     while Record.objects.filter(status=Record.Status.PENDING).exists():
         stack.check_alive()
@@ -348,15 +362,19 @@ def _anchored_ids(owner: Any, limit: int) -> list[str]:
     return [str(pk) for pk in ids.order_by("?")[:limit]]
 
 
-def _views(url: str, token: str, owner: Any, count: int, name: str) -> dict[str, Any]:
-    """`count` verified views one after another (each of another record), in ms."""
-    ids = _anchored_ids(owner, count)
+def _views(
+    url: str, token: str, ids: list[str], name: str, *, until: threading.Event | None = None
+) -> dict[str, Any]:
+    """Verified views one after another, in ms: each of `ids` once or, with `until`, round
+    and round them until it is set."""
     session = requests.Session()
     session.headers["Authorization"] = f"Token {token}"
     times, errors = [], 0
-    for record_id in ids:
+    for number in itertools.count():
+        if until.is_set() if until is not None else number == len(ids):
+            break
         sent = time.perf_counter()
-        answer = session.get(f"{url}/api/v1/records/{record_id}/content/", timeout=60)
+        answer = session.get(f"{url}/api/v1/records/{ids[number % len(ids)]}/content/", timeout=60)
         times.append((time.perf_counter() - sent) * 1000)
         errors += answer.status_code != 200
     session.close()
@@ -375,60 +393,29 @@ def _under_load(
 ) -> dict[str, Any]:
     """Views one after another while `client` uploads 100 records/s (10 per POST every
     0.1 s) for run.load_seconds; and the anchoring latency of those uploads."""
-    from sharing.models import Record
-
-    posts = int(run.load_seconds * 10)
-    bodies = client.bodies(posts, 10)
-    ids: list[str] = []
-    done = threading.Event()
+    posted = threading.Event()
+    phase: dict[str, Any] = {}
 
     def upload() -> None:
-        session = requests.Session()
-        session.headers["Authorization"] = f"Token {client.token}"
-        start = time.monotonic()
-        for number, body in enumerate(bodies):
-            time.sleep(max(0.0, start + number * 0.1 - time.monotonic()))
-            answer = session.post(f"{stack.web_url}/api/v1/records/", json=body, timeout=60)
-            if answer.status_code == 201:
-                ids.extend(item["id"] for item in answer.json())
-        session.close()
-        done.set()
+        phase.update(
+            _upload_phase(
+                stack,
+                run,
+                [client],
+                seconds=run.load_seconds,
+                rate=100.0,
+                per_post=10,
+                posted=posted,
+            )
+        )
 
     uploader = threading.Thread(target=upload)
     uploader.start()
-    times, errors = [], 0
-    session = requests.Session()
-    session.headers["Authorization"] = f"Token {token}"
-    candidates = _anchored_ids(owner, 2000)
-    number = 0
-    while not done.is_set():
-        record_id = candidates[number % len(candidates)]
-        number += 1
-        sent = time.perf_counter()
-        answer = session.get(f"{stack.web_url}/api/v1/records/{record_id}/content/", timeout=60)
-        times.append((time.perf_counter() - sent) * 1000)
-        errors += answer.status_code != 200
-    session.close()
+    views = _views(stack.web_url, token, _anchored_ids(owner, 2000), "load", until=posted)
     uploader.join()
-    deadline = time.monotonic() + 120
-    while Record.objects.filter(pk__in=ids, status=Record.Status.PENDING).exists():
-        if time.monotonic() > deadline:
-            break
-        time.sleep(POLL_INTERVAL)
-    latencies = [
-        (anchored - created).total_seconds() * 1000
-        for created, anchored in Record.objects.filter(
-            pk__in=ids, status=Record.Status.ANCHORED
-        ).values_list("created_at", "anchored_at")
-    ]
-    stats = summarize(times)
-    return {
-        "load_uploaded": len(ids),
-        "view_load_count": len(times),
-        "view_load_p50_ms": stats["median_ms"],
-        "view_load_p95_ms": stats["p95_ms"],
-        "view_load_errors": errors,
-        "load_latency_p95_s": summarize(latencies)["p95_ms"] / 1000 if latencies else None,
+    return views | {
+        "load_uploaded": phase.get("uploaded"),
+        "load_latency_p95_s": phase.get("latency_p95_s"),
     }
 
 
@@ -517,21 +504,6 @@ def _trimmed(text: str) -> str:
     return "\n".join(line.replace(root, "") for line in lines[start:] if line.strip())
 
 
-# --- the paper's 700 concurrent uploads, per mode ----------------------------------------------
-
-
-@dataclass(frozen=True)
-class ConcurrentRun(UploadRun):
-    anchor_mode: str = "records"
-
-    def describe(self) -> str:
-        return f"ANCHOR_MODE={self.anchor_mode}: {super().describe()}"
-
-    def stack_options(self) -> StackOptions:
-        options = super().stack_options()
-        return StackOptions(**{**asdict(options), "anchor_mode": self.anchor_mode})
-
-
 # --- the benchmark -----------------------------------------------------------------------------
 
 
@@ -574,19 +546,12 @@ def main(argv: list[str]) -> int:
         )
         print(f"== {run.describe()}", flush=True)
         row = run_in_child(measure, run)
-        concurrent = ConcurrentRun(
+        concurrent = upload_run(
+            args,
             block_time=None,
             batch_max=100,
             agents=args.agents,
             plaintext_bytes=PLAINTEXT_BYTES,
-            owners=args.owners,
-            workers=args.workers,
-            web_workers=args.web_workers,
-            verifiers=args.verifiers,
-            max_wait=args.max_wait,
-            timeout=args.timeout,
-            redis_url=args.redis_url,
-            keep_logs=args.keep_logs,
             anchor_mode=mode,
         )
         print(f"== {concurrent.describe()}", flush=True)

@@ -67,7 +67,12 @@ class StackOptions:
 
     @classmethod
     def for_run(
-        cls, run: "StackedRun", *, web: bool = True, web_workers: int = 0
+        cls,
+        run: "StackedRun",
+        *,
+        web: bool = True,
+        web_workers: int = 0,
+        anchor_mode: str = "records",
     ) -> "StackOptions":
         """The stack a benchmark's run asks for (each benchmark's run type has these fields)."""
         return cls(
@@ -78,6 +83,7 @@ class StackOptions:
             redis_url=run.redis_url,
             web=web,
             web_workers=web_workers,
+            anchor_mode=anchor_mode,
         )
 
 
