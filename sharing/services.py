@@ -23,6 +23,7 @@ from accounts.selectors import (
     owner_by_identifier,
     owner_eoa_account,
     owner_key_bytes,
+    owner_keys,
 )
 from accounts.services import chain_activity_record
 from chainworker.chain import InsufficientFunds, TransactionReverted, TxResult
@@ -84,9 +85,10 @@ def record_create_batch(*, robot: Robot, envelopes: Sequence[bytes]) -> list[Rec
     """
     if not envelopes:
         raise InvalidEnvelope("no envelopes in the upload")
+    owner_keys_read = owner_keys(robot.owner)  # read once, for the check and the unsealing
     # The owner's commitment on chain must be the key the envelopes are sealed under.
-    owner_identity_check(owner=robot.owner)
-    keys: dict[str, tuple[OwnerKey, bytes] | None] = {}
+    owner_identity_check(owner=robot.owner, keys=owner_keys_read)
+    keys = _UploadKeys(owner_keys_read)
     checked = [_check_upload(robot, data, keys) for data in envelopes]
     seqs = [c.header["seq"] for c in checked]
     if seqs != sorted(set(seqs)):
@@ -174,24 +176,27 @@ def _after_upload(owner_id: int, uploads: Sequence[_CheckedUpload]) -> None:
     anchor_schedule(owner_id=owner_id)
 
 
-def _upload_key(
-    owner: Owner, key_id: str, keys: dict[str, tuple[OwnerKey, bytes] | None]
-) -> tuple[OwnerKey, bytes] | None:
-    """The owner's key `key_id` and its bytes, if an upload may be sealed under it (the current
-    key, or one retired within KEY_ROTATION_GRACE); looked up and unwrapped once per upload."""
-    if key_id not in keys:
-        key = owner.keys.filter(key_id=key_id).first()
-        grace_start = timezone.now() - KEY_ROTATION_GRACE
-        usable = key is not None and (
-            key.is_current or (key.retired_at is not None and key.retired_at > grace_start)
-        )
-        keys[key_id] = (key, owner_key_bytes(key)) if usable else None
-    return keys[key_id]
+class _UploadKeys:
+    """The owner's keys an upload may be sealed under (the current key, or one retired within
+    KEY_ROTATION_GRACE), each unwrapped once per upload."""
+
+    def __init__(self, keys: Sequence[OwnerKey]) -> None:
+        self._keys = {key.key_id: key for key in keys}
+        self._usable: dict[str, tuple[OwnerKey, bytes] | None] = {}
+
+    def get(self, key_id: str) -> tuple[OwnerKey, bytes] | None:
+        """The key `key_id` and its bytes, or None if an upload may not be sealed under it."""
+        if key_id not in self._usable:
+            key = self._keys.get(key_id)
+            grace_start = timezone.now() - KEY_ROTATION_GRACE
+            usable = key is not None and (
+                key.is_current or (key.retired_at is not None and key.retired_at > grace_start)
+            )
+            self._usable[key_id] = (key, owner_key_bytes(key)) if usable else None
+        return self._usable[key_id]
 
 
-def _check_upload(
-    robot: Robot, data: bytes, keys: dict[str, tuple[OwnerKey, bytes] | None]
-) -> _CheckedUpload:
+def _check_upload(robot: Robot, data: bytes, keys: _UploadKeys) -> _CheckedUpload:
     if len(data) > settings.ENVELOPE_MAX_BYTES:
         raise EnvelopeTooLarge(
             f"envelope of {len(data)} bytes is above the limit of {settings.ENVELOPE_MAX_BYTES}"
@@ -209,7 +214,7 @@ def _check_upload(
             raise InvalidEnvelope(f"{field} is longer than {MAX_FIELD_LENGTH} characters")
         if "\x00" in header[field]:
             raise InvalidEnvelope(f"{field} contains a NUL character")
-    usable = _upload_key(owner, info.key_id.hex(), keys)
+    usable = keys.get(info.key_id.hex())
     if usable is None:
         raise UnknownKey("the envelope is not sealed under the owner's current key")
     key, key_bytes = usable
