@@ -215,3 +215,26 @@ def writer_qos() -> Any:
         Policy.Durability.Volatile,
         Policy.History.KeepLast(10),
     )
+
+
+def idl_sample(struct: type, msg: Any) -> Any:
+    """A rosbags message as an instance of its Cyclone DDS struct (from `idl_type`), to write."""
+    import dataclasses
+
+    import numpy as np
+
+    hints = struct.__annotations__
+    values = {}
+    for member in dataclasses.fields(msg):
+        if member.name.startswith("__"):
+            continue
+        value = getattr(msg, member.name)
+        if dataclasses.is_dataclass(value):
+            value = idl_sample(hints[member.name], value)
+        elif isinstance(value, np.ndarray):
+            value = value.tolist()
+        elif isinstance(value, list) and value and dataclasses.is_dataclass(value[0]):
+            element = hints[member.name].__metadata__[0].subtype
+            value = [idl_sample(element, item) for item in value]
+        values[member.name] = value
+    return struct(**values)

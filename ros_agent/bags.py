@@ -1,0 +1,469 @@
+"""`python -m ros_agent import --config agent.yaml FILE...`: seal recorded bags and upload them.
+
+Reads ROS 1 `.bag` files, ROS 2 `.db3` and `.mcap` files and rosbag2 folders (rosbags), keeps
+the topics the config names with the type it gives, and seals every message with its original
+capture time (its header stamp, else the time the bag recorded it) into the robot's spool, the
+same Recorder and Uploader as the live agent. A progress bar on stderr, a summary on stdout.
+
+A file imported twice uploads nothing twice: the spool keeps an import ledger,
+`imports/<sha256 of the content>.json`, with how many messages of each topic were handled.
+A finished topic is skipped on the next import (under any file name); an interrupted import
+continues where the ledger stops (it is written every LEDGER_EVERY messages and on every clean
+stop, so only a hard kill can re-send up to that many).
+
+Imports and live capture share the robot's one sequence counter (the portal refuses a
+number below the robot's last), so the import takes the spool: while the agent of that robot
+runs, the import is refused with a message saying so.
+
+Bad input never ends in a traceback: an unreadable or corrupt file is refused with the reason
+(nothing of it spooled), a message that does not decode or convert is skipped and counted, and
+a file that breaks off part way keeps what was read before the break.
+"""
+
+import argparse
+import contextlib
+import hashlib
+import json
+import logging
+import signal
+import sys
+import threading
+import time
+from collections import Counter
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass, field
+from datetime import UTC, datetime, timedelta
+from pathlib import Path
+from typing import Any
+
+from ros_agent import LOGGER_NAME
+from ros_agent.config import AgentConfig, ConfigError, TopicConfig, load_config
+from ros_agent.counters import AgentCounters
+from ros_agent.ros2msg import default_typestore, ros1_name, ros1_view
+from ros_agent.spool import Spool, SpoolError
+from ros_agent.spool import _write_durably as write_durably
+from ros_agent.uploader import PortalClient, Uploader
+from ros_agent.wrapping import Recorder
+
+logger = logging.getLogger(f"{LOGGER_NAME}.bags")
+
+LEDGER_EVERY = 100
+LEDGER_DIR = "imports"
+BAG_SUFFIXES = (".bag", ".db3", ".mcap")
+_EPOCH = datetime(1970, 1, 1, tzinfo=UTC)
+# Stop filling the spool above this share of its bound until the uploader made room.
+SPOOL_HIGH_WATER = 0.8
+
+
+class ImportRefused(Exception):
+    """A file cannot be imported at all; the message says why, for the user."""
+
+
+@dataclass
+class FileReport:
+    """What one import did with one file."""
+
+    path: Path
+    digest: str = ""
+    imported: int = 0
+    sealed_bytes: int = 0
+    topics: Counter = field(default_factory=Counter)
+    skipped: Counter = field(default_factory=Counter)
+    refused: str = ""
+    stopped: str = ""
+
+    def lines(self) -> list[str]:
+        if self.refused:
+            return [f"{self.path}: refused: {self.refused}"]
+        lines = [
+            f"{self.path}: {self.imported} message(s) sealed, {self.sealed_bytes} bytes"
+            + (f" (sha256 {self.digest[:16]}...)" if self.digest else "")
+        ]
+        lines += [f"  {topic}: {count}" for topic, count in sorted(self.topics.items())]
+        lines += [f"  skipped {count}: {why}" for why, count in sorted(self.skipped.items())]
+        if self.stopped:
+            lines.append(f"  stopped: {self.stopped}")
+        return lines
+
+
+class ImportLedger:
+    """Per file content: how many messages of each topic were handled, on disk in the spool."""
+
+    def __init__(self, spool_dir: Path, digest: str) -> None:
+        self._folder = Path(spool_dir) / LEDGER_DIR
+        self._folder.mkdir(mode=0o700, exist_ok=True)
+        self._name = f"{digest}.json"
+        self.digest = digest
+        try:
+            self.state = json.loads((self._folder / self._name).read_text(encoding="utf-8"))
+        except FileNotFoundError:
+            self.state = {"sha256": digest, "topics": {}}
+        except (OSError, ValueError) as exc:
+            raise ImportRefused(
+                f"the import ledger {self._folder / self._name} is unreadable: "
+                f"{exc}; remove it to import the file again"
+            ) from None
+
+    def done(self, topic: str) -> int:
+        return int(self.state["topics"].get(topic, {}).get("done", 0))
+
+    def complete(self, topic: str) -> bool:
+        return bool(self.state["topics"].get(topic, {}).get("complete", False))
+
+    def note(self, topic: str, *, done: int, complete: bool = False) -> None:
+        entry = self.state["topics"].setdefault(topic, {})
+        entry["done"] = done
+        entry["complete"] = complete
+
+    def save(self, source: Path) -> None:
+        names = self.state.setdefault("names", [])
+        if str(source) not in names:
+            names.append(str(source))
+        self.state["updated_at"] = datetime.now(UTC).isoformat()
+        text = json.dumps(self.state, indent=1, sort_keys=True).encode()
+        write_durably(self._folder, self._name, text)
+
+
+def content_digest(path: Path) -> str:
+    """SHA-256 of a bag file, or of a rosbag2 folder's files (names and contents, in order)."""
+    digest = hashlib.sha256()
+    files = [path] if path.is_file() else sorted(p for p in path.rglob("*") if p.is_file())
+    for file in files:
+        if path.is_dir():
+            digest.update(file.relative_to(path).as_posix().encode() + b"\0")
+        with file.open("rb") as stream:
+            for block in iter(lambda: stream.read(1 << 20), b""):
+                digest.update(block)
+    return digest.hexdigest()
+
+
+class BagImporter:
+    """Seals recorded messages of the configured topics into a robot's spool and uploads them."""
+
+    def __init__(
+        self, config: AgentConfig, *, progress: bool = True, stall_timeout: float = 60.0
+    ) -> None:
+        self.config = config
+        self.counters = AgentCounters()
+        self.spool = Spool(config.spool_dir, max_bytes=config.spool_max_bytes)
+        self.uploader = Uploader(
+            spool=self.spool,
+            client=PortalClient(
+                records_url=config.records_url,
+                token=config.token,
+                tls_verify=config.tls_verify,
+                timeout=config.request_timeout,
+            ),
+            counters=self.counters,
+            batch_size=config.batch_size,
+            batch_max_bytes=config.batch_max_bytes,
+            flush_interval=min(config.flush_interval, 0.2),
+            backoff_max=min(config.backoff_max, 5.0),
+        )
+        self.recorder = Recorder(
+            spool=self.spool,
+            key=config.key,
+            owner=config.owner,
+            robot=config.robot,
+            counters=self.counters,
+            on_spooled=self.uploader.notify,
+        )
+        self.topics = {_absolute(topic.name): topic for topic in config.topics}
+        self.progress = progress
+        self.stall_timeout = stall_timeout
+        self.stopping = threading.Event()
+        self._typestore = default_typestore()
+
+    # --- the whole run ------------------------------------------------------------------------
+
+    def run(self, paths: Sequence[Path], *, upload_timeout: float) -> list[FileReport]:
+        self.uploader.start()
+        try:
+            return [self.import_file(path) for path in paths if not self.stopping.is_set()]
+        finally:
+            self.recorder.close()
+            self._wait_until_sent(upload_timeout)
+            self.uploader.stop(self.config.shutdown_flush)
+            self.spool.close()
+
+    def _wait_until_sent(self, timeout: float) -> None:
+        deadline = time.monotonic() + timeout
+        while len(self.spool) and time.monotonic() < deadline and not self.stopping.is_set():
+            self.uploader.notify()
+            time.sleep(0.05)
+
+    # --- one file -----------------------------------------------------------------------------
+
+    def import_file(self, path: Path) -> FileReport:
+        report = FileReport(path=path)
+        try:
+            self._check_path(path)
+            report.digest = content_digest(path)
+            ledger = ImportLedger(self.config.spool_dir, report.digest)
+            self._import(path, ledger, report)
+        except ImportRefused as exc:
+            report.refused = str(exc)
+        except OSError as exc:
+            report.refused = f"cannot read it: {exc.strerror or exc}"
+        return report
+
+    def _check_path(self, path: Path) -> None:
+        if not path.exists():
+            raise ImportRefused("no such file or folder")
+        if path.is_dir():
+            if not (path / "metadata.yaml").exists():
+                raise ImportRefused("a folder must be a rosbag2 recording (with metadata.yaml)")
+        elif path.suffix not in BAG_SUFFIXES:
+            raise ImportRefused(
+                f"{path.suffix or 'no suffix'}: not a recording; expected {', '.join(BAG_SUFFIXES)}"
+            )
+
+    def _import(self, path: Path, ledger: ImportLedger, report: FileReport) -> None:
+        from rosbags.highlevel import AnyReader
+
+        try:
+            reader = AnyReader([path], default_typestore=self._typestore)
+            reader.open()
+        except Exception as exc:  # rosbags raises many kinds for a damaged file
+            raise ImportRefused(f"not a readable recording: {_reason(exc)}") from None
+        try:
+            selected = self._select(reader, ledger, report)
+            total = sum(max(conn.msgcount, 0) for conn in selected) - sum(
+                ledger.done(topic) for topic in {conn.topic for conn in selected}
+            )
+            with _progress_bar(path, total, enabled=self.progress) as bar:
+                self._read(reader, selected, ledger, report, bar)
+        finally:
+            with contextlib.suppress(Exception):
+                reader.close()
+
+    def _select(self, reader: Any, ledger: ImportLedger, report: FileReport) -> list[Any]:
+        """The connections to read: configured topic, configured type, a known definition."""
+        self._complete_types(reader)
+        selected = []
+        for conn in reader.connections:
+            topic = _absolute(conn.topic)
+            wanted = self.topics.get(topic)
+            count = max(conn.msgcount, 0)
+            if wanted is None:
+                report.skipped[f"topic {topic} is not in the config"] += count
+            elif ros1_name(conn.msgtype) != wanted.type:
+                report.skipped[
+                    f"topic {topic} holds {ros1_name(conn.msgtype)}, the config says {wanted.type}"
+                ] += count
+            elif conn.msgtype not in reader.typestore.fielddefs:
+                report.skipped[
+                    f"unknown message type {conn.msgtype} on {topic}: "
+                    "the file has no definition of it"
+                ] += count
+            elif ledger.complete(topic):
+                report.skipped[f"topic {topic} was imported before (same file content)"] += count
+            else:
+                selected.append(conn)
+        return selected
+
+    def _complete_types(self, reader: Any) -> None:
+        """Types the file does not define, taken from the ROS 2 type store where it has them."""
+        known = reader.typestore.fielddefs
+        missing = {
+            name: fields for name, fields in self._typestore.fielddefs.items() if name not in known
+        }
+        with contextlib.suppress(Exception):
+            reader.typestore.register(missing)
+
+    def _read(
+        self, reader: Any, selected: list[Any], ledger: ImportLedger, report: FileReport, bar: Any
+    ) -> None:
+        seen: Counter = Counter()  # messages of each topic read in this pass, in file order
+        topics = {_absolute(conn.topic) for conn in selected}
+        handled_since_save = 0
+        messages: Iterator[tuple[Any, int, bytes]] = (
+            reader.messages(connections=selected) if selected else iter(())
+        )
+        try:
+            for conn, timestamp, rawdata in messages:
+                topic = _absolute(conn.topic)
+                seen[topic] += 1
+                if seen[topic] <= ledger.done(topic):
+                    continue  # handled by an earlier, interrupted import of this content
+                if self.stopping.is_set():
+                    report.stopped = "interrupted; importing the file again continues here"
+                    seen[topic] -= 1
+                    break
+                if not self._room_in_spool():
+                    report.stopped = (
+                        "the spool is full and the portal does not take it; "
+                        "import the file again later, it continues here"
+                    )
+                    seen[topic] -= 1
+                    break
+                self._seal(reader, conn, topic, timestamp, rawdata, report)
+                ledger.note(topic, done=seen[topic])
+                bar.update(1)
+                handled_since_save += 1
+                if handled_since_save >= LEDGER_EVERY:
+                    ledger.save(report.path)
+                    handled_since_save = 0
+        except Exception as exc:  # a damaged chunk or record part way through the file
+            report.stopped = (
+                f"the file is damaged after message {sum(seen.values())}: {_reason(exc)}; "
+                "the messages before it were imported"
+            )
+        if not report.stopped:
+            for topic in topics:
+                ledger.note(topic, done=seen[topic], complete=True)
+        elif report.stopped.startswith("the file is damaged"):
+            # Nothing more can be read from this content: what was read is all there is.
+            for topic in topics:
+                ledger.note(topic, done=seen[topic], complete=True)
+        ledger.save(report.path)
+
+    def _seal(
+        self, reader: Any, conn: Any, topic: str, timestamp: int, rawdata: bytes, report: FileReport
+    ) -> None:
+        wanted: TopicConfig = self.topics[topic]
+        try:
+            msg = reader.deserialize(rawdata, conn.msgtype)
+        except Exception as exc:  # any decoding failure is this message's
+            report.skipped[f"a {wanted.type} message on {topic} does not decode"] += 1
+            logger.debug("cannot decode a %s message: %s", conn.msgtype, exc)
+            return
+        failed_before = self.counters.failed
+        used_before = self.spool.used_bytes
+        seq = self.recorder.record(
+            ros1_view(msg),
+            topic=topic,
+            ros_type=wanted.type,
+            received_at=_EPOCH + timedelta(microseconds=timestamp // 1000),
+        )
+        if seq is None:
+            if self.counters.failed > failed_before:
+                report.skipped[f"a {wanted.type} message on {topic} cannot become a record"] += 1
+            else:
+                report.skipped["the spool had no room"] += 1
+            return
+        report.imported += 1
+        report.topics[topic] += 1
+        report.sealed_bytes += max(self.spool.used_bytes - used_before, 0)
+
+    def _room_in_spool(self) -> bool:
+        """Wait while the spool is nearly full and the uploader still makes progress."""
+        last_progress = time.monotonic()
+        last_used = self.spool.used_bytes
+        while self.spool.used_bytes > SPOOL_HIGH_WATER * self.spool.max_bytes:
+            if self.stopping.is_set():
+                return False
+            self.uploader.notify()
+            time.sleep(0.05)
+            used = self.spool.used_bytes
+            if used < last_used:
+                last_progress, last_used = time.monotonic(), used
+            elif time.monotonic() - last_progress > self.stall_timeout:
+                return False
+        return True
+
+
+def _absolute(topic: str) -> str:
+    return "/" + topic.lstrip("/~")
+
+
+def _reason(exc: BaseException) -> str:
+    text = str(exc).strip() or type(exc).__name__
+    return text if len(text) < 300 else text[:300] + "..."
+
+
+@contextlib.contextmanager
+def _progress_bar(path: Path, total: int, *, enabled: bool) -> Iterator[Any]:
+    from tqdm import tqdm
+
+    with tqdm(
+        total=max(total, 0),
+        desc=path.name,
+        unit="msg",
+        file=sys.stderr,
+        disable=None if enabled else True,
+        leave=True,
+    ) as bar:
+        yield bar
+
+
+def summary_lines(reports: Sequence[FileReport], importer: BagImporter) -> list[str]:
+    lines: list[str] = []
+    for report in reports:
+        lines += report.lines()
+    stats = importer.counters.snapshot()
+    queued = len(importer.spool)
+    totals = Counter()
+    for report in reports:
+        totals.update(report.topics)
+    refused = stats["failed"] - _conversion_failures(reports)
+    lines.append(
+        f"total: {sum(r.imported for r in reports)} message(s) sealed, "
+        f"{sum(r.sealed_bytes for r in reports)} bytes, {len(totals)} topic(s); "
+        f"uploaded {stats['sent']}, refused by the portal {refused}, "
+        f"waiting in the spool {queued}"
+    )
+    if queued:
+        lines.append(
+            f"{queued} envelope(s) wait in {importer.spool.directory}: the agent or the next "
+            "import sends them"
+        )
+    return lines
+
+
+def _conversion_failures(reports: Sequence[FileReport]) -> int:
+    return sum(
+        count
+        for report in reports
+        for why, count in report.skipped.items()
+        if why.endswith("cannot become a record")
+    )
+
+
+def main(argv: Sequence[str]) -> int:
+    parser = argparse.ArgumentParser(
+        prog="python -m ros_agent import",
+        description="Seal recorded ROS 1 .bag, ROS 2 .db3 and .mcap files (or rosbag2 folders) "
+        "with the robot's key and upload them to the portal.",
+    )
+    parser.add_argument("--config", type=Path, required=True, help="agent.yaml of the robot")
+    parser.add_argument(
+        "--upload-timeout",
+        type=float,
+        default=300.0,
+        help="seconds to wait for the portal at the end (default 300); what is not sent "
+        "stays in the spool",
+    )
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    parser.add_argument("files", nargs="+", type=Path, metavar="FILE")
+    args = parser.parse_args(list(argv))
+    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    try:
+        config = load_config(args.config)
+    except ConfigError as exc:
+        print(f"import: {exc}", file=sys.stderr)
+        return 2
+    try:
+        importer = BagImporter(config, progress=not args.no_progress)
+    except SpoolError as exc:
+        print(
+            f"import: {exc}. The agent of robot {config.robot} seems to be running: imports and "
+            "live capture share the robot's sequence numbers, so stop the agent first, or "
+            "import with a robot of its own (another config).",
+            file=sys.stderr,
+        )
+        return 2
+    previous = {
+        signum: signal.signal(signum, lambda *_: importer.stopping.set())
+        for signum in (signal.SIGINT, signal.SIGTERM)
+    }
+    try:
+        reports = importer.run(args.files, upload_timeout=args.upload_timeout)
+    finally:
+        for signum, handler in previous.items():
+            signal.signal(signum, handler)
+    for line in summary_lines(reports, importer):
+        print(line)
+    if any(report.refused or report.stopped for report in reports):
+        return 1
+    return 3 if len(importer.spool) else 0
