@@ -5,8 +5,13 @@
 Neither of the last two needs ROS 1.
 """
 
+import logging
 import sys
 
+if sys.argv[1:2] == ["import"] or "--ros2" in sys.argv[1:]:
+    logging.basicConfig(
+        level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s"
+    )
 if sys.argv[1:2] == ["import"]:
     from ros_agent.bags import main as import_main
 

@@ -223,18 +223,18 @@ def idl_sample(struct: type, msg: Any) -> Any:
 
     import numpy as np
 
+    from ros_agent.ros2msg import message_fields
+
     hints = struct.__annotations__
     values = {}
-    for member in dataclasses.fields(msg):
-        if member.name.startswith("__"):
-            continue
-        value = getattr(msg, member.name)
+    for name in message_fields(msg):
+        value = getattr(msg, name)
         if dataclasses.is_dataclass(value):
-            value = idl_sample(hints[member.name], value)
+            value = idl_sample(hints[name], value)
         elif isinstance(value, np.ndarray):
             value = value.tolist()
         elif isinstance(value, list) and value and dataclasses.is_dataclass(value[0]):
-            element = hints[member.name].__metadata__[0].subtype
+            element = hints[name].__metadata__[0].subtype
             value = [idl_sample(element, item) for item in value]
-        values[member.name] = value
+        values[name] = value
     return struct(**values)

@@ -194,9 +194,6 @@ def main(argv: Sequence[str]) -> int:
         "--domain-id", type=int, default=None, help="DDS domain (default: ROS_DOMAIN_ID or 0)"
     )
     args = parser.parse_args(list(argv))
-    logging.basicConfig(
-        level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s"
-    )
     try:
         config = load_config(args.config)
         agent = Ros2Agent(config, domain_id=args.domain_id)

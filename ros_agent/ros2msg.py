@@ -89,14 +89,21 @@ class _MessageView:
         return _message_dict(self._msg)
 
 
+def message_fields(msg: Any) -> list[str]:
+    """The names of a rosbags message's fields, in order, without its constants."""
+    # rosbags declares constants and __msgtype__ as ClassVar (as strings, so dataclasses
+    # lists them as fields).
+    return [
+        field.name
+        for field in dataclasses.fields(msg)
+        if not str(field.type).startswith("ClassVar")
+    ]
+
+
 def _message_dict(msg: Any) -> JsonDict:
     if msg.__msgtype__ == _HEADER_TYPE:
         return header(ros1_view(msg))
-    return {
-        field.name: _field(getattr(msg, field.name))
-        for field in dataclasses.fields(msg)
-        if not field.name.startswith("__")
-    }
+    return {name: _field(getattr(msg, name)) for name in message_fields(msg)}
 
 
 def _field(value: Any) -> Any:

@@ -1,0 +1,253 @@
+"""`python -m ros_agent import`: recordings written here with rosbags' writers (ROS 1 .bag,
+ROS 2 .db3 and .mcap) go through the real import, the real spool and uploader, to the real
+portal (live server, in-process chain); every message is then opened in the portal as its
+owner (integrity check, decryption) and compared with what was recorded, capture time
+included. Imported again, nothing is uploaded twice. Damaged files, unknown types and topics
+the config does not name are reported, the rest imported, and no traceback reaches the user.
+"""
+
+import shutil
+import sqlite3
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from rosbags.rosbag2 import Writer as Ros2Writer
+from rosbags.typesys import get_types_from_msg
+
+from accounts.models import Robot
+from ros_agent import bags
+from sharing.models import Record
+from tests.ros_agent.conftest import REPO_ROOT
+from tests.ros_agent.portal_checks import opened_records, robot_config, stamp_time
+from tests.ros_agent.recordings import (
+    ODOM,
+    TOPICS,
+    Sample,
+    comparable,
+    expected_data,
+    make_samples,
+    ros1_store,
+    ros2_store,
+    write_ros1_bag,
+    write_ros2_bag,
+)
+
+pytestmark = [pytest.mark.django_db(transaction=True), pytest.mark.timeout(300)]
+
+PER_TOPIC = 3
+SECOND = 10**9
+
+
+def _import(config: Path, *files: Path, capsys) -> tuple[int, str]:
+    code = bags.main(
+        ["--config", str(config), "--no-progress", "--upload-timeout", "60", *map(str, files)]
+    )
+    out, err = capsys.readouterr()
+    assert "Traceback" not in out + err
+    return code, out + err
+
+
+def _check_stored(robot, expected: list[tuple[Sample, bool]]) -> None:
+    """Every expected sample is stored once, at its capture time, with its recorded values."""
+    by_key = {
+        (sample.topic, stamp_time(sample.stamp_ns)): (sample, ros1) for sample, ros1 in expected
+    }
+    stored = opened_records(robot, expected=len(expected))
+    seen = set()
+    for record, document in stored:
+        key = (record.topic, record.captured_at)
+        assert key in by_key, f"unexpected record {key}"
+        assert key not in seen, f"stored twice: {key}"
+        seen.add(key)
+        sample, ros1 = by_key[key]
+        assert document["Topic"] == sample.topic
+        assert document["Type"] == record.data_type == sample.ros_type
+        assert document["Time"] == record.captured_at.strftime("%Y-%m-%dT%H:%M:%S.%fZ")
+        assert comparable(document["K"]) == expected_data(sample, ros1=ros1), key
+        if sample.has_header:
+            assert document["K"]["header"]["stamp"]["iso"] == document["Time"]
+
+
+@pytest.fixture
+def robot_setup(live_server, make_robot, tmp_path):
+    setup = make_robot()
+    # /secret is named, but no recording defines its type: the unknown-type case.
+    topics = (*TOPICS, ("/secret", "my_pkg/Secret"))
+    config = robot_config(tmp_path / "robot", url=live_server.url, setup=setup, topics=topics)
+    return setup, config
+
+
+def test_ros1_and_ros2_recordings_are_imported_once_and_open_to_what_was_recorded(
+    robot_setup, tmp_path, capsys
+):
+    setup, config = robot_setup
+    ts1, ts2 = ros1_store(), ros2_store()
+    ros1 = make_samples(ts1, PER_TOPIC, base_ns=1_700_000_000 * SECOND + 123_456_789)
+    sqlite = make_samples(ts2, PER_TOPIC, base_ns=1_700_000_100 * SECOND + 5_000)
+    mcap = make_samples(ts2, PER_TOPIC, base_ns=1_700_000_200 * SECOND + 999_999_999)
+    files = [
+        write_ros1_bag(tmp_path / "drive.bag", ros1, ts1),
+        write_ros2_bag(tmp_path / "drive_db3", sqlite, ts2, mcap=False),
+        write_ros2_bag(tmp_path / "drive_mcap", mcap, ts2, mcap=True),
+    ]
+    assert [f.suffix for f in files] == [".bag", ".db3", ".mcap"]
+
+    code, output = _import(config, *files, capsys=capsys)
+    assert code == 0, output
+    total = 3 * len(TOPICS) * PER_TOPIC
+    assert f"total: {total} message(s) sealed" in output
+    assert f"uploaded {total}, refused by the portal 0, waiting in the spool 0" in output
+    for topic, _ in TOPICS:
+        assert f"  {topic}: {PER_TOPIC}" in output
+    expected = [(s, True) for s in ros1] + [(s, False) for s in sqlite + mcap]
+    _check_stored(setup.robot, expected)
+    last_seq = Robot.objects.get(pk=setup.robot.pk).last_seq
+
+    # Imported again, also under another name: recognised by content, nothing sent.
+    copy = tmp_path / "copy-of-drive.bag"
+    shutil.copy(files[0], copy)
+    code, output = _import(config, *files, copy, capsys=capsys)
+    assert code == 0, output
+    assert "total: 0 message(s) sealed" in output
+    assert output.count("was imported before (same file content)") == 4 * len(TOPICS)
+    assert Record.objects.filter(robot=setup.robot).count() == total
+    assert Robot.objects.get(pk=setup.robot.pk).last_seq == last_seq
+
+
+def test_an_interrupted_import_continues_where_it_stopped(robot_setup, tmp_path, capsys):
+    setup, config = robot_setup
+    ts2 = ros2_store()
+    samples = make_samples(ts2, 4)
+    recording = write_ros2_bag(tmp_path / "long", samples, ts2, mcap=True)
+    imported = bags.load_config(config)
+    importer = bags.BagImporter(imported, progress=False)
+    stop_after = 10
+    original_seal = importer._seal
+
+    def seal_then_stop(*args, **kwargs):
+        original_seal(*args, **kwargs)
+        if importer.counters.spooled >= stop_after:
+            importer.stopping.set()  # what Ctrl-C does
+
+    importer._seal = seal_then_stop
+    (report,) = importer.run([recording], upload_timeout=0)
+    assert report.imported == stop_after
+    assert "interrupted" in report.stopped
+    # The rest, and only the rest, on the next run; then nothing.
+    code, output = _import(config, recording, capsys=capsys)
+    assert code == 0, output
+    assert f"total: {len(samples) - stop_after} message(s) sealed" in output
+    _check_stored(setup.robot, [(s, False) for s in samples])
+    code, output = _import(config, recording, capsys=capsys)
+    assert "total: 0 message(s) sealed" in output
+    assert Record.objects.filter(robot=setup.robot).count() == len(samples)
+
+
+def _recording_with_trouble(folder: Path, ts, samples: list[Sample]) -> Path:
+    """A .db3 with the samples, one of them damaged, a topic the config does not name and a
+    type the file has no definition of."""
+    ts.register(get_types_from_msg("string secret\nint32 level\n", "my_pkg/msg/Secret"))
+    with Ros2Writer(folder, version=9) as writer:
+        connections = {}
+        for sample in samples:
+            ros2_type = sample.msg.__msgtype__
+            if sample.topic not in connections:
+                connections[sample.topic] = writer.add_connection(
+                    sample.topic, ros2_type, typestore=ts
+                )
+            writer.write(
+                connections[sample.topic], sample.stamp_ns, ts.serialize_cdr(sample.msg, ros2_type)
+            )
+        other = writer.add_connection("/not_configured", "std_msgs/msg/String", typestore=ts)
+        secret = writer.add_connection("/secret", "my_pkg/msg/Secret", typestore=ts)
+        for i in range(2):
+            writer.write(
+                other,
+                5 + i,
+                ts.serialize_cdr(ts.types["std_msgs/msg/String"](data="x"), "std_msgs/msg/String"),
+            )
+            msg = ts.types["my_pkg/msg/Secret"](secret="s", level=i)
+            writer.write(secret, 7 + i, ts.serialize_cdr(msg, "my_pkg/msg/Secret"))
+    (db3,) = folder.glob("*.db3")
+    with sqlite3.connect(db3) as db:
+        db.execute("DELETE FROM message_definitions WHERE topic_type = 'my_pkg/msg/Secret'")
+        topic_id = db.execute("SELECT id FROM topics WHERE name = ?", (ODOM[0],)).fetchone()[0]
+        first = db.execute(
+            "SELECT id FROM messages WHERE topic_id = ? ORDER BY timestamp LIMIT 1", (topic_id,)
+        ).fetchone()[0]
+        db.execute("UPDATE messages SET data = x'00010000ffff' WHERE id = ?", (first,))
+    return db3
+
+
+def test_bad_recordings_are_reported_and_the_rest_imported(robot_setup, tmp_path, capsys):
+    setup, config = robot_setup
+    ts1, ts2 = ros1_store(), ros2_store()
+    good = make_samples(ts2, 2, base_ns=1_700_000_300 * SECOND)
+    troubled = _recording_with_trouble(tmp_path / "troubled", ts2, good)
+    ros1 = make_samples(ts1, 10, base_ns=1_700_000_400 * SECOND)
+    whole = write_ros1_bag(tmp_path / "whole.bag", ros1, ts1).read_bytes()
+    truncated = tmp_path / "truncated.bag"
+    truncated.write_bytes(whole[: len(whole) // 2])
+    # The record header of the sixth odometry message overwritten: the bag reads up to it.
+    sixth = next(x for x in ros1 if (x.topic, x.ros_type) == ODOM and x.index == 5)
+    at = whole.index(ts1.serialize_ros1(sixth.msg, sixth.msg.__msgtype__))
+    damaged = tmp_path / "damaged.bag"
+    damaged.write_bytes(whole[: at - 64] + b"\xff" * 64 + whole[at:])
+    garbage = tmp_path / "garbage.mcap"
+    garbage.write_bytes(b"\x89MCAP0\r\n" + bytes(range(256)) * 8)
+    notes = tmp_path / "notes.txt"
+    notes.write_text("not a recording")
+
+    files = [troubled, truncated, damaged, garbage, notes, tmp_path / "missing.db3"]
+    code, output = _import(config, *files, capsys=capsys)
+    assert code == 1, output
+    assert f"{truncated}: refused: not a readable recording" in output
+    assert f"{garbage}: refused: not a readable recording" in output
+    assert f"{notes}: refused: .txt: not a recording" in output
+    assert f"{tmp_path / 'missing.db3'}: refused: no such file or folder" in output
+    assert "skipped 1: a nav_msgs/Odometry message on /robot/odom does not decode" in output
+    assert "skipped 2: topic /not_configured is not in the config" in output
+    assert "skipped 2: unknown message type my_pkg/msg/Secret on /secret" in output
+    assert f"{damaged}: " in output
+    assert "the file is damaged after message" in output
+
+    # Stored: every good message of the troubled file (not the damaged one), and the damaged
+    # bag's messages before the damage, each whole and as recorded.
+    odom_first = min(s.stamp_ns for s in good if (s.topic, s.ros_type) == ODOM)
+    expected = [
+        (s, False) for s in good if not ((s.topic, s.ros_type) == ODOM and s.stamp_ns == odom_first)
+    ]
+    damaged_report = next(line for line in output.splitlines() if line.startswith(f"{damaged}: "))
+    before_damage = int(damaged_report.split(": ")[1].split(" ")[0])
+    assert 0 < before_damage < len(ros1)
+    in_order = sorted(ros1, key=lambda s: (s.stamp_ns, TOPICS.index((s.topic, s.ros_type))))
+    stored = {(r.topic, r.captured_at) for r in Record.objects.filter(robot=setup.robot)}
+    from_damaged = [s for s in in_order if (s.topic, stamp_time(s.stamp_ns)) in stored]
+    assert len(from_damaged) == before_damage
+    expected += [(s, True) for s in from_damaged]
+    _check_stored(setup.robot, expected)
+    assert not Record.objects.filter(robot=setup.robot, topic__in=["/secret", "/not_configured"])
+
+
+def test_the_command_line_refuses_while_the_robots_agent_holds_the_spool(robot_setup, tmp_path):
+    _, config = robot_setup
+    ts2 = ros2_store()
+    recording = write_ros2_bag(tmp_path / "r", make_samples(ts2, 1)[:1], ts2, mcap=True)
+    held = bags.Spool(tmp_path / "robot" / "spool", max_bytes=10**6)  # as a running agent does
+    try:
+        answer = subprocess.run(
+            [sys.executable, "-m", "ros_agent", "import", "--config", str(config), str(recording)],
+            cwd=REPO_ROOT,
+            capture_output=True,
+            text=True,
+            timeout=120,
+        )
+    finally:
+        held.close()
+    assert answer.returncode == 2, answer.stderr
+    assert "is in use by another agent" in answer.stderr
+    assert "stop the agent first" in answer.stderr
+    assert "Traceback" not in answer.stderr + answer.stdout
+    assert not Record.objects.exists()
