@@ -148,7 +148,8 @@ def run(
     ticks = 0
     while not stop.is_set():
         now = time.time_ns()
-        elapsed = (now - start) / 1e9
+        since = now - start
+        elapsed = since // 10**9 + (since % 10**9) / 1e9  # as genpy's Duration.to_sec()
         if duration and elapsed >= duration:
             break
         publisher.publish(
