@@ -40,6 +40,7 @@ from ros_agent import LOGGER_NAME
 from ros_agent.config import AgentConfig, ConfigError, TopicConfig, load_config
 from ros_agent.counters import AgentCounters
 from ros_agent.ros2msg import default_typestore, ros1_name, ros1_view
+from ros_agent.salvage import SalvageError, salvage_reader
 from ros_agent.spool import Spool, SpoolError
 from ros_agent.spool import _write_durably as write_durably
 from ros_agent.uploader import PortalClient, Uploader
@@ -71,6 +72,7 @@ class FileReport:
     skipped: Counter = field(default_factory=Counter)
     refused: str = ""
     stopped: str = ""
+    note: str = ""
 
     def lines(self) -> list[str]:
         if self.refused:
@@ -79,6 +81,8 @@ class FileReport:
             f"{self.path}: {self.imported} message(s) sealed, {self.sealed_bytes} bytes"
             + (f" (sha256 {self.digest[:16]}...)" if self.digest else "")
         ]
+        if self.note:
+            lines.append(f"  note: {self.note}")
         lines += [f"  {topic}: {count}" for topic, count in sorted(self.topics.items())]
         lines += [f"  skipped {count}: {why}" for why, count in sorted(self.skipped.items())]
         if self.stopped:
@@ -225,7 +229,8 @@ class BagImporter:
             reader = AnyReader([path], default_typestore=self._typestore)
             reader.open()
         except Exception as exc:  # rosbags raises many kinds for a damaged file
-            raise ImportRefused(f"not a readable recording: {_reason(exc)}") from None
+            reader = self._salvage(path, exc)
+            report.note = f"read without its index, which is damaged or missing ({_reason(exc)})"
         try:
             selected = self._select(reader, ledger, report)
             total = sum(max(conn.msgcount, 0) for conn in selected) - sum(
@@ -236,6 +241,16 @@ class BagImporter:
         finally:
             with contextlib.suppress(Exception):
                 reader.close()
+
+    def _salvage(self, path: Path, refusal: Exception) -> Any:
+        """A reader for what is left of a cut-off .bag or .mcap, or ImportRefused."""
+        try:
+            reader = salvage_reader(path, self._typestore)
+        except (SalvageError, OSError):
+            reader = None
+        if reader is None or not reader.connections:
+            raise ImportRefused(f"not a readable recording: {_reason(refusal)}")
+        return reader
 
     def _select(self, reader: Any, ledger: ImportLedger, report: FileReport) -> list[Any]:
         """The connections to read: configured topic, configured type, a known definition."""
@@ -305,14 +320,13 @@ class BagImporter:
                     ledger.save(report.path)
                     handled_since_save = 0
         except Exception as exc:  # a damaged chunk or record part way through the file
-            report.stopped = (
-                f"the file is damaged after message {sum(seen.values())}: {_reason(exc)}; "
-                "the messages before it were imported"
-            )
+            report.stopped = _damaged(sum(seen.values()), _reason(exc))
+        if not report.stopped and getattr(reader, "damage", ""):
+            report.stopped = _damaged(sum(seen.values()), reader.damage)
         if not report.stopped:
             for topic in topics:
                 ledger.note(topic, done=seen[topic], complete=True)
-        elif report.stopped.startswith("the file is damaged"):
+        elif report.stopped.startswith("the file is damaged or cut off"):
             # Nothing more can be read from this content: what was read is all there is.
             for topic in topics:
                 ledger.note(topic, done=seen[topic], complete=True)
@@ -361,6 +375,13 @@ class BagImporter:
             elif time.monotonic() - last_progress > self.stall_timeout:
                 return False
         return True
+
+
+def _damaged(read: int, reason: str) -> str:
+    return (
+        f"the file is damaged or cut off after message {read}: {reason}; "
+        "the messages before it were imported"
+    )
 
 
 def _absolute(topic: str) -> str:

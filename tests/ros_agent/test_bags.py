@@ -181,54 +181,79 @@ def _recording_with_trouble(folder: Path, ts, samples: list[Sample]) -> Path:
     return db3
 
 
+def _sealed(output: str, path: Path) -> int:
+    """How many messages the summary says were sealed from `path`."""
+    line = next(line for line in output.splitlines() if line.startswith(f"{path}: "))
+    return int(line.split(": ")[1].split(" ")[0])
+
+
+def _stored_from(robot, samples: list[Sample]) -> list[Sample]:
+    stored = {(r.topic, r.captured_at) for r in Record.objects.filter(robot=robot)}
+    return [s for s in samples if (s.topic, stamp_time(s.stamp_ns)) in stored]
+
+
 def test_bad_recordings_are_reported_and_the_rest_imported(robot_setup, tmp_path, capsys):
     setup, config = robot_setup
     ts1, ts2 = ros1_store(), ros2_store()
     good = make_samples(ts2, 2, base_ns=1_700_000_300 * SECOND)
     troubled = _recording_with_trouble(tmp_path / "troubled", ts2, good)
-    ros1 = make_samples(ts1, 10, base_ns=1_700_000_400 * SECOND)
-    whole = write_ros1_bag(tmp_path / "whole.bag", ros1, ts1).read_bytes()
+    # Cut off half way (a recorder that lost power): no index, no summary.
+    cut_ros1 = make_samples(ts1, 10, base_ns=1_700_000_400 * SECOND)
+    data = write_ros1_bag(tmp_path / "whole.bag", cut_ros1, ts1).read_bytes()
     truncated = tmp_path / "truncated.bag"
-    truncated.write_bytes(whole[: len(whole) // 2])
-    # The record header of the sixth odometry message overwritten: the bag reads up to it.
-    sixth = next(x for x in ros1 if (x.topic, x.ros_type) == ODOM and x.index == 5)
-    at = whole.index(ts1.serialize_ros1(sixth.msg, sixth.msg.__msgtype__))
+    truncated.write_bytes(data[: len(data) // 2])
+    cut_mcap = make_samples(ts2, 10, base_ns=1_700_000_500 * SECOND)
+    data = write_ros2_bag(tmp_path / "whole_mcap", cut_mcap, ts2, mcap=True).read_bytes()
+    truncated_mcap = tmp_path / "truncated.mcap"
+    truncated_mcap.write_bytes(data[: len(data) // 2])
+    # The index intact, but the record header of the sixth odometry message overwritten.
+    broken = make_samples(ts1, 10, base_ns=1_700_000_600 * SECOND)
+    data = write_ros1_bag(tmp_path / "whole2.bag", broken, ts1).read_bytes()
+    sixth = next(x for x in broken if (x.topic, x.ros_type) == ODOM and x.index == 5)
+    at = data.index(ts1.serialize_ros1(sixth.msg, sixth.msg.__msgtype__))
     damaged = tmp_path / "damaged.bag"
-    damaged.write_bytes(whole[: at - 64] + b"\xff" * 64 + whole[at:])
+    damaged.write_bytes(data[: at - 64] + b"\xff" * 64 + data[at:])
     garbage = tmp_path / "garbage.mcap"
     garbage.write_bytes(b"\x89MCAP0\r\n" + bytes(range(256)) * 8)
     notes = tmp_path / "notes.txt"
     notes.write_text("not a recording")
+    missing = tmp_path / "missing.db3"
 
-    files = [troubled, truncated, damaged, garbage, notes, tmp_path / "missing.db3"]
+    files = [troubled, truncated, truncated_mcap, damaged, garbage, notes, missing]
     code, output = _import(config, *files, capsys=capsys)
     assert code == 1, output
-    assert f"{truncated}: refused: not a readable recording" in output
     assert f"{garbage}: refused: not a readable recording" in output
     assert f"{notes}: refused: .txt: not a recording" in output
-    assert f"{tmp_path / 'missing.db3'}: refused: no such file or folder" in output
+    assert f"{missing}: refused: no such file or folder" in output
     assert "skipped 1: a nav_msgs/Odometry message on /robot/odom does not decode" in output
     assert "skipped 2: topic /not_configured is not in the config" in output
     assert "skipped 2: unknown message type my_pkg/msg/Secret on /secret" in output
-    assert f"{damaged}: " in output
-    assert "the file is damaged after message" in output
+    assert output.count("note: read without its index, which is damaged or missing") == 2
+    assert output.count("the file is damaged or cut off after message") == 3
 
-    # Stored: every good message of the troubled file (not the damaged one), and the damaged
-    # bag's messages before the damage, each whole and as recorded.
+    # Stored: every good message of the troubled file (not the damaged one), and what the
+    # cut-off and damaged files held before the break, each whole and as recorded.
     odom_first = min(s.stamp_ns for s in good if (s.topic, s.ros_type) == ODOM)
     expected = [
         (s, False) for s in good if not ((s.topic, s.ros_type) == ODOM and s.stamp_ns == odom_first)
     ]
-    damaged_report = next(line for line in output.splitlines() if line.startswith(f"{damaged}: "))
-    before_damage = int(damaged_report.split(": ")[1].split(" ")[0])
-    assert 0 < before_damage < len(ros1)
-    in_order = sorted(ros1, key=lambda s: (s.stamp_ns, TOPICS.index((s.topic, s.ros_type))))
-    stored = {(r.topic, r.captured_at) for r in Record.objects.filter(robot=setup.robot)}
-    from_damaged = [s for s in in_order if (s.topic, stamp_time(s.stamp_ns)) in stored]
-    assert len(from_damaged) == before_damage
-    expected += [(s, True) for s in from_damaged]
+    for path, samples, ros1 in (
+        (truncated, cut_ros1, True),
+        (truncated_mcap, cut_mcap, False),
+        (damaged, broken, True),
+    ):
+        sealed = _sealed(output, path)
+        assert 0 < sealed < len(samples), (path, sealed)
+        stored = _stored_from(setup.robot, samples)
+        assert len(stored) == sealed, path
+        expected += [(s, ros1) for s in stored]
     _check_stored(setup.robot, expected)
     assert not Record.objects.filter(robot=setup.robot, topic__in=["/secret", "/not_configured"])
+
+    # What could be read of them is all there is: imported again, nothing is sent.
+    code, output = _import(config, *files[:4], capsys=capsys)
+    assert "total: 0 message(s) sealed" in output
+    assert Record.objects.filter(robot=setup.robot).count() == len(expected)
 
 
 def test_the_command_line_refuses_while_the_robots_agent_holds_the_spool(robot_setup, tmp_path):
