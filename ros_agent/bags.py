@@ -8,8 +8,10 @@ same Recorder and Uploader as the live agent. A progress bar on stderr, a summar
 A file imported twice uploads nothing twice: the spool keeps an import ledger,
 `imports/<sha256 of the content>.json`, with how many messages of each topic were handled.
 A finished topic is skipped on the next import (under any file name); an interrupted import
-continues where the ledger stops (it is written every LEDGER_EVERY messages and on every clean
-stop, so only a hard kill can re-send up to that many).
+continues where the ledger stops. The ledger is written on every stop and every LEDGER_EVERY
+messages; after a hard kill between two writes, the next import asks the spool and the portal
+(the robot's own records, by topic and capture time) whether each of the next LEDGER_EVERY
+messages was sent already, so none is sent twice.
 
 Imports and live capture share the robot's one sequence counter (the portal refuses a
 number below the robot's last), so the import takes the spool: while the agent of that robot
@@ -36,15 +38,19 @@ from datetime import UTC, datetime, timedelta
 from pathlib import Path
 from typing import Any
 
+import requests
+
 from ros_agent import LOGGER_NAME
 from ros_agent.config import AgentConfig, ConfigError, TopicConfig, load_config
 from ros_agent.counters import AgentCounters
+from ros_agent.extractors import iso_utc
 from ros_agent.ros2msg import default_typestore, ros1_name, ros1_view
 from ros_agent.salvage import SalvageError, salvage_reader
 from ros_agent.spool import Spool, SpoolError
 from ros_agent.spool import _write_durably as write_durably
 from ros_agent.uploader import PortalClient, Uploader
-from ros_agent.wrapping import Recorder
+from ros_agent.wrapping import Recorder, capture_time
+from smcrypto import envelope
 
 logger = logging.getLogger(f"{LOGGER_NAME}.bags")
 
@@ -54,6 +60,10 @@ BAG_SUFFIXES = (".bag", ".db3", ".mcap")
 _EPOCH = datetime(1970, 1, 1, tzinfo=UTC)
 # Stop filling the spool above this share of its bound until the uploader made room.
 SPOOL_HIGH_WATER = 0.8
+
+
+class CannotCheck(Exception):
+    """What a cut-off import sent cannot be checked (the portal does not answer)."""
 
 
 class ImportRefused(Exception):
@@ -114,12 +124,19 @@ class ImportLedger:
     def complete(self, topic: str) -> bool:
         return bool(self.state["topics"].get(topic, {}).get("complete", False))
 
+    @property
+    def cut_off(self) -> bool:
+        """An import of this content stopped without writing its ledger (killed, a crash): up
+        to LEDGER_EVERY messages after the ledger's counts may have been sent all the same."""
+        return bool(self.state.get("running", False))
+
     def note(self, topic: str, *, done: int, complete: bool = False) -> None:
         entry = self.state["topics"].setdefault(topic, {})
         entry["done"] = done
         entry["complete"] = complete
 
-    def save(self, source: Path) -> None:
+    def save(self, source: Path, *, running: bool) -> None:
+        self.state["running"] = running
         names = self.state.setdefault("names", [])
         if str(source) not in names:
             names.append(str(source))
@@ -177,6 +194,9 @@ class BagImporter:
         self.stall_timeout = stall_timeout
         self.stopping = threading.Event()
         self._typestore = default_typestore()
+        self._spooled: set[tuple[str, str]] | None = None  # (topic, time) of queued envelopes
+        self._lookup = requests.Session()
+        self._lookup.headers["Authorization"] = f"Token {config.token}"
 
     # --- the whole run ------------------------------------------------------------------------
 
@@ -189,6 +209,7 @@ class BagImporter:
             self._wait_until_sent(upload_timeout)
             self.uploader.stop(self.config.shutdown_flush)
             self.spool.close()
+            self._lookup.close()
 
     def _wait_until_sent(self, timeout: float) -> None:
         deadline = time.monotonic() + timeout
@@ -291,6 +312,9 @@ class BagImporter:
     ) -> None:
         seen: Counter = Counter()  # messages of each topic read in this pass, in file order
         topics = {_absolute(conn.topic) for conn in selected}
+        to_check = LEDGER_EVERY if ledger.cut_off else 0
+        if selected:
+            ledger.save(report.path, running=True)
         handled_since_save = 0
         messages: Iterator[tuple[Any, int, bytes]] = (
             reader.messages(connections=selected) if selected else iter(())
@@ -312,43 +336,54 @@ class BagImporter:
                     )
                     seen[topic] -= 1
                     break
-                self._seal(reader, conn, topic, timestamp, rawdata, report)
+                msg = self._decode(reader, conn, topic, rawdata, report)
+                if msg is not None:
+                    captured_at = capture_time(msg, _bag_time(timestamp))
+                    if to_check and self._sent_before(topic, captured_at):
+                        report.skipped["sent by an earlier import that was cut off"] += 1
+                    else:
+                        self._seal(msg, topic, timestamp, report)
+                to_check = max(to_check - 1, 0)
                 ledger.note(topic, done=seen[topic])
                 bar.update(1)
                 handled_since_save += 1
                 if handled_since_save >= LEDGER_EVERY:
-                    ledger.save(report.path)
+                    ledger.save(report.path, running=True)
                     handled_since_save = 0
+        except CannotCheck as exc:
+            report.stopped = (
+                f"an earlier import of this file was cut off, and what it sent cannot be checked "
+                f"now ({exc}); import the file again when the portal answers"
+            )
+            ledger.save(report.path, running=True)  # the next run checks again
+            return
         except Exception as exc:  # a damaged chunk or record part way through the file
             report.stopped = _damaged(sum(seen.values()), _reason(exc))
         if not report.stopped and getattr(reader, "damage", ""):
             report.stopped = _damaged(sum(seen.values()), reader.damage)
-        if not report.stopped:
+        if not report.stopped or report.stopped.startswith("the file is damaged or cut off"):
+            # Read to its end, or to where nothing more can be read: all there is, imported.
             for topic in topics:
                 ledger.note(topic, done=seen[topic], complete=True)
-        elif report.stopped.startswith("the file is damaged or cut off"):
-            # Nothing more can be read from this content: what was read is all there is.
-            for topic in topics:
-                ledger.note(topic, done=seen[topic], complete=True)
-        ledger.save(report.path)
+        ledger.save(report.path, running=False)
 
-    def _seal(
-        self, reader: Any, conn: Any, topic: str, timestamp: int, rawdata: bytes, report: FileReport
-    ) -> None:
-        wanted: TopicConfig = self.topics[topic]
+    def _decode(
+        self, reader: Any, conn: Any, topic: str, rawdata: bytes, report: FileReport
+    ) -> Any:
+        """The message as the extractors read it, or None (counted) if it does not decode."""
         try:
-            msg = reader.deserialize(rawdata, conn.msgtype)
+            return ros1_view(reader.deserialize(rawdata, conn.msgtype))
         except Exception as exc:  # any decoding failure is this message's
-            report.skipped[f"a {wanted.type} message on {topic} does not decode"] += 1
+            report.skipped[f"a {self.topics[topic].type} message on {topic} does not decode"] += 1
             logger.debug("cannot decode a %s message: %s", conn.msgtype, exc)
-            return
+            return None
+
+    def _seal(self, msg: Any, topic: str, timestamp: int, report: FileReport) -> None:
+        wanted: TopicConfig = self.topics[topic]
         failed_before = self.counters.failed
         used_before = self.spool.used_bytes
         seq = self.recorder.record(
-            ros1_view(msg),
-            topic=topic,
-            ros_type=wanted.type,
-            received_at=_EPOCH + timedelta(microseconds=timestamp // 1000),
+            msg, topic=topic, ros_type=wanted.type, received_at=_bag_time(timestamp)
         )
         if seq is None:
             if self.counters.failed > failed_before:
@@ -359,6 +394,35 @@ class BagImporter:
         report.imported += 1
         report.topics[topic] += 1
         report.sealed_bytes += max(self.spool.used_bytes - used_before, 0)
+
+    def _sent_before(self, topic: str, captured_at: datetime) -> bool:
+        """Whether the robot's spool or the portal holds a record of `topic` captured then."""
+        if self._spooled is None:
+            self._spooled = set()
+            for item in self.spool.peek(len(self.spool) or 1):
+                header = envelope.read_header(item.envelope).header
+                self._spooled.add((header["topic"], header["time"]))
+        if (topic, iso_utc(captured_at)) in self._spooled:
+            return True
+        try:
+            answer = self._lookup.get(
+                self.config.records_url,
+                params={
+                    "topic": topic,
+                    "since": iso_utc(captured_at),
+                    "until": iso_utc(captured_at + timedelta(microseconds=1)),
+                },
+                timeout=self.config.request_timeout,
+                verify=self.config.tls_verify,
+            )
+        except requests.RequestException as exc:
+            raise CannotCheck(f"no answer from the portal: {exc}") from None
+        if answer.status_code != 200:
+            raise CannotCheck(f"the portal answered HTTP {answer.status_code}")
+        try:
+            return bool(answer.json()["results"])
+        except (ValueError, KeyError, TypeError):
+            raise CannotCheck("the portal's answer is not a list of records") from None
 
     def _room_in_spool(self) -> bool:
         """Wait while the spool is nearly full and the uploader still makes progress."""
@@ -375,6 +439,11 @@ class BagImporter:
             elif time.monotonic() - last_progress > self.stall_timeout:
                 return False
         return True
+
+
+def _bag_time(timestamp: int) -> datetime:
+    """A recording's timestamp (nanoseconds since 1970) as a UTC datetime (microseconds)."""
+    return _EPOCH + timedelta(microseconds=timestamp // 1000)
 
 
 def _damaged(read: int, reason: str) -> str:

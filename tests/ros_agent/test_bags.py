@@ -116,22 +116,27 @@ def test_ros1_and_ros2_recordings_are_imported_once_and_open_to_what_was_recorde
     assert Robot.objects.get(pk=setup.robot.pk).last_seq == last_seq
 
 
+def _importer_stopping_after(config: Path, count: int, stop) -> bags.BagImporter:
+    """An importer whose `stop()` is called once it has sealed `count` messages."""
+    importer = bags.BagImporter(bags.load_config(config), progress=False)
+    original_seal = importer._seal
+
+    def seal_then_stop(*args, **kwargs):
+        original_seal(*args, **kwargs)
+        if importer.counters.spooled >= count:
+            stop(importer)
+
+    importer._seal = seal_then_stop
+    return importer
+
+
 def test_an_interrupted_import_continues_where_it_stopped(robot_setup, tmp_path, capsys):
     setup, config = robot_setup
     ts2 = ros2_store()
     samples = make_samples(ts2, 4)
     recording = write_ros2_bag(tmp_path / "long", samples, ts2, mcap=True)
-    imported = bags.load_config(config)
-    importer = bags.BagImporter(imported, progress=False)
     stop_after = 10
-    original_seal = importer._seal
-
-    def seal_then_stop(*args, **kwargs):
-        original_seal(*args, **kwargs)
-        if importer.counters.spooled >= stop_after:
-            importer.stopping.set()  # what Ctrl-C does
-
-    importer._seal = seal_then_stop
+    importer = _importer_stopping_after(config, stop_after, lambda i: i.stopping.set())  # Ctrl-C
     (report,) = importer.run([recording], upload_timeout=0)
     assert report.imported == stop_after
     assert "interrupted" in report.stopped
@@ -139,10 +144,39 @@ def test_an_interrupted_import_continues_where_it_stopped(robot_setup, tmp_path,
     code, output = _import(config, recording, capsys=capsys)
     assert code == 0, output
     assert f"total: {len(samples) - stop_after} message(s) sealed" in output
+    assert "cut off" not in output  # a clean stop: nothing to check
     _check_stored(setup.robot, [(s, False) for s in samples])
     code, output = _import(config, recording, capsys=capsys)
     assert "total: 0 message(s) sealed" in output
     assert Record.objects.filter(robot=setup.robot).count() == len(samples)
+
+
+class _PowerCut(BaseException):
+    """The process ends here: nothing after it runs (no ledger written)."""
+
+
+def test_after_a_hard_kill_the_next_import_sends_nothing_twice(
+    robot_setup, tmp_path, capsys, monkeypatch
+):
+    setup, config = robot_setup
+    monkeypatch.setattr(bags, "LEDGER_EVERY", 4)
+    ts2 = ros2_store()
+    samples = make_samples(ts2, 3)
+    recording = write_ros2_bag(tmp_path / "long", samples, ts2, mcap=False)
+
+    def power_cut(_importer):
+        raise _PowerCut
+
+    importer = _importer_stopping_after(config, 10, power_cut)
+    with pytest.raises(_PowerCut):
+        importer.run([recording], upload_timeout=30)
+    # Ten sealed and sent, the ledger last written after eight.
+    assert Record.objects.filter(robot=setup.robot).count() == 10
+    code, output = _import(config, recording, capsys=capsys)
+    assert code == 0, output
+    assert "skipped 2: sent by an earlier import that was cut off" in output
+    assert f"total: {len(samples) - 10} message(s) sealed" in output
+    _check_stored(setup.robot, [(s, False) for s in samples])
 
 
 def _recording_with_trouble(folder: Path, ts, samples: list[Sample]) -> Path:
