@@ -146,12 +146,14 @@ class ImportLedger:
 
 
 def content_digest(path: Path) -> str:
-    """SHA-256 of a bag file, or of a rosbag2 folder's files (names and contents, in order)."""
+    """SHA-256 of a recording's messages' files: the file, or a rosbag2 folder's storage files
+    in order (not its metadata.yaml), so a one-file folder and its file are the same content."""
+    if path.is_file():
+        files = [path]
+    else:
+        files = sorted(p for p in path.iterdir() if p.is_file() and p.name != "metadata.yaml")
     digest = hashlib.sha256()
-    files = [path] if path.is_file() else sorted(p for p in path.rglob("*") if p.is_file())
     for file in files:
-        if path.is_dir():
-            digest.update(file.relative_to(path).as_posix().encode() + b"\0")
         with file.open("rb") as stream:
             for block in iter(lambda: stream.read(1 << 20), b""):
                 digest.update(block)

@@ -6,6 +6,7 @@ included. Imported again, nothing is uploaded twice. Damaged files, unknown type
 the config does not name are reported, the rest imported, and no traceback reaches the user.
 """
 
+import base64
 import shutil
 import sqlite3
 import subprocess
@@ -70,6 +71,44 @@ def _check_stored(robot, expected: list[tuple[Sample, bool]]) -> None:
             assert document["K"]["header"]["stamp"]["iso"] == document["Time"]
 
 
+def _check_against_an_independent_mcap_decoder(path: Path, robot) -> None:
+    """The portal's records of an .mcap file hold what the `mcap-ros2-support` decoder (not
+    rosbags) reads from it: stamps, poses, pixels' bytes, strings."""
+    from mcap.reader import make_reader
+    from mcap_ros2.decoder import DecoderFactory
+
+    stored = {
+        (record.topic, record.captured_at): document["K"]
+        for record, document in opened_records(robot, expected=robot.records.count())
+    }
+    with path.open("rb") as stream:
+        decoded = list(
+            make_reader(stream, decoder_factories=[DecoderFactory()]).iter_decoded_messages()
+        )
+    assert len(decoded) == len(TOPICS) * PER_TOPIC
+    for _, channel, message, msg in decoded:
+        topic = channel.topic
+        data = stored[(topic, stamp_time(message.log_time))]
+        if hasattr(msg, "header"):
+            stamp = data["header"]["stamp"]
+            assert (stamp["secs"], stamp["nsecs"]) == (
+                msg.header.stamp.sec,
+                msg.header.stamp.nanosec,
+            )
+            assert data["header"]["frame_id"] == msg.header.frame_id
+        if topic == ODOM[0]:
+            position = msg.pose.pose.position
+            assert data["position"] == {"x": position.x, "y": position.y, "z": position.z}
+            assert data["pose_covariance"] == list(msg.pose.covariance)
+        elif topic == "/camera/compressed":
+            assert base64.b64decode(data["data"]) == bytes(msg.data)
+        elif topic == "/points":
+            assert base64.b64decode(data["data"]) == bytes(msg.data)
+            assert [f["name"] for f in data["fields"]] == [f.name for f in msg.fields]
+        elif topic == "/chatter":
+            assert data == {"data": msg.data}
+
+
 @pytest.fixture
 def robot_setup(live_server, make_robot, tmp_path):
     setup = make_robot()
@@ -103,15 +142,18 @@ def test_ros1_and_ros2_recordings_are_imported_once_and_open_to_what_was_recorde
         assert f"  {topic}: {PER_TOPIC}" in output
     expected = [(s, True) for s in ros1] + [(s, False) for s in sqlite + mcap]
     _check_stored(setup.robot, expected)
+    _check_against_an_independent_mcap_decoder(files[2], setup.robot)
     last_seq = Robot.objects.get(pk=setup.robot.pk).last_seq
 
-    # Imported again, also under another name: recognised by content, nothing sent.
+    # Imported again, also under another name and as rosbag2 folders: recognised by content,
+    # nothing sent.
     copy = tmp_path / "copy-of-drive.bag"
     shutil.copy(files[0], copy)
-    code, output = _import(config, *files, copy, capsys=capsys)
+    folders = [files[1].parent, files[2].parent]
+    code, output = _import(config, *files, copy, *folders, capsys=capsys)
     assert code == 0, output
     assert "total: 0 message(s) sealed" in output
-    assert output.count("was imported before (same file content)") == 4 * len(TOPICS)
+    assert output.count("was imported before (same file content)") == 6 * len(TOPICS)
     assert Record.objects.filter(robot=setup.robot).count() == total
     assert Robot.objects.get(pk=setup.robot.pk).last_seq == last_seq
 
