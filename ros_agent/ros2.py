@@ -115,12 +115,6 @@ class Ros2Agent:
             len(self.spool),
         )
 
-    def subscribed(self) -> bool:
-        """True once every reader has matched at least one publisher."""
-        return bool(self._readers) and all(
-            reader.get_matched_publications() for reader, *_ in self._readers
-        )
-
     def stats(self) -> dict[str, int]:
         return {
             **self.counters.snapshot(),

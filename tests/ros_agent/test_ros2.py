@@ -10,7 +10,9 @@ import base64
 import os
 import signal
 import socket
+import subprocess
 from datetime import UTC, datetime
+from types import SimpleNamespace
 
 import cv2
 import numpy as np
@@ -19,6 +21,7 @@ import pytest
 from ros_agent import dds, sim
 from ros_agent.sim2 import Ros2Publisher
 from tests.ros_agent.conftest import (
+    REPO_ROOT,
     published_odometry,
     python_module,
     running,
@@ -188,3 +191,26 @@ def test_the_simulated_ros2_robot_feeds_the_agent_the_papers_topics(
             pixels = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_UNCHANGED)
             assert any(np.array_equal(pixels, sim.draw_scene(frame)) for frame in range(5))
     assert kinds == {sim.ODOM_TOPIC, sim.IMAGE_TOPIC}
+
+
+def test_the_ros2_agent_refuses_a_type_it_does_not_know_with_a_clear_message(ros2_env, tmp_path):
+    _, env = ros2_env
+    robot = SimpleNamespace(
+        key=bytes(16),
+        token="t",
+        robot=SimpleNamespace(id="7c9e6679-7425-40de-944b-e07fc1f90ae7"),
+        owner=SimpleNamespace(user=SimpleNamespace(username="alice")),
+    )
+    topics = [CHATTER, ("/secret", "my_pkg/Secret")]
+    config = robot_config(tmp_path, url="http://127.0.0.1:9", setup=robot, topics=topics)
+    answer = subprocess.run(
+        python_module("ros_agent", "--ros2", "--config", str(config)),
+        env=env,
+        cwd=REPO_ROOT,
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert answer.returncode == 2
+    assert "topic /secret: unknown message type my_pkg/msg/Secret" in answer.stderr
+    assert "Traceback" not in answer.stderr
