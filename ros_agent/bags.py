@@ -555,6 +555,7 @@ def main(argv: Sequence[str]) -> int:
             signal.signal(signum, handler)
     for line in summary_lines(reports, importer):
         print(line)
-    if any(report.refused or report.stopped for report in reports):
+    refused_by_portal = importer.counters.failed - _conversion_failures(reports)
+    if refused_by_portal or any(report.refused or report.stopped for report in reports):
         return 1
     return 3 if len(importer.spool) else 0

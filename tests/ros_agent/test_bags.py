@@ -14,12 +14,14 @@ import sys
 from pathlib import Path
 
 import pytest
+import yaml
 from rosbags.rosbag2 import Writer as Ros2Writer
 from rosbags.typesys import get_types_from_msg
 
 from accounts.models import Robot
 from ros_agent import bags
 from sharing.models import Record
+from stack.anvil import free_port
 from tests.ros_agent.conftest import REPO_ROOT
 from tests.ros_agent.portal_checks import opened_records, robot_config, stamp_time
 from tests.ros_agent.recordings import (
@@ -352,3 +354,30 @@ def test_the_command_line_refuses_while_the_robots_agent_holds_the_spool(robot_s
     assert "stop the agent first" in answer.stderr
     assert "Traceback" not in answer.stderr + answer.stdout
     assert not Record.objects.exists()
+
+
+def test_with_the_portal_away_the_import_keeps_the_envelopes_for_the_next_run(
+    robot_setup, tmp_path, capsys
+):
+    setup, config = robot_setup
+    settings = yaml.safe_load(config.read_text())
+    offline = config.with_name("offline.yaml")
+    offline.write_text(
+        yaml.safe_dump({**settings, "portal_url": f"http://127.0.0.1:{free_port()}"})
+    )
+    ts2 = ros2_store()
+    samples = make_samples(ts2, 1)
+    recording = write_ros2_bag(tmp_path / "r", samples, ts2, mcap=True)
+    code = bags.main(
+        ["--config", str(offline), "--no-progress", "--upload-timeout", "1", str(recording)]
+    )
+    output = capsys.readouterr().out
+    assert code == 3, output
+    assert f"uploaded 0, refused by the portal 0, waiting in the spool {len(samples)}" in output
+    assert not Record.objects.exists()
+    # The portal back: the next import sends what waited, and nothing of the file again.
+    code, output = _import(config, recording, capsys=capsys)
+    assert code == 0, output
+    assert "total: 0 message(s) sealed" in output
+    assert f"uploaded {len(samples)}, refused by the portal 0, waiting in the spool 0" in output
+    _check_stored(setup.robot, [(s, False) for s in samples])
