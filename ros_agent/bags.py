@@ -45,7 +45,7 @@ from ros_agent.config import AgentConfig, ConfigError, TopicConfig, load_config
 from ros_agent.counters import AgentCounters
 from ros_agent.extractors import iso_utc
 from ros_agent.ros2msg import default_typestore, ros1_name, ros1_view
-from ros_agent.salvage import SalvageError, salvage_reader
+from ros_agent.salvage import salvage_reader
 from ros_agent.spool import Spool, SpoolError
 from ros_agent.spool import _write_durably as write_durably
 from ros_agent.uploader import PortalClient, Uploader
@@ -232,6 +232,9 @@ class BagImporter:
             report.refused = str(exc)
         except OSError as exc:
             report.refused = f"cannot read it: {exc.strerror or exc}"
+        except Exception as exc:  # a file no reader foresaw: refused, never a traceback
+            logger.debug("importing %s failed", path, exc_info=True)
+            report.refused = f"cannot be imported: {type(exc).__name__}: {_reason(exc)}"
         return report
 
     def _check_path(self, path: Path) -> None:
@@ -257,7 +260,7 @@ class BagImporter:
         try:
             selected = self._select(reader, ledger, report)
             total = sum(max(conn.msgcount, 0) for conn in selected) - sum(
-                ledger.done(topic) for topic in {conn.topic for conn in selected}
+                ledger.done(topic) for topic in {_absolute(conn.topic) for conn in selected}
             )
             with _progress_bar(path, total, enabled=self.progress) as bar:
                 self._read(reader, selected, ledger, report, bar)
@@ -269,7 +272,7 @@ class BagImporter:
         """A reader for what is left of a cut-off .bag or .mcap, or ImportRefused."""
         try:
             reader = salvage_reader(path, self._typestore)
-        except (SalvageError, OSError):
+        except Exception:  # whatever the salvage trips over, the file is refused
             reader = None
         if reader is None or not reader.connections:
             raise ImportRefused(f"not a readable recording: {_reason(refusal)}")
@@ -460,7 +463,7 @@ def _absolute(topic: str) -> str:
 
 
 def _reason(exc: BaseException) -> str:
-    text = str(exc).strip() or type(exc).__name__
+    text = " ".join(str(exc).split()) or type(exc).__name__
     return text if len(text) < 300 else text[:300] + "..."
 
 

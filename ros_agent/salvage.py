@@ -136,6 +136,14 @@ class Ros1BagSalvage(_SalvageReader):
             yield from self._plain(fields, body)
 
     def _plain(self, header: dict[str, bytes], data: bytes) -> Iterator[tuple[int, int, bytes]]:
+        try:
+            yield from self._plain_fields(header, data)
+        except (KeyError, IndexError, struct.error, UnicodeDecodeError) as exc:
+            raise _Broken(f"a record header is damaged ({type(exc).__name__})") from None
+
+    def _plain_fields(
+        self, header: dict[str, bytes], data: bytes
+    ) -> Iterator[tuple[int, int, bytes]]:
         op = header.get("op", b"\x00")[0]
         if op == _OP_CONNECTION:
             fields = _bag_header_fields(data)
