@@ -188,14 +188,18 @@ def _base(name: str, bound: int) -> Any:
     return simple[name]
 
 
-def reader_qos(ros2_type: str) -> Any:
-    """QoS of a reader of `ros2_type` that matches ROS 2 publishers of it (see SENSOR_TYPES)."""
+def reader_qos(ros2_type: str, best_effort: bool | None = None) -> Any:
+    """QoS of a reader of `ros2_type` that matches ROS 2 publishers of it: best effort for
+    SENSOR_TYPES (or when `best_effort`), else reliable; volatile (matches transient-local
+    publishers too)."""
     from cyclonedds.core import Policy, Qos
     from cyclonedds.util import duration
 
+    if best_effort is None:
+        best_effort = ros2_type in SENSOR_TYPES
     reliability = (
         Policy.Reliability.BestEffort
-        if ros2_type in SENSOR_TYPES
+        if best_effort
         else Policy.Reliability.Reliable(duration(seconds=1))
     )
     return Qos(
@@ -205,13 +209,16 @@ def reader_qos(ros2_type: str) -> Any:
     )
 
 
-def writer_qos() -> Any:
-    """ROS 2's default publisher QoS: reliable, volatile, keep last 10."""
+def writer_qos(*, best_effort: bool = False) -> Any:
+    """ROS 2's default publisher QoS (reliable, volatile, keep last 10), or its sensor-data
+    reliability (best effort)."""
     from cyclonedds.core import Policy, Qos
     from cyclonedds.util import duration
 
     return Qos(
-        Policy.Reliability.Reliable(duration(seconds=1)),
+        Policy.Reliability.BestEffort
+        if best_effort
+        else Policy.Reliability.Reliable(duration(seconds=1)),
         Policy.Durability.Volatile,
         Policy.History.KeepLast(10),
     )

@@ -16,7 +16,9 @@ import logging
 import signal
 import sys
 import threading
+import time
 from collections.abc import Sequence
+from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
@@ -25,6 +27,8 @@ from ros_agent import LOGGER_NAME
 from ros_agent.config import AgentConfig, ConfigError, load_config
 from ros_agent.counters import AgentCounters
 from ros_agent.dds import (
+    HISTORY_DEPTH,
+    SENSOR_TYPES,
     DdsError,
     dds_topic_name,
     domain_id_from_environment,
@@ -40,6 +44,19 @@ logger = logging.getLogger(f"{LOGGER_NAME}.ros2")
 
 TAKE_BATCH = 64
 WAIT_SECONDS = 0.2
+DISCOVERY_INTERVAL = 1.0  # seconds between looks at who publishes what
+
+
+@dataclass
+class TopicReader:
+    """One configured topic and the DDS reader that reads it now."""
+
+    topic: str
+    ros_type: str
+    ros2_type: str
+    dds_topic: Any
+    reader: Any
+    best_effort: bool
 
 
 class Ros2Agent:
@@ -74,12 +91,14 @@ class Ros2Agent:
         )
         self.typestore = default_typestore()
         self.stopping = threading.Event()
-        self._readers: list[tuple[Any, str, str, str]] = []  # reader, topic, type, ROS 2 type
+        self._readers: list[TopicReader] = []
+        self._publications: Any = None  # the DCPSPublication builtin topic: who publishes what
         self._participant: Any = None
         self._thread: threading.Thread | None = None
 
     def start(self) -> None:
         """Check every topic's type, join the DDS domain, start reading and uploading."""
+        from cyclonedds.builtin import BuiltinDataReader, BuiltinTopicDcpsPublication
         from cyclonedds.domain import DomainParticipant
         from cyclonedds.sub import DataReader
         from cyclonedds.topic import Topic
@@ -95,13 +114,31 @@ class Ros2Agent:
             self._participant = DomainParticipant(self.domain_id)
         except Exception as exc:  # cyclonedds raises DDSException for a bad CYCLONEDDS_URI
             raise DdsError(f"Cyclone DDS cannot start in domain {self.domain_id}: {exc}") from None
+        self._publications = BuiltinDataReader(self._participant, BuiltinTopicDcpsPublication)
         for topic in self.config.topics:
             ros2_type = ros2_name(topic.type)
             name = "/" + topic.name.lstrip("/~")
             dds_topic = Topic(self._participant, dds_topic_name(name), types[topic.name])
-            reader = DataReader(self._participant, dds_topic, qos=reader_qos(ros2_type))
-            self._readers.append((reader, name, topic.type, ros2_type))
-            logger.info("recording %s (%s) as DDS topic %s", name, topic.type, dds_topic_name(name))
+            best_effort = ros2_type in SENSOR_TYPES
+            self._readers.append(
+                TopicReader(
+                    topic=name,
+                    ros_type=topic.type,
+                    ros2_type=ros2_type,
+                    dds_topic=dds_topic,
+                    reader=DataReader(
+                        self._participant, dds_topic, qos=reader_qos(ros2_type, best_effort)
+                    ),
+                    best_effort=best_effort,
+                )
+            )
+            logger.info(
+                "recording %s (%s) as DDS topic %s, %s",
+                name,
+                topic.type,
+                dds_topic_name(name),
+                "best effort" if best_effort else "reliably",
+            )
         self.uploader.start()
         self._thread = threading.Thread(target=self._read, name="authros-dds", daemon=True)
         self._thread.start()
@@ -131,6 +168,7 @@ class Ros2Agent:
         self.uploader.stop(self.config.shutdown_flush)
         self.spool.close()
         self._readers.clear()
+        self._publications = None
         self._participant = None
         self.log_stats()
 
@@ -142,25 +180,74 @@ class Ros2Agent:
         )
 
     def _read(self) -> None:
-        from cyclonedds.core import InstanceState, ReadCondition, SampleState, ViewState, WaitSet
         from cyclonedds.util import duration
 
-        waitset = WaitSet(self._participant)
-        for reader, *_ in self._readers:
-            waitset.attach(
-                ReadCondition(reader, SampleState.Any | ViewState.Any | InstanceState.Any)
-            )
-        next_stats = datetime.now(UTC).timestamp() + self.config.stats_interval
+        waitset = self._waitset()
+        next_stats = time.monotonic() + self.config.stats_interval
+        next_discovery = 0.0
         while not self.stopping.is_set():
             waitset.wait(duration(seconds=WAIT_SECONDS))
-            for reader, topic, ros_type, ros2_type in self._readers:
-                for sample in reader.take(TAKE_BATCH):
-                    self._record(sample, topic, ros_type, ros2_type)
-            if datetime.now(UTC).timestamp() >= next_stats:
+            for topic_reader in self._readers:
+                for sample in topic_reader.reader.take(TAKE_BATCH):
+                    self._record(sample, topic_reader)
+            now = time.monotonic()
+            if now >= next_discovery:
+                if self._adapt_to_publishers():
+                    waitset = self._waitset()
+                next_discovery = now + DISCOVERY_INTERVAL
+            if now >= next_stats:
                 self.log_stats()
                 next_stats += self.config.stats_interval
 
-    def _record(self, sample: Any, topic: str, ros_type: str, ros2_type: str) -> None:
+    def _waitset(self) -> Any:
+        from cyclonedds.core import InstanceState, ReadCondition, SampleState, ViewState, WaitSet
+
+        waitset = WaitSet(self._participant)
+        for topic_reader in self._readers:
+            waitset.attach(
+                ReadCondition(
+                    topic_reader.reader, SampleState.Any | ViewState.Any | InstanceState.Any
+                )
+            )
+        return waitset
+
+    def _adapt_to_publishers(self) -> bool:
+        """Read best effort any topic that has a best-effort publisher: a reliable reader would
+        not match it (as rosbag2 adapts to the QoS publishers offer). True if a reader changed."""
+        from cyclonedds.core import Policy
+        from cyclonedds.sub import DataReader
+
+        changed = False
+        for publication in self._publications.take(TAKE_BATCH):
+            reliability = getattr(publication, "qos", None)
+            if (
+                reliability is None
+                or reliability[Policy.Reliability] is not Policy.Reliability.BestEffort
+            ):
+                continue
+            for topic_reader in self._readers:
+                if (
+                    topic_reader.best_effort
+                    or publication.topic_name != topic_reader.dds_topic.name
+                ):
+                    continue
+                # Take what the reliable reader holds before it goes.
+                for sample in topic_reader.reader.take(HISTORY_DEPTH):
+                    self._record(sample, topic_reader)
+                topic_reader.reader = DataReader(
+                    self._participant,
+                    topic_reader.dds_topic,
+                    qos=reader_qos(topic_reader.ros2_type, True),
+                )
+                topic_reader.best_effort = changed = True
+                logger.info(
+                    "%s has a best-effort publisher: reading it best effort", topic_reader.topic
+                )
+        return changed
+
+    def _record(self, sample: Any, topic_reader: "TopicReader") -> None:
+        topic, ros_type = topic_reader.topic, topic_reader.ros_type
+        ros2_type = topic_reader.ros2_type
         received_at = datetime.now(UTC)
         cdr = getattr(sample, "cdr", None)
         if cdr is None:  # an instance disposed or unregistered: no data

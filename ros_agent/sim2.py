@@ -104,7 +104,7 @@ class Ros2Publisher:
         self.participant = DomainParticipant(domain_id)
         self._writers: dict[str, tuple[Any, type]] = {}
 
-    def writer(self, topic: str, ros2_type: str) -> None:
+    def writer(self, topic: str, ros2_type: str, *, best_effort: bool = False) -> None:
         from cyclonedds.pub import DataWriter
         from cyclonedds.topic import Topic
 
@@ -112,7 +112,8 @@ class Ros2Publisher:
             return
         struct = idl_type(self.typestore, ros2_type)
         dds_topic = Topic(self.participant, dds_topic_name(topic), struct)
-        self._writers[topic] = (DataWriter(self.participant, dds_topic, qos=writer_qos()), struct)
+        qos = writer_qos(best_effort=best_effort)
+        self._writers[topic] = (DataWriter(self.participant, dds_topic, qos=qos), struct)
 
     def matched(self, topic: str) -> int:
         writer, _ = self._writers[topic]

@@ -31,6 +31,7 @@ from tests.ros_agent.conftest import (
 from tests.ros_agent.portal_checks import opened_records, robot_config, stamp_time
 from tests.ros_agent.recordings import (
     CHATTER,
+    ODOM,
     TOPICS,
     comparable,
     expected_data,
@@ -214,3 +215,36 @@ def test_the_ros2_agent_refuses_a_type_it_does_not_know_with_a_clear_message(ros
     assert answer.returncode == 2
     assert "topic /secret: unknown message type my_pkg/msg/Secret" in answer.stderr
     assert "Traceback" not in answer.stderr
+
+
+def test_a_best_effort_publisher_of_a_reliable_type_is_recorded_too(
+    live_server, make_robot, ros2_env, tmp_path
+):
+    """Odometry is read reliably, which does not match a best-effort publisher: the agent sees
+    the publisher's QoS and reads that topic best effort (as rosbag2 adapts)."""
+    domain, env = ros2_env
+    setup = make_robot()
+    topics = [(sim.ODOM_TOPIC, "nav_msgs/Odometry")]
+    config = robot_config(tmp_path / "robot", url=live_server.url, setup=setup, topics=topics)
+    typestore = ros2_store()
+    samples = [s for s in make_samples(typestore, 5) if (s.topic, s.ros_type) == ODOM]
+    publisher = Ros2Publisher(domain)
+    publisher.writer(ODOM[0], ros2_type(ODOM[1]), best_effort=True)
+    agent_log = tmp_path / "agent.log"
+    with running(
+        python_module("ros_agent", "--ros2", "--config", str(config)), env=env, log=agent_log
+    ) as agent:
+        wait_until(lambda: publisher.matched(ODOM[0]), 60, "the agent's best-effort reader")
+        for sample in samples:
+            publisher.publish(sample.topic, sample.msg)
+        stored = opened_records(setup.robot, expected=len(samples))
+        assert stop_process(agent, signal.SIGINT) == 0
+    assert (
+        "/robot/odom has a best-effort publisher: reading it best effort" in agent_log.read_text()
+    )
+    by_stamp = {stamp_time(s.stamp_ns): s for s in samples}
+    for record, document in stored:
+        assert comparable(document["K"]) == expected_data(
+            by_stamp.pop(record.captured_at), ros1=False
+        )
+    assert not by_stamp
