@@ -42,14 +42,13 @@ import requests
 
 from ros_agent import LOGGER_NAME
 from ros_agent.config import AgentConfig, ConfigError, TopicConfig, load_config
-from ros_agent.counters import AgentCounters
 from ros_agent.extractors import iso_utc
+from ros_agent.pipeline import pipeline_build
 from ros_agent.ros2msg import default_typestore, ros1_name, ros1_view
 from ros_agent.salvage import salvage_reader
-from ros_agent.spool import Spool, SpoolError
+from ros_agent.spool import SpoolError
 from ros_agent.spool import _write_durably as write_durably
-from ros_agent.uploader import PortalClient, Uploader
-from ros_agent.wrapping import Recorder, capture_time
+from ros_agent.wrapping import capture_time
 from smcrypto import envelope
 
 logger = logging.getLogger(f"{LOGGER_NAME}.bags")
@@ -167,30 +166,14 @@ class BagImporter:
         self, config: AgentConfig, *, progress: bool = True, stall_timeout: float = 60.0
     ) -> None:
         self.config = config
-        self.counters = AgentCounters()
-        self.spool = Spool(config.spool_dir, max_bytes=config.spool_max_bytes)
-        self.uploader = Uploader(
-            spool=self.spool,
-            client=PortalClient(
-                records_url=config.records_url,
-                token=config.token,
-                tls_verify=config.tls_verify,
-                timeout=config.request_timeout,
-            ),
-            counters=self.counters,
-            batch_size=config.batch_size,
-            batch_max_bytes=config.batch_max_bytes,
+        # Short waits: an import is watched, and it ends by waiting for the last upload.
+        pipeline = pipeline_build(
+            config,
             flush_interval=min(config.flush_interval, 0.2),
             backoff_max=min(config.backoff_max, 5.0),
         )
-        self.recorder = Recorder(
-            spool=self.spool,
-            key=config.key,
-            owner=config.owner,
-            robot=config.robot,
-            counters=self.counters,
-            on_spooled=self.uploader.notify,
-        )
+        self.counters, self.spool = pipeline.counters, pipeline.spool
+        self.uploader, self.recorder = pipeline.uploader, pipeline.recorder
         self.topics = {_absolute(topic.name): topic for topic in config.topics}
         self.progress = progress
         self.stall_timeout = stall_timeout

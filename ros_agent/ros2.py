@@ -25,7 +25,6 @@ from typing import Any
 
 from ros_agent import LOGGER_NAME
 from ros_agent.config import AgentConfig, ConfigError, load_config
-from ros_agent.counters import AgentCounters
 from ros_agent.dds import (
     HISTORY_DEPTH,
     SENSOR_TYPES,
@@ -35,10 +34,9 @@ from ros_agent.dds import (
     idl_type,
     reader_qos,
 )
+from ros_agent.pipeline import pipeline_build
 from ros_agent.ros2msg import default_typestore, ros1_view, ros2_name
-from ros_agent.spool import Spool, SpoolError
-from ros_agent.uploader import PortalClient, Uploader
-from ros_agent.wrapping import Recorder
+from ros_agent.spool import SpoolError
 
 logger = logging.getLogger(f"{LOGGER_NAME}.ros2")
 
@@ -65,30 +63,9 @@ class Ros2Agent:
     def __init__(self, config: AgentConfig, *, domain_id: int | None = None) -> None:
         self.config = config
         self.domain_id = domain_id_from_environment() if domain_id is None else domain_id
-        self.counters = AgentCounters()
-        self.spool = Spool(config.spool_dir, max_bytes=config.spool_max_bytes)
-        self.uploader = Uploader(
-            spool=self.spool,
-            client=PortalClient(
-                records_url=config.records_url,
-                token=config.token,
-                tls_verify=config.tls_verify,
-                timeout=config.request_timeout,
-            ),
-            counters=self.counters,
-            batch_size=config.batch_size,
-            batch_max_bytes=config.batch_max_bytes,
-            flush_interval=config.flush_interval,
-            backoff_max=config.backoff_max,
-        )
-        self.recorder = Recorder(
-            spool=self.spool,
-            key=config.key,
-            owner=config.owner,
-            robot=config.robot,
-            counters=self.counters,
-            on_spooled=self.uploader.notify,
-        )
+        self.pipeline = pipeline_build(config)
+        self.counters, self.spool = self.pipeline.counters, self.pipeline.spool
+        self.uploader, self.recorder = self.pipeline.uploader, self.pipeline.recorder
         self.typestore = default_typestore()
         self.stopping = threading.Event()
         self._readers: list[TopicReader] = []
@@ -152,13 +129,6 @@ class Ros2Agent:
             len(self.spool),
         )
 
-    def stats(self) -> dict[str, int]:
-        return {
-            **self.counters.snapshot(),
-            "queued": len(self.spool),
-            "spool_bytes": self.spool.used_bytes,
-        }
-
     def stop(self) -> None:
         logger.info("stopping: sending what is queued")
         self.stopping.set()
@@ -176,7 +146,7 @@ class Ros2Agent:
         logger.info(
             "sent=%(sent)d spooled=%(spooled)d failed=%(failed)d dropped=%(dropped)d "
             "queued=%(queued)d spool_bytes=%(spool_bytes)d",
-            self.stats(),
+            self.pipeline.stats(),
         )
 
     def _read(self) -> None:

@@ -7,6 +7,7 @@ the config does not name are reported, the rest imported, and no traceback reach
 """
 
 import base64
+import re
 import shutil
 import sqlite3
 import subprocess
@@ -21,6 +22,7 @@ from rosbags.typesys import get_types_from_msg
 
 from accounts.models import Robot
 from ros_agent import bags
+from ros_agent.spool import Spool
 from sharing.models import Record
 from stack.anvil import free_port
 from tests.ros_agent.conftest import REPO_ROOT, write_key_file
@@ -49,8 +51,15 @@ def _import(config: Path, *files: Path, capsys) -> tuple[int, str]:
         ["--config", str(config), "--no-progress", "--upload-timeout", "60", *map(str, files)]
     )
     out, err = capsys.readouterr()
-    assert "Traceback" not in out + err
+    assert not _our_tracebacks(out + err)
     return code, out + err
+
+
+def _our_tracebacks(text: str) -> list[str]:
+    """Traceback frames in the agent's code. (Not the whole stderr: Celery, running eagerly in
+    the live server's thread, may leave a log handler on a stream pytest closed, whose
+    '--- Logging error ---' reports carry a traceback of their own.)"""
+    return re.findall(r'File "[^"]*/ros_agent/[^"]*"', text)
 
 
 def _check_stored(robot, expected: list[tuple[Sample, bool]]) -> None:
@@ -339,7 +348,7 @@ def test_the_command_line_refuses_while_the_robots_agent_holds_the_spool(robot_s
     _, config = robot_setup
     ts2 = ros2_store()
     recording = write_ros2_bag(tmp_path / "r", make_samples(ts2, 1)[:1], ts2, mcap=True)
-    held = bags.Spool(tmp_path / "robot" / "spool", max_bytes=10**6)  # as a running agent does
+    held = Spool(tmp_path / "robot" / "spool", max_bytes=10**6)  # as a running agent does
     try:
         answer = subprocess.run(
             [sys.executable, "-m", "ros_agent", "import", "--config", str(config), str(recording)],
@@ -384,7 +393,7 @@ def test_with_the_portal_away_the_import_keeps_the_envelopes_for_the_next_run(
     _check_stored(setup.robot, [(s, False) for s in samples])
 
 
-def test_randomly_damaged_recordings_never_end_in_a_traceback(tmp_path, capsys):
+def test_randomly_damaged_recordings_never_end_in_a_traceback(tmp_path):
     """Bytes flipped, cut or repeated anywhere in each kind of recording: every file is
     imported in part, refused, or imported whole, with a message; the command never fails."""
     ts1, ts2 = ros1_store(), ros2_store()
@@ -429,11 +438,15 @@ def test_randomly_damaged_recordings_never_end_in_a_traceback(tmp_path, capsys):
             }
         )
     )
-    code = bags.main(
-        ["--config", str(config), "--no-progress", "--upload-timeout", "0", *map(str, files)]
+    command = ["import", "--config", str(config), "--no-progress", "--upload-timeout", "0"]
+    answer = subprocess.run(
+        [sys.executable, "-m", "ros_agent", *command, *map(str, files)],
+        cwd=REPO_ROOT,
+        capture_output=True,
+        text=True,
+        timeout=240,
     )
-    out, err = capsys.readouterr()
-    assert code in (1, 3), out
-    assert "Traceback" not in out + err
+    assert answer.returncode in (1, 3), answer.stdout + answer.stderr
+    assert "Traceback" not in answer.stdout + answer.stderr
     for path in files:
-        assert f"{path}: " in out
+        assert f"{path}: " in answer.stdout
