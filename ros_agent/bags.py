@@ -17,9 +17,11 @@ Imports and live capture share the robot's one sequence counter (the portal refu
 number below the robot's last), so the import takes the spool: while the agent of that robot
 runs, the import is refused with a message saying so.
 
-Bad input never ends in a traceback: an unreadable or corrupt file is refused with the reason
-(nothing of it spooled), a message that does not decode or convert is skipped and counted, and
-a file that breaks off part way keeps what was read before the break.
+Bad input never ends in a traceback: a file none of the readers can open is refused with the
+reason (nothing of it spooled); a .bag or .mcap cut off before its index or summary (and
+rosbag's `.bag.active` of a recorder that died) is read from the start up to the break
+(ros_agent.salvage); a message that does not decode or convert is skipped and counted; a
+file that breaks off part way keeps what was read before the break.
 """
 
 import argparse
@@ -56,6 +58,7 @@ logger = logging.getLogger(f"{LOGGER_NAME}.bags")
 LEDGER_EVERY = 100
 LEDGER_DIR = "imports"
 BAG_SUFFIXES = (".bag", ".db3", ".mcap")
+ACTIVE_BAG = ".bag.active"  # what `rosbag record` writes until it closes the bag
 _EPOCH = datetime(1970, 1, 1, tzinfo=UTC)
 # Stop filling the spool above this share of its bound until the uploader made room.
 SPOOL_HIGH_WATER = 0.8
@@ -226,7 +229,7 @@ class BagImporter:
         if path.is_dir():
             if not (path / "metadata.yaml").exists():
                 raise ImportRefused("a folder must be a rosbag2 recording (with metadata.yaml)")
-        elif path.suffix not in BAG_SUFFIXES:
+        elif path.suffix not in BAG_SUFFIXES and not path.name.endswith(ACTIVE_BAG):
             raise ImportRefused(
                 f"{path.suffix or 'no suffix'}: not a recording; expected {', '.join(BAG_SUFFIXES)}"
             )
@@ -254,7 +257,7 @@ class BagImporter:
     def _salvage(self, path: Path, refusal: Exception) -> Any:
         """A reader for what is left of a cut-off .bag or .mcap, or ImportRefused."""
         try:
-            reader = salvage_reader(path, self._typestore)
+            reader = salvage_reader(path, self._typestore, ros1=path.name.endswith(ACTIVE_BAG))
         except Exception:  # whatever the salvage trips over, the file is refused
             reader = None
         if reader is None or not reader.connections:

@@ -340,9 +340,11 @@ def _bag_header_fields(header: bytes) -> dict[str, bytes]:
     return fields
 
 
-def salvage_reader(path: Path, default_typestore: Typestore) -> _SalvageReader | None:
-    """A salvage reader for a .bag or .mcap file, or None for other kinds."""
-    if path.suffix == ".bag":
+def salvage_reader(
+    path: Path, default_typestore: Typestore, *, ros1: bool = False
+) -> _SalvageReader | None:
+    """A salvage reader for a .bag (or, with ros1, any ROS 1 bag) or .mcap file, or None."""
+    if ros1 or path.suffix == ".bag":
         return Ros1BagSalvage(path, default_typestore)
     if path.suffix == ".mcap":
         return McapSalvage(path, default_typestore)

@@ -294,6 +294,11 @@ def test_bad_recordings_are_reported_and_the_rest_imported(robot_setup, tmp_path
     data = write_ros2_bag(tmp_path / "whole_mcap", cut_mcap, ts2, mcap=True).read_bytes()
     truncated_mcap = tmp_path / "truncated.mcap"
     truncated_mcap.write_bytes(data[: len(data) // 2])
+    # What `rosbag record` leaves when it dies: the .bag.active it was writing.
+    died = make_samples(ts1, 6, base_ns=1_700_000_700 * SECOND)
+    data = write_ros1_bag(tmp_path / "whole3.bag", died, ts1).read_bytes()
+    active = tmp_path / "2025-06-01-10-00-00.bag.active"
+    active.write_bytes(data[: len(data) * 6 // 10])
     # The index intact, but the record header of the sixth odometry message overwritten.
     broken = make_samples(ts1, 10, base_ns=1_700_000_600 * SECOND)
     data = write_ros1_bag(tmp_path / "whole2.bag", broken, ts1).read_bytes()
@@ -307,7 +312,7 @@ def test_bad_recordings_are_reported_and_the_rest_imported(robot_setup, tmp_path
     notes.write_text("not a recording")
     missing = tmp_path / "missing.db3"
 
-    files = [troubled, truncated, truncated_mcap, damaged, garbage, notes, missing]
+    files = [troubled, truncated, truncated_mcap, active, damaged, garbage, notes, missing]
     code, output = _import(config, *files, capsys=capsys)
     assert code == 1, output
     assert f"{garbage}: refused: not a readable recording" in output
@@ -316,8 +321,8 @@ def test_bad_recordings_are_reported_and_the_rest_imported(robot_setup, tmp_path
     assert "skipped 1: a nav_msgs/Odometry message on /robot/odom does not decode" in output
     assert "skipped 2: topic /not_configured is not in the config" in output
     assert "skipped 2: unknown message type my_pkg/msg/Secret on /secret" in output
-    assert output.count("note: read without its index, which is damaged or missing") == 2
-    assert output.count("the file is damaged or cut off after message") == 3
+    assert output.count("note: read without its index, which is damaged or missing") == 3
+    assert output.count("the file is damaged or cut off after message") == 4
 
     # Stored: every good message of the troubled file (not the damaged one), and what the
     # cut-off and damaged files held before the break, each whole and as recorded.
@@ -328,6 +333,7 @@ def test_bad_recordings_are_reported_and_the_rest_imported(robot_setup, tmp_path
     for path, samples, ros1 in (
         (truncated, cut_ros1, True),
         (truncated_mcap, cut_mcap, False),
+        (active, died, True),
         (damaged, broken, True),
     ):
         sealed = _sealed(output, path)
@@ -339,7 +345,7 @@ def test_bad_recordings_are_reported_and_the_rest_imported(robot_setup, tmp_path
     assert not Record.objects.filter(robot=setup.robot, topic__in=["/secret", "/not_configured"])
 
     # What could be read of them is all there is: imported again, nothing is sent.
-    code, output = _import(config, *files[:4], capsys=capsys)
+    code, output = _import(config, *files[:5], capsys=capsys)
     assert "total: 0 message(s) sealed" in output
     assert Record.objects.filter(robot=setup.robot).count() == len(expected)
 
