@@ -8,9 +8,11 @@ of this run's own.
 
 import base64
 import os
+import re
 import signal
 import socket
 import subprocess
+import sys
 from datetime import UTC, datetime
 from types import SimpleNamespace
 
@@ -93,12 +95,24 @@ def ros2_env(loopback_dds):
 
 
 def test_the_loopback_config_keeps_dds_on_this_machine(tmp_path):
-    text = dds.write_loopback_config(tmp_path / "c.xml").read_text()
-    assert '<NetworkInterface address="127.0.0.1"/>' in text
-    assert "<AllowMulticast>false</AllowMulticast>" in text
-    assert '<Peer address="127.0.0.1"/>' in text
-    env = dds.loopback_environment(tmp_path / "c.xml", domain_id=7)
-    assert env == {"CYCLONEDDS_URI": (tmp_path / "c.xml").as_uri(), "ROS_DOMAIN_ID": "7"}
+    config = dds.write_loopback_config(tmp_path / "c.xml")
+    env = dds.loopback_environment(config, domain_id=7)
+    assert env == {"CYCLONEDDS_URI": config.as_uri(), "ROS_DOMAIN_ID": "7"}
+    # What Cyclone DDS makes of it, from its own trace of a participant's start.
+    trace = tmp_path / "cyclonedds.log"
+    tracing = f"<Tracing><Verbosity>config</Verbosity><OutputFile>{trace}</OutputFile></Tracing>"
+    started = subprocess.run(
+        [sys.executable, "-c", "from cyclonedds.domain import DomainParticipant as P; P(7)"],
+        env={**os.environ, "CYCLONEDDS_URI": f"{env['CYCLONEDDS_URI']},{tracing}"},
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert started.returncode == 0, started.stderr
+    log = trace.read_text()
+    assert re.search(r"selected interfaces: lo \(", log), log[-2000:]
+    assert "Domain/General/AllowMulticast/#text: false" in log
+    assert "Domain/Discovery/Peers/Peer[@Address]: 127.0.0.1" in log
     assert dds.dds_topic_name("/robot/odom") == "rt/robot/odom"
     assert dds.dds_type_name("nav_msgs/msg/Odometry") == "nav_msgs::msg::dds_::Odometry_"
 
