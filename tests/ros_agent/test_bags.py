@@ -456,3 +456,33 @@ def test_randomly_damaged_recordings_never_end_in_a_traceback(tmp_path):
     assert "Traceback" not in answer.stdout + answer.stderr
     for path in files:
         assert f"{path}: " in answer.stdout
+
+
+def test_a_full_spool_with_the_portal_away_stops_the_import_until_the_next_run(
+    robot_setup, tmp_path, capsys
+):
+    setup, config = robot_setup
+    settings = yaml.safe_load(config.read_text())
+    offline = config.with_name("offline.yaml")
+    offline.write_text(
+        yaml.safe_dump(
+            {
+                **settings,
+                "portal_url": f"http://127.0.0.1:{free_port()}",
+                "spool_max_bytes": 12_000,
+            }
+        )
+    )
+    ts2 = ros2_store()
+    samples = make_samples(ts2, 3)
+    recording = write_ros2_bag(tmp_path / "r", samples, ts2, mcap=True)
+    importer = bags.BagImporter(bags.load_config(offline), progress=False, stall_timeout=0.5)
+    (report,) = importer.run([recording], upload_timeout=0)
+    assert "the spool is full" in report.stopped
+    assert 0 < report.imported < len(samples)
+    assert "the spool had no room" not in report.skipped  # it stopped instead of dropping
+    # The portal reachable again: what waited goes first, then the rest of the file.
+    code, output = _import(config, recording, capsys=capsys)
+    assert code == 0, output
+    assert f"total: {len(samples) - report.imported} message(s) sealed" in output
+    _check_stored(setup.robot, [(s, False) for s in samples])
