@@ -231,6 +231,7 @@ _NO_DATABASE = (
     "tests/ros_agent/test_spool.py",
     "tests/ros_agent/test_uploader.py",
     "tests/ros_agent/test_wrapping.py",
+    "tests/stack/test_stack_ros2.py",
 )
 
 

@@ -1,11 +1,7 @@
 """`make run` with the robot on ROS 2 (STACK_ROS2): its settings and the environment its
 processes get; the whole run is what tests/ros_agent/test_ros2.py drives piece by piece."""
 
-import pytest
-
 from stack.run import Stack, StackConfig
-
-pytestmark = pytest.mark.nodb
 
 
 def test_stack_ros2_puts_dds_on_loopback_in_the_chosen_domain_without_a_ros_master(tmp_path):
