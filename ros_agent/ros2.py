@@ -215,7 +215,7 @@ class Ros2Agent:
                 )
         return changed
 
-    def _record(self, sample: Any, topic_reader: "TopicReader") -> None:
+    def _record(self, sample: Any, topic_reader: TopicReader) -> None:
         topic, ros_type = topic_reader.topic, topic_reader.ros_type
         ros2_type = topic_reader.ros2_type
         received_at = datetime.now(UTC)
