@@ -45,7 +45,7 @@ import requests
 from ros_agent import LOGGER_NAME
 from ros_agent.config import AgentConfig, ConfigError, TopicConfig, load_config
 from ros_agent.extractors import iso_utc
-from ros_agent.pipeline import pipeline_build
+from ros_agent.pipeline import CLEAR_TEXT_WARNING, pipeline_build, token_in_clear
 from ros_agent.ros2msg import default_typestore, ros1_name, ros1_view
 from ros_agent.salvage import salvage_reader
 from ros_agent.spool import SpoolError
@@ -189,6 +189,8 @@ class BagImporter:
     # --- the whole run ------------------------------------------------------------------------
 
     def run(self, paths: Sequence[Path], *, upload_timeout: float) -> list[FileReport]:
+        if (host := token_in_clear(self.config.portal_url)) is not None:
+            logger.warning(CLEAR_TEXT_WARNING, host)
         self.uploader.start()
         try:
             return [self.import_file(path) for path in paths if not self.stopping.is_set()]

@@ -3,7 +3,9 @@ into the spool), Spool (on disk), Uploader (to the portal). The ROS 2 agent (ros
 and the import of recordings (ros_agent.bags) use it as it is; the rospy node builds the same
 three parts in node.Agent."""
 
+import ipaddress
 from dataclasses import dataclass
+from urllib.parse import urlsplit
 
 from ros_agent.config import AgentConfig
 from ros_agent.counters import AgentCounters
@@ -58,3 +60,22 @@ def pipeline_build(
         on_spooled=uploader.notify,
     )
     return Pipeline(counters, spool, uploader, recorder)
+
+
+def token_in_clear(portal_url: str) -> str | None:
+    """The host the robot token travels to in clear (plain http, not loopback), or None."""
+    parts = urlsplit(portal_url)
+    if parts.scheme != "http":
+        return None
+    host = parts.hostname or ""
+    try:
+        loopback = host == "localhost" or ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        loopback = False
+    return None if loopback else host
+
+
+CLEAR_TEXT_WARNING = (
+    "portal_url is plain http to %s: envelopes are sealed, but the robot token travels in "
+    "clear; use https"
+)

@@ -34,7 +34,7 @@ from ros_agent.dds import (
     idl_type,
     reader_qos,
 )
-from ros_agent.pipeline import pipeline_build
+from ros_agent.pipeline import CLEAR_TEXT_WARNING, pipeline_build, token_in_clear
 from ros_agent.ros2msg import default_typestore, ros1_view, ros2_name
 from ros_agent.spool import SpoolError
 
@@ -116,6 +116,8 @@ class Ros2Agent:
                 dds_topic_name(name),
                 "best effort" if best_effort else "reliably",
             )
+        if (host := token_in_clear(self.config.portal_url)) is not None:
+            logger.warning(CLEAR_TEXT_WARNING, host)
         self.uploader.start()
         self._thread = threading.Thread(target=self._read, name="authros-dds", daemon=True)
         self._thread.start()

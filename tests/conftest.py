@@ -226,6 +226,7 @@ _NO_DATABASE = (
     "tests/ros_agent/test_config.py",
     "tests/ros_agent/test_extractors.py",
     "tests/ros_agent/test_node.py",
+    "tests/ros_agent/test_pipeline.py",
     "tests/ros_agent/test_ros2msg.py",
     "tests/ros_agent/test_sim.py",
     "tests/ros_agent/test_spool.py",
