@@ -11,13 +11,11 @@ can within `shutdown_flush` seconds, and leaves the rest in the spool for the ne
 """
 
 import argparse
-import ipaddress
 import sys
 from collections.abc import Sequence
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
-from urllib.parse import urlsplit
 
 import roslib.message
 import rospy
@@ -25,6 +23,7 @@ import rospy
 from ros_agent import LOGGER_NAME
 from ros_agent.config import AgentConfig, ConfigError, config_from_ros_params, load_config
 from ros_agent.counters import AgentCounters
+from ros_agent.pipeline import CLEAR_TEXT_WARNING, token_in_clear
 from ros_agent.spool import Spool, SpoolError
 from ros_agent.uploader import PortalClient, Uploader
 from ros_agent.wrapping import Recorder
@@ -182,18 +181,6 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 def _warn_if_token_in_clear(portal_url: str) -> None:
-    parts = urlsplit(portal_url)
-    if parts.scheme != "http":
-        return
-    host = parts.hostname or ""
-    try:
-        loopback = host == "localhost" or ipaddress.ip_address(host).is_loopback
-    except ValueError:
-        loopback = False
-    if not loopback:
-        rospy.logwarn(
-            "portal_url is plain http to %s: envelopes are sealed, but the robot token "
-            "travels in clear; use https",
-            host,
-            logger_name=LOGGER,
-        )
+    host = token_in_clear(portal_url)
+    if host is not None:
+        rospy.logwarn(CLEAR_TEXT_WARNING, host, logger_name=LOGGER)
