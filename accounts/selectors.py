@@ -133,11 +133,12 @@ OWNER_TOKEN_PREFIX = "aro_"  # noqa: S105 (a marker, not a secret)
 def owner_token_by_key(key: str) -> OwnerToken | None:
     """The owner API token whose key is `key`, live or not; compared by SHA-256 only (the same
     hash as robot tokens)."""
-    return (
-        OwnerToken.objects.select_related("owner__user")
-        .filter(token_hash=robot_token_hash(key))
-        .first()
-    )
+    try:  # the hash is unique: get(), without the ORDER BY of first()
+        return OwnerToken.objects.select_related("owner__user").get(
+            token_hash=robot_token_hash(key)
+        )
+    except OwnerToken.DoesNotExist:
+        return None
 
 
 def owner_token_list(owner: Owner) -> list[OwnerToken]:

@@ -22,7 +22,7 @@ from redis.exceptions import RedisError
 
 from accounts.errors import IdentityMismatch
 from accounts.identity import owner_identity_check
-from accounts.models import Owner
+from accounts.models import Owner, OwnerKey
 from accounts.selectors import owner_key_bytes, owner_key_current
 from chainworker.chain import AuthROSChain
 from chainworker.services import chain_client, chain_head
@@ -281,7 +281,10 @@ def record_open(*, record_id: uuid.UUID | str, viewer: Owner, earlier: int = 0) 
     except (ValueError, Record.DoesNotExist):
         raise RecordNotFound("no such record") from None
     if earlier <= 0:
-        return _opened(record, viewer, _send(VERIFY_TASK, str(record.pk), viewer.pk))
+        pending = _send(VERIFY_TASK, str(record.pk), viewer.pk)
+        # While the worker checks: the record's key, looked up and unwrapped meanwhile.
+        key = _record_key_early(record)
+        return _opened(record, viewer, pending, key)
     *before, own = record_open_many(
         records=record_topic_history(record, limit=earlier + 1), viewer=viewer
     )
@@ -332,12 +335,29 @@ def _send(task_name: str, *args: Any) -> Any:
         return exc
 
 
-def _opened(record: Record, viewer: Owner, pending: Any) -> OpenedRecord:
+def _opened(record: Record, viewer: Owner, pending: Any, key: bytes | None) -> OpenedRecord:
     answer = _await_answer(pending, str(record.pk), viewer)
-    return _decrypted(record, Verdict.objects.get(pk=answer["verdict_id"]), _envelope_of(answer))
+    verdict = Verdict.objects.get(pk=answer["verdict_id"])
+    return _decrypted(record, verdict, _envelope_of(answer), key=key)
 
 
-def _decrypted(record: Record, verdict: Verdict, data: bytes | None) -> OpenedRecord:
+def _record_key(record: Record) -> bytes:
+    """The SM4 key the record was sealed under."""
+    return owner_key_bytes(record.owner.keys.get(key_id=record.key_id))
+
+
+def _record_key_early(record: Record) -> bytes | None:
+    """_record_key while the worker checks; None if it fails now (the check's verdict
+    comes first: _decrypted asks again only for a record it may show)."""
+    try:
+        return _record_key(record)
+    except OwnerKey.DoesNotExist:  # reported where the record is opened, as before
+        return None
+
+
+def _decrypted(
+    record: Record, verdict: Verdict, data: bytes | None, *, key: bytes | None = None
+) -> OpenedRecord:
     """The record decrypted from the bytes the worker checked, if its verdict allows."""
     if verdict.outcome == Verdict.Outcome.NO_ACCESS:
         raise AccessDenied("you have no live grant to this record", record=record, verdict=verdict)
@@ -349,8 +369,7 @@ def _decrypted(record: Record, verdict: Verdict, data: bytes | None) -> OpenedRe
         raise NotAnchoredYet(
             "the record is not anchored on chain yet", record=record, verdict=verdict
         )
-    key = record.owner.keys.get(key_id=record.key_id)
-    header, plaintext = envelope.open(owner_key_bytes(key), data)
+    header, plaintext = envelope.open(key if key is not None else _record_key(record), data)
     return OpenedRecord(record, verdict, header, plaintext, data)
 
 
