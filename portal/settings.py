@@ -184,6 +184,8 @@ SIGNUP_RATE_PER_ADDRESS = env.str("SIGNUP_RATE_PER_ADDRESS", default="5/hour")
 SIGNUP_RATE_TOTAL = env.str("SIGNUP_RATE_TOTAL", default="200/hour")
 # New owners wait for an operator's approval (admin) before any chain work is done for them.
 SIGNUP_APPROVAL = env.bool("SIGNUP_APPROVAL", default=False)
+# Seconds a robot's pairing request waits for its owner's answer before it expires.
+ROBOT_PAIRING_TTL = env.int("ROBOT_PAIRING_TTL", default=900)
 # On a development chain (anvil, eth-tester) the operator is topped up automatically.
 CHAIN_DEV_FAUCET = env.bool("CHAIN_DEV_FAUCET", default=True)
 
@@ -246,6 +248,8 @@ REST_FRAMEWORK = {
         "user": env.str("API_RATE_USER", default="6000/minute"),
         # per robot, on uploads only
         "upload": env.str("API_RATE_UPLOAD", default="1200/minute"),
+        # per client address: pairing requests and their polls (no credentials yet)
+        "pairing": env.str("API_RATE_PAIRING", default="120/minute"),
     },
     # Proxies in front of the portal; 0 = rate limits per peer address, ignoring a
     # client-supplied X-Forwarded-For. Behind one reverse proxy, 1.

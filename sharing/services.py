@@ -54,8 +54,11 @@ from smcrypto import CryptoError, envelope, sm3
 logger = logging.getLogger(__name__)
 security_log = logging.getLogger("authros.security")
 
-# An envelope sealed under a key retired less than this long ago is still accepted.
+# An envelope sealed under a key retired less than this long ago is still accepted (robots whose
+# key file is updated by hand); one captured before the key was retired always is (a spool
+# filled while the robot was offline), give or take KEY_ROTATION_CLOCK_SKEW of robot clock.
 KEY_ROTATION_GRACE = timedelta(hours=1)
+KEY_ROTATION_CLOCK_SKEW = timedelta(minutes=5)
 MAX_FIELD_LENGTH = 255
 EPOCH = datetime(1970, 1, 1, tzinfo=UTC)
 
@@ -79,8 +82,8 @@ def record_create_batch(*, robot: Robot, envelopes: Sequence[bytes]) -> list[Rec
     """Store envelopes uploaded by `robot`, all or none, and queue their anchoring.
 
     Each must parse, name this robot and its owner, be sealed under the owner's current key
-    (or one retired within KEY_ROTATION_GRACE) with a valid tag, and carry a sequence number
-    above every earlier one of this robot.
+    (or one retired within KEY_ROTATION_GRACE, or after the envelope's capture time) with a
+    valid tag, and carry a sequence number above every earlier one of this robot.
     """
     if not envelopes:
         raise InvalidEnvelope("no envelopes in the upload")
@@ -175,18 +178,29 @@ def _after_upload(owner_id: int, uploads: Sequence[_CheckedUpload]) -> None:
 
 
 def _upload_key(
-    owner: Owner, key_id: str, keys: dict[str, tuple[OwnerKey, bytes] | None]
+    owner: Owner,
+    key_id: str,
+    keys: dict[str, tuple[OwnerKey, bytes] | None],
+    captured_at: datetime,
 ) -> tuple[OwnerKey, bytes] | None:
-    """The owner's key `key_id` and its bytes, if an upload may be sealed under it (the current
-    key, or one retired within KEY_ROTATION_GRACE); looked up and unwrapped once per upload."""
+    """The owner's key `key_id` and its bytes, if an upload captured at `captured_at` may be
+    sealed under it: the current key, one retired within KEY_ROTATION_GRACE, or one retired
+    after the capture (within KEY_ROTATION_CLOCK_SKEW); looked up and unwrapped once per
+    upload."""
     if key_id not in keys:
         key = owner.keys.filter(key_id=key_id).first()
-        grace_start = timezone.now() - KEY_ROTATION_GRACE
-        usable = key is not None and (
-            key.is_current or (key.retired_at is not None and key.retired_at > grace_start)
-        )
-        keys[key_id] = (key, owner_key_bytes(key)) if usable else None
-    return keys[key_id]
+        keys[key_id] = (key, owner_key_bytes(key)) if key is not None else None
+    found = keys[key_id]
+    if found is None:
+        return None
+    key = found[0]
+    if key.is_current:
+        return found
+    if key.retired_at is None:
+        return None
+    if key.retired_at > timezone.now() - KEY_ROTATION_GRACE:
+        return found
+    return found if captured_at <= key.retired_at + KEY_ROTATION_CLOCK_SKEW else None
 
 
 def _check_upload(
@@ -209,7 +223,8 @@ def _check_upload(
             raise InvalidEnvelope(f"{field} is longer than {MAX_FIELD_LENGTH} characters")
         if "\x00" in header[field]:
             raise InvalidEnvelope(f"{field} contains a NUL character")
-    usable = _upload_key(owner, info.key_id.hex(), keys)
+    captured_at = datetime.fromisoformat(header["time"].replace("Z", "+00:00"))
+    usable = _upload_key(owner, info.key_id.hex(), keys, captured_at)
     if usable is None:
         raise UnknownKey("the envelope is not sealed under the owner's current key")
     key, key_bytes = usable
@@ -223,7 +238,6 @@ def _check_upload(
         )
         security_log.warning("forged upload refused: robot %s seq %s", robot.id, header["seq"])
         raise ForgedEnvelope("the envelope does not open under the owner's key") from None
-    captured_at = datetime.fromisoformat(header["time"].replace("Z", "+00:00"))
     if captured_at < EPOCH:
         # The chain stores capture times as unsigned microseconds since 1970.
         raise InvalidEnvelope("the capture time must be 1970-01-01T00:00:00Z or later")
