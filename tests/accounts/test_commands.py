@@ -10,10 +10,11 @@ from pathlib import Path
 import pytest
 from django.core.management import CommandError, call_command
 
+from accounts.keyexchange import portal_sm2_public_key
 from accounts.models import ChainState, Owner, Robot
-from accounts.selectors import robot_by_token
+from accounts.selectors import owner_key_bytes, owner_key_current, robot_by_token
 from ros_agent.config import load_config
-from smcrypto import key_id, sm4
+from smcrypto import key_id, sm2, sm4
 from stack.anvil import start_anvil
 from tests.conftest import TEST_PASSWORD
 
@@ -57,8 +58,31 @@ def test_owner_create_reads_the_key_from_a_file(deployed, tmp_path):
     key = sm4.generate_key()
     key_file = tmp_path / "alice.sm4"
     key_file.write_text(key.hex() + "\n")
+    key_file.chmod(0o644)
+    with pytest.raises(CommandError, match="chmod 600"):
+        _owner_create("--username", "alice", "--sm4-key-file", str(key_file))
+    assert not Owner.objects.exists()
+    key_file.chmod(0o600)
     result = _owner_create("--username", "alice", "--sm4-key-file", str(key_file))
     assert result["key_id"] == key_id(key).hex()
+
+
+def test_owner_create_takes_the_key_sm2_encrypted_to_the_portal(deployed):
+    key = sm4.generate_key()
+    ciphertext = sm2.encrypt(portal_sm2_public_key(), key)
+    result = _owner_create("--username", "alice", "--sm4-key-sm2", ciphertext)
+    assert result["key_id"] == key_id(key).hex()
+    assert "sm4_key_hex" not in result  # given, so not shown again
+    assert owner_key_bytes(owner_key_current(Owner.objects.get())) == key
+
+
+def test_owner_create_refuses_a_key_encrypted_to_another_portal(deployed):
+    other_public = sm2.generate_keypair()[1]
+    with pytest.raises(CommandError, match="could not be decrypted"):
+        _owner_create(
+            "--username", "alice", "--sm4-key-sm2", sm2.encrypt(other_public, sm4.generate_key())
+        )
+    assert not Owner.objects.exists()
 
 
 @pytest.mark.parametrize(
