@@ -264,6 +264,8 @@ SPECTACULAR_SETTINGS = {
     "ENUM_NAME_OVERRIDES": {
         "RecordStatusEnum": "sharing.models.Record.Status",
         "GrantStatusEnum": "sharing.models.Grant.Status",
+        # SM2 ciphertext layout of the key exchange and pairing (accounts.apis)
+        "Sm2CiphertextModeEnum": ["C1C3C2"],
     },
     # Swagger UI and Redoc from drf-spectacular-sidecar's static files, not from a CDN:
     # /api/docs/ works offline and loads nothing from another origin.
