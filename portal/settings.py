@@ -186,6 +186,9 @@ SIGNUP_RATE_TOTAL = env.str("SIGNUP_RATE_TOTAL", default="200/hour")
 SIGNUP_APPROVAL = env.bool("SIGNUP_APPROVAL", default=False)
 # Seconds a robot's pairing request waits for its owner's answer before it expires.
 ROBOT_PAIRING_TTL = env.int("ROBOT_PAIRING_TTL", default=900)
+# An envelope sealed under a retired key is accepted when captured before the rotation, give or
+# take this many seconds of robot clock (sharing.services._upload_key).
+KEY_ROTATION_CLOCK_SKEW = env.float("KEY_ROTATION_CLOCK_SKEW", default=300.0)
 # On a development chain (anvil, eth-tester) the operator is topped up automatically.
 CHAIN_DEV_FAUCET = env.bool("CHAIN_DEV_FAUCET", default=True)
 

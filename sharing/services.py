@@ -54,11 +54,11 @@ from smcrypto import CryptoError, envelope, sm3
 logger = logging.getLogger(__name__)
 security_log = logging.getLogger("authros.security")
 
-# An envelope sealed under a key retired less than this long ago is still accepted (robots whose
-# key file is updated by hand); one captured before the key was retired always is (a spool
-# filled while the robot was offline), give or take KEY_ROTATION_CLOCK_SKEW of robot clock.
+# An envelope sealed under a key retired less than this long ago is still accepted from a robot
+# whose key file is updated by hand (a paired robot fetches the new key and re-seals). One
+# captured before the key was retired always is, from any robot (a spool filled while the robot
+# was offline), give or take settings.KEY_ROTATION_CLOCK_SKEW seconds of robot clock.
 KEY_ROTATION_GRACE = timedelta(hours=1)
-KEY_ROTATION_CLOCK_SKEW = timedelta(minutes=5)
 MAX_FIELD_LENGTH = 255
 EPOCH = datetime(1970, 1, 1, tzinfo=UTC)
 
@@ -82,8 +82,9 @@ def record_create_batch(*, robot: Robot, envelopes: Sequence[bytes]) -> list[Rec
     """Store envelopes uploaded by `robot`, all or none, and queue their anchoring.
 
     Each must parse, name this robot and its owner, be sealed under the owner's current key
-    (or one retired within KEY_ROTATION_GRACE, or after the envelope's capture time) with a
-    valid tag, and carry a sequence number above every earlier one of this robot.
+    (or one retired after the envelope's capture time, or, for a robot not paired, within
+    KEY_ROTATION_GRACE) with a valid tag, and carry a sequence number above every earlier one
+    of this robot.
     """
     if not envelopes:
         raise InvalidEnvelope("no envelopes in the upload")
@@ -178,15 +179,16 @@ def _after_upload(owner_id: int, uploads: Sequence[_CheckedUpload]) -> None:
 
 
 def _upload_key(
-    owner: Owner,
+    robot: Robot,
     key_id: str,
     keys: dict[str, tuple[OwnerKey, bytes] | None],
     captured_at: datetime,
 ) -> tuple[OwnerKey, bytes] | None:
-    """The owner's key `key_id` and its bytes, if an upload captured at `captured_at` may be
-    sealed under it: the current key, one retired within KEY_ROTATION_GRACE, or one retired
-    after the capture (within KEY_ROTATION_CLOCK_SKEW); looked up and unwrapped once per
-    upload."""
+    """The owner's key `key_id` and its bytes, if `robot`'s upload captured at `captured_at`
+    may be sealed under it: the current key, one retired after the capture (give or take
+    KEY_ROTATION_CLOCK_SKEW), or for a robot not paired one retired within KEY_ROTATION_GRACE;
+    looked up and unwrapped once per upload."""
+    owner = robot.owner
     if key_id not in keys:
         key = owner.keys.filter(key_id=key_id).first()
         keys[key_id] = (key, owner_key_bytes(key)) if key is not None else None
@@ -198,9 +200,10 @@ def _upload_key(
         return found
     if key.retired_at is None:
         return None
-    if key.retired_at > timezone.now() - KEY_ROTATION_GRACE:
+    if not robot.public_key and key.retired_at > timezone.now() - KEY_ROTATION_GRACE:
         return found
-    return found if captured_at <= key.retired_at + KEY_ROTATION_CLOCK_SKEW else None
+    skew = timedelta(seconds=settings.KEY_ROTATION_CLOCK_SKEW)
+    return found if captured_at <= key.retired_at + skew else None
 
 
 def _check_upload(
@@ -224,7 +227,7 @@ def _check_upload(
         if "\x00" in header[field]:
             raise InvalidEnvelope(f"{field} contains a NUL character")
     captured_at = datetime.fromisoformat(header["time"].replace("Z", "+00:00"))
-    usable = _upload_key(owner, info.key_id.hex(), keys, captured_at)
+    usable = _upload_key(robot, info.key_id.hex(), keys, captured_at)
     if usable is None:
         raise UnknownKey("the envelope is not sealed under the owner's current key")
     key, key_bytes = usable

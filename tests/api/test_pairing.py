@@ -25,7 +25,7 @@ from accounts.selectors import (
     robot_token_hash,
 )
 from accounts.services import key_rotate, robot_pairing_answer, robot_token_revoke
-from sharing.services import KEY_ROTATION_CLOCK_SKEW, KEY_ROTATION_GRACE
+from sharing.services import KEY_ROTATION_GRACE
 from smcrypto import envelope, sm2, sm4
 from tests.api.conftest import Snapshot, b64, session_client, token_client
 
@@ -297,22 +297,23 @@ def _header(robot, seq: int, time: datetime | None = None) -> dict:
 
 
 def test_envelopes_captured_before_a_rotation_are_accepted_under_the_old_key_for_good(
-    robot, robot_api, upload, django_capture_on_commit_callbacks
+    robot, robot_api, upload, django_capture_on_commit_callbacks, settings
 ):
     """A robot offline for a day with a full spool: what it captured before the rotation
     arrives; what it sealed under the old key after the rotation (skew allowed) is refused,
     for its agent to re-seal under the new key."""
+    skew = timedelta(seconds=settings.KEY_ROTATION_CLOCK_SKEW)
     with django_capture_on_commit_callbacks(execute=True):
         key_rotate(owner=robot.owner, sm4_key=sm4.generate_key())
     retired_at = timezone.now() - KEY_ROTATION_GRACE - timedelta(days=1)
     robot.owner.keys.filter(key_id=envelope.key_id(robot.key).hex()).update(retired_at=retired_at)
     before_rotation = robot.seal(1, time=_iso(retired_at - timedelta(hours=2)))
-    within_skew = robot.seal(2, time=_iso(retired_at + KEY_ROTATION_CLOCK_SKEW / 2))
+    within_skew = robot.seal(2, time=_iso(retired_at + skew / 2))
     answer = upload(robot_api, before_rotation, within_skew, batch=True)
     assert answer.status_code == 201, answer.json()
 
     before = Snapshot()
-    after_rotation = robot.seal(3, time=_iso(retired_at + KEY_ROTATION_CLOCK_SKEW * 2))
+    after_rotation = robot.seal(3, time=_iso(retired_at + skew * 2))
     refused = upload(robot_api, after_rotation)
     assert (refused.status_code, refused.json()["error"]) == (403, "unknown_key")
     assert before.unchanged()
@@ -355,3 +356,29 @@ def test_the_owner_pairs_a_robot_on_the_robots_page(owner, client):
     robots_page = client.get("/robots/").content.decode()
     assert "Unpair" in robots_page
     assert "fetches rotated keys" in robots_page
+
+
+def test_a_paired_robot_gets_no_grace_hour_its_agent_reseals(
+    owner, django_capture_on_commit_callbacks, settings
+):
+    """Robots with a key file set by hand may send under the old key for an hour after a
+    rotation; a paired robot fetches the new key, so an envelope it captured after the
+    rotation under the old key is refused (its agent re-seals it)."""
+    _robot_side, token, robot = _paired(owner)
+    old_key = owner_key_bytes(owner_key_current(owner))
+    with django_capture_on_commit_callbacks(execute=True):
+        key_rotate(owner=owner, sm4_key=sm4.generate_key())
+    retired_at = owner.keys.get(is_current=False).retired_at
+    late = retired_at + timedelta(seconds=settings.KEY_ROTATION_CLOCK_SKEW * 2)
+    header = {
+        "owner": owner.username,
+        "robot": str(robot.pk),
+        "topic": "/chatter",
+        "type": "std_msgs/String",
+        "seq": 1,
+        "time": _iso(late),
+    }
+    answer = token_client(token).post(
+        RECORDS, {"envelope": b64(envelope.seal(old_key, header, b"{}"))}, format="json"
+    )
+    assert (answer.status_code, answer.json()["error"]) == (403, "unknown_key")
