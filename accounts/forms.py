@@ -203,3 +203,7 @@ class PairingAnswerForm(forms.Form):
         help_text="The robot's name in the portal (default: the name it asked with).",
     )
     decision = forms.ChoiceField(choices=[("approve", "approve"), ("refuse", "refuse")])
+
+    def __init__(self, *args: object, **kwargs: object) -> None:
+        kwargs.setdefault("auto_id", "answer_%s")  # beside the code form on the same page
+        super().__init__(*args, **kwargs)
