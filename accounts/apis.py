@@ -3,7 +3,8 @@ pairing (a robot's SM2 key pair, its owner's approval, the owner's key sent to i
 
 import uuid
 
-from drf_spectacular.utils import extend_schema
+from drf_spectacular.types import OpenApiTypes
+from drf_spectacular.utils import OpenApiParameter, extend_schema
 from rest_framework import exceptions, serializers, status
 from rest_framework.permissions import AllowAny, IsAuthenticated
 from rest_framework.request import Request
@@ -11,6 +12,7 @@ from rest_framework.response import Response
 from rest_framework.views import APIView
 
 from accounts.authentication import PairingRateThrottle, caller_robot
+from accounts.errors import PairingNotFound
 from accounts.keyexchange import portal_sm2_public_key
 from accounts.models import RobotPairing
 from accounts.selectors import (
@@ -77,10 +79,10 @@ class RobotPairingsApi(APIView):
             ref_name = "RobotPairingRequest"
 
         name = _Text(max_length=100, help_text="the robot's name, as its owner will see it")
-        public_key = _Text(
-            max_length=130,
+        public_key = serializers.RegexField(
+            r"^(04)?[0-9a-fA-F]{128}$",
             help_text="the robot's SM2 (sm2p256v1) public key, `04||x||y` as hex; its private "
-            "key never leaves the robot",
+            "key never leaves the robot; a point off the curve is refused",
         )
 
     class OutputSerializer(serializers.Serializer):
@@ -170,6 +172,11 @@ class RobotPairingCollectApi(APIView):
 
     @extend_schema(
         operation_id="robot_pairing_collect",
+        parameters=[
+            OpenApiParameter(
+                "pairing_id", OpenApiTypes.UUID, OpenApiParameter.PATH, description="the request"
+            )
+        ],
         summary="A robot collects its pairing answer (once)",
         auth=[],
         request=InputSerializer,
@@ -187,10 +194,14 @@ class RobotPairingCollectApi(APIView):
             ),
         },
     )
-    def post(self, request: Request, pairing_id: uuid.UUID) -> Response:
+    def post(self, request: Request, pairing_id: str) -> Response:
         given = self.InputSerializer(data=request.data)
         given.is_valid(raise_exception=True)
-        answer = robot_pairing_collect(pairing_id=pairing_id, secret=given.validated_data["secret"])
+        try:
+            request_id = uuid.UUID(pairing_id)
+        except ValueError:
+            raise PairingNotFound("no pairing request has this id") from None
+        answer = robot_pairing_collect(pairing_id=request_id, secret=given.validated_data["secret"])
         pairing = answer.pairing
         if pairing.state == RobotPairing.State.PENDING:
             data = {

@@ -18,7 +18,7 @@ v1 = [
     path("sm2-public-key/", Sm2PublicKeyApi.as_view(), name="sm2-public-key"),
     path("robot-pairings/", RobotPairingsApi.as_view(), name="robot-pairings"),
     path(
-        "robot-pairings/<uuid:pairing_id>/collect/",
+        "robot-pairings/<str:pairing_id>/collect/",
         RobotPairingCollectApi.as_view(),
         name="robot-pairing-collect",
     ),

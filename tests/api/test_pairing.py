@@ -211,8 +211,10 @@ def test_collecting_an_unknown_request_is_a_json_404(db):
         f"{PAIRINGS}{uuid.uuid4()}/collect/", {"secret": "x" * 43}, format="json"
     )
     assert (answer.status_code, answer.json()["error"]) == (404, "pairing_not_found")
-    malformed = APIClient().post(f"{PAIRINGS}not-a-uuid/collect/", {}, format="json")
-    assert malformed.status_code == 404
+    malformed = APIClient().post(
+        f"{PAIRINGS}not-a-uuid/collect/", {"secret": "x" * 43}, format="json"
+    )
+    assert (malformed.status_code, malformed.json()["error"]) == (404, "pairing_not_found")
 
 
 def test_pairing_endpoints_are_rate_limited_per_address(db, settings):
