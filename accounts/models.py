@@ -250,6 +250,9 @@ class AccountEvent(models.Model):
         SIGNUP_APPROVED = "signup_approved", "sign-up approved"
         SIGNUP_REFUSED = "signup_refused", "sign-up refused"
 
+    # Kinds the owner is alerted to (an alarm on the security page, a notice on sign-in).
+    ALARM_KINDS = (Kind.IDENTITY_MISMATCH, Kind.PAIRING_SECRET_MISMATCH)
+
     owner = models.ForeignKey(Owner, on_delete=models.CASCADE, related_name="account_events")
     kind = models.CharField(max_length=32, choices=Kind.choices)
     actor = models.ForeignKey(

@@ -135,10 +135,10 @@ def account_events_of(owner: Owner) -> QuerySet[AccountEvent]:
 
 def account_events_to_notice(owner: Owner, *, since: datetime) -> QuerySet[AccountEvent]:
     """Events since `since` the owner should look at: made by someone else (an operator), or
-    an identity check that failed."""
+    an alarm (an identity check that failed, a robot's pairing answer asked for by another)."""
     by_others = Q(actor__isnull=False) & ~Q(actor_id=owner.user_id)
     return account_events_of(owner).filter(
-        by_others | Q(kind=AccountEvent.Kind.IDENTITY_MISMATCH), created_at__gte=since
+        by_others | Q(kind__in=AccountEvent.ALARM_KINDS), created_at__gte=since
     )
 
 

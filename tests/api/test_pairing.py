@@ -129,7 +129,7 @@ def test_a_paired_robot_gets_its_token_and_its_owners_key_once_encrypted_to_it(o
     assert upload["AuthROS-Key-Id"] == body["key_id"]
 
 
-def test_someone_without_the_robots_secret_gets_nothing_and_the_owner_is_told(owner):
+def test_someone_without_the_robots_secret_gets_nothing_and_the_owner_is_told(owner, client):
     robot_side = Robotside()
     request = robot_side.ask()
     _approve(owner, request["code"])
@@ -139,6 +139,10 @@ def test_someone_without_the_robots_secret_gets_nothing_and_the_owner_is_told(ow
     assert AccountEvent.objects.filter(
         owner=owner, kind=AccountEvent.Kind.PAIRING_SECRET_MISMATCH
     ).exists()
+    client.force_login(owner.user)
+    security = client.get("/account/security/").content.decode()
+    entry = security.split('data-kind="pairing_secret_mismatch"', 1)[1].split("</li>", 1)[0]
+    assert "alarm" in entry
     # The robot itself still collects what is its own.
     assert robot_side.collect().status_code == 200
 
