@@ -1026,6 +1026,20 @@ def robot_pairing_collect(*, pairing_id: uuid.UUID, secret: str) -> PairingAnswe
     return answer
 
 
+# Unanswered requests are deleted this long after they expired; answered ones stay (the
+# robots page lists the latest answers).
+PAIRING_KEEP_EXPIRED = timedelta(days=1)
+
+
+def robot_pairings_purge() -> int:
+    """Delete the requests that expired unanswered more than PAIRING_KEEP_EXPIRED ago (anyone
+    may make requests: they must not pile up); how many went."""
+    cutoff = timezone.now() - PAIRING_KEEP_EXPIRED
+    stale = RobotPairing.objects.filter(state=RobotPairing.State.PENDING, expires_at__lt=cutoff)
+    deleted, _ = stale.delete()
+    return deleted
+
+
 def _pairing_secret_mismatch(pairing: RobotPairing) -> None:
     security_log.warning(
         "pairing request %s (%s): asked for with a wrong secret", pairing.code, pairing.state

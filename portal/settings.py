@@ -331,6 +331,12 @@ CELERY_BEAT_SCHEDULE = {
         "schedule": _SWEEP_INTERVAL,
         "options": {"expires": _SWEEP_INTERVAL},
     },
+    # Pairing requests nobody answered, a day after they expired (anyone may make them).
+    "purge-robot-pairings": {
+        "task": "accounts.tasks.robot_pairings_purge",
+        "schedule": 3600.0,
+        "options": {"expires": 3600.0},
+    },
     # Compares what the database says is on chain with the chain, and repairs (see below).
     "reconcile-chain": {
         "task": "sharing.tasks.chain_reconcile",

@@ -24,7 +24,13 @@ from accounts.selectors import (
     robot_by_token,
     robot_token_hash,
 )
-from accounts.services import key_rotate, robot_pairing_answer, robot_token_revoke
+from accounts.services import (
+    PAIRING_KEEP_EXPIRED,
+    key_rotate,
+    robot_pairing_answer,
+    robot_pairings_purge,
+    robot_token_revoke,
+)
 from sharing.services import KEY_ROTATION_GRACE
 from smcrypto import envelope, sm2, sm4
 from tests.api.conftest import Snapshot, b64, session_client, token_client
@@ -180,6 +186,20 @@ def test_an_expired_request_can_neither_be_approved_nor_collected(owner):
     expired = robot_side.collect()
     assert (expired.status_code, expired.json()["error"]) == (409, "pairing_expired")
     assert not Robot.objects.exists()
+
+
+def test_unanswered_requests_are_purged_a_day_after_they_expired(owner):
+    stale, fresh, answered = Robotside(), Robotside(), Robotside()
+    for robot_side in (stale, fresh, answered):
+        robot_side.ask()
+    robot_pairing_answer(owner=owner, code=answered.request["code"], approve=False, actor=None)
+    long_ago = timezone.now() - PAIRING_KEEP_EXPIRED - timedelta(minutes=1)
+    RobotPairing.objects.exclude(pk=fresh.request["id"]).update(expires_at=long_ago)
+    assert robot_pairings_purge() == 1
+    assert set(RobotPairing.objects.values_list("pk", flat=True)) == {
+        uuid.UUID(fresh.request["id"]),
+        uuid.UUID(answered.request["id"]),
+    }
 
 
 def test_a_wrong_code_finds_nothing(owner):
