@@ -7,6 +7,7 @@ answer is kept in Redis per owner and block, so a burst of requests costs one ch
 """
 
 import logging
+from collections.abc import Sequence
 from contextlib import suppress
 
 from django.db import transaction
@@ -14,7 +15,8 @@ from redis.exceptions import RedisError
 
 from accounts.errors import IdentityMismatch
 from accounts.events import account_event_record
-from accounts.models import AccountEvent, ChainState, Owner
+from accounts.models import AccountEvent, ChainState, Owner, OwnerKey
+from accounts.selectors import owner_keys
 from chainworker.chain import AuthROSChain, ChainError
 from chainworker.services import chain_client, chain_head
 from core.redis_client import get_redis, redis_key
@@ -27,7 +29,9 @@ IDENTITY_CACHE_TTL = 300
 NOT_REGISTERED = "0x" + "00" * 32
 
 
-def owner_identity_check(*, owner: Owner, fresh: bool = False) -> bool:
+def owner_identity_check(
+    *, owner: Owner, fresh: bool = False, keys: Sequence[OwnerKey] | None = None
+) -> bool:
     """The identity check: the key commitment on chain for `owner` is the one of the key the
     portal holds (the newest confirmed one; while a rotation is on its way, the new one too).
 
@@ -37,9 +41,10 @@ def owner_identity_check(*, owner: Owner, fresh: bool = False) -> bool:
     IdentityMismatch, after an AccountEvent (one per commitment seen on chain) and a line on
     the "authros.security" log. The chain's answer is kept in Redis per owner and block, so
     checks in a burst of requests cost no chain call; `fresh` asks the chain itself (to read
-    back what a confirmed transaction wrote).
+    back what a confirmed transaction wrote). `keys`, the owner's keys newest first, saves
+    reading them again where the caller has them.
     """
-    expected = _identity_expected(owner)
+    expected = _identity_expected(owner, keys)
     if not expected:
         return False
     try:
@@ -64,18 +69,19 @@ def owner_identity_check(*, owner: Owner, fresh: bool = False) -> bool:
     )
 
 
-def _identity_expected(owner: Owner) -> list[str]:
+def _identity_expected(owner: Owner, keys: Sequence[OwnerKey] | None = None) -> list[str]:
     """The commitments that may be on chain for the owner, the newest confirmed key's first;
     none while the owner is not on chain."""
     if owner.chain_state != ChainState.CONFIRMED:
         return []
+    if keys is None:
+        keys = owner_keys(owner)
     newer_pending: list[str] = []
-    keys = owner.keys.order_by("-created_at", "-pk").values_list("commitment", "chain_state")
-    for commitment, state in keys:
-        if state == ChainState.CONFIRMED:
-            return [commitment.lower(), *newer_pending]
-        if state == ChainState.PENDING:
-            newer_pending.append(commitment.lower())
+    for key in keys:
+        if key.chain_state == ChainState.CONFIRMED:
+            return [key.commitment.lower(), *newer_pending]
+        if key.chain_state == ChainState.PENDING:
+            newer_pending.append(key.commitment.lower())
     return []
 
 

@@ -82,11 +82,13 @@ def owner_balance_wei(owner: Owner) -> int:
 
 def robot_by_token(token: str) -> Robot | None:
     """The active robot holding `token`; tokens are compared by their SHA-256 only."""
-    return (
-        Robot.objects.select_related("owner__user")
-        .filter(token_hash=robot_token_hash(token), is_active=True)
-        .first()
-    )
+    # get(), not first(): the hash is unique, and an ORDER BY costs every upload its compiling.
+    try:
+        return Robot.objects.select_related("owner__user").get(
+            token_hash=robot_token_hash(token), is_active=True
+        )
+    except Robot.DoesNotExist:
+        return None
 
 
 def robot_token_hash(token: str) -> str:
@@ -102,7 +104,7 @@ def owner_for_user(user: object) -> Owner | None:
 
 def owner_keys(owner: Owner) -> list[OwnerKey]:
     """All keys of an owner, newest first (the current one, then retired ones)."""
-    return list(owner.keys.order_by("-created_at"))
+    return list(owner.keys.order_by("-created_at", "-pk"))
 
 
 def robot_list_of(owner: Owner) -> list[Robot]:

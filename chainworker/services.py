@@ -5,6 +5,7 @@ owners, records or grants: the apps that own them call down into this layer."""
 import json
 import logging
 import threading
+import time
 from contextlib import suppress
 from dataclasses import dataclass
 
@@ -30,7 +31,20 @@ security_log = logging.getLogger("authros.security")
 # The operator pays for deployment and funds new EOAs; keep it topped up on dev chains.
 DEV_OPERATOR_FLOAT_WEI = 10_000 * 10**18
 
-_clients: dict[str, AuthROSChain] = {}
+# How long a process keeps the active deployment's address it read from the database before
+# reading it again: a contract deployed by another process is followed within this time (the
+# deploying process switches at once). Reading it for every request cost a query per upload
+# and per view.
+DEPLOYMENT_RECHECK_SECONDS = 2.0
+
+
+@dataclass
+class _ProcessClient:
+    chain: AuthROSChain
+    address_read_at: float | None = None  # time.monotonic() of the last read that found one
+
+
+_clients: dict[str, _ProcessClient] = {}
 _clients_lock = threading.Lock()
 
 
@@ -44,22 +58,33 @@ def operator_account() -> LocalAccount:
 
 
 def chain_client() -> AuthROSChain:
-    """The process's client for the configured chain, pointed at the active deployment."""
+    """The process's client for the configured chain, pointed at the active deployment (read
+    again at most every DEPLOYMENT_RECHECK_SECONDS once one was found)."""
     url = settings.CHAIN_RPC_URL
     with _clients_lock:
-        client = _clients.get(url)
-        if client is None:
-            client = AuthROSChain(
-                url,
-                redis_client=get_redis(),
-                receipt_timeout=settings.CHAIN_RECEIPT_TIMEOUT,
-                rpc_timeout=settings.CHAIN_RPC_TIMEOUT,
-                confirmations=settings.CHAIN_CONFIRMATIONS,
-                redis_prefix=settings.REDIS_KEY_PREFIX,
-                nonce_lock_timeout=settings.CHAIN_NONCE_LOCK_TIMEOUT,
+        entry = _clients.get(url)
+        if entry is None:
+            entry = _ProcessClient(
+                AuthROSChain(
+                    url,
+                    redis_client=get_redis(),
+                    receipt_timeout=settings.CHAIN_RECEIPT_TIMEOUT,
+                    rpc_timeout=settings.CHAIN_RPC_TIMEOUT,
+                    confirmations=settings.CHAIN_CONFIRMATIONS,
+                    redis_prefix=settings.REDIS_KEY_PREFIX,
+                    nonce_lock_timeout=settings.CHAIN_NONCE_LOCK_TIMEOUT,
+                )
             )
-            _clients[url] = client
-    address = settings.CHAIN_CONTRACT_ADDRESS or _recorded_address(client)
+            _clients[url] = entry
+    client = entry.chain
+    address = settings.CHAIN_CONTRACT_ADDRESS
+    if not address:
+        now = time.monotonic()
+        read_at = entry.address_read_at
+        if client._address and read_at is not None and now - read_at < DEPLOYMENT_RECHECK_SECONDS:
+            return client
+        address = _recorded_address(client)
+        entry.address_read_at = now if address else None
     if address and address != client._address:
         client.use_contract(address)
     return client

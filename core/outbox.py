@@ -17,9 +17,14 @@ logger = logging.getLogger(__name__)
 _QUICK_RETRY = {"max_retries": 2, "interval_start": 0.2, "interval_step": 0.5, "interval_max": 1}
 
 
-def dispatch(task_name: str, *args: Any, countdown: float | None = None) -> AsyncResult:
+def dispatch(
+    task_name: str, *args: Any, countdown: float | None = None, keep_result: bool = True
+) -> AsyncResult:
     """Send the task named `task_name` (as registered with Celery); its pending result.
 
+    Without `keep_result` nobody waits for it: the result is not stored, and this process
+    does not listen for it (the Redis result backend subscribes to every result it may be
+    asked for, a subscription and a message per task otherwise).
     Raises kombu's OperationalError, RedisError or OSError when the broker cannot take it.
     """
     app = current_app
@@ -28,14 +33,20 @@ def dispatch(task_name: str, *args: Any, countdown: float | None = None) -> Asyn
         app.loader.import_default_modules()
         return app.tasks[task_name].apply_async(args=args, countdown=countdown)
     return app.send_task(
-        task_name, args=args, countdown=countdown, retry=True, retry_policy=_QUICK_RETRY
+        task_name,
+        args=args,
+        countdown=countdown,
+        retry=True,
+        retry_policy=_QUICK_RETRY,
+        ignore_result=not keep_result,
     )
 
 
 def enqueue(task_name: str, *args: Any, countdown: float | None = None) -> bool:
-    """Queue the task named `task_name`; False if the broker cannot take it now."""
+    """Queue the task named `task_name`, whose result nobody waits for; False if the broker
+    cannot take it now."""
     try:
-        dispatch(task_name, *args, countdown=countdown)
+        dispatch(task_name, *args, countdown=countdown, keep_result=False)
     except (OperationalError, RedisError, OSError) as exc:
         logger.warning(
             "could not queue %s%s (%s); the sweep will queue it again", task_name, args, exc

@@ -23,10 +23,11 @@ one `{"id", "digest", "status"}` per envelope. What the uploader does with each 
 A later envelope is never sent before an earlier one: the head of the queue is retried until
 it is delivered or refused.
 
-Every answer to an upload names the owner's current key (header `AuthROS-Key-Id`); when a
-paired robot sees another id than its own it fetches the new key at once (`key_updater`), so
-that what it records from then on is sealed under it. A rotation never sends anything to
-rejected/: envelopes captured before it are accepted under the old key, the others re-sealed.
+Every answer to a paired robot's upload names the owner's current key (header
+`AuthROS-Key-Id`); when it sees another id than its own it fetches the new key at once
+(`key_updater`), so that what it records from then on is sealed under it. A rotation never
+sends anything to rejected/: envelopes captured before it are accepted under the old key, the
+others re-sealed.
 """
 
 import base64

@@ -5,7 +5,7 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 
 APT_PACKAGES=(
-  python3-venv python3-dev redis-server postgresql-client
+  python3-venv python3-dev redis-server postgresql postgresql-client
   ros-core python3-rospy python3-rosmaster
   python3-nav-msgs python3-sensor-msgs python3-std-msgs
   chromium

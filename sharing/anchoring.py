@@ -72,14 +72,34 @@ def records_anchor(*, owner_id: int) -> int:
     next run if records remain, so that owners take turns. A run that finds another worker
     anchoring this owner returns at once: that worker queues the next run when it is done.
 
+    The "a run is queued" flag of `anchor_schedule` stays set while the run works, so uploads
+    meanwhile queue nothing (their records are in the next run, which the run queues after
+    dropping the flag, or which their own upload queues once it is dropped).
+
     Idempotent: a record whose id is already on chain with the same digest and owner counts
     as anchored; with another digest it is marked failed and a security event is logged.
     """
-    _anchor_unschedule(owner_id)
+    try:
+        anchored, sent = _anchor_run(owner_id)
+    finally:
+        _anchor_unschedule(owner_id)
+    if (
+        sent is not None
+        and Record.objects.filter(owner_id=owner_id, status=Record.Status.PENDING).exists()
+    ):
+        # Nothing sent: what is left is on chain awaiting confirmations, so look again after
+        # about a block rather than at once.
+        anchor_schedule(owner_id=owner_id, countdown=None if sent else ANCHOR_RECHECK_DELAY)
+    return anchored
+
+
+def _anchor_run(owner_id: int) -> tuple[int, int | None]:
+    """One run of `records_anchor`: (records anchored, transactions sent), or None sent when
+    it did not run (the owner is gone, or another worker is anchoring them)."""
     owner = Owner.objects.filter(pk=owner_id).first()
     if owner is None:
         logger.warning("records_anchor: owner %s no longer exists", owner_id)
-        return 0
+        return 0, None
     if owner.chain_state != ChainState.CONFIRMED:
         raise ChainWorkNotReady(f"{owner} is not registered on chain yet")
     chain_work_check()  # nothing goes to a reset chain
@@ -89,21 +109,16 @@ def records_anchor(*, owner_id: int) -> int:
     )
     try:
         if not lock.acquire(blocking=False):
-            return 0
+            return 0, None
     except RedisError as exc:
         raise ChainWorkNotReady(f"cannot lock owner {owner_id} in Redis: {exc}") from exc
     try:
         _wait_for_batch_to_fill(owner_id)
         anchor_round = roots_anchor_round if settings.ANCHOR_MODE == "root" else _anchor_round
-        anchored, sent = anchor_round(chain_client(), owner, lock)
+        return anchor_round(chain_client(), owner, lock)
     finally:
         with suppress(LockError, RedisError):
             lock.release()
-    if Record.objects.filter(owner_id=owner_id, status=Record.Status.PENDING).exists():
-        # Nothing sent: what is left is on chain awaiting confirmations, so look again after
-        # about a block rather than at once.
-        anchor_schedule(owner_id=owner_id, countdown=None if sent else ANCHOR_RECHECK_DELAY)
-    return anchored
 
 
 def records_reanchor(*, record_ids: Sequence[uuid.UUID]) -> int:

@@ -404,10 +404,11 @@ class RecordsApi(APIView):
     def finalize_response(
         self, request: Request, response: Response, *args: Any, **kwargs: Any
     ) -> Response:
-        """Every answer to a robot's upload, refusals included, names the owner's current key:
-        a paired robot that sees another id fetches the new key (`/api/v1/robot-key/`)."""
+        """Every answer to a paired robot's upload, refusals included, names the owner's current
+        key: a robot that sees another id fetches the new key (`/api/v1/robot-key/`). Robots
+        set up by hand cannot fetch it, and their uploads pay no query for it."""
         robot = caller_robot(request) if request.method == "POST" else None
-        if robot is not None:
+        if robot is not None and robot.public_key:
             current = owner_key_current_id(robot.owner_id)
             if current:
                 response[KEY_ID_HEADER] = current

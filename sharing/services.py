@@ -23,6 +23,7 @@ from accounts.selectors import (
     owner_by_identifier,
     owner_eoa_account,
     owner_key_bytes,
+    owner_keys,
 )
 from accounts.services import chain_activity_record
 from chainworker.chain import InsufficientFunds, TransactionReverted, TxResult
@@ -88,9 +89,10 @@ def record_create_batch(*, robot: Robot, envelopes: Sequence[bytes]) -> list[Rec
     """
     if not envelopes:
         raise InvalidEnvelope("no envelopes in the upload")
+    owner_keys_read = owner_keys(robot.owner)  # read once, for the check and the unsealing
     # The owner's commitment on chain must be the key the envelopes are sealed under.
-    owner_identity_check(owner=robot.owner)
-    keys: dict[str, tuple[OwnerKey, bytes] | None] = {}
+    owner_identity_check(owner=robot.owner, keys=owner_keys_read)
+    keys = _UploadKeys(owner_keys_read, robot)
     checked = [_check_upload(robot, data, keys) for data in envelopes]
     seqs = [c.header["seq"] for c in checked]
     if seqs != sorted(set(seqs)):
@@ -178,37 +180,39 @@ def _after_upload(owner_id: int, uploads: Sequence[_CheckedUpload]) -> None:
     anchor_schedule(owner_id=owner_id)
 
 
-def _upload_key(
-    robot: Robot,
-    key_id: str,
-    keys: dict[str, tuple[OwnerKey, bytes] | None],
-    captured_at: datetime,
-) -> tuple[OwnerKey, bytes] | None:
-    """The owner's key `key_id` and its bytes, if `robot`'s upload captured at `captured_at`
-    may be sealed under it: the current key, one retired after the capture (give or take
-    KEY_ROTATION_CLOCK_SKEW), or for a robot not paired one retired within KEY_ROTATION_GRACE;
-    looked up and unwrapped once per upload."""
-    owner = robot.owner
-    if key_id not in keys:
-        key = owner.keys.filter(key_id=key_id).first()
-        keys[key_id] = (key, owner_key_bytes(key)) if key is not None else None
-    found = keys[key_id]
-    if found is None:
-        return None
-    key = found[0]
-    if key.is_current:
-        return found
-    if key.retired_at is None:
-        return None
-    if not robot.public_key and key.retired_at > timezone.now() - KEY_ROTATION_GRACE:
-        return found
-    skew = timedelta(seconds=settings.KEY_ROTATION_CLOCK_SKEW)
-    return found if captured_at <= key.retired_at + skew else None
+class _UploadKeys:
+    """The owner's keys an upload may be sealed under, each unwrapped once per upload: the
+    current key, one retired after the envelope's capture (give or take
+    settings.KEY_ROTATION_CLOCK_SKEW), or, for a robot not paired, one retired within
+    KEY_ROTATION_GRACE (a paired robot fetches the new key and re-seals)."""
+
+    def __init__(self, keys: Sequence[OwnerKey], robot: Robot) -> None:
+        self._keys = {key.key_id: key for key in keys}
+        self._unwrapped: dict[str, bytes] = {}
+        self._grace_start = None if robot.public_key else timezone.now() - KEY_ROTATION_GRACE
+        self._skew = timedelta(seconds=settings.KEY_ROTATION_CLOCK_SKEW)
+
+    def get(self, key_id: str, captured_at: datetime) -> tuple[OwnerKey, bytes] | None:
+        """The key `key_id` and its bytes, or None if an envelope captured at `captured_at` may
+        not be sealed under it."""
+        key = self._keys.get(key_id)
+        if key is None or not self._usable(key, captured_at):
+            return None
+        if key_id not in self._unwrapped:
+            self._unwrapped[key_id] = owner_key_bytes(key)
+        return key, self._unwrapped[key_id]
+
+    def _usable(self, key: OwnerKey, captured_at: datetime) -> bool:
+        if key.is_current:
+            return True
+        if key.retired_at is None:
+            return False
+        if self._grace_start is not None and key.retired_at > self._grace_start:
+            return True
+        return captured_at <= key.retired_at + self._skew
 
 
-def _check_upload(
-    robot: Robot, data: bytes, keys: dict[str, tuple[OwnerKey, bytes] | None]
-) -> _CheckedUpload:
+def _check_upload(robot: Robot, data: bytes, keys: _UploadKeys) -> _CheckedUpload:
     if len(data) > settings.ENVELOPE_MAX_BYTES:
         raise EnvelopeTooLarge(
             f"envelope of {len(data)} bytes is above the limit of {settings.ENVELOPE_MAX_BYTES}"
@@ -227,7 +231,7 @@ def _check_upload(
         if "\x00" in header[field]:
             raise InvalidEnvelope(f"{field} contains a NUL character")
     captured_at = datetime.fromisoformat(header["time"].replace("Z", "+00:00"))
-    usable = _upload_key(robot, info.key_id.hex(), keys, captured_at)
+    usable = keys.get(info.key_id.hex(), captured_at)
     if usable is None:
         raise UnknownKey("the envelope is not sealed under the owner's current key")
     key, key_bytes = usable

@@ -301,14 +301,34 @@ def test_only_paired_robots_fetch_the_key(make_robot):
     assert APIClient().get(ROBOT_KEY).status_code == 401
 
 
-def test_upload_answers_name_the_current_key_even_when_they_refuse(
-    robot, robot_api, upload, django_capture_on_commit_callbacks
+def test_answers_to_a_paired_robots_uploads_name_the_current_key_even_refusals(
+    owner, django_capture_on_commit_callbacks, make_robot
 ):
+    _robot_side, token, robot = _paired(owner)
     with django_capture_on_commit_callbacks(execute=True):
-        new_key = key_rotate(owner=robot.owner, sm4_key=sm4.generate_key())
-    stranger = upload(robot_api, envelope.seal(sm4.generate_key(), _header(robot, 1), b"{}"))
+        new_key = key_rotate(owner=owner, sm4_key=sm4.generate_key())
+    header = {
+        "owner": owner.username,
+        "robot": str(robot.pk),
+        "topic": "/chatter",
+        "type": "std_msgs/String",
+        "seq": 1,
+        "time": _iso(datetime.now(UTC)),
+    }
+    stranger = token_client(token).post(
+        RECORDS,
+        {"envelope": b64(envelope.seal(sm4.generate_key(), header, b"{}"))},
+        format="json",
+    )
     assert (stranger.status_code, stranger.json()["error"]) == (403, "unknown_key")
     assert stranger["AuthROS-Key-Id"] == new_key.key_id
+    # A robot set up by hand cannot fetch a key: its answers do not name one.
+    by_hand = make_robot()
+    answer = token_client(by_hand.token).post(
+        RECORDS, {"envelope": b64(by_hand.seal(1))}, format="json"
+    )
+    assert answer.status_code == 201
+    assert "AuthROS-Key-Id" not in answer
 
 
 def _header(robot, seq: int, time: datetime | None = None) -> dict:

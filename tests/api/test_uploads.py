@@ -4,6 +4,8 @@ import json
 from datetime import timedelta
 
 import pytest
+from django.db import connection
+from django.test.utils import CaptureQueriesContext
 from django.utils import timezone
 
 from accounts.services import key_rotate, robot_create, robot_token_revoke
@@ -391,3 +393,16 @@ def test_anonymous_requests_are_rate_limited_per_address(client, settings):
     spoofed = client.get("/api/v1/sm2-public-key/", HTTP_X_FORWARDED_FOR="10.1.2.3")
     assert spoofed.status_code == 429
     assert spoofed.json()["error"] == "rate_limited"
+
+
+def test_a_warm_upload_reads_the_owners_keys_once_and_the_deployment_not_at_all(
+    robot, robot_api, upload
+):
+    """The identity check and the unsealing share one read of the owner's keys; the chain
+    client keeps the deployment's address (re-read every DEPLOYMENT_RECHECK_SECONDS)."""
+    assert upload(robot_api, robot.seal(1)).status_code == 201
+    with CaptureQueriesContext(connection) as queries:
+        assert upload(robot_api, robot.seal(2)).status_code == 201
+    tables = [q["sql"] for q in queries]
+    assert len([sql for sql in tables if '"accounts_ownerkey"' in sql]) == 1, tables
+    assert not [sql for sql in tables if '"chainworker_deployment"' in sql], tables

@@ -9,10 +9,13 @@ from pathlib import Path
 
 import pytest
 from django.core.management import CommandError, call_command
+from django.db import connection
+from django.test.utils import CaptureQueriesContext
 from eth_account import Account
 
+from chainworker import services as chain_services
 from chainworker.models import Deployment
-from chainworker.services import chain_client
+from chainworker.services import chain_client, operator_account
 from stack.anvil import free_port, start_anvil
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
@@ -50,6 +53,35 @@ def test_deploy_again_when_the_recorded_contract_is_gone():
     assert redeployed["created"] is True
     assert "no code at recorded address" in redeployed["reason"]
     assert Deployment.objects.filter(is_active=True).count() == 1
+
+
+def test_the_active_deployment_is_read_once_per_recheck_interval(monkeypatch):
+    """chain_client() does not ask the database for the deployment on every call; a contract
+    another process deployed is followed once DEPLOYMENT_RECHECK_SECONDS have passed."""
+    first = _deploy()
+    chain_services._clients.clear()  # a fresh process
+    with CaptureQueriesContext(connection) as queries:
+        for _ in range(5):
+            assert chain_client().address == first["address"]
+    assert len([q for q in queries if "chainworker_deployment" in q["sql"]]) == 1
+
+    # Another process deploys: the row changes under this one.
+    client = chain_client()
+    client.deploy(operator_account())
+    other = client.address
+    client.use_contract(first["address"])  # what this process still uses
+    Deployment.objects.filter(is_active=True).update(is_active=False)
+    Deployment.objects.create(
+        chain_id=chain_client().chain_id,
+        genesis_hash=chain_client().genesis_hash,
+        address=other,
+        tx_hash="0x" + "00" * 32,
+        block_number=1,
+        deployer=operator_account().address,
+    )
+    assert chain_client().address == first["address"]  # within the interval: as read
+    monkeypatch.setattr(chain_services, "DEPLOYMENT_RECHECK_SECONDS", 0)
+    assert chain_client().address == other
 
 
 def test_status_shows_node_contract_admin_and_operator(operator):

@@ -145,3 +145,32 @@ def test_a_grant_waits_for_both_owners_to_be_registered(make_owner, deployed):
     with pytest.raises(ChainWorkNotReady, match="not registered on chain yet"):
         grant_sync_on_chain(grant_id=grant.pk)
     assert Grant.objects.get(pk=grant.pk).status == Grant.Status.PENDING
+
+
+def test_uploads_while_a_run_works_queue_no_second_run(
+    make_robot, monkeypatch, scheduled, django_capture_on_commit_callbacks
+):
+    """The "a run is queued" flag stays set while the run works: uploads meanwhile queue
+    nothing (their records go in this run, or the one it queues), and it is dropped after."""
+    setup = make_robot()
+
+    def upload(seq: int) -> None:
+        with django_capture_on_commit_callbacks(execute=True):
+            record_create(robot=setup.robot, data=setup.seal(seq))
+
+    upload(1)
+    assert len(scheduled) == 1
+    monkeypatch.setattr(anchoring, "_wait_for_batch_to_fill", lambda owner_id: upload(2))
+    assert records_anchor(owner_id=setup.owner.pk) == 2
+    assert len(scheduled) == 1  # the upload during the run queued nothing
+    upload(3)
+    assert len(scheduled) == 2  # the flag was dropped when the run ended
+
+    def refused(owner_id: int) -> None:
+        raise ChainWorkNotReady("the chain was reset")
+
+    monkeypatch.setattr(anchoring, "_wait_for_batch_to_fill", refused)
+    with pytest.raises(ChainWorkNotReady):
+        records_anchor(owner_id=setup.owner.pk)
+    upload(4)
+    assert len(scheduled) == 3  # a run that failed drops the flag too
