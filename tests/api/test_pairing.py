@@ -402,6 +402,9 @@ def test_the_owner_pairs_a_robot_on_the_robots_page(owner, client):
     robots_page = client.get("/robots/").content.decode()
     assert "Unpair" in robots_page
     assert "fetches rotated keys" in robots_page
+    # A paired robot wrote its own config: no hand-made one (with a key file) is offered.
+    paired = Robot.objects.get(owner=owner)
+    assert f"/robots/{paired.pk}/agent.yaml" not in robots_page
 
 
 def test_a_paired_robot_gets_no_grace_hour_its_agent_reseals(
