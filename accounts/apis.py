@@ -3,6 +3,7 @@ pairing (a robot's SM2 key pair, its owner's approval, the owner's key sent to i
 
 import uuid
 
+from django.core.validators import ProhibitNullCharactersValidator, RegexValidator
 from drf_spectacular.types import OpenApiTypes
 from drf_spectacular.utils import OpenApiParameter, extend_schema
 from rest_framework import exceptions, serializers, status
@@ -59,10 +60,22 @@ class Sm2PublicKeyApi(APIView):
 
 
 class _Text(serializers.CharField):
-    """A string and only a string (DRF's CharField takes 5 for "5"), without NUL characters."""
+    """A string and only a string (DRF's CharField takes 5 for "5"), without NUL characters,
+    which the schema says too (as sharing.apis.TextField, which this layer cannot import)."""
+
+    def __init__(self, **kwargs: object) -> None:
+        super().__init__(**kwargs)
+        self.validators = [
+            validator
+            for validator in self.validators
+            if not isinstance(validator, ProhibitNullCharactersValidator)
+        ]
+        self.validators.append(
+            RegexValidator(r"^[^\x00]*$", message="NUL characters are not allowed")
+        )
 
     def to_internal_value(self, data: object) -> str:
-        if not isinstance(data, str) or "\x00" in data:
+        if not isinstance(data, str):
             self.fail("invalid")
         return super().to_internal_value(data)
 
