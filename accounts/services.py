@@ -992,11 +992,9 @@ def robot_pairing_collect(*, pairing_id: uuid.UUID, secret: str) -> PairingAnswe
     if not secrets.compare_digest(found.secret_hash, robot_token_hash(secret)):
         _pairing_secret_mismatch(found)
     with transaction.atomic():
-        pairing = (
-            RobotPairing.objects.select_for_update()
-            .select_related("robot", "owner__user")
-            .get(pk=found.pk)
-        )
+        # The row alone, its robot and owner read after the lock: joined in the locked query,
+        # PostgreSQL would show them as they were before an approval it waited for.
+        pairing = RobotPairing.objects.select_for_update().get(pk=found.pk)
         state = pairing.state
         if state == RobotPairing.State.PENDING:
             if pairing.is_expired:
@@ -1009,10 +1007,11 @@ def robot_pairing_collect(*, pairing_id: uuid.UUID, secret: str) -> PairingAnswe
                 "this robot's token and key were collected already; if that was not this "
                 "robot, unpair it in the portal and pair again"
             )
-        robot = pairing.robot
+        robot = Robot.objects.select_related("owner__user").filter(pk=pairing.robot_id).first()
         if robot is None or not robot.is_active:
             raise PairingRefused("the owner unpaired this robot before it collected its key")
-        key = owner_key_current(pairing.owner)
+        pairing.robot, pairing.owner = robot, robot.owner
+        key = owner_key_current(robot.owner)
         answer = PairingAnswer(
             pairing,
             token_sm2=pairing.token_sm2,

@@ -48,15 +48,18 @@ def test_the_demo_robot_is_paired_by_sm2_and_approved_without_a_browser(
     printed, result = Lines(), {}
 
     def run_pair() -> None:
-        result["config"] = pair(
-            portal_url=live_server.url,
-            name="demo-robot",
-            folder=tmp_path / "demo" / "robot",
-            timeout=60,
-            out=printed,
-            machine=True,
-            sleep=lambda _seconds: threading.Event().wait(0.2),
-        )
+        try:
+            result["config"] = pair(
+                portal_url=live_server.url,
+                name="demo-robot",
+                folder=tmp_path / "demo" / "robot",
+                timeout=60,
+                out=printed,
+                machine=True,
+                sleep=lambda _seconds: threading.Event().wait(0.2),
+            )
+        except Exception as exc:
+            result["error"] = repr(exc)
 
     robot_side = threading.Thread(target=run_pair)
     robot_side.start()
@@ -70,6 +73,7 @@ def test_the_demo_robot_is_paired_by_sm2_and_approved_without_a_browser(
     assert approved["fingerprint"] == printed.events()[0]["fingerprint"]
     robot_side.join(60)
     assert not robot_side.is_alive()
+    assert "error" not in result, result
     with pytest.raises(CommandError, match="pairing_already_answered"):
         call_command("robot_pair_approve", "--owner", "demo", "--code", code)
 
