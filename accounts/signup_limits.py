@@ -65,9 +65,11 @@ class SignupSlot:
 
 def signup_slot_take(*, address: str | None) -> SignupSlot:
     """Count a registration from `address` if both limits allow it."""
+    # One hash tag for both windows: the script touches the two, so in a Redis Cluster they
+    # must share a slot.
     windows = [
-        (redis_key("signup", "address", address or "unknown"), settings.SIGNUP_RATE_PER_ADDRESS),
-        (redis_key("signup", "total"), settings.SIGNUP_RATE_TOTAL),
+        (redis_key("{signup}", "address", address or "unknown"), settings.SIGNUP_RATE_PER_ADDRESS),
+        (redis_key("{signup}", "total"), settings.SIGNUP_RATE_TOTAL),
     ]
     keys = tuple(key for key, _ in windows)
     now = time.time()

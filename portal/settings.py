@@ -13,6 +13,7 @@ from django.core.exceptions import ImproperlyConfigured
 from kombu import Queue
 
 from core.secrets import load_or_create_secret
+from core.storage_url import envelope_storage_config
 
 BASE_DIR = Path(__file__).resolve().parent.parent
 
@@ -393,10 +394,11 @@ VERIFY_TIMEOUT = env.float("VERIFY_TIMEOUT", default=30.0)
 STORAGES = {
     "default": {"BACKEND": "django.core.files.storage.FileSystemStorage"},
     "staticfiles": {"BACKEND": "django.contrib.staticfiles.storage.StaticFilesStorage"},
-    "envelopes": {
-        "BACKEND": env.str(
-            "ENVELOPE_STORAGE_BACKEND", default="sharing.storage.DurableFileSystemStorage"
-        ),
-        "OPTIONS": {"location": str(MEDIA_ROOT / "envelopes")},
-    },
+    # The durable copy of every envelope: the local disk, or an S3 bucket (core/storage_url.py).
+    "envelopes": envelope_storage_config(
+        env.str("ENVELOPE_STORAGE_URL", default=""),
+        media_root=MEDIA_ROOT,
+        endpoint_url=env.str("ENVELOPE_S3_ENDPOINT_URL", default=""),
+        region=env.str("ENVELOPE_S3_REGION", default=""),
+    ),
 }

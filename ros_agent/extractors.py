@@ -13,8 +13,12 @@ from datetime import UTC, datetime, timedelta
 from typing import Any
 
 import cv2
-import genpy
 import numpy as np
+
+try:
+    import genpy
+except ImportError:  # a ROS 2 robot has no ROS 1; its messages come through ros_agent.ros2msg
+    genpy = None
 
 JsonDict = dict[str, Any]
 _EPOCH = datetime(1970, 1, 1, tzinfo=UTC)
@@ -145,7 +149,13 @@ def encode_png(pixels: np.ndarray, encoding: str) -> bytes:
 
 
 def message_to_dict(msg: Any) -> JsonDict:
-    """Any genpy message, field by field (`__slots__` and `_slot_types`), recursively."""
+    """Any genpy message, field by field (`__slots__` and `_slot_types`), recursively.
+
+    A message that walks itself (a ROS 2 one through ros_agent.ros2msg) gives `as_record()`.
+    """
+    as_record = getattr(msg, "as_record", None)
+    if as_record is not None:
+        return as_record()
     return {
         name: _field(getattr(msg, name), slot_type)
         for name, slot_type in zip(msg.__slots__, msg._slot_types, strict=True)
@@ -169,6 +179,8 @@ def iso_utc(moment: datetime) -> str:
 
 
 def _field(value: Any, slot_type: str) -> Any:
+    if genpy is None:
+        raise ExtractionError("genpy (ROS 1) is not installed")
     if isinstance(value, genpy.Message):
         return message_to_dict(value)
     if isinstance(value, genpy.Time):

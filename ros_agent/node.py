@@ -12,13 +12,11 @@ can within `shutdown_flush` seconds, and leaves the rest in the spool for the ne
 """
 
 import argparse
-import ipaddress
 import sys
 from collections.abc import Sequence
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
-from urllib.parse import urlsplit
 
 import roslib.message
 import rospy
@@ -26,8 +24,7 @@ import rospy
 from ros_agent import LOGGER_NAME
 from ros_agent.config import AgentConfig, ConfigError, config_from_ros_params, load_config
 from ros_agent.counters import AgentCounters
-from ros_agent.keyring import Keyring
-from ros_agent.pairing import KeyUpdater
+from ros_agent.pipeline import CLEAR_TEXT_WARNING, key_parts, token_in_clear
 from ros_agent.spool import Spool, SpoolError
 from ros_agent.uploader import PortalClient, Uploader
 from ros_agent.wrapping import Recorder
@@ -49,7 +46,6 @@ class Agent:
         self.config = config
         self.counters = AgentCounters()
         self.spool = Spool(config.spool_dir, max_bytes=config.spool_max_bytes)
-        self.keyring = config.keyring or Keyring.of_one(config.key)
         client = PortalClient(
             records_url=config.records_url,
             robot_key_url=config.robot_key_url,
@@ -57,11 +53,7 @@ class Agent:
             tls_verify=config.tls_verify,
             timeout=config.request_timeout,
         )
-        key_updater = None
-        if config.paired:
-            key_updater = KeyUpdater(
-                client=client, keyring=self.keyring, sm2_private_key=config.sm2_private_key
-            )
+        self.keyring, key_updater = key_parts(config, client)
         self.uploader = Uploader(
             spool=self.spool,
             client=client,
@@ -196,18 +188,6 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 def _warn_if_token_in_clear(portal_url: str) -> None:
-    parts = urlsplit(portal_url)
-    if parts.scheme != "http":
-        return
-    host = parts.hostname or ""
-    try:
-        loopback = host == "localhost" or ipaddress.ip_address(host).is_loopback
-    except ValueError:
-        loopback = False
-    if not loopback:
-        rospy.logwarn(
-            "portal_url is plain http to %s: envelopes are sealed, but the robot token "
-            "travels in clear; use https",
-            host,
-            logger_name=LOGGER,
-        )
+    host = token_in_clear(portal_url)
+    if host is not None:
+        rospy.logwarn(CLEAR_TEXT_WARNING, host, logger_name=LOGGER)

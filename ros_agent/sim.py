@@ -12,17 +12,22 @@
   the paper's 58 KB images.
 """
 
+from __future__ import annotations
+
 import argparse
 import math
 import sys
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import cv2
-import genpy
 import numpy as np
-from nav_msgs.msg import Odometry
-from sensor_msgs.msg import Image
+
+if TYPE_CHECKING:  # ROS 1 only where it publishes: the ROS 2 simulator (sim2) uses the rest
+    import genpy
+    from nav_msgs.msg import Odometry
+    from sensor_msgs.msg import Image
 
 ODOM_TOPIC = "/robot/odom"
 IMAGE_TOPIC = "/robot/complicatedImage"
@@ -107,6 +112,8 @@ def draw_scene(frame: int) -> np.ndarray:
 
 
 def odometry_message(pose: Pose2D, stamp: genpy.Time) -> Odometry:
+    from nav_msgs.msg import Odometry
+
     msg = Odometry()
     msg.header.stamp = stamp
     msg.header.frame_id = "odom"
@@ -123,6 +130,8 @@ def odometry_message(pose: Pose2D, stamp: genpy.Time) -> Odometry:
 
 
 def image_message(pixels: np.ndarray, stamp: genpy.Time) -> Image:
+    from sensor_msgs.msg import Image
+
     msg = Image()
     msg.header.stamp = stamp
     msg.header.frame_id = "camera"
@@ -137,6 +146,8 @@ def image_message(pixels: np.ndarray, stamp: genpy.Time) -> Image:
 def run(*, duration: float, odom_rate: float, image_rate: float) -> None:
     """Publish until rospy shuts down or `duration` seconds (0: forever) have passed."""
     import rospy  # here, not at the top: importing rospy registers an atexit hook that logs
+    from nav_msgs.msg import Odometry
+    from sensor_msgs.msg import Image
 
     odom_pub = rospy.Publisher(ODOM_TOPIC, Odometry, queue_size=10)
     image_pub = rospy.Publisher(IMAGE_TOPIC, Image, queue_size=2)

@@ -5,11 +5,14 @@ Bounded two ways: each entry lives ENVELOPE_CACHE_TTL seconds, and all entries t
 at most ENVELOPE_CACHE_MAX_BYTES; past that the oldest entries are evicted first. The bound is
 kept by the cache itself (a Lua script, atomic across every web and worker process), not by
 Redis's maxmemory, because the same Redis holds the Celery queues, nonces and locks, which
-must never be evicted. Beside each entry `<prefix>:envelope:<id>`:
+must never be evicted. Beside each entry `<prefix>:{envelope}:<id>`:
 
-    <prefix>:envelope-index   sorted set: record id -> time it was cached (ms)
-    <prefix>:envelope-sizes   hash: record id -> bytes
-    <prefix>:envelope-bytes   the total of those sizes
+    <prefix>:{envelope}-index   sorted set: record id -> time it was cached (ms)
+    <prefix>:{envelope}-sizes   hash: record id -> bytes
+    <prefix>:{envelope}-bytes   the total of those sizes
+
+All in one hash slot (the {envelope} tag), and every script names the keys it touches, so
+the cache runs on a Redis Cluster as on one Redis.
 """
 
 import logging
@@ -30,15 +33,22 @@ from sharing.storage import envelope_storage
 logger = logging.getLogger(__name__)
 
 
+# Every key of the cache carries the hash tag {envelope}: in a Redis Cluster they share one
+# slot, so a script may touch several of them; and every script names the keys it touches.
+_TAG = "{envelope}"
+
+
 def _key(record_id: uuid.UUID | str) -> str:
-    return redis_key("envelope", record_id)
+    return redis_key(_TAG, record_id)
 
 
-# KEYS: index, sizes, total. ARGV: entry key prefix, now (ms), ttl (s), max bytes, then
-# for a put: id, data; for an evict: id only.
-_FORGET = """
-local function forget(id)
-  redis.call('DEL', ARGV[1] .. id)
+# KEYS: index, sizes, total, then the entry key of each record put or evicted. ARGV: now
+# (ms), ttl (s), max bytes, then each record's id (and for a put its data). `drop` takes an id
+# out of the bookkeeping. The entry keys of others dropped (expired, or evicted past the
+# total) are not named, so the script leaves them: an expired one is gone by its own TTL, and
+# a put returns the ids it evicted, whose keys the caller deletes.
+_DROP = """
+local function drop(id)
   local size = tonumber(redis.call('HGET', KEYS[2], id) or '0')
   redis.call('HDEL', KEYS[2], id)
   redis.call('ZREM', KEYS[1], id)
@@ -46,38 +56,45 @@ local function forget(id)
 end
 """
 _PUT = (
-    _FORGET
+    _DROP
     + """
-local now, ttl, max = tonumber(ARGV[2]), tonumber(ARGV[3]), tonumber(ARGV[4])
-local id, data = ARGV[5], ARGV[6]
+local now, ttl, max = tonumber(ARGV[1]), tonumber(ARGV[2]), tonumber(ARGV[3])
 local expired = redis.call('ZRANGEBYSCORE', KEYS[1], '-inf', now - ttl * 1000, 'LIMIT', 0, 1000)
 for _, old in ipairs(expired) do
-  forget(old)
+  drop(old)
 end
-forget(id)
-redis.call('SET', ARGV[1] .. id, data, 'EX', ttl)
-redis.call('ZADD', KEYS[1], now, id)
-redis.call('HSET', KEYS[2], id, #data)
-local total = redis.call('INCRBY', KEYS[3], #data)
-local evicted = 0
+local fresh = {}
+for i = 4, #KEYS do
+  local id, data = ARGV[2 * i - 4], ARGV[2 * i - 3]
+  drop(id)
+  redis.call('SET', KEYS[i], data, 'EX', ttl)
+  redis.call('ZADD', KEYS[1], now, id)
+  redis.call('HSET', KEYS[2], id, #data)
+  redis.call('INCRBY', KEYS[3], #data)
+  fresh[id] = true
+end
+local total = tonumber(redis.call('GET', KEYS[3]) or '0')
+local evicted = {}
 while total > max do
   local oldest = redis.call('ZRANGE', KEYS[1], 0, 0)[1]
-  if oldest == nil or oldest == id then break end
-  forget(oldest)
-  evicted = evicted + 1
+  if oldest == nil or fresh[oldest] then break end
+  drop(oldest)
+  evicted[#evicted + 1] = oldest
   total = tonumber(redis.call('GET', KEYS[3]) or '0')
 end
 return evicted
 """
 )
-_EVICT = _FORGET + "forget(ARGV[5])\nreturn 0\n"
+_EVICT = _DROP + "drop(ARGV[4])\nredis.call('DEL', KEYS[4])\nreturn 0\n"
 
 
-def _bookkeeping() -> list[str]:
+def _keys(*record_ids: uuid.UUID | str) -> list[str]:
+    """What a script for `record_ids` touches: the bookkeeping, then their entries."""
     return [
-        redis_key("envelope-index"),
-        redis_key("envelope-sizes"),
-        redis_key("envelope-bytes"),
+        redis_key(f"{_TAG}-index"),
+        redis_key(f"{_TAG}-sizes"),
+        redis_key(f"{_TAG}-bytes"),
+        *map(_key, record_ids),
     ]
 
 
@@ -87,19 +104,8 @@ def _script(client: redis.Redis, source: str) -> Script:
     return client.register_script(source)
 
 
-def _run(script: str, *args: object, now_ms: int | None = None) -> int:
-    now = int(time.time() * 1000) if now_ms is None else now_ms
-    return _script(get_redis(), script)(keys=_bookkeeping(), args=[*_fixed_args(now), *args])
-
-
-def _fixed_args(now_ms: int) -> list[object]:
-    """The arguments every script call starts with: entry key prefix, now, ttl, max bytes."""
-    return [
-        redis_key("envelope", ""),
-        now_ms,
-        settings.ENVELOPE_CACHE_TTL,
-        settings.ENVELOPE_CACHE_MAX_BYTES,
-    ]
+def _args(now_ms: int, *more: object) -> list[object]:
+    return [now_ms, settings.ENVELOPE_CACHE_TTL, settings.ENVELOPE_CACHE_MAX_BYTES, *more]
 
 
 def envelope_cache_put(
@@ -111,7 +117,8 @@ def envelope_cache_put(
 def envelope_cache_put_many(
     items: Sequence[tuple[uuid.UUID | str, bytes]], *, now_ms: int | None = None
 ) -> None:
-    """Cache each (record id, data), in one round trip to Redis; one too big is not cached."""
+    """Cache each (record id, data), in one round trip to Redis (one script for them all);
+    one too big is not cached."""
     limit = min(settings.ENVELOPE_CACHE_MAX_ITEM_BYTES, settings.ENVELOPE_CACHE_MAX_BYTES)
     items = [(record_id, data) for record_id, data in items if len(data) <= limit]
     if not items:
@@ -119,23 +126,24 @@ def envelope_cache_put_many(
     now = int(time.time() * 1000) if now_ms is None else now_ms
     try:
         client = get_redis()
-        script = _script(client, _PUT)
-        with client.pipeline(transaction=False) as pipe:
-            for record_id, data in items:
-                args = [*_fixed_args(now), str(record_id), data]
-                script(keys=_bookkeeping(), args=args, client=pipe)
-            evicted = sum(int(n or 0) for n in pipe.execute())
+        ids = [str(record_id) for record_id, _ in items]
+        args = _args(now, *(part for record_id, data in items for part in (str(record_id), data)))
+        evicted = [old.decode() for old in _script(client, _PUT)(keys=_keys(*ids), args=args)]
+        if evicted:
+            # Out of the bookkeeping already; their entries go now (a second round trip only
+            # when the cache is full).
+            client.delete(*(_key(old) for old in evicted))
     except RedisError as exc:
         logger.warning("envelope cache unavailable (put %d envelopes): %s", len(items), exc)
         return
     if evicted:
-        logger.debug("envelope cache full: evicted the %d oldest entries", evicted)
+        logger.debug("envelope cache full: evicted the %d oldest entries", len(evicted))
 
 
 def envelope_cache_bytes() -> int:
     """What the cached envelopes hold together, by the cache's own count."""
     try:
-        return int(get_redis().get(redis_key("envelope-bytes")) or 0)
+        return int(get_redis().get(redis_key(f"{_TAG}-bytes")) or 0)
     except RedisError:
         return 0
 
@@ -150,7 +158,8 @@ def envelope_cache_get(record_id: uuid.UUID | str) -> bytes | None:
 
 def envelope_cache_evict(record_id: uuid.UUID | str) -> None:
     try:
-        _run(_EVICT, str(record_id))
+        now = int(time.time() * 1000)
+        _script(get_redis(), _EVICT)(keys=_keys(record_id), args=_args(now, str(record_id)))
     except RedisError as exc:
         logger.warning("envelope cache unavailable (evict %s): %s", record_id, exc)
 

@@ -118,3 +118,12 @@ class VerificationUnavailable(SharingError):
     code = "verification_unavailable"
     http_status = 503
     retry_after = 5
+
+
+class StorageUnavailable(SharingError):
+    """The envelope storage did not take an upload's files (a disk, or an S3 server that is
+    down or answered other bytes than were sent): nothing is stored, the robot sends again."""
+
+    code = "storage_unavailable"
+    http_status = 503
+    retry_after = 5

@@ -1,16 +1,29 @@
 """Durable storage for envelopes: the copy that counts (Redis only caches it)."""
 
+import base64
 import ctypes
+import hashlib
+import logging
 import os
 import sys
 from collections.abc import Sequence
+from concurrent.futures import ThreadPoolExecutor, wait
 from contextlib import suppress
 from pathlib import Path
+from typing import Any
 
+from botocore.exceptions import BotoCoreError, ClientError
 from django.core.files.base import ContentFile
 from django.core.files.storage import FileSystemStorage, Storage, storages
+from storages.backends.s3 import S3Storage
+from storages.utils import clean_name
 
 from core.files import fsync_path
+from sharing.errors import StorageUnavailable
+
+logger = logging.getLogger(__name__)
+# PUTs of one upload in flight together to an S3 server.
+S3_PARALLEL_PUTS = 8
 
 
 class DurableFileSystemStorage(FileSystemStorage):
@@ -50,11 +63,67 @@ class DurableFileSystemStorage(FileSystemStorage):
         return [name for name, _ in files]
 
 
+class DurableS3Storage(S3Storage):
+    """An S3 bucket (ENVELOPE_STORAGE_URL=s3://...), shared by every host. A write counts once
+    the server confirmed the very bytes: the PUT carries their Content-MD5, which the server
+    checks (a mismatch is refused), and the ETag it answers must be that MD5."""
+
+    def _save(self, name: str, content) -> str:
+        if hasattr(content, "seek"):
+            content.seek(0)
+        return self.save_durably([(name, content.read())])[0]
+
+    def save_durably(self, files: Sequence[tuple[str, bytes]]) -> list[str]:
+        """PUT the files side by side (S3_PARALLEL_PUTS at a time), each confirmed; all or
+        none: the ones written are deleted again when another fails."""
+        client = self.connection.meta.client  # boto3 clients are thread-safe; resources not
+        names = [clean_name(name) for name, _ in files]
+        with ThreadPoolExecutor(max_workers=max(1, min(S3_PARALLEL_PUTS, len(files)))) as pool:
+            futures = [
+                pool.submit(self._put, client, name, data)
+                for name, (_, data) in zip(names, files, strict=True)
+            ]
+            wait(futures)
+        failed = [future.exception() for future in futures if future.exception() is not None]
+        if failed:
+            # Every one, not only those confirmed: a PUT that failed may have been stored.
+            for name in names:
+                with suppress(Exception):
+                    client.delete_object(Bucket=self.bucket_name, Key=self._key(name))
+            raise failed[0]
+        return names
+
+    def _key(self, name: str) -> str:
+        return self._normalize_name(clean_name(name))
+
+    def _put(self, client: Any, name: str, data: bytes) -> None:
+        md5 = hashlib.md5(data, usedforsecurity=False)
+        answer = client.put_object(
+            Bucket=self.bucket_name,
+            Key=self._key(name),
+            Body=data,
+            ContentMD5=base64.b64encode(md5.digest()).decode(),
+            ContentType="application/octet-stream",
+        )
+        if answer.get("ETag", "").strip('"') != md5.hexdigest():
+            raise OSError(f"the S3 server confirmed other bytes for {name} than were sent")
+
+
 def envelopes_save(storage: Storage, files: Sequence[tuple[str, bytes]]) -> list[str]:
     """Save each (name, data), durable when this returns; the names they were saved as. A
-    failure leaves none of them behind."""
-    if isinstance(storage, DurableFileSystemStorage):
-        return storage.save_durably(files)
+    failure leaves none of them behind, and is StorageUnavailable."""
+    try:
+        if isinstance(storage, DurableFileSystemStorage | DurableS3Storage):
+            return storage.save_durably(files)
+        return _save_each(storage, files)
+    except (OSError, BotoCoreError, ClientError) as exc:
+        logger.error("envelope storage refused %d files: %s", len(files), exc)
+        raise StorageUnavailable(
+            "the portal could not store the envelopes durably; nothing was stored, send them again"
+        ) from exc
+
+
+def _save_each(storage: Storage, files: Sequence[tuple[str, bytes]]) -> list[str]:
     saved: list[str] = []
     try:
         for name, data in files:

@@ -137,7 +137,13 @@ def _digest_check(
 ) -> tuple[dict[str, object], bytes | None]:
     """The stored envelope's SM3 digest against the chain's: the verdict's fields, and the
     bytes checked when they match."""
-    data, source = envelope_fetch(record)
+    try:
+        data, source = envelope_fetch(record)
+    except FileNotFoundError:
+        # The durable copy is gone, removed behind the portal's back: nothing is left that
+        # hashes to the digest the chain holds.
+        _record_tampered(record, viewer, source="storage", computed="missing", chain="")
+        return {"outcome": Verdict.Outcome.TAMPERED, "source": "storage"}, None
     computed = sm3.sm3_hex(data)
     if record.anchor_root_id is not None:
         return _proof_check(record, viewer, client, data=data, source=source, computed=computed)

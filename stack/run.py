@@ -3,7 +3,9 @@
 Redis (reused if one answers at REDIS_URL), anvil with its state file (reused if a node
 answers at CHAIN_RPC_URL), `manage.py migrate` and `chain_deploy`, a Celery worker for chain
 work, one for the verify queue alone, beat, the portal under gunicorn, and on the ROS side a
-roscore (reused if one answers), the simulated robot and an agent for a demo owner. It prints
+roscore (reused if one answers), the simulated robot and an agent for a demo owner (with
+--ros2 / STACK_ROS2=true: no roscore, the simulated ROS 2 robot and the agent in ROS 2 mode,
+over Cyclone DDS on loopback, <workdir>/cyclonedds.xml, domain ROS_DOMAIN_ID). It prints
 where to click, then waits; SIGINT or SIGTERM stops everything it started, in order, and so
 does any of its processes exiting. Once everything answers it writes <workdir>/stack.json
 (URLs, the environment its processes got, their pids) for programs that drive it: the
@@ -99,6 +101,8 @@ class StackConfig:
     web: bool = True  # STACK_WEB: serve the portal
     ros: bool = True  # STACK_ROS: roscore, the simulated robot and the demo agent
     ros_master_uri: str = "http://127.0.0.1:11311"  # ROS_MASTER_URI
+    ros2: bool = False  # STACK_ROS2: the robot on ROS 2 (Cyclone DDS, loopback), no roscore
+    ros_domain_id: int = 0  # ROS_DOMAIN_ID: the DDS domain of the ROS 2 robot
     debug: bool = False  # DJANGO_DEBUG
 
     @classmethod
@@ -122,6 +126,8 @@ class StackConfig:
             web=_env_bool(environ, "STACK_WEB", True),
             ros=_env_bool(environ, "STACK_ROS", True),
             ros_master_uri=environ.get("ROS_MASTER_URI", "http://127.0.0.1:11311"),
+            ros2=_env_bool(environ, "STACK_ROS2", False),
+            ros_domain_id=int(environ.get("ROS_DOMAIN_ID") or "0"),
             debug=_env_bool(environ, "DJANGO_DEBUG", False),
         )
 
@@ -185,7 +191,13 @@ class Stack:
             "CHAIN_RPC_URL": config.chain_rpc_url,
             "DJANGO_DEBUG": "true" if config.debug else "false",
         }
-        if config.ros:
+        if config.ros and config.ros2:
+            env |= {
+                "CYCLONEDDS_URI": (self.workdir / "cyclonedds.xml").as_uri(),
+                "ROS_DOMAIN_ID": str(config.ros_domain_id),
+                "ROS_HOME": str(self.workdir / "ros"),
+            }
+        elif config.ros:
             env |= {
                 "ROS_MASTER_URI": config.ros_master_uri,
                 "ROS_IP": os.environ.get("ROS_IP", "127.0.0.1"),
@@ -280,6 +292,9 @@ class Stack:
         config = self.config
         (self.logs / "ros").mkdir(parents=True, exist_ok=True)
         (self.workdir / "ros").mkdir(parents=True, exist_ok=True)
+        if config.ros2:
+            self._start_ros2()
+            return
         uri = config.ros_master_uri
         if ros_master_answers(uri):
             self._say(f"reusing the ROS master at {uri}")
@@ -340,6 +355,24 @@ class Stack:
             log.close()
         if robot.returncode != 0:
             raise StackError(f"pairing the demo robot failed (see {log.name})")
+
+    def _start_ros2(self) -> None:
+        """The simulated ROS 2 robot and the agent in ROS 2 mode, over Cyclone DDS on loopback."""
+        from ros_agent.dds import write_loopback_config
+
+        write_loopback_config(self.workdir / "cyclonedds.xml")
+        demo_dir = self.workdir / "demo"
+        self.demo = json.loads(
+            self._manage("demo_setup", "--dir", str(demo_dir), "--portal-url", self.web_url)
+        )
+        self._say(
+            f"starting the simulated ROS 2 robot and the demo owner's agent "
+            f"(Cyclone DDS on loopback, domain {self.config.ros_domain_id})"
+        )
+        self._spawn("sim", [PYTHON, "-m", "ros_agent.sim2"])
+        self._spawn(
+            "agent", [PYTHON, "-m", "ros_agent", "--ros2", "--config", str(demo_dir / "agent.yaml")]
+        )
 
     def _spawn(self, name: str, argv: list[str]) -> None:
         stop_signal, stop_timeout = _STOP[name]
@@ -534,6 +567,7 @@ def main(argv: list[str]) -> int:
     for flag, default, what in (
         ("--web", defaults.web, "STACK_WEB: serve the portal"),
         ("--ros", defaults.ros, "STACK_ROS: roscore, simulated robot, demo agent"),
+        ("--ros2", defaults.ros2, "STACK_ROS2: the simulated robot on ROS 2 (Cyclone DDS)"),
     ):
         run_parser.add_argument(
             flag, action=argparse.BooleanOptionalAction, default=default, help=what
@@ -557,5 +591,6 @@ def main(argv: list[str]) -> int:
         web_threads=args.web_threads,
         web=args.web,
         ros=args.ros,
+        ros2=args.ros2,
     )
     return run(config)

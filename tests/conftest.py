@@ -226,10 +226,13 @@ _NO_DATABASE = (
     "tests/ros_agent/test_config.py",
     "tests/ros_agent/test_extractors.py",
     "tests/ros_agent/test_node.py",
+    "tests/ros_agent/test_pipeline.py",
+    "tests/ros_agent/test_ros2msg.py",
     "tests/ros_agent/test_sim.py",
     "tests/ros_agent/test_spool.py",
     "tests/ros_agent/test_uploader.py",
     "tests/ros_agent/test_wrapping.py",
+    "tests/stack/test_stack_ros2.py",
 )
 
 

@@ -90,7 +90,7 @@ def test_the_limits_are_shared_by_every_web_process(settings, redis_client):
     """Counted in Redis: what one process counted, another sees (a new client, no cache)."""
     settings.SIGNUP_RATE_PER_ADDRESS = "1/hour"
     assert _register("203.0.113.10", "fay").status_code == 302
-    keys = list(redis_client.scan_iter(f"{settings.REDIS_KEY_PREFIX}:signup:*"))
+    keys = list(redis_client.scan_iter(f"{settings.REDIS_KEY_PREFIX}:{{signup}}:*"))
     assert len(keys) == 2  # this address's window and the overall one
     assert _register("203.0.113.10", "gus").status_code == 429
 

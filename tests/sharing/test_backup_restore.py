@@ -82,7 +82,7 @@ def _manage(folder: Path, chain_url: str, *args: str) -> subprocess.CompletedPro
         "CHAIN_OPERATOR_KEY",
         "AUTHROS_SM2_PRIVATE_KEY",
         "CHAIN_CONTRACT_ADDRESS",
-        "ENVELOPE_STORAGE_BACKEND",
+        "ENVELOPE_STORAGE_URL",
     ):
         env.pop(name, None)
     return subprocess.run(

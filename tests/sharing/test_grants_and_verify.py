@@ -222,3 +222,13 @@ def test_other_digest_on_chain_fails_the_record_and_raises_an_alarm(make_robot, 
     assert SecurityEvent.objects.filter(
         kind=SecurityEvent.Kind.CHAIN_DIGEST_MISMATCH, record=record
     ).exists()
+
+
+def test_a_deleted_envelope_file_is_tampered_not_an_error(anchored, settings):
+    setup, record = anchored
+    redis = get_redis()
+    redis.delete(*redis.scan_iter(f"{settings.REDIS_KEY_PREFIX}:*"))
+    envelope_storage().delete(record.storage_name)
+    verdict = record_verify(record_id=record.id, viewer_id=setup.owner.pk).verdict
+    assert (verdict.outcome, verdict.source) == (Verdict.Outcome.TAMPERED, "storage")
+    assert SecurityEvent.objects.filter(record=record).exists()

@@ -188,8 +188,10 @@ def test_a_batch_whose_third_file_fails_leaves_no_file_behind(make_robot, monkey
         return real_write(fd, data)
 
     monkeypatch.setattr(storage_module.os, "write", fails_on_the_third)
-    with pytest.raises(OSError, match="No space"):
+    with pytest.raises(errors.StorageUnavailable) as refused:
         record_create_batch(robot=setup.robot, envelopes=[setup.seal(seq) for seq in (1, 2, 3)])
+    assert "No space" in str(refused.value.__cause__)
+    assert refused.value.http_status == 503  # the robot keeps them and sends them again
     monkeypatch.undo()
     assert len(written) == 2
     _batch_left_nothing(setup)

@@ -76,6 +76,7 @@ class WorkerStack:
         self.port = self.anvil.port
         self.redis_url = settings.REDIS_URL
         self.web_port: int | None = None
+        self._web_ports: dict[str, int] = {}  # of portals started under other names
         # A queue of its own: test runs sharing this Redis must not take each other's tasks.
         self.queue = f"authros-test-{uuid.uuid4().hex[:12]}"
         self._queue_before: str | None = None
@@ -130,34 +131,64 @@ class WorkerStack:
 
     # processes -------------------------------------------------------------------------
 
-    def start_worker(self, name: str, *, queues: list[str] | None = None) -> None:
-        """A worker with one pool process; on both of the stack's queues unless told."""
-        self.children.spawn(name, celery_worker(name, queues=queues or ()), env=self.env())
+    def host_env(self, name: str, **extra: str) -> dict[str, str]:
+        """The environment of a process on a "host" of its own: its own working folders
+        (var, secrets, media under hosts/NAME), everything else as env() and `extra`."""
+        folder = self.tmp_path / "hosts" / name
+        for part in ("var", "secrets", "media"):
+            (folder / part).mkdir(mode=0o700, parents=True, exist_ok=True)
+        return {
+            **self.env(),
+            "AUTHROS_VAR_DIR": str(folder / "var"),
+            "AUTHROS_SECRETS_DIR": str(folder / "secrets"),
+            "AUTHROS_MEDIA_ROOT": str(folder / "media"),
+            **extra,
+        }
 
-    def start_beat(self) -> None:
+    def start_worker(
+        self, name: str, *, queues: list[str] | None = None, env: dict[str, str] | None = None
+    ) -> None:
+        """A worker with one pool process; on both of the stack's queues unless told."""
+        self.children.spawn(name, celery_worker(name, queues=queues or ()), env=env or self.env())
+
+    def start_beat(self, *, env: dict[str, str] | None = None) -> None:
         self.children.spawn(
-            "beat", celery_beat(self.tmp_path / "celerybeat-schedule"), env=self.env()
+            "beat", celery_beat(self.tmp_path / "celerybeat-schedule"), env=env or self.env()
         )
 
-    def start_web(self, *, workers: int = 2, timeout: float = 60) -> str:
+    def start_web(
+        self,
+        *,
+        workers: int = 2,
+        timeout: float = 60,
+        name: str = "web",
+        env: dict[str, str] | None = None,
+    ) -> str:
         """The portal under gunicorn on 127.0.0.1 (the same port again after a stop_web);
-        returns its URL once it answers."""
-        self.web_port = self.web_port or free_port()
-        command = gunicorn(f"127.0.0.1:{self.web_port}", WebSizing(workers, WEB_THREADS))
-        self.children.spawn("web", command, env=self.env(), stop_timeout=15)
-        wait_for(self._web_answers, timeout=timeout, what="the portal (gunicorn) to answer")
-        return self.web_url
+        returns its URL once it answers. Another `name` is another portal, on its own port."""
+        if name == "web":
+            self.web_port = self.web_port or free_port()
+        port = self.web_port if name == "web" else self._web_ports.setdefault(name, free_port())
+        command = gunicorn(f"127.0.0.1:{port}", WebSizing(workers, WEB_THREADS))
+        self.children.spawn(name, command, env=env or self.env(), stop_timeout=15)
+        url = f"http://127.0.0.1:{port}"
+        wait_for(
+            lambda: self._web_answers(name, url),
+            timeout=timeout,
+            what=f"the portal {name} (gunicorn) to answer",
+        )
+        return url
 
     @property
     def web_url(self) -> str:
         return f"http://127.0.0.1:{self.web_port}"
 
-    def _web_answers(self) -> bool:
-        if not self.children["web"].running():
-            raise AssertionError(f"the portal exited:\n{self.worker_logs()[-3000:]}")
+    def _web_answers(self, name: str, url: str) -> bool:
+        if not self.children[name].running():
+            raise AssertionError(f"the portal {name} exited:\n{self.worker_logs()[-3000:]}")
         try:
             # Any JSON answer from Django will do; this path is not rate limited.
-            return requests.get(f"{self.web_url}/api/", timeout=2).status_code == 404
+            return requests.get(f"{url}/api/", timeout=2).status_code == 404
         except requests.RequestException:
             return False
 

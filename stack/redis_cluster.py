@@ -1,0 +1,117 @@
+"""A throwaway Redis Cluster of three masters on free loopback ports, from Debian's
+redis-server, for the tests that show the portal's Redis scripts are Cluster-safe:
+
+    with start_redis_cluster(folder) as cluster:
+        client = cluster.client()  # a redis.RedisCluster
+"""
+
+from __future__ import annotations
+
+import shutil
+import subprocess
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from types import TracebackType
+from typing import Self
+
+import redis
+
+from stack.anvil import HOST, free_port
+
+MASTERS = 3
+STARTUP_TIMEOUT = 30.0
+
+
+class RedisClusterError(RuntimeError):
+    """The cluster did not form; the message says where it stopped."""
+
+
+@dataclass
+class RedisCluster:
+    folder: Path
+    ports: list[int]
+    processes: list[subprocess.Popen[bytes]] = field(default_factory=list)
+
+    def client(self) -> redis.RedisCluster:
+        return redis.RedisCluster(host=HOST, port=self.ports[0])
+
+    def stop(self) -> None:
+        for process in self.processes:
+            if process.poll() is None:
+                process.terminate()
+        for process in self.processes:
+            try:
+                process.wait(timeout=10)
+            except subprocess.TimeoutExpired:
+                process.kill()
+                process.wait()
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        traceback: TracebackType | None,
+    ) -> None:
+        self.stop()
+
+
+def start_redis_cluster(folder: Path) -> RedisCluster:
+    """Three cluster-enabled redis-servers (no persistence), joined, all slots served."""
+    server = shutil.which("redis-server")
+    if server is None:
+        raise RedisClusterError("redis-server is not installed (apt-get install redis-server)")
+    cluster = RedisCluster(folder, [free_port() for _ in range(MASTERS)])
+    try:
+        for port in cluster.ports:
+            node = folder / str(port)
+            node.mkdir(parents=True, exist_ok=True)
+            cluster.processes.append(
+                subprocess.Popen(
+                    [
+                        server,
+                        "--port", str(port),
+                        "--bind", HOST,
+                        "--cluster-enabled", "yes",
+                        "--cluster-config-file", str(node / "nodes.conf"),
+                        "--dir", str(node),
+                        "--save", "",
+                        "--appendonly", "no",
+                    ],
+                    stdout=subprocess.DEVNULL,
+                    stderr=subprocess.DEVNULL,
+                )
+            )  # fmt: skip
+        for port in cluster.ports:
+            _await(lambda port=port: redis.Redis(host=HOST, port=port).ping(), f"node {port}")
+        subprocess.run(
+            [
+                "redis-cli", "--cluster", "create",
+                *(f"{HOST}:{port}" for port in cluster.ports),
+                "--cluster-replicas", "0", "--cluster-yes",
+            ],
+            check=True,
+            capture_output=True,
+            timeout=STARTUP_TIMEOUT,
+        )  # fmt: skip
+        _await(lambda: cluster.client().cluster_info()["cluster_state"] == "ok", "cluster ok")
+    except BaseException:
+        cluster.stop()
+        raise
+    return cluster
+
+
+def _await(predicate, what: str) -> None:
+    deadline = time.monotonic() + STARTUP_TIMEOUT
+    while True:
+        try:
+            if predicate():
+                return
+        except redis.RedisError:
+            pass
+        if time.monotonic() > deadline:
+            raise RedisClusterError(f"no {what} after {STARTUP_TIMEOUT:.0f}s")
+        time.sleep(0.1)
