@@ -10,13 +10,17 @@ rosbags, so the decoding is the same one that reads recorded bags.
 loopback interface only, multicast off, peer 127.0.0.1, so no DDS traffic leaves the machine.
 """
 
+import dataclasses
 import os
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 from rosbags.typesys.store import Typestore
+
+from ros_agent.ros2msg import message_fields
 
 CYCLONEDDS_URI = "CYCLONEDDS_URI"
 # Types usually published with ROS 2's sensor-data QoS (best effort): a best-effort reader
@@ -226,12 +230,6 @@ def writer_qos(*, best_effort: bool = False) -> Any:
 
 def idl_sample(struct: type, msg: Any) -> Any:
     """A rosbags message as an instance of its Cyclone DDS struct (from `idl_type`), to write."""
-    import dataclasses
-
-    import numpy as np
-
-    from ros_agent.ros2msg import message_fields
-
     hints = struct.__annotations__
     values = {}
     for name in message_fields(msg):

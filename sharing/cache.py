@@ -75,12 +75,18 @@ for i = 4, #KEYS do
 end
 local total = tonumber(redis.call('GET', KEYS[3]) or '0')
 local evicted = {}
+local skip = 0
 while total > max do
-  local oldest = redis.call('ZRANGE', KEYS[1], 0, 0)[1]
-  if oldest == nil or fresh[oldest] then break end
-  drop(oldest)
-  evicted[#evicted + 1] = oldest
-  total = tonumber(redis.call('GET', KEYS[3]) or '0')
+  -- The oldest entry, past those just put (which may share its millisecond).
+  local oldest = redis.call('ZRANGE', KEYS[1], skip, skip)[1]
+  if oldest == nil then break end
+  if fresh[oldest] then
+    skip = skip + 1
+  else
+    drop(oldest)
+    evicted[#evicted + 1] = oldest
+    total = tonumber(redis.call('GET', KEYS[3]) or '0')
+  end
 end
 return evicted
 """

@@ -65,8 +65,10 @@ def start_redis_cluster(folder: Path) -> RedisCluster:
     if server is None:
         raise RedisClusterError("redis-server is not installed (apt-get install redis-server)")
     cluster = RedisCluster(folder, [free_port() for _ in range(MASTERS)])
+    # The cluster bus listens on a port of its own too (port + 10000 unless told): a free one.
+    bus_ports = [free_port() for _ in range(MASTERS)]
     try:
-        for port in cluster.ports:
+        for port, bus_port in zip(cluster.ports, bus_ports, strict=True):
             node = folder / str(port)
             node.mkdir(parents=True, exist_ok=True)
             cluster.processes.append(
@@ -76,6 +78,7 @@ def start_redis_cluster(folder: Path) -> RedisCluster:
                         "--port", str(port),
                         "--bind", HOST,
                         "--cluster-enabled", "yes",
+                        "--cluster-port", str(bus_port),
                         "--cluster-config-file", str(node / "nodes.conf"),
                         "--dir", str(node),
                         "--save", "",

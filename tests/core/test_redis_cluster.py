@@ -2,6 +2,7 @@
 Debian): every script names the keys it touches, and the keys of one script share a slot
 (hash tags), which a cluster requires and redis-py's cluster client checks."""
 
+import time
 import uuid
 from collections.abc import Iterator
 
@@ -32,8 +33,9 @@ def test_the_envelope_cache_keeps_its_bounds_on_a_cluster(on_cluster, settings):
     settings.ENVELOPE_CACHE_MAX_BYTES = 3000
     settings.ENVELOPE_CACHE_TTL = 60
     ids = [str(uuid.uuid4()) for _ in range(5)]
+    now = int(time.time() * 1000)  # each entry a millisecond later: "oldest" is well defined
     for offset, record_id in enumerate(ids):
-        cache.envelope_cache_put(record_id, bytes([offset]) * 1000)
+        cache.envelope_cache_put(record_id, bytes([offset]) * 1000, now_ms=now + offset)
     assert [cache.envelope_cache_get(record_id) for record_id in ids] == [
         None,
         None,

@@ -78,3 +78,13 @@ def test_an_envelope_larger_than_an_item_may_be_is_not_cached(small_cache):
     envelope_cache_put(record_id, b"y" * 101)
     assert envelope_cache_get(record_id) is None
     assert envelope_cache_bytes() == 0
+
+
+def test_entries_cached_in_the_same_millisecond_are_still_evicted_oldest_first(small_cache):
+    """The newest entry may sort before older ones of its millisecond: it is passed over, not
+    a reason to stop evicting."""
+    ids = sorted(_ids(4), reverse=True)  # the last one put sorts first among equal times
+    for record_id in ids:
+        envelope_cache_put(record_id, b"s" * 1000, now_ms=NOW)
+    assert envelope_cache_bytes() == 3000
+    assert envelope_cache_get(ids[-1]) == b"s" * 1000
