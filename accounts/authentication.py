@@ -268,3 +268,13 @@ class RobotUploadRateThrottle(_SharedRateThrottle):
         if robot is None or request.method != "POST":
             return None
         return self.cache_key_for(robot.pk)
+
+
+class PairingRateThrottle(_SharedRateThrottle):
+    """Pairing requests and their polls, per client address (`API_RATE_PAIRING`): robots
+    that are not paired yet have no credentials to be counted by."""
+
+    scope = "pairing"
+
+    def get_cache_key(self, request: Request, view: "APIView") -> str | None:
+        return self.cache_key_for(self.get_ident(request))

@@ -68,3 +68,59 @@ class IdentityMismatch(AccountError):
 
     code = "identity_check_failed"
     http_status = 409
+
+
+# --- robot pairing ----------------------------------------------------------------------------
+
+
+class InvalidPairingRequest(AccountError):
+    """A pairing request with a bad name or an SM2 public key that is no point on sm2p256v1."""
+
+    code = "invalid_pairing_request"
+
+
+class PairingNotFound(AccountError):
+    """No pairing request with this code or id waits for an answer (mistyped, or expired)."""
+
+    code = "pairing_not_found"
+    http_status = 404
+
+
+class PairingExpired(AccountError):
+    code = "pairing_expired"
+    http_status = 409
+
+
+class PairingAlreadyAnswered(AccountError):
+    """The request was approved or refused already: a second answer is refused."""
+
+    code = "pairing_already_answered"
+    http_status = 409
+
+
+class PairingAlreadyCollected(AccountError):
+    """The token and key of an approved request are handed out once; this was the second ask."""
+
+    code = "pairing_already_collected"
+    http_status = 409
+
+
+class PairingRefused(AccountError):
+    """The owner refused the request (or unpaired the robot before it collected): nothing."""
+
+    code = "pairing_refused"
+    http_status = 403
+
+
+class PairingSecretMismatch(AccountError):
+    """Someone without the robot's request secret asked for its answer."""
+
+    code = "pairing_secret_mismatch"
+    http_status = 403
+
+
+class RobotNotPaired(AccountError):
+    """A robot added by hand has no SM2 key to send its owner's key to: pair it instead."""
+
+    code = "robot_not_paired"
+    http_status = 409

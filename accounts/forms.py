@@ -178,3 +178,32 @@ class ApiTokenCreateForm(PasswordConfirmedForm):
         if not name:
             raise ValidationError("Give the token a name.", code="required")
         return name
+
+
+class PairingCodeForm(forms.Form):
+    """The code a robot printed (`python -m ros_agent pair`), typed by its owner."""
+
+    code = forms.CharField(
+        max_length=20,
+        label="Pairing code",
+        help_text="The code the robot printed, e.g. 7KQ2-M9XD.",
+        widget=forms.TextInput(
+            attrs={"autocomplete": "off", "spellcheck": "false", "autocapitalize": "characters"}
+        ),
+    )
+
+
+class PairingAnswerForm(forms.Form):
+    """The owner's answer to a pairing request: approve (under a name) or refuse."""
+
+    code = forms.CharField(max_length=20, widget=forms.HiddenInput)
+    name = forms.CharField(
+        max_length=100,
+        required=False,
+        help_text="The robot's name in the portal (default: the name it asked with).",
+    )
+    decision = forms.ChoiceField(choices=[("approve", "approve"), ("refuse", "refuse")])
+
+    def __init__(self, *args: object, **kwargs: object) -> None:
+        kwargs.setdefault("auto_id", "answer_%s")  # beside the code form on the same page
+        super().__init__(*args, **kwargs)

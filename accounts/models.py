@@ -127,6 +127,10 @@ class Robot(models.Model):
     # What the robot's agent subscribes to: [{"name": "/robot/odom", "type": "nav_msgs/..."}].
     topics = models.JSONField(default=default_robot_topics, validators=[validate_robot_topics])
     is_active = models.BooleanField(default=True)
+    # The robot's SM2 public key (`04||x||y` hex) when it was paired (RobotPairing): the
+    # owner's SM4 key is sent to it encrypted to this key. Empty for robots added by hand.
+    public_key = models.CharField(max_length=130, blank=True)
+    paired_at = models.DateTimeField(null=True, blank=True)
     created_at = models.DateTimeField(auto_now_add=True)
     revoked_at = models.DateTimeField(null=True, blank=True)
 
@@ -138,6 +142,56 @@ class Robot(models.Model):
 
     def __str__(self) -> str:
         return f"{self.owner}/{self.name}"
+
+
+class RobotPairing(models.Model):
+    """A robot asking to be paired: it sent its SM2 public key and holds a secret whose hash
+    alone is kept. An owner who types the short code the robot printed approves or refuses
+    it; on approval a Robot is made, its token kept here encrypted to the robot's SM2 key
+    until the robot collects it, once, with its secret."""
+
+    class State(models.TextChoices):
+        PENDING = "pending", "waiting for an owner"
+        APPROVED = "approved", "approved, not collected yet"
+        DELIVERED = "delivered", "approved and collected by the robot"
+        REFUSED = "refused", "refused"
+
+    id = models.UUIDField(primary_key=True, default=uuid.uuid4, editable=False)
+    code = models.CharField(max_length=16, unique=True, help_text="what the robot printed")
+    secret_hash = models.CharField(max_length=64, help_text="SHA-256 of the robot's secret")
+    name = models.CharField(max_length=100)
+    public_key = models.CharField(max_length=130, help_text="SM2, `04||x||y` hex")
+    state = models.CharField(max_length=16, choices=State.choices, default=State.PENDING)
+    owner = models.ForeignKey(
+        Owner, on_delete=models.CASCADE, null=True, blank=True, related_name="pairings"
+    )
+    robot = models.OneToOneField(
+        Robot, on_delete=models.SET_NULL, null=True, blank=True, related_name="pairing"
+    )
+    # The robot's token, SM2-encrypted to `public_key` (C1C3C2 hex), until it is collected.
+    token_sm2 = models.TextField(blank=True)
+    answered_by = models.ForeignKey(
+        settings.AUTH_USER_MODEL,
+        on_delete=models.SET_NULL,
+        null=True,
+        blank=True,
+        related_name="+",
+    )
+    created_at = models.DateTimeField(auto_now_add=True)
+    expires_at = models.DateTimeField()
+    answered_at = models.DateTimeField(null=True, blank=True)
+    delivered_at = models.DateTimeField(null=True, blank=True)
+
+    class Meta:
+        ordering = ["-created_at"]
+        indexes = [models.Index(fields=["state", "expires_at"], name="robot_pairing_state")]
+
+    def __str__(self) -> str:
+        return f"pairing {self.code} ({self.name}, {self.state})"
+
+    @property
+    def is_expired(self) -> bool:
+        return self.expires_at <= timezone.now()
 
 
 class OwnerToken(models.Model):
@@ -187,8 +241,17 @@ class AccountEvent(models.Model):
         TOKEN_CREATED = "token_created", "API token created"
         TOKEN_REVOKED = "token_revoked", "API token revoked"
         ROBOT_TOKEN_REVOKED = "robot_token_revoked", "robot token revoked"
+        ROBOT_PAIRED = "robot_paired", "robot paired"
+        ROBOT_PAIRING_REFUSED = "robot_pairing_refused", "robot pairing refused"
+        PAIRING_SECRET_MISMATCH = (
+            "pairing_secret_mismatch",
+            "someone without the robot's secret asked for its pairing answer",
+        )
         SIGNUP_APPROVED = "signup_approved", "sign-up approved"
         SIGNUP_REFUSED = "signup_refused", "sign-up refused"
+
+    # Kinds the owner is alerted to (an alarm on the security page, a notice on sign-in).
+    ALARM_KINDS = (Kind.IDENTITY_MISMATCH, Kind.PAIRING_SECRET_MISMATCH)
 
     owner = models.ForeignKey(Owner, on_delete=models.CASCADE, related_name="account_events")
     kind = models.CharField(max_length=32, choices=Kind.choices)

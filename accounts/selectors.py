@@ -9,9 +9,19 @@ from eth_account.signers.local import LocalAccount
 
 from accounts import keywrap
 from accounts.agent_config import Topic
+from accounts.errors import RobotNotPaired
 from accounts.keywrap import eoa_purpose, sm4_key_purpose
-from accounts.models import AccountEvent, ChainState, Owner, OwnerKey, OwnerToken, Robot
+from accounts.models import (
+    AccountEvent,
+    ChainState,
+    Owner,
+    OwnerKey,
+    OwnerToken,
+    Robot,
+    RobotPairing,
+)
 from chainworker.services import chain_client
+from smcrypto import sm2
 
 
 def owner_eoa_account(owner: Owner) -> LocalAccount:
@@ -21,6 +31,17 @@ def owner_eoa_account(owner: Owner) -> LocalAccount:
 
 def owner_key_current(owner: Owner) -> OwnerKey:
     return owner.keys.get(is_current=True)
+
+
+# Answers to a robot's uploads name its owner's current key in this header, so that a paired
+# robot learns of a rotation on its next contact and fetches the key (`/api/v1/robot-key/`).
+KEY_ID_HEADER = "AuthROS-Key-Id"
+
+
+def owner_key_current_id(owner_id: int) -> str | None:
+    """The key id of the owner's current key (one indexed read, nothing unwrapped)."""
+    current = OwnerKey.objects.filter(owner_id=owner_id, is_current=True)
+    return current.values_list("key_id", flat=True).first()
 
 
 def owner_key_by_id(owner: Owner, key_id: str) -> OwnerKey | None:
@@ -116,10 +137,10 @@ def account_events_of(owner: Owner) -> QuerySet[AccountEvent]:
 
 def account_events_to_notice(owner: Owner, *, since: datetime) -> QuerySet[AccountEvent]:
     """Events since `since` the owner should look at: made by someone else (an operator), or
-    an identity check that failed."""
+    an alarm (an identity check that failed, a robot's pairing answer asked for by another)."""
     by_others = Q(actor__isnull=False) & ~Q(actor_id=owner.user_id)
     return account_events_of(owner).filter(
-        by_others | Q(kind=AccountEvent.Kind.IDENTITY_MISMATCH), created_at__gte=since
+        by_others | Q(kind__in=AccountEvent.ALARM_KINDS), created_at__gte=since
     )
 
 
@@ -149,3 +170,53 @@ def owner_token_list(owner: Owner) -> list[OwnerToken]:
 def owner_token_of(owner: Owner, token_id: int) -> OwnerToken | None:
     """One of the owner's API tokens; None for another owner's."""
     return owner.api_tokens.filter(pk=token_id).first()
+
+
+# --- robot pairing ----------------------------------------------------------------------------
+
+# How people may type a code: any case, with blanks or dashes, O for 0 and I or L for 1.
+_CODE_LOOKALIKES = str.maketrans({"O": "0", "I": "1", "L": "1"})
+
+
+def pairing_code_normalize(code: str) -> str:
+    """A pairing code as stored, from what a person typed (`abcd-efgh` is `ABCDEFGH`)."""
+    if not isinstance(code, str):
+        return ""
+    kept = "".join(char for char in code.upper() if char not in " -\t")
+    return kept.translate(_CODE_LOOKALIKES)[:16]
+
+
+def pairing_code_display(code: str) -> str:
+    """A code as the robot prints it: two groups of four (`ABCD-EFGH`)."""
+    return f"{code[:4]}-{code[4:]}" if len(code) == 8 else code
+
+
+def robot_pairing_pending(*, code: str) -> RobotPairing | None:
+    """The request waiting for an answer whose code is `code` (typed by an owner), unexpired."""
+    wanted = pairing_code_normalize(code)
+    if not wanted:
+        return None
+    pairing = RobotPairing.objects.filter(code=wanted, state=RobotPairing.State.PENDING).first()
+    return None if pairing is None or pairing.is_expired else pairing
+
+
+def robot_pairings_answered(owner: Owner, *, limit: int = 10) -> list[RobotPairing]:
+    """The owner's latest answered pairing requests, newest first (the robots page)."""
+    return list(owner.pairings.select_related("robot").order_by("-answered_at")[:limit])
+
+
+def public_key_fingerprint(public_key: str) -> str:
+    """What people compare with what the robot printed (smcrypto.sm2.fingerprint)."""
+    return sm2.fingerprint(public_key)
+
+
+def robot_key_for(robot: Robot) -> tuple[OwnerKey, str]:
+    """The owner's current key and its bytes SM2-encrypted to the robot's paired public key
+    (C1C3C2 hex); RobotNotPaired for a robot added by hand (no public key)."""
+    if not robot.public_key:
+        raise RobotNotPaired(
+            "this robot was added by hand and has no SM2 key to send the owner's key to: "
+            "pair it (python -m ros_agent pair), or update its key file by hand"
+        )
+    key = owner_key_current(robot.owner)
+    return key, sm2.encrypt(robot.public_key, owner_key_bytes(key))

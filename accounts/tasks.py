@@ -25,3 +25,8 @@ def chain_work_sweep() -> dict[str, int]:
 def owner_top_up(owner_id: int) -> str | None:
     funding = services.owner_top_up(owner_id=owner_id)
     return funding.tx_hash if funding else None
+
+
+@shared_task(name="accounts.tasks.robot_pairings_purge", soft_time_limit=60, time_limit=90)
+def robot_pairings_purge() -> int:
+    return services.robot_pairings_purge()

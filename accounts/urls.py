@@ -14,6 +14,7 @@ urlpatterns = [
     path("account/password/", views.PasswordChangeView.as_view(), name="password_change"),
     path("account/key/", views.key_rotation, name="key-rotation"),
     path("robots/", views.robots, name="robots"),
+    path("robots/pair/", views.robot_pair, name="robot-pair"),
     path("robots/<uuid:robot_id>/revoke/", views.robot_revoke, name="robot-revoke"),
     path("robots/<uuid:robot_id>/agent.yaml", views.robot_config, name="robot-config"),
     # Revoking one is sharing's page (`api-token-revoke`): it takes back the grants it made.

@@ -25,15 +25,24 @@ from rest_framework.throttling import BaseThrottle
 from accounts.agent_config import agent_config_yaml, config_filename, key_filename
 from accounts.decorators import no_store, owner_required, page_throttle
 from accounts.errors import (
+    AccountError,
     InvalidKeyMaterial,
     InvalidOwnerToken,
+    InvalidRobotName,
     InvalidUsername,
     KeyAlreadyUsed,
     RobotNameTaken,
     UsernameTaken,
     WeakPassword,
 )
-from accounts.forms import ApiTokenCreateForm, KeyRotateForm, RegisterForm, RobotCreateForm
+from accounts.forms import (
+    ApiTokenCreateForm,
+    KeyRotateForm,
+    PairingAnswerForm,
+    PairingCodeForm,
+    RegisterForm,
+    RobotCreateForm,
+)
 from accounts.keyexchange import portal_sm2_public_key
 from accounts.models import ChainState, Owner, Robot
 from accounts.selectors import (
@@ -41,7 +50,11 @@ from accounts.selectors import (
     owner_key_current,
     owner_keys,
     owner_token_list,
+    pairing_code_display,
+    public_key_fingerprint,
     robot_list_of,
+    robot_pairing_pending,
+    robot_pairings_answered,
     robot_topics,
 )
 from accounts.services import (
@@ -49,6 +62,7 @@ from accounts.services import (
     owner_create,
     owner_token_create,
     robot_create,
+    robot_pairing_answer,
     robot_token_revoke,
 )
 from accounts.signup_limits import signup_slot_give_back, signup_slot_take
@@ -219,8 +233,9 @@ def key_rotation(request: HttpRequest) -> HttpResponse:
         else:
             messages.success(
                 request,
-                f"Your new key {new_key.key_id} is in use. Put it in the key file of every robot "
-                "within the hour: uploads sealed under the old key are refused after that.",
+                f"Your new key {new_key.key_id} is in use. Paired robots fetch it by themselves "
+                "on their next contact, and what they spooled under the old key still arrives. "
+                "Robots whose key file you set by hand need the new key within the hour.",
             )
             return redirect("key-rotation")
     keys = owner_keys(owner)
@@ -262,8 +277,86 @@ def robots(request: HttpRequest) -> HttpResponse:
             }
             # The token exists only in this response: it is never stored nor shown again.
             return no_store(render(request, "accounts/robot_created.html", context, status=201))
-    context = {"form": form, "robots": robot_list_of(owner)}
-    return render(request, "accounts/robots.html", context, status=400 if form.is_bound else 200)
+    return _robots_page(request, form=form, status=400 if form.is_bound else 200)
+
+
+def _robots_page(
+    request: HttpRequest,
+    *,
+    form: RobotCreateForm | None = None,
+    code_form: PairingCodeForm | None = None,
+    pairing: object = None,
+    answer_form: PairingAnswerForm | None = None,
+    status: int = 200,
+) -> HttpResponse:
+    owner: Owner = request.owner
+    context = {
+        "form": form or RobotCreateForm(),
+        "code_form": code_form or PairingCodeForm(),
+        "pairing": pairing,
+        "answer_form": answer_form,
+        "robots": robot_list_of(owner),
+        "answered": [
+            {"pairing": p, "code": pairing_code_display(p.code)}
+            for p in robot_pairings_answered(owner)
+        ],
+    }
+    if pairing is not None:
+        context["pairing_code"] = pairing_code_display(pairing.code)
+        context["pairing_fingerprint"] = public_key_fingerprint(pairing.public_key)
+    return render(request, "accounts/robots.html", context, status=status)
+
+
+@never_cache
+@owner_required
+@page_throttle()
+@require_http_methods(["GET", "POST"])
+def robot_pair(request: HttpRequest) -> HttpResponse:
+    """GET ?code=: the pairing request a robot printed the code of, to approve or refuse;
+    POST: the owner's answer (robot_pairing_answer)."""
+    if request.method == "GET":
+        code_form = PairingCodeForm(request.GET)
+        if not code_form.is_valid():
+            return _robots_page(request, code_form=code_form, status=400)
+        pairing = robot_pairing_pending(code=code_form.cleaned_data["code"])
+        if pairing is None:
+            code_form.add_error(
+                "code",
+                "No robot waits for an answer with this code: check what the robot printed "
+                "(a request expires after a while; run its pair command again).",
+            )
+            return _robots_page(request, code_form=code_form, status=404)
+        answer_form = PairingAnswerForm(initial={"code": pairing.code, "name": pairing.name})
+        return _robots_page(request, code_form=code_form, pairing=pairing, answer_form=answer_form)
+    answer_form = PairingAnswerForm(request.POST)
+    if not answer_form.is_valid():
+        return _robots_page(request, status=400)
+    data = answer_form.cleaned_data
+    approve = data["decision"] == "approve"
+    try:
+        pairing = robot_pairing_answer(
+            owner=request.owner,
+            code=data["code"],
+            approve=approve,
+            actor=request.user,
+            name=data["name"].strip() or None,
+        )
+    except (RobotNameTaken, InvalidRobotName) as exc:
+        again = robot_pairing_pending(code=data["code"])
+        answer_form.add_error("name", str(exc))
+        return _robots_page(request, pairing=again, answer_form=answer_form, status=400)
+    except AccountError as exc:
+        messages.error(request, str(exc))
+        return _robots_page(request, status=exc.http_status)
+    if approve:
+        messages.success(
+            request,
+            f"{pairing.robot.name} is paired: it receives its token and your key, encrypted to "
+            "its own SM2 key, and starts uploading.",
+        )
+    else:
+        messages.info(request, f"The request {pairing_code_display(pairing.code)} is refused.")
+    return redirect("robots")
 
 
 @owner_required
@@ -273,7 +366,11 @@ def robot_revoke(request: HttpRequest, robot_id: str) -> HttpResponse:
     robot = get_object_or_404(Robot, pk=robot_id, owner=request.owner)
     if robot.is_active:
         robot_token_revoke(robot=robot, actor=request.user)
-        messages.success(request, f"The token of {robot.name} is revoked: its uploads now fail.")
+        messages.success(
+            request,
+            f"The token of {robot.name} is revoked: its uploads now fail, and it gets no "
+            "key any more.",
+        )
     else:
         messages.info(request, f"The token of {robot.name} was already revoked.")
     return redirect("robots")

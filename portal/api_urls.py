@@ -3,7 +3,7 @@
 from django.urls import include, path, re_path
 from drf_spectacular.views import SpectacularAPIView, SpectacularSwaggerView
 
-from accounts.apis import Sm2PublicKeyApi
+from accounts.apis import RobotKeyApi, RobotPairingCollectApi, RobotPairingsApi, Sm2PublicKeyApi
 from core.api_errors import api_not_found
 from sharing.apis import (
     GrantRevokeApi,
@@ -16,6 +16,13 @@ from sharing.apis import (
 
 v1 = [
     path("sm2-public-key/", Sm2PublicKeyApi.as_view(), name="sm2-public-key"),
+    path("robot-pairings/", RobotPairingsApi.as_view(), name="robot-pairings"),
+    path(
+        "robot-pairings/<str:pairing_id>/collect/",
+        RobotPairingCollectApi.as_view(),
+        name="robot-pairing-collect",
+    ),
+    path("robot-key/", RobotKeyApi.as_view(), name="robot-key"),
     path("records/", RecordsApi.as_view(), name="records"),
     path("records/<str:record_id>/", RecordDetailApi.as_view(), name="record-detail"),
     path("records/<str:record_id>/content/", RecordContentApi.as_view(), name="record-content"),

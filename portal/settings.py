@@ -185,6 +185,11 @@ SIGNUP_RATE_PER_ADDRESS = env.str("SIGNUP_RATE_PER_ADDRESS", default="5/hour")
 SIGNUP_RATE_TOTAL = env.str("SIGNUP_RATE_TOTAL", default="200/hour")
 # New owners wait for an operator's approval (admin) before any chain work is done for them.
 SIGNUP_APPROVAL = env.bool("SIGNUP_APPROVAL", default=False)
+# Seconds a robot's pairing request waits for its owner's answer before it expires.
+ROBOT_PAIRING_TTL = env.int("ROBOT_PAIRING_TTL", default=900)
+# An envelope sealed under a retired key is accepted when captured before the rotation, give or
+# take this many seconds of robot clock (sharing.services._upload_key).
+KEY_ROTATION_CLOCK_SKEW = env.float("KEY_ROTATION_CLOCK_SKEW", default=300.0)
 # On a development chain (anvil, eth-tester) the operator is topped up automatically.
 CHAIN_DEV_FAUCET = env.bool("CHAIN_DEV_FAUCET", default=True)
 
@@ -247,6 +252,8 @@ REST_FRAMEWORK = {
         "user": env.str("API_RATE_USER", default="6000/minute"),
         # per robot, on uploads only
         "upload": env.str("API_RATE_UPLOAD", default="1200/minute"),
+        # per client address: pairing requests and their polls (no credentials yet)
+        "pairing": env.str("API_RATE_PAIRING", default="120/minute"),
     },
     # Proxies in front of the portal; 0 = rate limits per peer address, ignoring a
     # client-supplied X-Forwarded-For. Behind one reverse proxy, 1.
@@ -261,6 +268,8 @@ SPECTACULAR_SETTINGS = {
     "ENUM_NAME_OVERRIDES": {
         "RecordStatusEnum": "sharing.models.Record.Status",
         "GrantStatusEnum": "sharing.models.Grant.Status",
+        # SM2 ciphertext layout of the key exchange and pairing (accounts.apis)
+        "Sm2CiphertextModeEnum": ["C1C3C2"],
     },
     # Swagger UI and Redoc from drf-spectacular-sidecar's static files, not from a CDN:
     # /api/docs/ works offline and loads nothing from another origin.
@@ -322,6 +331,12 @@ CELERY_BEAT_SCHEDULE = {
         "task": "accounts.tasks.chain_work_sweep",
         "schedule": _SWEEP_INTERVAL,
         "options": {"expires": _SWEEP_INTERVAL},
+    },
+    # Pairing requests nobody answered, a day after they expired (anyone may make them).
+    "purge-robot-pairings": {
+        "task": "accounts.tasks.robot_pairings_purge",
+        "schedule": 3600.0,
+        "options": {"expires": 3600.0},
     },
     # Compares what the database says is on chain with the chain, and repairs (see below).
     "reconcile-chain": {

@@ -140,7 +140,7 @@ class SecurityEntries:
             title=event.get_kind_display(),
             actor=actor,
             by_operator=by_operator,
-            alarm=event.kind == AccountEvent.Kind.IDENTITY_MISMATCH,
+            alarm=event.kind in AccountEvent.ALARM_KINDS,
             detail=_detail_lines(event.detail),
             record_id=None,
         )

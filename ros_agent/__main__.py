@@ -1,13 +1,18 @@
 """`python -m ros_agent --config agent.yaml`: run the agent node (see ros_agent.node).
 
+`python -m ros_agent pair --portal URL --name NAME`: pair the robot (ros_agent.pairing).
 `python -m ros_agent --ros2 --config agent.yaml`: the agent on a ROS 2 robot (ros_agent.ros2).
 `python -m ros_agent import --config agent.yaml FILE...`: import recordings (ros_agent.bags).
-Neither of the last two needs ROS 1.
+None of the last three needs ROS 1.
 """
 
 import logging
 import sys
 
+if sys.argv[1:2] == ["pair"]:
+    from ros_agent.pairing import main as pairing_main
+
+    sys.exit(pairing_main(sys.argv[2:]))
 if sys.argv[1:2] == ["import"] or "--ros2" in sys.argv[1:]:
     logging.basicConfig(
         level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s"

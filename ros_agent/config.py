@@ -8,6 +8,9 @@ Both sources are one flat mapping with the same names and go through the same ch
     robot: 7c9e6679-7425-40de-944b-e07fc1f90ae7
     owner: alice
     key_file: alice.sm4                       # 32 hex digits, mode 0600; relative to the yaml
+    # or, for a robot paired with `python -m ros_agent pair` (which writes all of this):
+    # sm2_key_file: robot.sm2                 # the robot's SM2 private key, mode 0600
+    # keys_file: owner-keys.json              # the owner's keys it was sent, mode 0600
     topics:
       - {name: /robot/odom, type: nav_msgs/Odometry}
     # optional, with their defaults:
@@ -38,7 +41,8 @@ from urllib.parse import urlsplit
 
 import yaml
 
-from smcrypto import sm4
+from ros_agent.keyring import Keyring, KeyringError
+from smcrypto import CryptoError, sm2, sm4
 
 _ROS_TYPE = re.compile(r"[A-Za-z][A-Za-z0-9_]*/[A-Za-z][A-Za-z0-9_]*")
 _TOPIC_NAME = re.compile(r"~?/?[A-Za-z][A-Za-z0-9_]*(/[A-Za-z][A-Za-z0-9_]*)*")
@@ -60,7 +64,7 @@ class AgentConfig:
     token: str = field(repr=False)
     robot: str
     owner: str
-    key_file: Path
+    key_file: Path | None
     key: bytes = field(repr=False)
     topics: tuple[TopicConfig, ...]
     spool_dir: Path
@@ -73,10 +77,23 @@ class AgentConfig:
     backoff_max: float = 30.0
     stats_interval: float = 60.0
     shutdown_flush: float = 5.0
+    keys_file: Path | None = None
+    sm2_key_file: Path | None = None
+    sm2_private_key: str = field(default="", repr=False)
+    keyring: Keyring | None = field(default=None, repr=False, compare=False)
 
     @property
     def records_url(self) -> str:
         return self.portal_url.rstrip("/") + "/api/v1/records/"
+
+    @property
+    def robot_key_url(self) -> str:
+        return self.portal_url.rstrip("/") + "/api/v1/robot-key/"
+
+    @property
+    def paired(self) -> bool:
+        """Paired robots fetch a rotated key themselves; others have a key file set by hand."""
+        return self.sm2_key_file is not None
 
 
 # name -> (type check, lowest allowed value) for the optional numeric settings
@@ -90,8 +107,9 @@ _NUMBERS: dict[str, tuple[type, float]] = {
     "stats_interval": (float, 0.1),
     "shutdown_flush": (float, 0.0),
 }
-_REQUIRED = ("portal_url", "robot", "owner", "key_file", "topics")
-_KNOWN = {*_REQUIRED, *_NUMBERS, "token", "token_file", "spool_dir", "tls_verify"}
+_REQUIRED = ("portal_url", "robot", "owner", "topics")
+_KEY_SETTINGS = ("key_file", "keys_file", "sm2_key_file")
+_KNOWN = {*_REQUIRED, *_NUMBERS, *_KEY_SETTINGS, "token", "token_file", "spool_dir", "tls_verify"}
 
 
 def load_config(path: str | os.PathLike[str]) -> AgentConfig:
@@ -128,6 +146,11 @@ def config_from_mapping(data: Any, *, source: str, base_dir: Path) -> AgentConfi
     missing = [name for name in _REQUIRED if data.get(name) in (None, "", [])]
     if ("token" in data) == ("token_file" in data):
         missing.append("token (or token_file, not both)")
+    paired = "keys_file" in data or "sm2_key_file" in data
+    if ("key_file" in data) == paired or (
+        paired and not {"keys_file", "sm2_key_file"} <= set(data)
+    ):
+        missing.append("key_file (or, for a paired robot, keys_file and sm2_key_file)")
     if missing:
         raise ConfigError(f"{source}: missing required setting(s): {', '.join(missing)}")
 
@@ -139,9 +162,21 @@ def config_from_mapping(data: Any, *, source: str, base_dir: Path) -> AgentConfi
             )
         return value.strip()
 
-    portal_url = _portal_url(text("portal_url"), source)
+    portal_url = check_portal_url(text("portal_url"), source)
     robot = text("robot")
-    key_file = _resolve(text("key_file"), base_dir)
+    key_file = _resolve(text("key_file"), base_dir) if "key_file" in data else None
+    keys_file = sm2_key_file = None
+    sm2_private_key = ""
+    if key_file is not None:
+        keyring = Keyring.of_one(read_key_file(key_file))
+    else:
+        keys_file = _resolve(text("keys_file"), base_dir)
+        sm2_key_file = _resolve(text("sm2_key_file"), base_dir)
+        sm2_private_key = read_sm2_key_file(sm2_key_file)
+        try:
+            keyring = Keyring.load(keys_file)
+        except KeyringError as exc:
+            raise ConfigError(str(exc)) from None
     numbers = {name: _number(data, name, source) for name in _NUMBERS if name in data}
     spool_dir = (
         _resolve(text("spool_dir"), base_dir) if "spool_dir" in data else _default_spool(robot)
@@ -152,10 +187,14 @@ def config_from_mapping(data: Any, *, source: str, base_dir: Path) -> AgentConfi
         robot=robot,
         owner=text("owner"),
         key_file=key_file,
-        key=read_key_file(key_file),
+        key=keyring.current()[1],
         topics=parse_topics(data["topics"], source),
         spool_dir=spool_dir,
         tls_verify=_tls_verify(data.get("tls_verify", True), base_dir, source),
+        keys_file=keys_file,
+        sm2_key_file=sm2_key_file,
+        sm2_private_key=sm2_private_key,
+        keyring=keyring,
         **numbers,
     )
 
@@ -172,6 +211,18 @@ def read_key_file(path: Path) -> bytes:
             f"the key file {path} must hold the SM4 key as {2 * sm4.KEY_SIZE} hex digits"
         )
     return key
+
+
+def read_sm2_key_file(path: Path) -> str:
+    """The robot's SM2 private key (64 hex digits) from a file only its owner may read."""
+    text = _read_private_file(path, "SM2 key file").lower()
+    try:
+        sm2.public_key_from_private(text)
+    except CryptoError:
+        raise ConfigError(
+            f"the SM2 key file {path} must hold the robot's SM2 private key as 64 hex digits"
+        ) from None
+    return text
 
 
 def _read_private_file(path: Path, what: str) -> str:
@@ -201,7 +252,7 @@ def _token_file(value: str, base_dir: Path) -> str:
     return token
 
 
-def _portal_url(url: str, source: str) -> str:
+def check_portal_url(url: str, source: str) -> str:
     parts = urlsplit(url)
     if parts.scheme not in ("http", "https") or not parts.hostname:
         raise ConfigError(f"{source}: portal_url must be an http(s) URL, got {url!r}")

@@ -1,6 +1,7 @@
 """The rospy node: subscribe the configured topics and seal, spool and upload every message.
 
     python -m ros_agent --config agent.yaml
+    python -m ros_agent pair --portal URL --name NAME [--dir DIR]   # see ros_agent.pairing
     python -m ros_agent _portal_url:=http://127.0.0.1:8000 _token:=... _robot:=... \\
         _owner:=alice _key_file:=/etc/authros/alice.sm4 \\
         _topics:="[{name: /robot/odom, type: nav_msgs/Odometry}]"
@@ -23,7 +24,7 @@ import rospy
 from ros_agent import LOGGER_NAME
 from ros_agent.config import AgentConfig, ConfigError, config_from_ros_params, load_config
 from ros_agent.counters import AgentCounters
-from ros_agent.pipeline import CLEAR_TEXT_WARNING, token_in_clear
+from ros_agent.pipeline import CLEAR_TEXT_WARNING, key_parts, token_in_clear
 from ros_agent.spool import Spool, SpoolError
 from ros_agent.uploader import PortalClient, Uploader
 from ros_agent.wrapping import Recorder
@@ -45,14 +46,19 @@ class Agent:
         self.config = config
         self.counters = AgentCounters()
         self.spool = Spool(config.spool_dir, max_bytes=config.spool_max_bytes)
+        client = PortalClient(
+            records_url=config.records_url,
+            robot_key_url=config.robot_key_url,
+            token=config.token,
+            tls_verify=config.tls_verify,
+            timeout=config.request_timeout,
+        )
+        self.keyring, key_updater = key_parts(config, client)
         self.uploader = Uploader(
             spool=self.spool,
-            client=PortalClient(
-                records_url=config.records_url,
-                token=config.token,
-                tls_verify=config.tls_verify,
-                timeout=config.request_timeout,
-            ),
+            client=client,
+            keyring=self.keyring if key_updater else None,
+            key_updater=key_updater,
             counters=self.counters,
             batch_size=config.batch_size,
             batch_max_bytes=config.batch_max_bytes,
@@ -61,7 +67,7 @@ class Agent:
         )
         self.recorder = Recorder(
             spool=self.spool,
-            key=config.key,
+            keyring=self.keyring,
             owner=config.owner,
             robot=config.robot,
             counters=self.counters,
@@ -150,7 +156,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
         prog="python -m ros_agent",
         description="AuthROS agent: seal ROS topics and upload them to the portal.",
-        epilog="Without --config, settings are read from the node's private ROS parameters.",
+        epilog="Without --config, settings are read from the node's private ROS parameters. "
+        "`python -m ros_agent pair --help`: pair a robot with its owner (writes agent.yaml).",
     )
     parser.add_argument("--config", type=Path, help="agent.yaml (see ros_agent.config)")
     args = parser.parse_args(argv[1:])

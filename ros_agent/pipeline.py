@@ -9,6 +9,8 @@ from urllib.parse import urlsplit
 
 from ros_agent.config import AgentConfig
 from ros_agent.counters import AgentCounters
+from ros_agent.keyring import Keyring
+from ros_agent.pairing import KeyUpdater
 from ros_agent.spool import Spool
 from ros_agent.uploader import PortalClient, Uploader
 from ros_agent.wrapping import Recorder
@@ -37,14 +39,19 @@ def pipeline_build(
     by another agent); `flush_interval` and `backoff_max` override the config's."""
     counters = AgentCounters()
     spool = Spool(config.spool_dir, max_bytes=config.spool_max_bytes)
+    client = PortalClient(
+        records_url=config.records_url,
+        robot_key_url=config.robot_key_url,
+        token=config.token,
+        tls_verify=config.tls_verify,
+        timeout=config.request_timeout,
+    )
+    keyring, key_updater = key_parts(config, client)
     uploader = Uploader(
         spool=spool,
-        client=PortalClient(
-            records_url=config.records_url,
-            token=config.token,
-            tls_verify=config.tls_verify,
-            timeout=config.request_timeout,
-        ),
+        client=client,
+        keyring=keyring if key_updater else None,
+        key_updater=key_updater,
         counters=counters,
         batch_size=config.batch_size,
         batch_max_bytes=config.batch_max_bytes,
@@ -53,13 +60,23 @@ def pipeline_build(
     )
     recorder = Recorder(
         spool=spool,
-        key=config.key,
+        keyring=keyring,
         owner=config.owner,
         robot=config.robot,
         counters=counters,
         on_spooled=uploader.notify,
     )
     return Pipeline(counters, spool, uploader, recorder)
+
+
+def key_parts(config: AgentConfig, client: PortalClient) -> tuple[Keyring, KeyUpdater | None]:
+    """The owner's keys the robot seals under, and for a paired robot (ros_agent.pairing) what
+    fetches a rotated key into them; None for a robot whose key file is set by hand."""
+    keyring = config.keyring or Keyring.of_one(config.key)
+    if not config.paired:
+        return keyring, None
+    updater = KeyUpdater(client=client, keyring=keyring, sm2_private_key=config.sm2_private_key)
+    return keyring, updater
 
 
 def token_in_clear(portal_url: str) -> str | None:

@@ -137,6 +137,18 @@ class Spool:
                 self._queued_bytes -= size
             _fsync_directory(self._queue_dir)
 
+    def replace(self, seq: int, data: bytes) -> None:
+        """Put `data` in place of the queued envelope `seq` (re-sealed under a new key), durably:
+        after a crash the file holds the old envelope or the new one."""
+        with self._lock:
+            index = next((i for i, (queued, _) in enumerate(self._queue) if queued == seq), None)
+            if index is None:
+                raise SpoolError(f"seq {seq} is not queued")
+            size = self._queue[index][1]
+            _write_durably(self._queue_dir, _name(seq), data)
+            self._queue[index] = (seq, len(data))
+            self._queued_bytes += len(data) - size
+
     def reject(self, items: Sequence[SpoolItem], reason: Mapping[str, Any]) -> None:
         """Move refused items to rejected/, each with `reason` beside it as JSON."""
         note = json.dumps(dict(reason), sort_keys=True, indent=1).encode()

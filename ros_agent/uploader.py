@@ -13,12 +13,21 @@ one `{"id", "digest", "status"}` per envelope. What the uploader does with each 
 |                                       | moved to rejected/, an error that names a stolen token|
 | 400/403/413/other 4xx, one envelope   | refused for good: moved to rejected/, counted failed  |
 | 400/403/413/other 4xx, a batch        | sent again one by one, so only the bad one is refused |
+| 403 unknown_key, on a paired robot    | the owner rotated its key: the new key is fetched     |
+|                                       | (SM2-encrypted to the robot) and the refused envelopes|
+|                                       | are re-sealed under it in the spool and sent again    |
 | 401, 404, 405                         | our token or URL is wrong: kept, retried with backoff |
 | 408, 429, 5xx, no answer, 201 without | kept, retried after an exponential backoff with       |
 | a result per envelope, anything else  | jitter, capped; Retry-After honoured up to that cap   |
 
 A later envelope is never sent before an earlier one: the head of the queue is retried until
 it is delivered or refused.
+
+Every answer to a paired robot's upload names the owner's current key (header
+`AuthROS-Key-Id`); when it sees another id than its own it fetches the new key at once
+(`key_updater`), so that what it records from then on is sealed under it. A rotation never
+sends anything to rejected/: envelopes captured before it are accepted under the old key, the
+others re-sealed.
 """
 
 import base64
@@ -27,7 +36,7 @@ import logging
 import random
 import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from datetime import UTC, datetime
 from email.utils import parsedate_to_datetime
@@ -37,12 +46,16 @@ import requests
 
 from ros_agent import LOGGER_NAME
 from ros_agent.counters import AgentCounters, worth_logging
+from ros_agent.keyring import Keyring
 from ros_agent.spool import Spool, SpoolItem
+from smcrypto import CryptoError, envelope
 
 logger = logging.getLogger(f"{LOGGER_NAME}.uploader")
 
 REPLAYED_SEQUENCE = "replayed_sequence"
 SEQUENCE_CONFLICT = "sequence_conflict"
+UNKNOWN_KEY = "unknown_key"
+KEY_ID_HEADER = "AuthROS-Key-Id"
 _OUR_MISTAKE = frozenset({401, 404, 405})
 _TRANSIENT = frozenset({408, 425, 429})
 BACKOFF_BASE = 0.5
@@ -57,6 +70,7 @@ class PortalAnswer:
     error: str = ""
     detail: str = ""
     retry_after: float | None = None
+    key_id: str = ""  # the owner's current key, as the portal named it
 
     def describe(self) -> str:
         if self.status is None:
@@ -68,9 +82,16 @@ class PortalClient:
     """Uploads envelopes to the portal's records endpoint with the robot's token."""
 
     def __init__(
-        self, *, records_url: str, token: str, tls_verify: bool | str = True, timeout: float = 10
+        self,
+        *,
+        records_url: str,
+        token: str,
+        tls_verify: bool | str = True,
+        timeout: float = 10,
+        robot_key_url: str = "",
     ) -> None:
         self.records_url = records_url
+        self.robot_key_url = robot_key_url
         self._timeout = timeout
         self._verify = tls_verify
         self._session = requests.Session()
@@ -78,13 +99,21 @@ class PortalClient:
 
     def upload(self, envelopes: Sequence[bytes]) -> PortalAnswer:
         body = {"envelopes": [base64.b64encode(data).decode("ascii") for data in envelopes]}
+        return self._call("POST", self.records_url, json=body)
+
+    def fetch_key(self) -> PortalAnswer:
+        """`GET /api/v1/robot-key/`: the owner's current key, SM2-encrypted to this robot."""
+        return self._call("GET", self.robot_key_url)
+
+    def _call(self, method: str, url: str, **kwargs: Any) -> PortalAnswer:
         try:
-            response = self._session.post(
-                self.records_url,
-                json=body,
+            response = self._session.request(
+                method,
+                url,
                 timeout=self._timeout,
                 verify=self._verify,
                 allow_redirects=False,
+                **kwargs,
             )
         except requests.RequestException as exc:
             return PortalAnswer(status=None, detail=f"{type(exc).__name__}: {exc}")
@@ -96,7 +125,7 @@ class PortalClient:
         if isinstance(payload, dict):
             error = str(payload.get("error", ""))
             detail = str(payload.get("detail", ""))
-        elif response.status_code != 201:
+        elif response.status_code >= 300:
             detail = response.text[:200]
         return PortalAnswer(
             status=response.status_code,
@@ -104,6 +133,7 @@ class PortalClient:
             error=error,
             detail=detail,
             retry_after=_retry_after(response.headers.get("Retry-After")),
+            key_id=response.headers.get(KEY_ID_HEADER, "").strip().lower(),
         )
 
     def close(self) -> None:
@@ -114,6 +144,7 @@ class Outcome(enum.Enum):
     EMPTY = "nothing queued"
     DELIVERED = "delivered"
     SPLIT = "batch to be resent one by one"
+    RESEALED = "re-sealed under the owner's new key, to be sent again"
     REJECTED = "refused for good"
     RETRY = "kept for a retry"
 
@@ -132,7 +163,16 @@ class Uploader:
         flush_interval: float = 1.0,
         backoff_max: float = 30.0,
         backoff_base: float = BACKOFF_BASE,
+        keyring: Keyring | None = None,
+        key_updater: Callable[[], bool | None] | None = None,
     ) -> None:
+        """`key_updater` (a paired robot's) fetches the owner's current key into `keyring`:
+        True when it got one, False when the portal refused, None without an answer."""
+        if (keyring is None) != (key_updater is None):
+            raise ValueError("a key updater needs the keyring it updates")
+        self._keyring = keyring
+        self._key_updater = key_updater
+        self._key_asked_for: str | None = None
         self._spool = spool
         self._client = client
         self._counters = counters
@@ -174,6 +214,8 @@ class Uploader:
         self._client.close()
 
     def _run(self) -> None:
+        if self._key_updater is not None:
+            self._key_updater()  # a rotation while the robot was off: learnt before sending
         waiting_since: float | None = None
         while not self._stopping.is_set():
             if not self._batch_ready():
@@ -261,6 +303,11 @@ class Uploader:
     def _act_on(self, items: list[SpoolItem], answer: PortalAnswer) -> Outcome:
         seqs = _seq_range(items)
         status = answer.status
+        self._note_current_key(answer.key_id)
+        if status == 403 and answer.error == UNKNOWN_KEY and self._key_updater is not None:
+            resealed = self._reseal(items)
+            if resealed is not None:
+                return resealed
         if status == 201 and _confirms(answer.body, len(items)):
             self._delivered(items)
             return Outcome.DELIVERED
@@ -283,6 +330,50 @@ class Uploader:
                 self._reject(items, answer)
                 return Outcome.REJECTED
         return self._retry(items, answer, level=logging.WARNING)
+
+    def _note_current_key(self, advertised: str) -> None:
+        """Fetch the owner's key when the portal names another current key than ours (once
+        per name, unless the fetch got no answer)."""
+        if (
+            self._key_updater is None
+            or not advertised
+            or advertised == self._keyring.current_id
+            or advertised == self._key_asked_for
+        ):
+            return
+        logger.info("the owner's current key is now %s: fetching it from the portal", advertised)
+        if self._key_updater() is not None:
+            self._key_asked_for = advertised
+
+    def _reseal(self, items: list[SpoolItem]) -> Outcome | None:
+        """The portal refused envelopes sealed under a key it no longer takes for them: fetch
+        the current key and re-seal, in the spool, those we hold the old key of. RETRY when
+        the key cannot be fetched now; None when nothing could be re-sealed."""
+        if self._key_updater() is None:
+            return Outcome.RETRY
+        current_id, key = self._keyring.current()
+        resealed = 0
+        for item in items:
+            try:
+                old_id = envelope.read_header(item.envelope).key_id.hex()
+                old_key = self._keyring.get(old_id)
+                if old_id == current_id or old_key is None:
+                    continue
+                header, plaintext = envelope.open(old_key, item.envelope)
+            except CryptoError as exc:
+                logger.error("cannot re-seal seq %d: %s", item.seq, exc)
+                continue
+            self._spool.replace(item.seq, envelope.seal(key, header, plaintext))
+            resealed += 1
+        if not resealed:
+            return None
+        logger.warning(
+            "re-sealed %d envelope(s) of seq %s under the owner's new key %s; sending them again",
+            resealed,
+            _seq_range(items),
+            current_id,
+        )
+        return Outcome.RESEALED
 
     def _delivered(self, items: list[SpoolItem]) -> None:
         self._spool.ack(items)

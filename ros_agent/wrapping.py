@@ -18,6 +18,7 @@ from typing import Any
 from ros_agent import LOGGER_NAME
 from ros_agent.counters import AgentCounters, worth_logging
 from ros_agent.extractors import ExtractionError, JsonDict, extract, iso_utc, stamp_datetime
+from ros_agent.keyring import Keyring
 from ros_agent.spool import Spool
 from smcrypto import envelope
 
@@ -66,14 +67,19 @@ class Recorder:
         self,
         *,
         spool: Spool,
-        key: bytes,
         owner: str,
         robot: str,
         counters: AgentCounters,
+        key: bytes | None = None,
+        keyring: Keyring | None = None,
         on_spooled: Callable[[], None] = lambda: None,
     ) -> None:
+        """Seals under `keyring`'s current key at each message (a paired robot's keyring
+        changes when the owner rotates), or under the one `key`."""
+        if (key is None) == (keyring is None):
+            raise ValueError("give the key or the keyring")
         self._spool = spool
-        self._key = key
+        self._keyring = keyring or Keyring.of_one(key)
         self._owner = owner
         self._robot = robot
         self._counters = counters
@@ -120,10 +126,9 @@ class Recorder:
             if self._closed:
                 return None
             try:
+                _, key = self._keyring.current()
                 seq = self._spool.append(
-                    lambda seq: envelope.seal(
-                        self._key, envelope_header(seq=seq, **header), plaintext
-                    )
+                    lambda seq: envelope.seal(key, envelope_header(seq=seq, **header), plaintext)
                 )
             except OSError as exc:
                 logger.error("cannot write to the spool %s: %s", self._spool.directory, exc)

@@ -38,6 +38,7 @@ from accounts.authentication import (
     caller_robot,
 )
 from accounts.models import OwnerToken
+from accounts.selectors import KEY_ID_HEADER, owner_key_current_id
 from chainworker.services import chain_client
 from core.api_errors import error_responses
 from sharing.errors import NotAnchoredYet, RecordNotFound
@@ -399,6 +400,19 @@ class RecordsApi(APIView):
         records = record_create_batch(robot=robot, envelopes=envelopes)
         results = self.UploadOutputSerializer(records, many=True).data
         return Response(results if batch else results[0], status=status.HTTP_201_CREATED)
+
+    def finalize_response(
+        self, request: Request, response: Response, *args: Any, **kwargs: Any
+    ) -> Response:
+        """Every answer to a paired robot's upload, refusals included, names the owner's current
+        key: a robot that sees another id fetches the new key (`/api/v1/robot-key/`). Robots
+        set up by hand cannot fetch it, and their uploads pay no query for it."""
+        robot = caller_robot(request) if request.method == "POST" else None
+        if robot is not None and robot.public_key:
+            current = owner_key_current_id(robot.owner_id)
+            if current:
+                response[KEY_ID_HEADER] = current
+        return super().finalize_response(request, response, *args, **kwargs)
 
 
 def _record_uuid(record_id: str) -> uuid.UUID:

@@ -55,7 +55,10 @@ from smcrypto import CryptoError, envelope, sm3
 logger = logging.getLogger(__name__)
 security_log = logging.getLogger("authros.security")
 
-# An envelope sealed under a key retired less than this long ago is still accepted.
+# An envelope sealed under a key retired less than this long ago is still accepted from a robot
+# whose key file is updated by hand (a paired robot fetches the new key and re-seals). One
+# captured before the key was retired always is, from any robot (a spool filled while the robot
+# was offline), give or take settings.KEY_ROTATION_CLOCK_SKEW seconds of robot clock.
 KEY_ROTATION_GRACE = timedelta(hours=1)
 MAX_FIELD_LENGTH = 255
 EPOCH = datetime(1970, 1, 1, tzinfo=UTC)
@@ -80,15 +83,16 @@ def record_create_batch(*, robot: Robot, envelopes: Sequence[bytes]) -> list[Rec
     """Store envelopes uploaded by `robot`, all or none, and queue their anchoring.
 
     Each must parse, name this robot and its owner, be sealed under the owner's current key
-    (or one retired within KEY_ROTATION_GRACE) with a valid tag, and carry a sequence number
-    above every earlier one of this robot.
+    (or one retired after the envelope's capture time, or, for a robot not paired, within
+    KEY_ROTATION_GRACE) with a valid tag, and carry a sequence number above every earlier one
+    of this robot.
     """
     if not envelopes:
         raise InvalidEnvelope("no envelopes in the upload")
     owner_keys_read = owner_keys(robot.owner)  # read once, for the check and the unsealing
     # The owner's commitment on chain must be the key the envelopes are sealed under.
     owner_identity_check(owner=robot.owner, keys=owner_keys_read)
-    keys = _UploadKeys(owner_keys_read)
+    keys = _UploadKeys(owner_keys_read, robot)
     checked = [_check_upload(robot, data, keys) for data in envelopes]
     seqs = [c.header["seq"] for c in checked]
     if seqs != sorted(set(seqs)):
@@ -177,23 +181,35 @@ def _after_upload(owner_id: int, uploads: Sequence[_CheckedUpload]) -> None:
 
 
 class _UploadKeys:
-    """The owner's keys an upload may be sealed under (the current key, or one retired within
-    KEY_ROTATION_GRACE), each unwrapped once per upload."""
+    """The owner's keys an upload may be sealed under, each unwrapped once per upload: the
+    current key, one retired after the envelope's capture (give or take
+    settings.KEY_ROTATION_CLOCK_SKEW), or, for a robot not paired, one retired within
+    KEY_ROTATION_GRACE (a paired robot fetches the new key and re-seals)."""
 
-    def __init__(self, keys: Sequence[OwnerKey]) -> None:
+    def __init__(self, keys: Sequence[OwnerKey], robot: Robot) -> None:
         self._keys = {key.key_id: key for key in keys}
-        self._usable: dict[str, tuple[OwnerKey, bytes] | None] = {}
+        self._unwrapped: dict[str, bytes] = {}
+        self._grace_start = None if robot.public_key else timezone.now() - KEY_ROTATION_GRACE
+        self._skew = timedelta(seconds=settings.KEY_ROTATION_CLOCK_SKEW)
 
-    def get(self, key_id: str) -> tuple[OwnerKey, bytes] | None:
-        """The key `key_id` and its bytes, or None if an upload may not be sealed under it."""
-        if key_id not in self._usable:
-            key = self._keys.get(key_id)
-            grace_start = timezone.now() - KEY_ROTATION_GRACE
-            usable = key is not None and (
-                key.is_current or (key.retired_at is not None and key.retired_at > grace_start)
-            )
-            self._usable[key_id] = (key, owner_key_bytes(key)) if usable else None
-        return self._usable[key_id]
+    def get(self, key_id: str, captured_at: datetime) -> tuple[OwnerKey, bytes] | None:
+        """The key `key_id` and its bytes, or None if an envelope captured at `captured_at` may
+        not be sealed under it."""
+        key = self._keys.get(key_id)
+        if key is None or not self._usable(key, captured_at):
+            return None
+        if key_id not in self._unwrapped:
+            self._unwrapped[key_id] = owner_key_bytes(key)
+        return key, self._unwrapped[key_id]
+
+    def _usable(self, key: OwnerKey, captured_at: datetime) -> bool:
+        if key.is_current:
+            return True
+        if key.retired_at is None:
+            return False
+        if self._grace_start is not None and key.retired_at > self._grace_start:
+            return True
+        return captured_at <= key.retired_at + self._skew
 
 
 def _check_upload(robot: Robot, data: bytes, keys: _UploadKeys) -> _CheckedUpload:
@@ -214,7 +230,8 @@ def _check_upload(robot: Robot, data: bytes, keys: _UploadKeys) -> _CheckedUploa
             raise InvalidEnvelope(f"{field} is longer than {MAX_FIELD_LENGTH} characters")
         if "\x00" in header[field]:
             raise InvalidEnvelope(f"{field} contains a NUL character")
-    usable = keys.get(info.key_id.hex())
+    captured_at = datetime.fromisoformat(header["time"].replace("Z", "+00:00"))
+    usable = keys.get(info.key_id.hex(), captured_at)
     if usable is None:
         raise UnknownKey("the envelope is not sealed under the owner's current key")
     key, key_bytes = usable
@@ -228,7 +245,6 @@ def _check_upload(robot: Robot, data: bytes, keys: _UploadKeys) -> _CheckedUploa
         )
         security_log.warning("forged upload refused: robot %s seq %s", robot.id, header["seq"])
         raise ForgedEnvelope("the envelope does not open under the owner's key") from None
-    captured_at = datetime.fromisoformat(header["time"].replace("Z", "+00:00"))
     if captured_at < EPOCH:
         # The chain stores capture times as unsigned microseconds since 1970.
         raise InvalidEnvelope("the capture time must be 1970-01-01T00:00:00Z or later")

@@ -52,6 +52,19 @@ def public_key_from_private(private_key_hex: str) -> str:
     return "04" + _multiply(_parse_private_key(private_key_hex), _G)
 
 
+def public_key_normalize(public_key_hex: str) -> str:
+    """The public key as `04||x||y` lowercase hex (130), checked to be a point on sm2p256v1
+    (gmssl does not check); InvalidKey otherwise."""
+    return "04" + _parse_public_key(public_key_hex)
+
+
+def fingerprint(public_key_hex: str) -> str:
+    """A short name of a public key for people to compare: the first 8 bytes of SM3 of
+    `04||x||y`, as four groups of four hex digits (`1a2b:3c4d:5e6f:7a8b`)."""
+    digest = sm3_digest(bytes.fromhex(public_key_normalize(public_key_hex))).hex()[:16]
+    return ":".join(digest[i : i + 4] for i in range(0, 16, 4))
+
+
 def encrypt(public_key_hex: str, data: bytes) -> str:
     """Encrypt data to a public key; return C1C3C2 hex with C1 as x||y (no `04`)."""
     point = _parse_public_key(public_key_hex)

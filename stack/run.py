@@ -53,6 +53,8 @@ BANNER = "AuthROS portal is up."
 STATE_FILE = "stack.json"
 WEB_START_TIMEOUT = 90.0
 ROS_START_TIMEOUT = 30.0
+# Seconds the demo robot's pairing may take (it is approved at once).
+PAIR_TIMEOUT = 60
 # Seconds between writes of the chain state (stack/anvil.py StateKeeper): a crash of anvil
 # loses at most the last second, about the last block.
 ANVIL_STATE_INTERVAL = 1.0
@@ -311,9 +313,48 @@ class Stack:
         self.demo = json.loads(
             self._manage("demo_setup", "--dir", str(demo_dir), "--portal-url", self.web_url)
         )
+        if not self.demo["robot_paired"]:
+            self._pair_demo_robot(Path(self.demo["robot_dir"]))
         self._say("starting the simulated robot and the demo owner's agent")
         self._spawn("sim", [PYTHON, "-m", "ros_agent.sim"])
-        self._spawn("agent", [PYTHON, "-m", "ros_agent", "--config", str(demo_dir / "agent.yaml")])
+        self._spawn("agent", [PYTHON, "-m", "ros_agent", "--config", self.demo["agent_config"]])
+
+    def _pair_demo_robot(self, folder: Path) -> None:
+        """Pair the demo robot as any robot is paired: `python -m ros_agent pair` makes its SM2
+        key pair and asks the portal; with no human here to type the code on the robots page,
+        `manage.py robot_pair_approve` answers for the demo owner through the same service; the
+        robot then receives its token and the owner's key encrypted to its SM2 key."""
+        self._say(f"pairing the demo robot (python -m ros_agent pair --dir {self._shown(folder)})")
+        log = (self.logs / "pair.log").open("ab")
+        robot = subprocess.Popen(
+            [PYTHON, "-m", "ros_agent", "pair", "--portal", self.web_url, "--name", "demo-robot",
+             "--dir", str(folder), "--json", "--timeout", str(PAIR_TIMEOUT)],
+            cwd=REPO_ROOT,
+            env=self._child_env(),
+            stdin=subprocess.DEVNULL,
+            stdout=subprocess.PIPE,
+            stderr=log,
+            text=True,
+        )  # fmt: skip
+        try:
+            requested = json.loads(robot.stdout.readline() or "{}")
+            if requested.get("event") != "requested":
+                raise StackError(f"the demo robot could not ask to be paired (see {log.name})")
+            self._manage(
+                "robot_pair_approve", "--owner", self.demo["username"], "--code", requested["code"]
+            )
+            robot.communicate(timeout=PAIR_TIMEOUT)
+        except subprocess.TimeoutExpired:
+            robot.kill()
+            robot.wait()
+            raise StackError(f"the demo robot was not paired in time (see {log.name})") from None
+        finally:
+            if robot.poll() is None:
+                robot.kill()
+                robot.wait()
+            log.close()
+        if robot.returncode != 0:
+            raise StackError(f"pairing the demo robot failed (see {log.name})")
 
     def _start_ros2(self) -> None:
         """The simulated ROS 2 robot and the agent in ROS 2 mode, over Cyclone DDS on loopback."""

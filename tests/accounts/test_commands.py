@@ -10,10 +10,10 @@ from pathlib import Path
 import pytest
 from django.core.management import CommandError, call_command
 
+from accounts.keyexchange import portal_sm2_public_key
 from accounts.models import ChainState, Owner, Robot
-from accounts.selectors import robot_by_token
-from ros_agent.config import load_config
-from smcrypto import key_id, sm4
+from accounts.selectors import owner_key_bytes, owner_key_current, robot_by_token
+from smcrypto import key_id, sm2, sm4
 from stack.anvil import start_anvil
 from tests.conftest import TEST_PASSWORD
 
@@ -57,8 +57,31 @@ def test_owner_create_reads_the_key_from_a_file(deployed, tmp_path):
     key = sm4.generate_key()
     key_file = tmp_path / "alice.sm4"
     key_file.write_text(key.hex() + "\n")
+    key_file.chmod(0o644)
+    with pytest.raises(CommandError, match="chmod 600"):
+        _owner_create("--username", "alice", "--sm4-key-file", str(key_file))
+    assert not Owner.objects.exists()
+    key_file.chmod(0o600)
     result = _owner_create("--username", "alice", "--sm4-key-file", str(key_file))
     assert result["key_id"] == key_id(key).hex()
+
+
+def test_owner_create_takes_the_key_sm2_encrypted_to_the_portal(deployed):
+    key = sm4.generate_key()
+    ciphertext = sm2.encrypt(portal_sm2_public_key(), key)
+    result = _owner_create("--username", "alice", "--sm4-key-sm2", ciphertext)
+    assert result["key_id"] == key_id(key).hex()
+    assert "sm4_key_hex" not in result  # given, so not shown again
+    assert owner_key_bytes(owner_key_current(Owner.objects.get())) == key
+
+
+def test_owner_create_refuses_a_key_encrypted_to_another_portal(deployed):
+    other_public = sm2.generate_keypair()[1]
+    with pytest.raises(CommandError, match="could not be decrypted"):
+        _owner_create(
+            "--username", "alice", "--sm4-key-sm2", sm2.encrypt(other_public, sm4.generate_key())
+        )
+    assert not Owner.objects.exists()
 
 
 @pytest.mark.parametrize(
@@ -185,28 +208,23 @@ def test_the_commands_as_an_operator_runs_them_against_anvil(tmp_path):
         assert "already has a robot named" in again.stderr
 
 
-def test_demo_setup_writes_an_agent_config_the_agent_loads_and_is_idempotent(deployed, tmp_path):
+def test_demo_setup_makes_the_owner_once_and_no_robot(deployed, tmp_path):
+    """The demo robot is paired by `make run` (tests/accounts/test_pairing_commands.py), not
+    made here: no key file, no token file."""
     folder = tmp_path / "demo"
     args = ("demo_setup", "--dir", str(folder), "--portal-url", "http://127.0.0.1:8123")
     out = StringIO()
     call_command(*args, stdout=out)
     first = json.loads(out.getvalue())
-    config = load_config(folder / "agent.yaml")
     owner = Owner.objects.get(user__username=first["username"])
     assert owner.chain_state == ChainState.CONFIRMED
     assert first["eoa"] == owner.eoa_address
-    assert config.portal_url == "http://127.0.0.1:8123"
-    assert config.owner == owner.username
-    assert config.key == bytes.fromhex((folder / "sm4.key").read_text().strip())
-    assert robot_by_token(config.token).owner == owner
-    assert [(t.name, t.type) for t in config.topics] == [
-        ("/robot/odom", "nav_msgs/Odometry"),
-        ("/robot/complicatedImage", "sensor_msgs/Image"),
-    ]
-    for name in ("sm4.key", "password", "robot.token"):
-        assert (folder / name).stat().st_mode & 0o777 == 0o600
+    assert first["robot_paired"] is False
+    assert first["agent_config"] == str(folder / "robot" / "agent.yaml")
+    assert (folder / "password").stat().st_mode & 0o777 == 0o600
+    assert sorted(path.name for path in folder.iterdir()) == ["password"]
 
     again = StringIO()
     call_command(*args, stdout=again)
     assert json.loads(again.getvalue()) == first
-    assert Robot.objects.filter(owner=owner).count() == 1
+    assert not Robot.objects.exists()

@@ -175,8 +175,13 @@ def _excluded_checks(operation: Any, identity: Identity) -> list[Callable]:
         # It swaps in a made-up token but leaves our session cookie: a valid login, rightly
         # accepted (a proxy's Basic credentials beside a session must not lock browsers out).
         excluded.append(checks.ignored_auth)
-    if operation.definition.raw.get("operationId") in ("records_upload", "grants_create"):
+    if operation.definition.raw.get("operationId") in (
+        "records_upload",
+        "grants_create",
+        "robot_pairing_create",
+    ):
         # Valid by the schema yet refused with 400 by design: random bytes are no envelope
-        # (`invalid_envelope`), and granting oneself is `self_grant`.
+        # (`invalid_envelope`), granting oneself is `self_grant`, and random hex is no point on
+        # the SM2 curve (`invalid_pairing_request`).
         excluded.append(checks.positive_data_acceptance)
     return excluded

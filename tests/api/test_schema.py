@@ -24,6 +24,12 @@ FIXED_OPERATIONS = {
     ("/api/v1/grants/", "post"),
     ("/api/v1/grants/{grantee}/", "delete"),
 }
+# Added by issue 14 (robot pairing), beside the fixed ones.
+PAIRING_OPERATIONS = {
+    ("/api/v1/robot-pairings/", "post"),
+    ("/api/v1/robot-pairings/{pairing_id}/collect/", "post"),
+    ("/api/v1/robot-key/", "get"),
+}
 
 
 def test_the_schema_validates_without_warnings(tmp_path: Path):
@@ -44,7 +50,11 @@ def test_the_served_schema_lists_exactly_the_fixed_endpoints(client):
         for method in item
         if method in {"get", "post", "put", "patch", "delete"}
     }
-    assert operations == FIXED_OPERATIONS
+    assert operations == FIXED_OPERATIONS | PAIRING_OPERATIONS
+    assert schema["paths"]["/api/v1/robot-key/"]["get"]["security"] == [{"robotToken": []}]
+    for path in ("/api/v1/robot-pairings/", "/api/v1/robot-pairings/{pairing_id}/collect/"):
+        # No credentials yet: the request secret travels in the body, never in the URL.
+        assert schema["paths"][path]["post"].get("security", [{}]) == [{}], path
     error = {"$ref": "#/components/schemas/Error"}
     for path, method in operations:
         responses = schema["paths"][path][method]["responses"]

@@ -1,5 +1,6 @@
 """agent.yaml and ROS-parameter settings: defaults, paths, and clear refusals."""
 
+import re
 from datetime import UTC, datetime
 from pathlib import Path
 
@@ -25,6 +26,8 @@ from ros_agent.config import (
     load_config,
     parse_topics,
 )
+from ros_agent.keyring import Keyring, key_id_hex, write_keys_file
+from smcrypto import sm2, sm4
 from tests.ros_agent.conftest import OWNER, ROBOT, TOKEN, write_key_file
 
 
@@ -314,3 +317,65 @@ def test_the_portal_refuses_the_topics_the_agent_refuses(tmp_path, key_file, ind
         assert fragment in portal
         # The agent names its source first; after that, the two messages are the same.
         assert agent == f"agent.yaml: {portal}"
+
+
+# --- a paired robot's settings (issue 14) --------------------------------------------------
+
+
+def _paired_files(folder: Path, owner_key: bytes, *, mode: int = 0o600) -> str:
+    private_key, _public = sm2.generate_keypair()
+    (folder / "robot.sm2").write_text(private_key + "\n")
+    (folder / "robot.sm2").chmod(0o600)
+    write_keys_file(
+        folder / "owner-keys.json", {key_id_hex(owner_key): owner_key}, key_id_hex(owner_key)
+    )
+    (folder / "owner-keys.json").chmod(mode)
+    return private_key
+
+
+def test_a_paired_robots_config_names_its_sm2_key_and_its_keys(tmp_path, owner_key):
+    private_key = _paired_files(tmp_path, owner_key)
+    settings = _settings(key_file=None, sm2_key_file="robot.sm2", keys_file="owner-keys.json")
+    config = load_config(_write(tmp_path, settings))
+    assert config.paired
+    assert config.key_file is None
+    assert config.key == owner_key
+    assert config.sm2_private_key == private_key
+    assert config.keyring.current() == (key_id_hex(owner_key), owner_key)
+    assert config.robot_key_url == "https://portal.example.org/api/v1/robot-key/"
+    assert private_key not in repr(config)
+
+
+def test_a_new_key_is_kept_on_disk_beside_the_old_ones(tmp_path, owner_key):
+    _paired_files(tmp_path, owner_key)
+    keyring = Keyring.load(tmp_path / "owner-keys.json")
+    new_key = sm4.generate_key()
+    assert keyring.add(new_key) is True
+    assert keyring.add(new_key) is False
+    again = Keyring.load(tmp_path / "owner-keys.json")
+    assert again.current() == (key_id_hex(new_key), new_key)
+    assert again.get(key_id_hex(owner_key)) == owner_key
+    assert (tmp_path / "owner-keys.json").stat().st_mode & 0o777 == 0o600
+
+
+@pytest.mark.parametrize(
+    ("overrides", "message"),
+    [
+        ({"sm2_key_file": "robot.sm2", "keys_file": "owner-keys.json"}, "key_file (or"),
+        ({"key_file": None, "sm2_key_file": "robot.sm2"}, "key_file (or"),
+        ({"key_file": None, "keys_file": "owner-keys.json"}, "key_file (or"),
+        ({"key_file": None}, "key_file (or"),
+    ],
+)
+def test_key_settings_are_one_key_file_or_a_pairing(tmp_path, owner_key, overrides, message):
+    write_key_file(tmp_path / "alice.sm4", owner_key)
+    _paired_files(tmp_path, owner_key)
+    with pytest.raises(ConfigError, match=re.escape(message)):
+        load_config(_write(tmp_path, _settings(**overrides)))
+
+
+def test_a_keys_file_others_may_read_is_refused(tmp_path, owner_key):
+    _paired_files(tmp_path, owner_key, mode=0o644)
+    settings = _settings(key_file=None, sm2_key_file="robot.sm2", keys_file="owner-keys.json")
+    with pytest.raises(ConfigError, match="chmod 600"):
+        load_config(_write(tmp_path, settings))

@@ -6,10 +6,11 @@ import pytest
 from std_msgs.msg import String
 
 from ros_agent.counters import AgentCounters
+from ros_agent.keyring import Keyring
 from ros_agent.spool import Spool
 from ros_agent.uploader import Outcome, PortalClient, Uploader
 from ros_agent.wrapping import Recorder
-from smcrypto import sm4
+from smcrypto import envelope, sm4
 from tests.ros_agent.conftest import OWNER, ROBOT, TOKEN, chatter_record, wait_until
 from tests.ros_agent.records_server import RECORDS_PATH
 
@@ -247,3 +248,55 @@ def test_stop_sends_what_is_queued(tmp_path, owner_key, portal):
     robot.uploader.stop(flush_timeout=2)
     assert _texts(portal) == robot.published
     assert len(robot.spool) == 0
+
+
+# --- a key rotation (issue 14): nothing goes to rejected/ -------------------------------------
+
+
+def test_envelopes_refused_after_a_rotation_are_resealed_under_the_new_key(tmp_path, portal):
+    """The portal took a new key while the robot was offline (the stand-in refuses the old
+    one outright): the paired agent fetches the new key, re-seals what it spooled and sends
+    it again; nothing is rejected, and what it records next is sealed under the new key."""
+    old_key, new_key = portal.key, sm4.generate_key()
+    keyring = Keyring.of_one(old_key)
+    fetched = []
+
+    def fetch_new_key() -> bool:  # KeyUpdater's part that talks to the portal is tested e2e
+        fetched.append(keyring.add(new_key))
+        return True
+
+    robot = Robot(
+        tmp_path, old_key, portal, batch_size=4, keyring=keyring, key_updater=fetch_new_key
+    )
+    robot.recorder = Recorder(
+        spool=robot.spool, keyring=keyring, owner=OWNER, robot=ROBOT, counters=robot.counters
+    )
+    try:
+        seqs = robot.publish(6)
+        portal.key = new_key  # the rotation
+        assert robot.uploader.drain() is EMPTY
+        robot.publish(2)
+        assert robot.uploader.drain() is EMPTY
+    finally:
+        robot.spool.close()
+    assert fetched[0] is True
+    assert portal.seqs[:6] == seqs
+    assert _texts(portal) == robot.published
+    assert robot.counters.failed == 0
+    assert not list((tmp_path / "spool" / "rejected").iterdir())
+    assert {record.envelope[4:12] for record in portal.records} == {envelope.key_id(new_key)}
+
+
+def test_a_refused_key_is_kept_when_the_new_key_cannot_be_fetched(tmp_path, portal):
+    keyring = Keyring.of_one(portal.key)
+    robot = Robot(
+        tmp_path, portal.key, portal, batch_size=4, keyring=keyring, key_updater=lambda: None
+    )
+    try:
+        robot.publish(3)
+        portal.key = sm4.generate_key()
+        assert robot.uploader.drain() is RETRY
+        assert len(robot.spool) == 3
+        assert robot.counters.failed == 0
+    finally:
+        robot.spool.close()

@@ -2,6 +2,7 @@
 
 import json
 import random
+import re
 import shutil
 import subprocess
 from pathlib import Path
@@ -325,3 +326,18 @@ def test_interoperates_with_browser_sm_crypto() -> None:
     assert sm2.decrypt(private, answer["ciphertext"]) == message
     assert sm2.public_key_from_private(answer["private_key"]) == answer["public_key"]
     assert sm2.verify(answer["public_key"], message, answer["signature"])
+
+
+def test_a_public_key_is_normalised_and_checked_on_the_curve():
+    _private, public = sm2.generate_keypair()
+    assert sm2.public_key_normalize(public[2:].upper()) == public
+    with pytest.raises(InvalidKey, match="not a point on the SM2 curve"):
+        sm2.public_key_normalize("04" + "11" * 64)
+
+
+def test_the_fingerprint_is_short_stable_and_tells_keys_apart():
+    _private, public = sm2.generate_keypair()
+    fingerprint = sm2.fingerprint(public)
+    assert re.fullmatch(r"[0-9a-f]{4}(:[0-9a-f]{4}){3}", fingerprint)
+    assert sm2.fingerprint(public[2:]) == fingerprint
+    assert sm2.fingerprint(sm2.generate_keypair()[1]) != fingerprint

@@ -18,6 +18,7 @@ from pathlib import Path
 import psutil
 import pytest
 import requests
+import yaml
 from django.conf import settings
 
 from stack.anvil import free_port
@@ -97,6 +98,12 @@ def test_make_run_serves_the_robots_data_verified_and_stops_everything(tmp_path)
         username = state["demo"]["username"]
         password = (workdir / "demo" / "password").read_text().strip()
         assert f"{username} / {password}" in _output(output)
+        # The demo robot was paired by SM2 (issue 14): no key file was copied to it.
+        demo_config = yaml.safe_load(Path(state["demo"]["agent_config"]).read_text())
+        assert "key_file" not in demo_config
+        assert demo_config["sm2_key_file"] == "robot.sm2"
+        assert not (workdir / "demo" / "sm4.key").exists()
+        assert "pairing the demo robot" in _output(output)
 
         missing = requests.get(f"{url}/no-such-page/", timeout=10)
         assert missing.status_code == 404

@@ -1,8 +1,12 @@
-"""`manage.py demo_setup --dir var/demo --portal-url URL`: a demo owner, robot and agent config.
+"""`manage.py demo_setup --dir var/demo`: a demo owner for `make run`, and whether its robot is
+paired.
 
-Used by `make run`. Idempotent: the owner is created once; the robot token and the owner's
-key live in 0600 files in --dir, and a new robot is made only when its token file is gone.
-Prints JSON with the owner's username, password file, EOA, robot id and the agent config path.
+Used by `make run`. Idempotent: the owner is created once (its SM4 key generated and kept by
+the portal only: the demo robot receives it by pairing, like any robot) and its password lives
+in a 0600 file in --dir. The robot is not made here: `make run` pairs it (`python -m ros_agent
+pair --dir DIR/robot`, approved with `manage.py robot_pair_approve`). Prints JSON with the
+owner's username, password file, EOA, the robot's folder and config, and `robot_paired`: whether
+that config's token still works (else `make run` pairs the robot again).
 """
 
 import json
@@ -11,26 +15,19 @@ import secrets
 from pathlib import Path
 from typing import Any
 
+import yaml
 from django.core.management.base import BaseCommand, CommandError, CommandParser
-from django.utils import timezone
 
-from accounts.agent_config import DEFAULT_TOPICS, agent_config_yaml
 from accounts.models import ChainState
 from accounts.selectors import owner_by_username, robot_by_token
-from accounts.services import (
-    owner_create,
-    owner_register_on_chain,
-    robot_create,
-    sm4_key_generate,
-)
+from accounts.services import owner_create, owner_register_on_chain, sm4_key_generate
 from chainworker.chain import ChainError
 
-# The demo agent sends often, so the simulated robot's data shows up within a second.
-DEMO_AGENT_OPTIONS = {"batch_size": 20, "flush_interval": 1.0, "spool_dir": "spool"}
+ROBOT_FOLDER = "robot"
 
 
 class Command(BaseCommand):
-    help = "Create (once) a demo owner with a robot, and write the robot's agent config."
+    help = "Create (once) a demo owner; say whether its robot's pairing still holds."
 
     def add_arguments(self, parser: CommandParser) -> None:
         parser.add_argument("--dir", default="var/demo", help="where the 0600 files go")
@@ -43,14 +40,12 @@ class Command(BaseCommand):
         username = options["username"]
         owner = owner_by_username(username)
         if owner is None:
-            key = sm4_key_generate()
             password = secrets.token_urlsafe(12)
-            owner = owner_create(username=username, password=password, sm4_key=key)
-            _write_private(folder / "sm4.key", key.hex())
+            owner = owner_create(username=username, password=password, sm4_key=sm4_key_generate())
             _write_private(folder / "password", password)
-        elif not (folder / "sm4.key").exists():
+        elif not (folder / "password").exists():
             raise CommandError(
-                f"owner {username!r} exists but {folder / 'sm4.key'} is gone: "
+                f"owner {username!r} exists but {folder / 'password'} is gone: "
                 "use another --username or --dir"
             )
         if owner.chain_state != ChainState.CONFIRMED:
@@ -58,36 +53,38 @@ class Command(BaseCommand):
                 owner = owner_register_on_chain(owner_id=owner.pk)
             except ChainError as exc:
                 raise CommandError(f"could not register {username} on chain: {exc}") from exc
-        token_file = folder / "robot.token"
-        config_file = folder / "agent.yaml"
-        token = token_file.read_text().strip() if token_file.exists() else ""
-        if not config_file.exists() or robot_by_token(token) is None:
-            robot, token = robot_create(owner=owner, name=f"demo-robot-{secrets.token_hex(3)}")
-            _write_private(token_file, token)
-            config_file.write_text(
-                agent_config_yaml(
-                    portal_url=options["portal_url"],
-                    robot_id=str(robot.pk),
-                    robot_name=robot.name,
-                    owner_username=username,
-                    topics=DEFAULT_TOPICS,
-                    token=None,
-                    made_at=timezone.now(),
-                    key_file="sm4.key",
-                    options=DEMO_AGENT_OPTIONS,
-                )
-            )
+        robot_folder = folder / ROBOT_FOLDER
+        config = robot_folder / "agent.yaml"
         self.stdout.write(
             json.dumps(
                 {
                     "username": username,
                     "password_file": str(folder / "password"),
                     "eoa": owner.eoa_address,
-                    "agent_config": str(config_file),
+                    "robot_dir": str(robot_folder),
+                    "agent_config": str(config),
+                    "robot_paired": _paired_with(config, owner.username, options["portal_url"]),
                 },
                 sort_keys=True,
             )
         )
+
+
+def _paired_with(config: Path, username: str, portal_url: str) -> bool:
+    """Whether the robot's config is a pairing with this owner, on this portal, whose token
+    still works."""
+    try:
+        settings = yaml.safe_load(config.read_text())
+        token = (config.parent / settings["token_file"]).read_text().strip()
+    except (OSError, yaml.YAMLError, KeyError, TypeError):
+        return False
+    robot = robot_by_token(token)
+    return (
+        robot is not None
+        and bool(robot.public_key)
+        and robot.owner.username == username
+        and settings.get("portal_url") == portal_url.rstrip("/")
+    )
 
 
 def _write_private(path: Path, text: str) -> None:

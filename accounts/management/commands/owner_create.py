@@ -1,15 +1,23 @@
-"""`manage.py owner_create --username U [--sm4-key-hex K]`: a new owner, registered on chain.
+"""`manage.py owner_create --username U [--sm4-key-sm2 C | --sm4-key-file F]`: a new owner,
+registered on chain.
 
 The password is read from standard input (prompted twice on a terminal), never from the
-command line. Without --sm4-key-hex or --sm4-key-file a random key is generated and printed
-once, as `sm4_key_hex` in the JSON output: keep it, the robots' key files need it. A given key
-that does not look random (a word, a pattern, a sequence) is refused. The command returns once
-the owner's EOA is funded, enrolled and registered on chain, and prints JSON with the EOA
-(`eoa`, also as `address`); it exits non-zero if that cannot be done.
+command line. The key is, in order of preference:
+- generated (no key option): printed once, as `sm4_key_hex` in the JSON output. Robots paired
+  with `python -m ros_agent pair` receive it by SM2 and need no copy of it;
+- `--sm4-key-sm2 C`: the key SM2-encrypted to the portal's public key (`GET
+  /api/v1/sm2-public-key/`, C1C3C2 hex), as the registration page sends it (DESIGN.md);
+- `--sm4-key-file F`: 32 hex digits in a file only its owner may read (mode 0600);
+- `--sm4-key-hex K`: kept for scripts written against the fixed interface, but the key is then
+  on the command line (`ps`, shell history): a warning says so.
+A given key that does not look random (a word, a pattern, a sequence) is refused. The command
+returns once the owner's EOA is funded, enrolled and registered on chain, and prints JSON with
+the EOA (`eoa`, also as `address`); it exits non-zero if that cannot be done.
 """
 
 import getpass
 import json
+import stat
 import sys
 import time
 from pathlib import Path
@@ -18,6 +26,7 @@ from typing import IO, Any
 from django.core.management.base import BaseCommand, CommandError, CommandParser
 
 from accounts.errors import AccountError, WeakPassword
+from accounts.keyexchange import sm4_key_from_submission
 from accounts.models import Owner
 from accounts.selectors import owner_key_current
 from accounts.services import owner_create, owner_register_on_chain, sm4_key_generate
@@ -43,7 +52,13 @@ class Command(BaseCommand):
         key.add_argument(
             "--sm4-key-file",
             type=Path,
-            help="a file holding the SM4 key as 32 hex digits (keeps it out of `ps`)",
+            help="a file holding the SM4 key as 32 hex digits, mode 0600 (keeps it out of `ps`)",
+        )
+        key.add_argument(
+            "--sm4-key-sm2",
+            metavar="HEX",
+            help="the SM4 key SM2-encrypted to the portal's public key (C1C3C2 hex), as the "
+            "registration page sends it",
         )
         parser.add_argument(
             "--timeout",
@@ -53,8 +68,20 @@ class Command(BaseCommand):
         )
 
     def handle(self, *args: Any, **options: Any) -> None:
-        given = options["sm4_key_hex"] is not None or options["sm4_key_file"] is not None
-        if given:
+        given = any(
+            options[name] is not None for name in ("sm4_key_hex", "sm4_key_file", "sm4_key_sm2")
+        )
+        if options["sm4_key_sm2"] is not None:
+            try:
+                sm4_key = sm4_key_from_submission(options["sm4_key_sm2"])
+            except AccountError as exc:
+                raise CommandError(str(exc)) from exc
+        elif given:
+            if options["sm4_key_hex"] is not None:
+                self.stderr.write(
+                    "warning: --sm4-key-hex puts the key on the command line, where `ps` and "
+                    "the shell history show it; prefer --sm4-key-sm2 or --sm4-key-file"
+                )
             sm4_key = _sm4_key(options["sm4_key_hex"], options["sm4_key_file"])
         else:
             sm4_key = sm4_key_generate()
@@ -94,6 +121,12 @@ class Command(BaseCommand):
 def _sm4_key(key_hex: str | None, key_file: Path | None) -> bytes:
     if key_file is not None:
         try:
+            mode = key_file.stat().st_mode
+            if mode & 0o077:
+                raise CommandError(
+                    f"the key file {key_file} has mode {stat.S_IMODE(mode):04o}, so other users "
+                    f"may read it; run: chmod 600 {key_file}"
+                )
             key_hex = key_file.read_text(encoding="ascii")
         except (OSError, UnicodeDecodeError) as exc:
             raise CommandError(f"cannot read the key file {key_file}: {exc}") from exc
