@@ -285,3 +285,11 @@ def test_another_owners_records_are_invisible(robot, fleet, make_robot, owner_ap
     planted = seal_for(robot.robot, robot.key, seq=99)
     answer = stranger_api.post(RECORDS, {"envelope": _b64(planted)}, format="json")
     assert answer.status_code == 403
+
+
+def test_a_post_to_no_endpoint_with_a_session_is_a_json_404(robot):
+    """Not Django's HTML CSRF page: the API answers in its own shape even there."""
+    browser = session_client(robot.owner, enforce_csrf=True)
+    answer = browser.post("/api/v1/no-such-endpoint/", {"x": 1}, format="json")
+    assert answer.status_code == 404
+    assert answer.json()["error"] == "not_found"
