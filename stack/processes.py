@@ -360,6 +360,19 @@ def _signal(pid: int, signum: int, *, group: bool) -> None:
         pass  # already gone
 
 
+def process_stop(process: subprocess.Popen, *, timeout: float, group: bool = False) -> None:
+    """SIGTERM a process started outside Children (its process group with `group`), SIGKILL
+    after `timeout` seconds; returns once it has exited."""
+    if process.poll() is not None:
+        return
+    _signal(process.pid, signal.SIGTERM, group=group)
+    try:
+        process.wait(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        _signal(process.pid, signal.SIGKILL, group=group)
+        process.wait()
+
+
 def exit_with_parent() -> None:
     """In the child, before exec: SIGTERM when the process that started it dies."""
     ctypes.CDLL(None, use_errno=True).prctl(_PR_SET_PDEATHSIG, signal.SIGTERM, 0, 0, 0)

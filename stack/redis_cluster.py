@@ -18,9 +18,11 @@ from typing import Self
 import redis
 
 from stack.anvil import HOST, free_port
+from stack.processes import process_stop
 
 MASTERS = 3
 STARTUP_TIMEOUT = 30.0
+STOP_TIMEOUT = 10.0
 
 
 class RedisClusterError(RuntimeError):
@@ -38,14 +40,7 @@ class RedisCluster:
 
     def stop(self) -> None:
         for process in self.processes:
-            if process.poll() is None:
-                process.terminate()
-        for process in self.processes:
-            try:
-                process.wait(timeout=10)
-            except subprocess.TimeoutExpired:
-                process.kill()
-                process.wait()
+            process_stop(process, timeout=STOP_TIMEOUT)
 
     def __enter__(self) -> Self:
         return self

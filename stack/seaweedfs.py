@@ -14,7 +14,6 @@ any credentials, as a throwaway server may.
 from __future__ import annotations
 
 import os
-import signal
 import subprocess
 import sys
 import time
@@ -24,7 +23,7 @@ from types import TracebackType
 from typing import Any, Self
 
 from stack.anvil import HOST, free_port
-from stack.processes import exit_with_parent
+from stack.processes import exit_with_parent, process_stop
 
 STARTUP_TIMEOUT = 60.0
 STOP_TIMEOUT = 10.0
@@ -98,13 +97,7 @@ class SeaweedProcess:
         }
 
     def stop(self) -> None:
-        if self.process.poll() is None:
-            os.killpg(self.process.pid, signal.SIGTERM)
-            try:
-                self.process.wait(timeout=STOP_TIMEOUT)
-            except subprocess.TimeoutExpired:
-                os.killpg(self.process.pid, signal.SIGKILL)
-                self.process.wait()
+        process_stop(self.process, timeout=STOP_TIMEOUT, group=True)
 
     def __enter__(self) -> Self:
         return self

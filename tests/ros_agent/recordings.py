@@ -303,21 +303,21 @@ def _without_iso(value: Any) -> Any:
 # --- recordings -------------------------------------------------------------------------------
 
 
+def _write_samples(writer: Any, samples: list[Sample], ts: Typestore, serialize: Any) -> None:
+    """Each sample into a rosbags writer (ROS 1 or rosbag2), one connection per topic."""
+    connections = {}
+    for sample in samples:
+        msgtype = ros2_type(sample.ros_type)
+        if sample.topic not in connections:
+            connections[sample.topic] = writer.add_connection(sample.topic, msgtype, typestore=ts)
+        writer.write(connections[sample.topic], sample.stamp_ns, serialize(sample.msg, msgtype))
+
+
 def write_ros1_bag(path: Path, samples: list[Sample], ts: Typestore) -> Path:
     from rosbags.rosbag1 import Writer
 
     with Writer(path) as writer:
-        connections = {}
-        for sample in samples:
-            if sample.topic not in connections:
-                connections[sample.topic] = writer.add_connection(
-                    sample.topic, ros2_type(sample.ros_type), typestore=ts
-                )
-            writer.write(
-                connections[sample.topic],
-                sample.stamp_ns,
-                ts.serialize_ros1(sample.msg, ros2_type(sample.ros_type)),
-            )
+        _write_samples(writer, samples, ts, ts.serialize_ros1)
     return path
 
 
@@ -327,16 +327,6 @@ def write_ros2_bag(folder: Path, samples: list[Sample], ts: Typestore, *, mcap: 
 
     plugin = StoragePlugin.MCAP if mcap else StoragePlugin.SQLITE3
     with Writer(folder, version=9, storage_plugin=plugin) as writer:
-        connections = {}
-        for sample in samples:
-            if sample.topic not in connections:
-                connections[sample.topic] = writer.add_connection(
-                    sample.topic, ros2_type(sample.ros_type), typestore=ts
-                )
-            writer.write(
-                connections[sample.topic],
-                sample.stamp_ns,
-                ts.serialize_cdr(sample.msg, ros2_type(sample.ros_type)),
-            )
+        _write_samples(writer, samples, ts, ts.serialize_cdr)
     (storage,) = [p for p in folder.iterdir() if p.suffix in (".db3", ".mcap")]
     return storage

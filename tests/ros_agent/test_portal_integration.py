@@ -32,7 +32,7 @@ from sharing.models import Record
 from sharing.verification import record_open
 from smcrypto import sm4
 from tests.anchoring_checks import assert_anchored_exactly_once
-from tests.conftest import TEST_PASSWORD
+from tests.conftest import TEST_PASSWORD, RobotSetup
 from tests.ros_agent.conftest import (
     OWNER,
     RosMaster,
@@ -42,8 +42,8 @@ from tests.ros_agent.conftest import (
     running,
     stop_process,
     wait_until,
-    write_key_file,
 )
+from tests.ros_agent.portal_checks import robot_config
 from tests.stack import WorkerStack, wait_for
 
 pytestmark = [
@@ -87,32 +87,13 @@ def _agent_config(folder: Path, stack: WorkerStack) -> Path:
         timeout=60,
         what="the owner's registration on chain by the worker",
     )
-    write_key_file(folder / "owner.sm4", key)
-    token_file = folder / "robot.token"
-    token_file.write_text(token)
-    token_file.chmod(0o600)
     topics = [
         (CHATTER, "std_msgs/String"),
         (sim.ODOM_TOPIC, "nav_msgs/Odometry"),
         (sim.IMAGE_TOPIC, "sensor_msgs/Image"),
     ]
-    config = {
-        "portal_url": stack.web_url,
-        "token_file": "robot.token",
-        "robot": str(robot.id),
-        "owner": OWNER,
-        "key_file": "owner.sm4",
-        "topics": [{"name": name, "type": ros_type} for name, ros_type in topics],
-        "spool_dir": "spool",
-        "batch_size": 20,
-        "flush_interval": 0.2,
-        "backoff_max": 1.0,
-        "stats_interval": 1.0,
-        "shutdown_flush": 10.0,
-    }
-    path = folder / "agent.yaml"
-    path.write_text(yaml.safe_dump(config))
-    return path
+    setup = RobotSetup(owner, key, robot, token)
+    return robot_config(folder, url=stack.web_url, setup=setup, topics=topics)
 
 
 def _subscribed(master: RosMaster, *topics: str) -> bool:
