@@ -124,3 +124,15 @@ class RobotNotPaired(AccountError):
 
     code = "robot_not_paired"
     http_status = 409
+
+
+class WrongPassword(AccountError):
+    """A sensitive action (deleting the account) confirmed with another password than the
+    owner's."""
+
+    code = "wrong_password"
+    http_status = 403
+
+
+class InvalidRetention(AccountError):
+    code = "invalid_retention"

@@ -16,7 +16,7 @@ from django.core.exceptions import ValidationError
 from accounts.agent_config import DEFAULT_TOPICS, Topic
 from accounts.errors import InvalidKeyMaterial
 from accounts.keyexchange import sm4_key_from_submission
-from accounts.models import OwnerToken, validate_robot_topics
+from accounts.models import RETENTION_MAX_DAYS, OwnerToken, validate_robot_topics
 
 NO_SCRIPT_KEY = (
     "Your key was not encrypted in the browser, so it was not sent. This page needs "
@@ -207,3 +207,16 @@ class PairingAnswerForm(forms.Form):
     def __init__(self, *args: object, **kwargs: object) -> None:
         kwargs.setdefault("auto_id", "answer_%s")  # beside the code form on the same page
         super().__init__(*args, **kwargs)
+
+
+class RobotRetentionForm(forms.Form):
+    """How long a robot's records are kept; empty: until deleted by hand."""
+
+    retention_days = forms.IntegerField(
+        label="Keep records (days)",
+        required=False,
+        min_value=1,
+        max_value=RETENTION_MAX_DAYS,
+        help_text="Records captured longer ago are deleted, hourly. Empty: kept forever.",
+        widget=forms.NumberInput(attrs={"inputmode": "numeric", "placeholder": "forever"}),
+    )

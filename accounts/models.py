@@ -25,6 +25,10 @@ def validate_robot_topics(value: object) -> None:
         raise ValidationError(str(exc), code=code) from None
 
 
+# The longest retention an owner may set on a robot (a hundred years); None keeps forever.
+RETENTION_MAX_DAYS = 36500
+
+
 class ChainState(models.TextChoices):
     """Where an on-chain action stands: the portal's row moves on the chain's confirmation."""
 
@@ -69,6 +73,9 @@ class Owner(models.Model):
     )
     approved_at = models.DateTimeField(null=True, blank=True)
     created_at = models.DateTimeField(auto_now_add=True)
+    # The owner deleted the account: no sign-in, credentials revoked, records deleted; the
+    # row (and its user, so the username) stays, so that nobody can take the name over.
+    deleted_at = models.DateTimeField(null=True, blank=True)
 
     class Meta:
         ordering = ["user__username"]
@@ -124,9 +131,13 @@ class Robot(models.Model):
         max_length=8, help_text="first characters, to tell tokens apart"
     )
     last_seq = models.BigIntegerField(default=-1)
+    # When its last upload was stored: what the silent-robot alert watches.
+    last_upload_at = models.DateTimeField(null=True, blank=True)
     # What the robot's agent subscribes to: [{"name": "/robot/odom", "type": "nav_msgs/..."}].
     topics = models.JSONField(default=default_robot_topics, validators=[validate_robot_topics])
     is_active = models.BooleanField(default=True)
+    # Days of its records kept (by capture time); None: kept until deleted by hand.
+    retention_days = models.PositiveIntegerField(null=True, blank=True)
     # The robot's SM2 public key (`04||x||y` hex) when it was paired (RobotPairing): the
     # owner's SM4 key is sent to it encrypted to this key. Empty for robots added by hand.
     public_key = models.CharField(max_length=130, blank=True)
@@ -204,6 +215,7 @@ class OwnerToken(models.Model):
     class Scope(models.TextChoices):
         READ = "read", "read records and their content"
         SHARE = "share", "grant and revoke access"
+        DELETE = "delete", "delete records"
 
     owner = models.ForeignKey(Owner, on_delete=models.CASCADE, related_name="api_tokens")
     name = models.CharField(max_length=100)
@@ -211,7 +223,7 @@ class OwnerToken(models.Model):
     token_prefix = models.CharField(
         max_length=12, help_text="first characters, to tell tokens apart"
     )
-    scopes = models.JSONField(default=list, help_text='a subset of ["read", "share"]')
+    scopes = models.JSONField(default=list, help_text='a subset of ["read", "share", "delete"]')
     expires_at = models.DateTimeField()
     created_at = models.DateTimeField(auto_now_add=True)
     last_used_at = models.DateTimeField(null=True, blank=True)
@@ -249,6 +261,9 @@ class AccountEvent(models.Model):
         )
         SIGNUP_APPROVED = "signup_approved", "sign-up approved"
         SIGNUP_REFUSED = "signup_refused", "sign-up refused"
+        RECORDS_DELETED = "records_deleted", "records deleted"
+        RETENTION_SET = "retention_set", "robot's retention changed"
+        ACCOUNT_DELETED = "account_deleted", "account deleted"
 
     # Kinds the owner is alerted to (an alarm on the security page, a notice on sign-in).
     ALARM_KINDS = (Kind.IDENTITY_MISMATCH, Kind.PAIRING_SECRET_MISMATCH)

@@ -55,11 +55,21 @@ def owner_key_bytes(owner_key: OwnerKey) -> bytes:
 
 
 def owner_by_username(username: str) -> Owner | None:
-    return Owner.objects.select_related("user").filter(user__username=username).first()
+    """The owner of that username, unless the account was deleted."""
+    return (
+        Owner.objects.select_related("user")
+        .filter(user__username=username, deleted_at__isnull=True)
+        .first()
+    )
 
 
 def owner_by_address(address: str) -> Owner | None:
-    return Owner.objects.select_related("user").filter(eoa_address__iexact=address).first()
+    """The owner of that EOA, unless the account was deleted."""
+    return (
+        Owner.objects.select_related("user")
+        .filter(eoa_address__iexact=address, deleted_at__isnull=True)
+        .first()
+    )
 
 
 def owner_by_identifier(identifier: str) -> Owner | None:

@@ -31,6 +31,7 @@ from accounts.errors import (
     InvalidKeyMaterial,
     InvalidOwnerToken,
     InvalidPairingRequest,
+    InvalidRetention,
     InvalidRobotName,
     InvalidUsername,
     KeyAlreadyUsed,
@@ -44,11 +45,13 @@ from accounts.errors import (
     RobotNameTaken,
     UsernameTaken,
     WeakPassword,
+    WrongPassword,
 )
 from accounts.events import account_event_record
 from accounts.identity import owner_identity_check
 from accounts.models import (
     DEFAULT_TOPICS,
+    RETENTION_MAX_DAYS,
     AccountEvent,
     Approval,
     ChainActivity,
@@ -194,6 +197,85 @@ def robot_token_revoke(*, robot: Robot, actor: AbstractBaseUser | None = None) -
             )
     robot.refresh_from_db()
     return robot
+
+
+def robot_retention_set(*, robot: Robot, days: int | None, actor: AbstractBaseUser) -> Robot:
+    """Keep the robot's records `days` days after their capture (None: until deleted by
+    hand); older ones are deleted by sharing.deletion.retention_apply, the beat task. The
+    owner's security page shows the change."""
+    if days is not None and (
+        isinstance(days, bool) or not isinstance(days, int) or not 1 <= days <= RETENTION_MAX_DAYS
+    ):
+        raise InvalidRetention(
+            f"keep records 1 to {RETENTION_MAX_DAYS} days, or leave it empty to keep them forever"
+        )
+    with transaction.atomic():
+        before = Robot.objects.select_for_update().get(pk=robot.pk).retention_days
+        if before != days:
+            Robot.objects.filter(pk=robot.pk).update(retention_days=days)
+            account_event_record(
+                owner=robot.owner,
+                kind=AccountEvent.Kind.RETENTION_SET,
+                actor=actor,
+                detail={
+                    "robot": robot.name,
+                    "before": _retention_text(before),
+                    "now": _retention_text(days),
+                },
+            )
+    robot.refresh_from_db()
+    return robot
+
+
+def _retention_text(days: int | None) -> str:
+    return "forever" if days is None else f"{days} days"
+
+
+def owner_password_confirm(*, owner: Owner, password: str) -> None:
+    """WrongPassword unless `password` is the owner's: a sensitive action asks for it again
+    (a stolen session cookie is not enough)."""
+    if not isinstance(password, str) or not owner.user.check_password(password):
+        raise WrongPassword("this is not your password: nothing was changed")
+
+
+def owner_close(*, owner: Owner, actor: AbstractBaseUser) -> Owner:
+    """The accounts side of deleting an account (sharing.deletion.account_delete does the
+    records and grants, in the same transaction): no sign-in any more (inactive, no usable
+    password), every owner API token and robot token revoked, pairing requests refused.
+
+    The owner and user rows stay: the username stays taken, so nobody can register it and
+    pass for the owner (envelopes and grants name owners by username), and the tombstones of
+    the records keep naming their owner. The EOA's wrapped key stays too: the revocations of
+    the owner's grants are signed with it (the chain keeps the EOA and its history forever).
+    """
+    now = timezone.now()
+    with transaction.atomic():
+        locked = Owner.objects.select_for_update().get(pk=owner.pk)
+        if locked.deleted_at is not None:
+            return locked
+        Owner.objects.filter(pk=owner.pk).update(deleted_at=now)
+        user = owner.user
+        user.is_active = False
+        user.set_unusable_password()
+        user.save(update_fields=["is_active", "password"])
+        tokens = OwnerToken.objects.filter(owner=owner, revoked_at__isnull=True).update(
+            revoked_at=now
+        )
+        robots = Robot.objects.filter(owner=owner, is_active=True).update(
+            is_active=False, revoked_at=now
+        )
+        RobotPairing.objects.filter(
+            owner=owner, state__in=[RobotPairing.State.PENDING, RobotPairing.State.APPROVED]
+        ).update(state=RobotPairing.State.REFUSED, token_sm2="", answered_at=now)
+        account_event_record(
+            owner=owner,
+            kind=AccountEvent.Kind.ACCOUNT_DELETED,
+            actor=actor,
+            detail={"api_tokens_revoked": tokens, "robot_tokens_revoked": robots},
+        )
+    security_log.info("owner %s deleted their account", owner.pk)
+    owner.refresh_from_db()
+    return owner
 
 
 # --- on chain (run by the worker) ---------------------------------------------------------

@@ -16,6 +16,7 @@ urlpatterns = [
     path("robots/", views.robots, name="robots"),
     path("robots/pair/", views.robot_pair, name="robot-pair"),
     path("robots/<uuid:robot_id>/revoke/", views.robot_revoke, name="robot-revoke"),
+    path("robots/<uuid:robot_id>/retention/", views.robot_retention, name="robot-retention"),
     path("robots/<uuid:robot_id>/agent.yaml", views.robot_config, name="robot-config"),
     # Revoking one is sharing's page (`api-token-revoke`): it takes back the grants it made.
     path("account/tokens/", views.api_tokens, name="api-tokens"),

@@ -42,6 +42,7 @@ from accounts.forms import (
     PairingCodeForm,
     RegisterForm,
     RobotCreateForm,
+    RobotRetentionForm,
 )
 from accounts.keyexchange import portal_sm2_public_key
 from accounts.models import ChainState, Owner, Robot
@@ -63,6 +64,7 @@ from accounts.services import (
     owner_token_create,
     robot_create,
     robot_pairing_answer,
+    robot_retention_set,
     robot_token_revoke,
 )
 from accounts.signup_limits import signup_slot_give_back, signup_slot_take
@@ -359,11 +361,15 @@ def robot_pair(request: HttpRequest) -> HttpResponse:
     return redirect("robots")
 
 
+@never_cache
 @owner_required
 @page_throttle()
-@require_POST
+@require_http_methods(["GET", "POST"])
 def robot_revoke(request: HttpRequest, robot_id: str) -> HttpResponse:
+    """GET: what revoking (unpairing) the robot does, to confirm; POST: revoke its token."""
     robot = get_object_or_404(Robot, pk=robot_id, owner=request.owner)
+    if request.method == "GET":
+        return render(request, "accounts/robot_revoke.html", {"robot": robot})
     if robot.is_active:
         robot_token_revoke(robot=robot, actor=request.user)
         messages.success(
@@ -373,6 +379,30 @@ def robot_revoke(request: HttpRequest, robot_id: str) -> HttpResponse:
         )
     else:
         messages.info(request, f"The token of {robot.name} was already revoked.")
+    return redirect("robots")
+
+
+@owner_required
+@page_throttle()
+@require_POST
+def robot_retention(request: HttpRequest, robot_id: str) -> HttpResponse:
+    """Set how many days the robot's records are kept (empty: forever)."""
+    robot = get_object_or_404(Robot, pk=robot_id, owner=request.owner)
+    form = RobotRetentionForm(request.POST)
+    if not form.is_valid():
+        errors = "; ".join(form.errors.get("retention_days", ["not a number of days"]))
+        messages.error(request, f"Retention of {robot.name} unchanged: {errors}")
+        return redirect("robots")
+    days = form.cleaned_data["retention_days"]
+    robot_retention_set(robot=robot, days=days, actor=request.user)
+    if days is None:
+        messages.success(request, f"The records of {robot.name} are kept until you delete them.")
+    else:
+        messages.success(
+            request,
+            f"The records of {robot.name} are kept {days} day{'s' if days != 1 else ''} after "
+            "capture; older ones are deleted within the hour (once anchored).",
+        )
     return redirect("robots")
 
 

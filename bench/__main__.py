@@ -34,7 +34,10 @@ def main(argv: list[str]) -> int:
 
 def _run(name: str, args: list[str]) -> int:
     module = importlib.import_module(f"bench.{name}")
-    return module.main(args) or 0
+    try:
+        return module.main(args) or 0
+    except SystemExit as exc:  # refused its arguments (e.g. postgres-s3 without a server):
+        return exc.code if isinstance(exc.code, int) else 1  # the others still run
 
 
 if __name__ == "__main__":

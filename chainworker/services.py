@@ -131,21 +131,28 @@ class DeployOutcome:
     reason: str
 
 
-def contract_deploy(*, force: bool = False) -> DeployOutcome:
+def contract_deploy(*, force: bool = False, replace_outdated: bool = False) -> DeployOutcome:
     """Deploy the AuthROS contract once per chain and record where it is.
 
     Idempotent: with an active deployment whose code is still on chain, nothing is sent.
-    `force` deploys a new contract and retires the old record.
+    `force` deploys a new contract and retires the old record; `replace_outdated` does so only
+    if the active one was built from another contracts/AuthROS.sol, decided under the lock, so
+    that processes handling one reset at once deploy once.
     """
     client = chain_client()
     operator = operator_account()
     with exclusive(f"deploy:{client.chain_key}", timeout=300, wait=300):
         current = deployment_active(chain_id=client.chain_id, genesis_hash=client.genesis_hash)
         if current and not force:
-            if client.has_code(current.address):
+            outdated = replace_outdated and _deployment_outdated(client, current)
+            if client.has_code(current.address) and not outdated:
                 client.use_contract(current.address)
                 return DeployOutcome(current, created=False, reason="already deployed")
-            reason = f"no code at recorded address {current.address} (chain was reset)"
+            reason = (
+                f"the contract at {current.address} was built from an older source"
+                if outdated
+                else f"no code at recorded address {current.address} (chain was reset)"
+            )
         else:
             reason = "forced" if current else "first deployment"
         operator_ensure_funded(client=client, operator=operator)
@@ -372,7 +379,23 @@ def chain_identity() -> ChainIdentity:
     if not client.has_code(address):
         reason = f"no contract code at {address} on chain id {chain_id} (the chain was reset)"
         return ChainIdentity(IDENTITY_RESET, reason, development, deployment)
+    if development and not pinned and _deployment_outdated(client, deployment):
+        # A development chain (`make run`'s anvil state) holding the contract of an older
+        # contracts/AuthROS.sol: deployed again and re-created from the database like a reset
+        # one. A real network keeps its contract: docs/operations.md says how to upgrade it.
+        reason = (
+            f"the contract at {address} was built from an older contracts/AuthROS.sol "
+            f"({deployment.source_keccak[:12]}…, now {client.artifact.source_keccak[:12]}…)"
+        )
+        return ChainIdentity(IDENTITY_RESET, reason, development, deployment)
     return ChainIdentity(IDENTITY_SAME, "", development, deployment)
+
+
+def _deployment_outdated(client: AuthROSChain, deployment: Deployment) -> bool:
+    """Whether the deployment was built from another source than the artifact in use (rows
+    recorded without a source hash count as current)."""
+    recorded = deployment.source_keccak
+    return bool(recorded) and recorded != client.artifact.source_keccak
 
 
 def _identity_cache_key() -> str:
@@ -415,7 +438,9 @@ def contract_redeploy_after_reset() -> DeployOutcome:
     """Deploy the contract on the chain the node is now (a reset chain) and make it the only
     active deployment; the operator's nonce counter starts again from the node."""
     chain_identity()  # drops a client built for the chain before the reset
-    outcome = contract_deploy()
+    # A development chain's outdated contract still has code at its address: replaced; not
+    # forced, or every process handling the same reset would deploy again over the others.
+    outcome = contract_deploy(replace_outdated=True)
     Deployment.objects.filter(is_active=True).exclude(pk=outcome.deployment.pk).update(
         is_active=False
     )

@@ -20,6 +20,14 @@ contract AuthROS {
         uint64 blockNumber;
     }
 
+    /// @dev A grant's limits: `scope` is the SM3 commitment to the canonical encoding of the
+    /// robots, topics and capture-time window it covers (docs/grants.md; 0 = all records),
+    /// `expiry` the unix time (seconds) from which it no longer gives access (0 = never).
+    struct GrantTerms {
+        bytes32 scope;
+        uint64 expiry;
+    }
+
     /// @notice Largest batch accepted by dataUploadBatch (keeps a full batch well under 30M gas).
     uint256 public constant MAX_BATCH = 256;
 
@@ -42,6 +50,8 @@ contract AuthROS {
     mapping(bytes32 id => Record) private _records;
     mapping(address owner => mapping(address grantee => bool)) private _granted;
     mapping(address sender => mapping(bytes32 root => Root)) private _roots;
+    /// @dev The terms of a grant: its scope commitment (0 = all records) and expiry (0 = none).
+    mapping(address owner => mapping(address grantee => GrantTerms)) private _terms;
 
     event Enrolled(address indexed eoa);
     event Registered(address indexed eoa, bytes32 commitment);
@@ -54,6 +64,10 @@ contract AuthROS {
     );
     event AuthorityGranted(address indexed owner, address indexed grantee);
     event AuthorityRevoked(address indexed owner, address indexed grantee);
+    /// @notice A grant's terms were set (a new grant, or a change of an existing one).
+    event AuthorityScoped(
+        address indexed owner, address indexed grantee, bytes32 scope, uint64 expiry
+    );
 
     error NotAdmin(address caller);
     error ZeroAddress();
@@ -73,6 +87,8 @@ contract AuthROS {
     error SelfGrant();
     error AlreadyGranted(address grantee);
     error NoGrant(address grantee);
+    error ExpiryInPast(uint64 expiry, uint64 now_);
+    error SameTerms(address grantee);
     error EmptyRoot();
     error EmptyTree();
     error RootExists(bytes32 root);
@@ -179,10 +195,35 @@ contract AuthROS {
         emit AuthorityGranted(msg.sender, grantee);
     }
 
+    /// @notice Let a registered grantee read those of the caller's records that `scope`
+    /// covers, until `expiry`; or change the terms of the caller's grant to it. A grant made
+    /// by authorityGrant has the terms (0, 0): all records, no expiry.
+    function authorityGrantScoped(address grantee, bytes32 scope, uint64 expiry)
+        external
+        onlyRegistered
+    {
+        if (grantee == msg.sender) revert SelfGrant();
+        if (commitmentOf[grantee] == 0) revert GranteeNotRegistered(grantee);
+        if (expiry != 0 && expiry <= block.timestamp) {
+            revert ExpiryInPast(expiry, uint64(block.timestamp));
+        }
+        GrantTerms storage terms = _terms[msg.sender][grantee];
+        if (_granted[msg.sender][grantee]) {
+            if (terms.scope == scope && terms.expiry == expiry) revert SameTerms(grantee);
+        } else {
+            _granted[msg.sender][grantee] = true;
+            emit AuthorityGranted(msg.sender, grantee);
+        }
+        terms.scope = scope;
+        terms.expiry = expiry;
+        emit AuthorityScoped(msg.sender, grantee, scope, expiry);
+    }
+
     /// @notice Withdraw a grant made earlier by the caller.
     function authorityRevoke(address grantee) external onlyRegistered {
         if (!_granted[msg.sender][grantee]) revert NoGrant(grantee);
         delete _granted[msg.sender][grantee];
+        delete _terms[msg.sender][grantee];
         emit AuthorityRevoked(msg.sender, grantee);
     }
 
@@ -202,10 +243,24 @@ contract AuthROS {
         return r.owner != address(0) && r.digest == digest;
     }
 
-    /// @notice True iff viewer is the registered owner itself or holds a live grant from it.
+    /// @notice True iff viewer is the registered owner itself or holds a live grant from it
+    /// (granted and not expired; a scoped grant counts: its scope is enforced at view).
     function hasAccess(address owner, address viewer) external view returns (bool) {
         if (owner == viewer) return commitmentOf[owner] != 0;
-        return _granted[owner][viewer];
+        return _granted[owner][viewer] && _unexpired(_terms[owner][viewer].expiry);
+    }
+
+    /// @notice The grant from `owner` to `grantee` in one call: whether it gives access now
+    /// (granted and not expired), its scope commitment (0 = all records) and its expiry
+    /// (0 = never). An expired grant answers live = false with its terms.
+    function grantOf(address owner, address grantee)
+        external
+        view
+        returns (bool live, bytes32 scope, uint64 expiry)
+    {
+        GrantTerms storage terms = _terms[owner][grantee];
+        bool granted = _granted[owner][grantee];
+        return (granted && _unexpired(terms.expiry), terms.scope, terms.expiry);
     }
 
     /// @notice A root as `sender` anchored it: size 0 if it never did.
@@ -221,6 +276,10 @@ contract AuthROS {
     /// @notice True iff the EOA has registered a key commitment.
     function isRegistered(address eoa) external view returns (bool) {
         return commitmentOf[eoa] != 0;
+    }
+
+    function _unexpired(uint64 expiry) private view returns (bool) {
+        return expiry == 0 || block.timestamp < expiry;
     }
 
     function _store(bytes32 id, bytes32 digest, uint64 time, bytes32 dataType) private {

@@ -121,6 +121,7 @@ _ERROR_DESCRIPTIONS = {
     403: "refused: `permission_denied`, `access_denied`, `header_mismatch`, ...",
     404: "`not_found`",
     409: "conflicts with the current state",
+    410: "`record_deleted`: the record was deleted; its metadata and proof stay",
     413: "`request_too_large`: the request body, or `envelope_too_large`: one envelope",
     415: "`unsupported_media_type`: send `application/json`",
     429: "`rate_limited`: wait for `Retry-After` seconds",

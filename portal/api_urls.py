@@ -6,6 +6,10 @@ from drf_spectacular.views import SpectacularAPIView, SpectacularSwaggerView
 from accounts.apis import RobotKeyApi, RobotPairingCollectApi, RobotPairingsApi, Sm2PublicKeyApi
 from core.api_errors import api_not_found
 from sharing.apis import (
+    AccessLogApi,
+    ExportDetailApi,
+    ExportFileApi,
+    ExportsApi,
     GrantRevokeApi,
     GrantsApi,
     RecordContentApi,
@@ -28,7 +32,15 @@ v1 = [
     path("records/<str:record_id>/content/", RecordContentApi.as_view(), name="record-content"),
     path("records/<str:record_id>/proof/", RecordProofApi.as_view(), name="record-proof"),
     path("grants/", GrantsApi.as_view(), name="grants"),
+    path("exports/", ExportsApi.as_view(), name="exports"),
+    path("exports/<str:export_id>/", ExportDetailApi.as_view(), name="export-detail"),
+    path(
+        "exports/<str:export_id>/<str:part>/",
+        ExportFileApi.as_view(),
+        name="export-file",
+    ),
     path("grants/<str:grantee>/", GrantRevokeApi.as_view(), name="grant-revoke"),
+    path("access-log/", AccessLogApi.as_view(), name="access-log"),
 ]
 
 urlpatterns = [

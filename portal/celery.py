@@ -5,7 +5,7 @@ import os
 import threading
 
 from celery import Celery, signals
-from django.db import connections
+from django.db import close_old_connections, connections
 
 from portal.middleware import service_checks_run
 
@@ -31,6 +31,17 @@ app = Celery("portal")
 app.config_from_object("django.conf:settings", namespace="CELERY")
 app.conf.task_routes = (route_task,)
 app.autodiscover_tasks()
+
+
+@signals.task_prerun.connect
+@signals.task_postrun.connect
+def task_connections_tidy(**kwargs: object) -> None:
+    """Around every task, what Django does around every request: close a connection that
+    failed or is older than CONN_MAX_AGE (settings.CELERY_DB_REUSE_MAX keeps Celery from
+    closing each one); with DATABASE_CONN_MAX_AGE=0 that is every one, as before."""
+    task = kwargs.get("task")
+    if not getattr(getattr(task, "request", None), "is_eager", False):
+        close_old_connections()
 
 
 @signals.worker_init.connect

@@ -12,6 +12,7 @@ import environ
 from django.core.exceptions import ImproperlyConfigured
 from kombu import Queue
 
+from core.redis_url import celery_redis, redis_target
 from core.secrets import load_or_create_secret
 from core.storage_url import envelope_storage_config
 
@@ -56,6 +57,7 @@ INSTALLED_APPS = [
     "axes",
     "accounts",
     "sharing",
+    "alerts",
     "chainworker",
 ]
 
@@ -101,7 +103,11 @@ TEMPLATES = [
 DATABASES = {
     "default": env.db("DATABASE_URL", default=f"sqlite:///{VAR_DIR / 'db.sqlite3'}"),
 }
-DATABASES["default"]["CONN_MAX_AGE"] = env.int("DATABASE_CONN_MAX_AGE", default=0)
+# Persistent connections: a new one per request costs more than the request (SQLite's PRAGMAs,
+# PostgreSQL's connection set-up). Each gunicorn thread and worker process keeps one; with a
+# pooler (PgBouncer, transaction mode) in front set DATABASE_CONN_MAX_AGE=0.
+DATABASES["default"]["CONN_MAX_AGE"] = env.int("DATABASE_CONN_MAX_AGE", default=60)
+DATABASES["default"]["CONN_HEALTH_CHECKS"] = True
 if DATABASES["default"]["ENGINE"] == "django.db.backends.sqlite3":
     # Several processes (web, workers) share the file: WAL, and take the write lock up front.
     DATABASES["default"].setdefault("OPTIONS", {}).update(
@@ -119,12 +125,15 @@ else:
     DATABASES["default"]["TEST"] = {"NAME": f"test_{DATABASES['default']['NAME']}_{os.getpid()}"}
 DEFAULT_AUTO_FIELD = "django.db.models.BigAutoField"
 
+# A plain Redis, Sentinels (sentinel://H:P,H:P/DB?master=NAME) or a Cluster
+# (redis+cluster://H:P,H:P): core/redis_url.py. A URL it cannot read stops every process here.
 REDIS_URL = env.str("REDIS_URL", default="redis://127.0.0.1:6379/0")
+_REDIS = redis_target(REDIS_URL)
 # Every key the portal writes starts with this, so several portals can share one Redis.
 REDIS_KEY_PREFIX = env.str("REDIS_KEY_PREFIX", default="authros")
 CACHES = {
     "default": {
-        "BACKEND": "django.core.cache.backends.redis.RedisCache",
+        "BACKEND": "core.redis_client.SharedRedisCache",
         "LOCATION": REDIS_URL,
         "KEY_PREFIX": REDIS_KEY_PREFIX,
     },
@@ -295,17 +304,43 @@ LOGGING = {
 }
 
 # --- Celery (broker and results in Redis) ------------------------------------------------
-CELERY_BROKER_URL = env.str("CELERY_BROKER_URL", default=REDIS_URL)
-CELERY_RESULT_BACKEND = env.str("CELERY_RESULT_BACKEND", default=REDIS_URL)
+# Both in the URL forms of REDIS_URL; a Cluster cannot carry either (kombu has no Cluster
+# transport): with REDIS_URL a Cluster, CELERY_BROKER_URL names a plain or Sentinel Redis and the
+# results go there too. BROKER_REDIS_URL keeps the broker's URL as written (the admin reads it).
+BROKER_REDIS_URL = env.str(
+    "CELERY_BROKER_URL", default="" if _REDIS.kind == "cluster" else REDIS_URL
+)
+if not BROKER_REDIS_URL:
+    raise ImproperlyConfigured(
+        "REDIS_URL is a Redis Cluster, which cannot be Celery's broker (kombu has no Cluster "
+        "transport): set CELERY_BROKER_URL to a plain redis:// or a sentinel:// Redis"
+    )
+_BROKER = celery_redis(BROKER_REDIS_URL, setting="CELERY_BROKER_URL")
+_RESULTS = celery_redis(
+    env.str(
+        "CELERY_RESULT_BACKEND", default=BROKER_REDIS_URL if _REDIS.kind == "cluster" else REDIS_URL
+    ),
+    setting="CELERY_RESULT_BACKEND",
+)
+CELERY_BROKER_URL = _BROKER.url
+CELERY_RESULT_BACKEND = _RESULTS.url
+CELERY_RESULT_BACKEND_TRANSPORT_OPTIONS = _RESULTS.transport_options
 CELERY_RESULT_EXPIRES = 3600
 CELERY_TASK_ACKS_LATE = True
 CELERY_TASK_REJECT_ON_WORKER_LOST = True
 CELERY_WORKER_PREFETCH_MULTIPLIER = 1
+# Celery's Django fix-up would close every database connection before and after each task (a
+# view's check is one task, and a new connection cost more than the check); it never does by
+# count with this, and portal/celery.py closes them as Django's requests do instead.
+CELERY_DB_REUSE_MAX = 2**62
 CELERY_TASK_SERIALIZER = "json"
 CELERY_RESULT_SERIALIZER = "json"
 CELERY_ACCEPT_CONTENT = ["json"]
 # An unacknowledged message (worker killed) is delivered again after this many seconds.
-CELERY_BROKER_TRANSPORT_OPTIONS = {"visibility_timeout": env.int("CELERY_VISIBILITY_TIMEOUT", 900)}
+CELERY_BROKER_TRANSPORT_OPTIONS = {
+    "visibility_timeout": env.int("CELERY_VISIBILITY_TIMEOUT", 900),
+    **_BROKER.transport_options,  # master_name for Sentinels
+}
 CELERY_BROKER_CONNECTION_RETRY_ON_STARTUP = True
 CELERY_TASK_ALWAYS_EAGER = env.bool("CELERY_TASK_ALWAYS_EAGER", default=False)
 CELERY_TASK_DEFAULT_QUEUE = env.str("CELERY_QUEUE", default="authros")
@@ -338,11 +373,29 @@ CELERY_BEAT_SCHEDULE = {
         "schedule": 3600.0,
         "options": {"expires": 3600.0},
     },
+    # Silent robots, low gas, alert deliveries whose message was lost (alerts/).
+    "alerts-watch": {
+        "task": "alerts.tasks.alerts_watch",
+        "schedule": env.float("ALERTS_CHECK_INTERVAL", default=60.0),
+        "options": {"expires": env.float("ALERTS_CHECK_INTERVAL", default=60.0)},
+    },
+    # Deletes records past their robot's retention, and finishes purges (sharing/deletion.py).
+    "apply-retention": {
+        "task": "sharing.tasks.retention_apply",
+        "schedule": env.float("RETENTION_INTERVAL", default=3600.0),
+        "options": {"expires": env.float("RETENTION_INTERVAL", default=3600.0)},
+    },
     # Compares what the database says is on chain with the chain, and repairs (see below).
     "reconcile-chain": {
         "task": "sharing.tasks.chain_reconcile",
         "schedule": env.float("RECONCILE_INTERVAL", default=60.0),
         "options": {"expires": env.float("RECONCILE_INTERVAL", default=60.0)},
+    },
+    # Exports whose message was lost are queued again; expired ones lose their files.
+    "sweep-exports": {
+        "task": "sharing.tasks.exports_sweep",
+        "schedule": 300.0,
+        "options": {"expires": 300.0},
     },
 }
 
@@ -388,8 +441,51 @@ ENVELOPE_CACHE_MAX_ITEM_BYTES = env.int("ENVELOPE_CACHE_MAX_ITEM_BYTES", default
 # All cached envelopes together; the oldest go first past it (sharing/cache.py).
 ENVELOPE_CACHE_MAX_BYTES = env.int("ENVELOPE_CACHE_MAX_BYTES", default=256 * 1024 * 1024)
 ENVELOPE_MAX_BYTES = env.int("ENVELOPE_MAX_BYTES", default=8 * 1024 * 1024)
+# Retention and deletion (sharing/deletion.py): records per batch, batches per run (the next
+# run goes on), and seconds a run's lock outlives a worker that died holding it.
+RETENTION_BATCH = env.int("RETENTION_BATCH", default=500)
+RETENTION_MAX_BATCHES = env.int("RETENTION_MAX_BATCHES", default=20)
+RETENTION_LOCK_TTL = env.float("RETENTION_LOCK_TTL", default=900.0)
 # How long a web request waits for the worker's integrity verdict.
 VERIFY_TIMEOUT = env.float("VERIFY_TIMEOUT", default=30.0)
+# Exports (sharing/exports.py, docs/export.md): records in one export at most, records checked
+# against the chain per run of the integrity check, and hours its files are kept.
+EXPORT_MAX_RECORDS = env.int("EXPORT_MAX_RECORDS", default=5000)
+EXPORT_BATCH = env.int("EXPORT_BATCH", default=200)
+EXPORT_TTL_HOURS = env.int("EXPORT_TTL_HOURS", default=24)
+EXPORT_REQUEUE_AFTER = env.int("EXPORT_REQUEUE_AFTER", default=600)
+
+# --- Alerts (alerts/, docs/alerts.md) -----------------------------------------------------
+# E-mail goes through Django's mail framework: SMTP when EMAIL_HOST is set, else printed on the
+# console (`make run`); EMAIL_BACKEND overrides both.
+EMAIL_HOST = env.str("EMAIL_HOST", default="")
+EMAIL_PORT = env.int("EMAIL_PORT", default=25)
+EMAIL_HOST_USER = env.str("EMAIL_HOST_USER", default="")
+EMAIL_HOST_PASSWORD = env.str("EMAIL_HOST_PASSWORD", default="")
+EMAIL_USE_TLS = env.bool("EMAIL_USE_TLS", default=False)
+EMAIL_USE_SSL = env.bool("EMAIL_USE_SSL", default=False)
+EMAIL_TIMEOUT = env.float("EMAIL_TIMEOUT", default=10.0)
+EMAIL_BACKEND = env.str(
+    "EMAIL_BACKEND",
+    default="django.core.mail.backends.smtp.EmailBackend"
+    if EMAIL_HOST
+    else "django.core.mail.backends.console.EmailBackend",
+)
+DEFAULT_FROM_EMAIL = env.str("DEFAULT_FROM_EMAIL", default="AuthROS portal <alerts@localhost>")
+# The portal's public address, for the link in alert e-mails (empty: no link).
+ALERTS_PORTAL_URL = env.str("ALERTS_PORTAL_URL", default="")
+# Seconds to connect to a webhook receiver, and again to read its answer.
+ALERTS_WEBHOOK_TIMEOUT = env.float("ALERTS_WEBHOOK_TIMEOUT", default=5.0)
+# Webhooks to loopback, private, link-local or reserved addresses are refused unless this is
+# set (a receiver on the portal's own network; the tests).
+ALERTS_WEBHOOK_ALLOW_PRIVATE = env.bool("ALERTS_WEBHOOK_ALLOW_PRIVATE", default=False)
+ALERTS_WEBHOOKS_PER_OWNER = env.int("ALERTS_WEBHOOKS_PER_OWNER", default=5)
+# A failed delivery is tried again after 2, 4, 8 ... seconds (at most ALERTS_RETRY_BACKOFF_MAX
+# apart), this many times, then marked failed in the owner's delivery log.
+ALERTS_DELIVERY_MAX_RETRIES = env.int("ALERTS_DELIVERY_MAX_RETRIES", default=8)
+ALERTS_RETRY_BACKOFF_MAX = env.int("ALERTS_RETRY_BACKOFF_MAX", default=600)
+# A delivery still pending this long after its last attempt is queued again by the watch.
+ALERTS_DELIVERY_STALE_AFTER = env.float("ALERTS_DELIVERY_STALE_AFTER", default=1800.0)
 
 STORAGES = {
     "default": {"BACKEND": "django.core.files.storage.FileSystemStorage"},

@@ -11,6 +11,7 @@ urlpatterns = [
     path("account/security/", views.security, name="security"),
     path("", include("accounts.urls")),
     path("", include("sharing.urls")),
+    path("", include("alerts.urls")),
     path("admin/", admin.site.urls),
     path("api/", include("portal.api_urls")),
 ]

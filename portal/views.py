@@ -35,7 +35,7 @@ from sharing.models import SecurityEvent
 from sharing.selectors import (
     grant_count_given,
     grant_count_received,
-    record_list_owned,
+    record_counts_of,
     security_events_of,
 )
 
@@ -75,7 +75,7 @@ def dashboard(request: HttpRequest) -> HttpResponse:
         "chain_problem": chain_problem,
         "confirmed": owner.chain_state == ChainState.CONFIRMED,
         "failed": owner.chain_state == ChainState.FAILED,
-        "record_count": record_list_owned(owner).count(),
+        "record_counts": record_counts_of(owner),
         "grants_given_count": grant_count_given(owner),
         "grants_received_count": grant_count_received(owner),
         "robot_count": robot_count_active(owner),

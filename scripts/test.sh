@@ -23,7 +23,7 @@ say() { printf '\n\033[1;32m== %s\033[0m\n' "$*"; }
 
 run_pytest() {
   local rc=0
-  .venv/bin/pytest "$@" || rc=$?
+  .venv/bin/pytest --durations=25 "$@" || rc=$?
   if [ "$rc" = 5 ]; then
     echo "ERROR: pytest collected no tests; refusing to report success" >&2
     exit 1

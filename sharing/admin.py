@@ -53,7 +53,7 @@ class RecordAdmin(ReadOnlyAdmin):
         "anchor_attempts",
         "tampered",
     )
-    list_filter = ("status", TamperedFilter, "data_type", "captured_at")
+    list_filter = ("status", TamperedFilter, "deletion_reason", "data_type", "captured_at")
     search_fields = ("id", "topic", "digest", "tx_hash", "owner__user__username", "robot__name")
     list_select_related = ("owner__user",)
     date_hierarchy = "captured_at"
@@ -76,6 +76,10 @@ class RecordAdmin(ReadOnlyAdmin):
         "failure_reason",
         "tampered_at",
         "created_at",
+        "deleted_at",
+        "deleted_by",
+        "deletion_reason",
+        "purged_at",
     )
     readonly_fields = fields
     actions = ("reanchor_failed", "reverify")
@@ -203,12 +207,19 @@ class VerdictAdmin(ReadOnlyAdmin):
         "record",
         "viewer",
         "checked_by",
+        "credential",
         "outcome",
         "source",
         "block_number",
         "created_at",
     )
-    list_filter = ("outcome", "source", ("checked_by", admin.EmptyFieldListFilter), "created_at")
+    list_filter = (
+        "outcome",
+        "credential",
+        "source",
+        ("checked_by", admin.EmptyFieldListFilter),
+        "created_at",
+    )
     search_fields = (
         "record__id",
         "viewer__user__username",

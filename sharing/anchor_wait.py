@@ -11,6 +11,8 @@ from redis.exceptions import LockError, RedisError
 from redis.lock import Lock
 from web3.types import TxReceipt
 
+from accounts.models import Owner
+from alerts.services import anchoring_failed_alert
 from chainworker.chain import AuthROSChain, TransactionTimeout
 from chainworker.work import WAITING_FOR_GAS
 from core.outbox import enqueue
@@ -59,3 +61,19 @@ def gas_wait_end(owner_id: int) -> None:
     Record.objects.filter(
         owner_id=owner_id, status=Record.Status.PENDING, failure_reason=WAITING_FOR_GAS
     ).update(failure_reason="")
+
+
+def records_fail_exhausted(owner: Owner, pending: QuerySet[Record]) -> int:
+    """Fail the records among `pending` out of attempts (ANCHOR_MAX_ATTEMPTS), and tell their
+    owner; how many."""
+    exhausted = pending.filter(anchor_attempts__gte=settings.ANCHOR_MAX_ATTEMPTS)
+    ids = list(exhausted.order_by("created_at", "seq").values_list("pk", flat=True))
+    if not ids:
+        return 0
+    reason = f"not anchored after {settings.ANCHOR_MAX_ATTEMPTS} attempts"
+    failed = Record.objects.filter(pk__in=ids, status=Record.Status.PENDING).update(
+        status=Record.Status.FAILED, failure_reason=reason
+    )
+    if failed:
+        anchoring_failed_alert(owner=owner, record_ids=ids, reason=reason)
+    return failed

@@ -24,6 +24,7 @@ from redis.lock import Lock
 from accounts.models import ChainActivity, ChainState, Owner
 from accounts.selectors import owner_eoa_account
 from accounts.services import chain_activity_record
+from alerts.services import anchoring_failed_alert
 from chainworker.chain import (
     AnchorItem,
     AuthROSChain,
@@ -36,7 +37,13 @@ from chainworker.services import chain_client, chain_stall_check, chain_work_che
 from chainworker.work import ChainWorkNotReady
 from core.outbox import enqueue
 from core.redis_client import get_redis, redis_key
-from sharing.anchor_wait import gas_wait_end, gas_wait_start, lock_renew, receipt_await
+from sharing.anchor_wait import (
+    gas_wait_end,
+    gas_wait_start,
+    lock_renew,
+    receipt_await,
+    records_fail_exhausted,
+)
 from sharing.models import Record, SecurityEvent
 from sharing.roots import roots_anchor_round
 
@@ -156,7 +163,7 @@ def _anchor_round(client: AuthROSChain, owner: Owner, lock: Lock) -> tuple[int, 
         if not lock_renew(lock):
             break
         sent_ids = [r.pk for batch, _tx in in_flight for r in batch]
-        batch = _settle_attempted(client, owner, _next_batch(owner.pk, exclude=sent_ids))
+        batch = _settle_attempted(client, owner, _next_batch(owner, exclude=sent_ids))
         if not batch:
             break
         batch_ids = [r.pk for r in batch]
@@ -230,13 +237,9 @@ def _anchor_round(client: AuthROSChain, owner: Owner, lock: Lock) -> tuple[int, 
     return anchored, len(in_flight)
 
 
-def _next_batch(owner_id: int, *, exclude: list[uuid.UUID]) -> list[Record]:
-    pending = Record.objects.filter(owner_id=owner_id, status=Record.Status.PENDING)
-    exhausted = pending.filter(anchor_attempts__gte=settings.ANCHOR_MAX_ATTEMPTS)
-    exhausted.update(
-        status=Record.Status.FAILED,
-        failure_reason=f"not anchored after {settings.ANCHOR_MAX_ATTEMPTS} attempts",
-    )
+def _next_batch(owner: Owner, *, exclude: list[uuid.UUID]) -> list[Record]:
+    pending = Record.objects.filter(owner_id=owner.pk, status=Record.Status.PENDING)
+    records_fail_exhausted(owner, pending)
     pending = pending.exclude(pk__in=exclude)
     return list(pending.order_by("created_at", "seq")[: settings.ANCHOR_BATCH_MAX])
 
@@ -307,6 +310,12 @@ def _chain_digest_mismatch(record: Record, chain_digest: str, chain_owner: str) 
         record=record,
         owner=record.owner,
         detail={"stored": record.digest, "chain": chain_digest, "chain_owner": chain_owner},
+    )
+    anchoring_failed_alert(
+        owner=record.owner,
+        record_ids=[record.pk],
+        reason="the chain holds another digest or owner for this record id",
+        once=True,  # found again by each reconciliation that looks: told once
     )
     security_log.error(
         "record %s: chain holds digest %s (owner %s), we stored %s",

@@ -14,6 +14,8 @@ from typing import Any
 
 from django.core.validators import ProhibitNullCharactersValidator, RegexValidator
 from django.db.models import QuerySet
+from django.http import FileResponse
+from django.urls import reverse
 from drf_spectacular.types import OpenApiTypes
 from drf_spectacular.utils import (
     OpenApiParameter,
@@ -40,25 +42,46 @@ from accounts.authentication import (
 from accounts.models import OwnerToken
 from accounts.selectors import KEY_ID_HEADER, owner_key_current_id
 from chainworker.services import chain_client
-from core.api_errors import error_responses
-from sharing.errors import NotAnchoredYet, RecordNotFound
-from sharing.models import Grant, Record
+from core.api_errors import ErrorSerializer, error_responses
+from sharing.access_log import access_log_redacted
+from sharing.deletion import record_delete
+from sharing.errors import AccessDenied, ExportNotFound, NotAnchoredYet, RecordNotFound
+from sharing.exports import (
+    MAX_SELECTED_ROBOTS,
+    MAX_SELECTED_TOPICS,
+    Selection,
+    export_create,
+    export_download,
+)
+from sharing.models import Export, Grant, Record, Verdict
+from sharing.scope import MAX_SCOPE_ROBOTS, MAX_SCOPE_TOPICS, MAX_TOPIC_LENGTH
 from sharing.selectors import (
+    ACCESS_LOG_DIRECTIONS,
+    ACCESS_LOG_INCOMING,
     RECORD_FILTER_STATUSES,
+    export_list_of,
+    export_of,
     grant_list_given,
     grant_list_received,
     record_list_filtered,
     record_list_uploaded_by,
     record_list_visible_to,
     record_proof,
+    record_refused_by_grant,
+    verdict_list_access_log,
+    verdict_list_filtered,
 )
 from sharing.services import (
     GRANT_MADE_WITH,
+    GrantTerms,
     grant_create,
     grant_revoke,
+    grant_terms_change,
+    grant_terms_make,
     owner_resolve,
     record_create_batch,
 )
+from sharing.storage import envelope_storage
 from sharing.verification import record_open, record_reseal_for
 
 # Envelopes in one upload at most; the body size limit (413) bounds the bytes.
@@ -70,7 +93,7 @@ NO_NUL = "NUL characters are not allowed"
 ROBOT_ONLY = [{"robotToken": []}]
 # Content and grants: the owner, signed in or with an owner API token; never a robot token.
 OWNER_ONLY = [{"ownerToken": []}, {"cookieAuth": []}]
-READ, SHARE = OwnerToken.Scope.READ, OwnerToken.Scope.SHARE
+READ, SHARE, DELETE = OwnerToken.Scope.READ, OwnerToken.Scope.SHARE, OwnerToken.Scope.DELETE
 ROBOT_REFUSED = (
     "`permission_denied`: a robot token (it only uploads and reads its own uploads); "
     "`insufficient_scope`: an owner API token without the `{scope}` scope"
@@ -172,6 +195,44 @@ class RecordOutputSerializer(serializers.Serializer):
         allow_null=True, help_text="when a view found the stored data changed, if ever"
     )
     created_at = serializers.DateTimeField(help_text="when the portal received it")
+    deleted_at = serializers.DateTimeField(
+        allow_null=True,
+        help_text="when it was deleted (its content is gone: 410), or null; listed only with "
+        "`?status=deleted`",
+    )
+    deleted_by = serializers.CharField(
+        source="deleted_by.username",
+        allow_null=True,
+        default=None,
+        help_text="who deleted it; null for a retention policy or a live record",
+    )
+    deletion_reason = NullIfBlankCharField(
+        help_text="`owner`, `retention` (the robot's retention policy) or `account` (with "
+        "its owner's account); null while live"
+    )
+
+
+class GrantScopeSerializer(serializers.Serializer):
+    class Meta:
+        ref_name = "GrantScope"
+
+    robots = serializers.ListField(
+        child=serializers.UUIDField(), source="scope_robots", help_text="robot ids; [] = all"
+    )
+    topics = serializers.ListField(
+        child=serializers.CharField(), source="scope_topics", help_text="topics; [] = all"
+    )
+    since = serializers.DateTimeField(
+        source="scope_since", allow_null=True, help_text="captured at or after; null = no start"
+    )
+    until = serializers.DateTimeField(
+        source="scope_until", allow_null=True, help_text="captured before; null = no end"
+    )
+    commitment = serializers.CharField(
+        source="scope_commitment_hex",
+        help_text="SM3 of the scope's canonical bytes (docs/grants.md) as the chain holds it, "
+        "hex; 64 zeros for all records",
+    )
 
 
 class GrantOutputSerializer(serializers.Serializer):
@@ -197,6 +258,54 @@ class GrantOutputSerializer(serializers.Serializer):
         help_text="the credential that made the grant: a browser session, an owner API "
         "token, or an operator's command",
     )
+    scope = GrantScopeSerializer(source="*", help_text="which records the grant covers")
+    expires_at = serializers.DateTimeField(
+        allow_null=True, help_text="from then on the grant gives no access; null = never"
+    )
+    expired = serializers.BooleanField(source="is_expired", help_text="its expiry has passed")
+
+
+class GrantTermsInputSerializer(serializers.Serializer):
+    """The optional terms of a grant: leave them all out for all records, without expiry."""
+
+    class Meta:
+        ref_name = "GrantTerms"
+
+    robots = serializers.ListField(
+        child=serializers.UUIDField(),
+        required=False,
+        max_length=MAX_SCOPE_ROBOTS,
+        help_text="only these robots' records (ids of your robots); default: all robots",
+    )
+    topics = serializers.ListField(
+        child=TextField(max_length=MAX_TOPIC_LENGTH),
+        required=False,
+        max_length=MAX_SCOPE_TOPICS,
+        help_text="only these topics' records; default: all topics",
+    )
+    since = serializers.DateTimeField(
+        required=False, allow_null=True, help_text="only records captured at or after (ISO 8601)"
+    )
+    until = serializers.DateTimeField(
+        required=False, allow_null=True, help_text="only records captured before (ISO 8601)"
+    )
+    expires_at = serializers.DateTimeField(
+        required=False,
+        allow_null=True,
+        help_text="the grant gives no access from then on (ISO 8601, at least 5 minutes "
+        "ahead, whole seconds); default: never",
+    )
+
+    def terms_for(self, owner: Any) -> GrantTerms:
+        data = self.validated_data
+        return grant_terms_make(
+            owner=owner,
+            robots=data.get("robots", ()),
+            topics=data.get("topics", ()),
+            since=data.get("since"),
+            until=data.get("until"),
+            expires_at=data.get("expires_at"),
+        )
 
 
 class RecordPagination(LimitOffsetPagination):
@@ -430,10 +539,21 @@ def _records_of_caller(request: Request) -> QuerySet[Record]:
     return record_list_visible_to(caller_owner(request))
 
 
+def _refuse_unseen(request: Request, record_id: uuid.UUID) -> None:
+    """A record the caller may not see: 403 when its owner's grant to the caller does not
+    cover it (outside its scope, or expired), else 404 (nothing tells it exists)."""
+    owner = caller_owner(request) if caller_robot(request) is None else None
+    if owner is not None and record_refused_by_grant(owner, record_id):
+        raise AccessDenied("the record is outside the scope of your grant, or the grant expired")
+    raise RecordNotFound("no such record, or not shared with you")
+
+
 class RecordDetailApi(APIView):
-    """`GET /api/v1/records/{id}/`: metadata and anchoring status."""
+    """`GET /api/v1/records/{id}/`: metadata and anchoring status; `DELETE`: delete it."""
 
     def get_permissions(self) -> list[BasePermission]:
+        if self.request.method == "DELETE":
+            return [IsAuthenticated(), OwnerCredential(DELETE, "delete a record")]
         return [IsAuthenticated(), OwnerCredential(READ, "read a record", robots=True)]
 
     @extend_schema(
@@ -457,9 +577,44 @@ class RecordDetailApi(APIView):
         },
     )
     def get(self, request: Request, record_id: str) -> Response:
-        record = _records_of_caller(request).filter(pk=_record_uuid(record_id)).first()
+        record_uuid = _record_uuid(record_id)
+        record = (
+            _records_of_caller(request).select_related("deleted_by").filter(pk=record_uuid).first()
+        )
         if record is None:
-            raise RecordNotFound("no such record, or not shared with you")
+            _refuse_unseen(request, record_uuid)
+        return Response(RecordOutputSerializer(record).data)
+
+    @extend_schema(
+        operation_id="records_delete",
+        summary="Delete one of your records",
+        description=(
+            "The record becomes a tombstone at once (its content answers 410 `record_deleted`) "
+            "and its ciphertext is removed from storage and cache; its metadata, its digest on "
+            "chain and its proof stay. Only anchored records are deleted. Deleting a deleted "
+            "record again answers the same. The owner only: a session, or an owner API token "
+            "with the `delete` scope."
+        ),
+        auth=OWNER_ONLY,
+        parameters=[_RECORD_ID],
+        responses={
+            200: OpenApiResponse(RecordOutputSerializer, description="the tombstone"),
+            **error_responses(
+                401,
+                403,
+                404,
+                409,
+                e403="`not_record_owner`: shared with you, not yours; "
+                + ROBOT_REFUSED.format(scope="delete"),
+                e404="`not_found`: no such record, or not shared with you",
+                e409="`not_anchored_yet`: delete it once it is anchored",
+            ),
+        },
+    )
+    def delete(self, request: Request, record_id: str) -> Response:
+        record = record_delete(
+            owner=caller_owner(request), record_id=_record_uuid(record_id), actor=request.user
+        )
         return Response(RecordOutputSerializer(record).data)
 
 
@@ -502,6 +657,7 @@ class RecordContentApi(APIView):
                 403,
                 404,
                 409,
+                410,
                 503,
                 e403="`access_denied`: no live grant from the record's owner; "
                 + ROBOT_REFUSED.format(scope="read"),
@@ -513,7 +669,13 @@ class RecordContentApi(APIView):
     )
     def get(self, request: Request, record_id: str) -> Response:
         viewer = caller_owner(request)
-        opened = record_open(record_id=_record_uuid(record_id), viewer=viewer)
+        token = caller_owner_token(request)
+        opened = record_open(
+            record_id=_record_uuid(record_id),
+            viewer=viewer,
+            credential=Verdict.Credential.SESSION if token is None else Verdict.Credential.TOKEN,
+            token=token,
+        )
         resealed = record_reseal_for(opened=opened, viewer=viewer)
         data = {
             "id": opened.record.id,
@@ -591,7 +753,7 @@ class RecordProofApi(APIView):
             .first()
         )
         if record is None:
-            raise RecordNotFound("no such record, or not shared with you")
+            _refuse_unseen(request, _record_uuid(record_id))
         if record.status != Record.Status.ANCHORED:
             raise NotAnchoredYet("the record is not anchored yet; try again shortly")
         client = chain_client()
@@ -612,7 +774,7 @@ class GrantsApi(APIView):
         given = GrantOutputSerializer(many=True, help_text="by the caller's owner, newest first")
         received = GrantOutputSerializer(many=True, help_text="to the caller's owner")
 
-    class InputSerializer(serializers.Serializer):
+    class InputSerializer(GrantTermsInputSerializer):
         class Meta:
             ref_name = "GrantRequest"
 
@@ -644,7 +806,10 @@ class GrantsApi(APIView):
         summary="Let another owner read your records",
         description=(
             "Takes effect in the portal once `authorityGrant` is confirmed on chain. A session, "
-            "or an owner API token with the `share` scope; the grant records which."
+            "or an owner API token with the `share` scope; the grant records which. Optional "
+            "terms limit it to some robots, topics and a capture-time window, and let it "
+            "expire (`authorityGrantScoped` then, with the scope's SM3 commitment: "
+            'docs/grants.md); `{"grantee": ...}` alone grants all records, without expiry.'
         ),
         auth=OWNER_ONLY,
         request=InputSerializer,
@@ -657,7 +822,8 @@ class GrantsApi(APIView):
                 404,
                 409,
                 415,
-                e400="`invalid_request`, or `self_grant`",
+                e400="`invalid_request`, `invalid_grant_terms` (a robot not yours, a window "
+                "ending before it starts, an expiry less than 5 minutes ahead), or `self_grant`",
                 e403=ROBOT_REFUSED.format(scope="share"),
                 e404="`owner_not_found`: no owner with that username or address",
                 e409="`already_granted`, `not_registered_yet` (you), `grantee_not_registered`",
@@ -668,6 +834,7 @@ class GrantsApi(APIView):
         owner = caller_owner(request)
         payload = self.InputSerializer(data=request.data)
         payload.is_valid(raise_exception=True)
+        terms = payload.terms_for(owner)
         grantee = owner_resolve(payload.validated_data["grantee"])
         token = caller_owner_token(request)
         grant = grant_create(
@@ -675,15 +842,60 @@ class GrantsApi(APIView):
             grantee=grantee,
             made_with="session" if token is None else "token",
             made_with_token=token,
+            terms=terms,
         )
         return Response(GrantOutputSerializer(grant).data, status=status.HTTP_201_CREATED)
 
 
+_GRANTEE = OpenApiParameter(
+    "grantee",
+    OpenApiTypes.STR,
+    OpenApiParameter.PATH,
+    description="the grantee's username or 0x address",
+)
+
+
 class GrantRevokeApi(APIView):
-    """`DELETE /api/v1/grants/{grantee}/`: take access away at once."""
+    """`DELETE /api/v1/grants/{grantee}/`: take access away at once; `PATCH`: change the
+    grant's terms (a new transaction on chain)."""
 
     def get_permissions(self) -> list[BasePermission]:
-        return [IsAuthenticated(), OwnerCredential(SHARE, "revoke a grant")]
+        action = "change a grant" if self.request.method == "PATCH" else "revoke a grant"
+        return [IsAuthenticated(), OwnerCredential(SHARE, action)]
+
+    @extend_schema(
+        operation_id="grants_change",
+        summary="Change what a grant covers, or its expiry",
+        description=(
+            "The new terms replace the old ones (leave them all out for all records, without "
+            "expiry). The portal enforces them at once; the grant is `pending` until "
+            "`authorityGrantScoped` confirms them on chain, and gives no access meanwhile. "
+            "A session, or an owner API token with the `share` scope."
+        ),
+        auth=OWNER_ONLY,
+        parameters=[_GRANTEE],
+        request=GrantTermsInputSerializer,
+        responses={
+            200: OpenApiResponse(GrantOutputSerializer, description="now `pending`"),
+            **error_responses(
+                400,
+                401,
+                403,
+                404,
+                415,
+                e400="`invalid_request`, `invalid_grant_terms`",
+                e403=ROBOT_REFUSED.format(scope="share"),
+                e404="`owner_not_found`, or `no_grant`: nothing live to change",
+            ),
+        },
+    )
+    def patch(self, request: Request, grantee: str) -> Response:
+        owner = caller_owner(request)
+        payload = GrantTermsInputSerializer(data=request.data)
+        payload.is_valid(raise_exception=True)
+        terms = payload.terms_for(owner)
+        grant = grant_terms_change(owner=owner, grantee=owner_resolve(grantee), terms=terms)
+        return Response(GrantOutputSerializer(grant).data)
 
     @extend_schema(
         operation_id="grants_revoke",
@@ -693,14 +905,7 @@ class GrantRevokeApi(APIView):
             "an owner API token with the `share` scope."
         ),
         auth=OWNER_ONLY,
-        parameters=[
-            OpenApiParameter(
-                "grantee",
-                OpenApiTypes.STR,
-                OpenApiParameter.PATH,
-                description="the grantee's username or 0x address",
-            )
-        ],
+        parameters=[_GRANTEE],
         responses={
             200: OpenApiResponse(GrantOutputSerializer, description="now `revoking`"),
             **error_responses(
@@ -716,3 +921,327 @@ class GrantRevokeApi(APIView):
         owner = caller_owner(request)
         grant = grant_revoke(owner=owner, grantee=owner_resolve(grantee))
         return Response(GrantOutputSerializer(grant).data)
+
+
+# --- the access log --------------------------------------------------------------------------
+
+
+class AccessLogTokenSerializer(serializers.Serializer):
+    class Meta:
+        ref_name = "AccessLogToken"
+
+    name = serializers.CharField()
+    prefix = serializers.CharField(source="token_prefix", help_text="its first characters")
+
+
+class AccessLogApi(APIView):
+    """`GET /api/v1/access-log/`: who viewed the caller's records, or the caller's own views of
+    records shared with it; the same rows and filters as the access log page."""
+
+    pagination_class = RecordPagination
+
+    class FilterSerializer(serializers.Serializer):
+        class Meta:
+            ref_name = "AccessLogFilter"
+
+        direction = serializers.ChoiceField(
+            choices=ACCESS_LOG_DIRECTIONS,
+            required=False,
+            default=ACCESS_LOG_INCOMING,
+            help_text="`incoming` (default): every view of your records; `outgoing`: your own "
+            "views of records other owners shared with you",
+        )
+        viewer = TextField(
+            required=False, max_length=MAX_OWNER_IDENTIFIER, help_text="viewer's username"
+        )
+        owner = TextField(
+            required=False,
+            max_length=MAX_OWNER_IDENTIFIER,
+            help_text="the record owner's username (useful with `outgoing`)",
+        )
+        robot = serializers.UUIDField(required=False, help_text="robot id")
+        topic = TextField(required=False, max_length=255)
+        verdict = serializers.ChoiceField(
+            choices=Verdict.Outcome.choices, required=False, help_text="the check's outcome"
+        )
+        credential = serializers.ChoiceField(
+            choices=[value for value in Verdict.Credential.values if value],
+            required=False,
+            help_text="the credential the view was made with",
+        )
+        since = serializers.DateTimeField(required=False, help_text="viewed at or after")
+        until = serializers.DateTimeField(
+            required=False, help_text="viewed before, not at (ISO 8601): [since, until)"
+        )
+
+        def validate(self, data: dict[str, Any]) -> dict[str, Any]:
+            since, until = data.get("since"), data.get("until")
+            if since and until and since > until:
+                raise serializers.ValidationError("`since` is after `until`")
+            return data
+
+    class OutputSerializer(serializers.Serializer):
+        class Meta:
+            ref_name = "AccessLogEntry"
+
+        id = serializers.IntegerField()
+        viewed_at = serializers.DateTimeField(source="created_at")
+        viewer = serializers.CharField(source="viewer.username")
+        record_owner = serializers.CharField(source="record.owner.username")
+        record = serializers.UUIDField(source="record_id")
+        robot = serializers.UUIDField(source="record.robot_id")
+        robot_name = serializers.CharField(source="record.robot.name")
+        topic = serializers.CharField(source="record.topic")
+        type = serializers.CharField(source="record.data_type", help_text="ROS message type")
+        seq = serializers.IntegerField(source="record.seq")
+        captured_at = serializers.DateTimeField(source="record.captured_at")
+        verdict = serializers.ChoiceField(
+            source="outcome",
+            choices=Verdict.Outcome.choices,
+            help_text="what the check against the chain found",
+        )
+        credential = NullIfBlankCharField(
+            help_text="`session`, `token` or `operator` (an operator's check in the admin "
+            "console); null for views from before the portal recorded it"
+        )
+        token = AccessLogTokenSerializer(
+            allow_null=True,
+            read_only=True,
+            help_text="your own owner API token, for `token`; null for another owner's",
+        )
+        operator = serializers.CharField(
+            source="checked_by.username",
+            allow_null=True,
+            read_only=True,
+            help_text="the operator, for `operator`",
+        )
+        block_number = serializers.IntegerField(
+            allow_null=True, help_text="the block the check was made against"
+        )
+
+    def get_permissions(self) -> list[BasePermission]:
+        return [IsAuthenticated(), OwnerCredential(READ, "read the access log")]
+
+    @extend_schema(
+        operation_id="access_log_list",
+        summary="Who viewed your records, and your own views of records shared with you",
+        description=(
+            "Every view of a record leaves an integrity verdict; this lists them newest first, "
+            "with the record, the verdict and the credential the view was made with. A "
+            "session, or an owner API token with the `read` scope."
+        ),
+        auth=OWNER_ONLY,
+        parameters=[FilterSerializer],
+        responses={
+            200: OutputSerializer(many=True),
+            **error_responses(400, 401, 403, e403=ROBOT_REFUSED.format(scope="read")),
+        },
+    )
+    def get(self, request: Request) -> Response:
+        filters = self.FilterSerializer(data=request.query_params.dict())
+        filters.is_valid(raise_exception=True)
+        wanted = dict(filters.validated_data)
+        direction = wanted.pop("direction")
+        reader = caller_owner(request)
+        verdicts = verdict_list_access_log(reader, direction=direction)
+        paginator = self.pagination_class()
+        page = paginator.paginate_queryset(verdict_list_filtered(verdicts, **wanted), request, self)
+        shown = access_log_redacted(page, reader=reader)
+        return paginator.get_paginated_response(self.OutputSerializer(shown, many=True).data)
+
+
+# --- exports ---------------------------------------------------------------------------------
+
+
+class ExportOutputSerializer(serializers.Serializer):
+    class Meta:
+        ref_name = "Export"
+
+    id = serializers.UUIDField()
+    status = serializers.ChoiceField(
+        choices=Export.Status.choices, help_text="queued, running, done, failed or expired"
+    )
+    selection = serializers.DictField(help_text="robots, topics, since, until as asked")
+    total = serializers.IntegerField(help_text="records in the selection")
+    processed = serializers.IntegerField(help_text="records checked against the chain so far")
+    exported = serializers.IntegerField(help_text="records that passed and are in the file")
+    excluded = serializers.ListField(
+        child=serializers.DictField(),
+        help_text="records left out: `record`, `topic`, `captured_at`, `reason` "
+        "(`integrity_check_failed`, `access_denied`, `not_anchored_yet`, ...)",
+    )
+    percent = serializers.IntegerField(help_text="records checked, in percent")
+    error = NullIfBlankCharField()
+    mcap_size = serializers.IntegerField()
+    mcap_sm3 = NullIfBlankCharField(help_text="SM3 of the MCAP file, hex")
+    bundle_size = serializers.IntegerField()
+    mcap_url = serializers.SerializerMethodField()
+    bundle_url = serializers.SerializerMethodField()
+    created_at = serializers.DateTimeField()
+    finished_at = serializers.DateTimeField(allow_null=True)
+    expires_at = serializers.DateTimeField(help_text="its files are removed then")
+
+    def get_mcap_url(self, export: Export) -> str | None:
+        return _export_file_url(export, "mcap")
+
+    def get_bundle_url(self, export: Export) -> str | None:
+        return _export_file_url(export, "bundle")
+
+
+def _export_file_url(export: Export, part: str) -> str | None:
+    if export.status != Export.Status.DONE:
+        return None
+    return reverse("api-v1:export-file", args=[export.pk, part])
+
+
+class ExportsApi(APIView):
+    """`GET /api/v1/exports/`: the caller's exports; `POST`: export a selection."""
+
+    class InputSerializer(serializers.Serializer):
+        class Meta:
+            ref_name = "ExportRequest"
+
+        robots = serializers.ListField(
+            child=serializers.UUIDField(),
+            required=False,
+            max_length=MAX_SELECTED_ROBOTS,
+            help_text="robot ids (empty or absent: every robot you may view)",
+        )
+        topics = serializers.ListField(
+            child=TextField(max_length=255),
+            required=False,
+            max_length=MAX_SELECTED_TOPICS,
+            help_text="topics (empty or absent: every topic)",
+        )
+        since = serializers.DateTimeField(required=False, help_text="captured at or after")
+        until = serializers.DateTimeField(required=False, help_text="captured before")
+
+    def get_permissions(self) -> list[BasePermission]:
+        return [IsAuthenticated(), OwnerCredential(READ, "export records")]
+
+    @extend_schema(
+        operation_id="exports_list",
+        summary="Your exports, newest first",
+        auth=OWNER_ONLY,
+        responses={
+            200: ExportOutputSerializer(many=True),
+            **error_responses(401, 403, e403=ROBOT_REFUSED.format(scope="read")),
+        },
+    )
+    def get(self, request: Request) -> Response:
+        exports = export_list_of(caller_owner(request))[:50]
+        return Response(ExportOutputSerializer(exports, many=True).data)
+
+    @extend_schema(
+        operation_id="exports_create",
+        summary="Export the verified records of a selection as MCAP, with a proof bundle",
+        description=(
+            "Runs on a worker: follow it with `GET /api/v1/exports/{id}/`. Only records you may "
+            "view (as `GET /api/v1/records/` lists them) and that pass the integrity check on "
+            "chain are exported; the others are listed in `excluded`. docs/export.md describes "
+            "the MCAP file and the proof bundle."
+        ),
+        auth=OWNER_ONLY,
+        request=InputSerializer,
+        responses={
+            202: ExportOutputSerializer,
+            **error_responses(
+                400,
+                401,
+                403,
+                415,
+                e400="`invalid_request`, or `invalid_selection`: no record in it, too many "
+                "records, or a robot you may not view",
+                e403=ROBOT_REFUSED.format(scope="read"),
+            ),
+        },
+    )
+    def post(self, request: Request) -> Response:
+        payload = self.InputSerializer(data=request.data)
+        payload.is_valid(raise_exception=True)
+        data = payload.validated_data
+        selection = Selection(
+            robots=tuple(data.get("robots", [])),
+            topics=tuple(data.get("topics", [])),
+            since=data.get("since"),
+            until=data.get("until"),
+        )
+        export = export_create(requester=caller_owner(request), selection=selection)
+        export.refresh_from_db()
+        return Response(ExportOutputSerializer(export).data, status=status.HTTP_202_ACCEPTED)
+
+
+_EXPORT_ID = OpenApiParameter(
+    "export_id", OpenApiTypes.UUID, OpenApiParameter.PATH, description="the export's id"
+)
+
+
+class ExportDetailApi(APIView):
+    """`GET /api/v1/exports/{id}/`: an export's progress and, once done, its files."""
+
+    def get_permissions(self) -> list[BasePermission]:
+        return [IsAuthenticated(), OwnerCredential(READ, "follow an export")]
+
+    @extend_schema(
+        operation_id="exports_detail",
+        summary="An export's progress",
+        auth=OWNER_ONLY,
+        parameters=[_EXPORT_ID],
+        responses={
+            200: ExportOutputSerializer,
+            **error_responses(401, 403, 404, e404="`not_found`: no export of yours"),
+        },
+    )
+    def get(self, request: Request, export_id: str) -> Response:
+        export = export_of(caller_owner(request), export_id)
+        if export is None:
+            raise ExportNotFound("no such export of yours")
+        return Response(ExportOutputSerializer(export).data)
+
+
+class ExportFileApi(APIView):
+    """`GET /api/v1/exports/{id}/mcap/` and `.../bundle/`: the files, for their requester."""
+
+    def get_permissions(self) -> list[BasePermission]:
+        return [IsAuthenticated(), OwnerCredential(READ, "download an export")]
+
+    @extend_schema(
+        operation_id="exports_file",
+        summary="Download an export's MCAP file (`mcap`) or proof bundle (`bundle`)",
+        auth=OWNER_ONLY,
+        parameters=[
+            _EXPORT_ID,
+            OpenApiParameter(
+                "part", OpenApiTypes.STR, OpenApiParameter.PATH, enum=["mcap", "bundle"]
+            ),
+        ],
+        responses={
+            (200, "application/octet-stream"): OpenApiTypes.BINARY,
+            **error_responses(
+                401,
+                403,
+                404,
+                409,
+                e404="`not_found`: no export of yours",
+                e409="`export_not_ready`: still running, or failed",
+            ),
+            410: OpenApiResponse(
+                ErrorSerializer, description="`export_expired`: its files are removed"
+            ),
+        },
+    )
+    def get(self, request: Request, export_id: str, part: str) -> FileResponse:
+        if part not in ("mcap", "bundle"):
+            raise ExportNotFound("an export has two files: mcap and bundle")
+        name, filename = export_download(
+            requester=caller_owner(request), export_id=export_id, part=part
+        )
+        content_type = "application/json" if part == "bundle" else "application/octet-stream"
+        response = FileResponse(
+            envelope_storage().open(name, "rb"),
+            as_attachment=True,
+            filename=filename,
+            content_type=content_type,
+        )
+        response["Cache-Control"] = "no-store, private"
+        return response

@@ -97,6 +97,10 @@ def portal_backup(*, to: Path) -> dict[str, Any]:
         )
         counts = _row_counts()
         envelopes_of_records = dict(Record.objects.values_list("storage_name", "id"))
+        # Deleted records whose ciphertext was removed on purpose: no envelope is expected.
+        purged = set(
+            Record.objects.filter(purged_at__isnull=False).values_list("storage_name", flat=True)
+        )
         fingerprint = (
             SecretFingerprint.objects.filter(name=KEK_FINGERPRINT)
             .values_list("fingerprint", flat=True)
@@ -125,7 +129,9 @@ def portal_backup(*, to: Path) -> dict[str, Any]:
             "files": files,
         },
         "records_without_envelope": sorted(
-            str(record_id) for name, record_id in envelopes_of_records.items() if name not in files
+            str(record_id)
+            for name, record_id in envelopes_of_records.items()
+            if name not in files and name not in purged
         ),
         "envelopes_without_record": sorted(set(files) - set(envelopes_of_records)),
         "written_during_backup": sorted(

@@ -15,6 +15,7 @@ import logging
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from datetime import UTC, datetime
 from typing import Any, TypeGuard
 
 logger = logging.getLogger(__name__)
@@ -60,6 +61,7 @@ class Content:
     image_size: tuple[int | None, int | None] = (None, None)
     odometry: list[tuple[str, str]] = field(default_factory=list)
     is_odometry: bool = False
+    ros_seq: int | None = None  # the message's own std_msgs/Header seq, if it has one
     problem: str = ""
     raw: str = ""
     raw_shown_bytes: int = 0
@@ -109,6 +111,10 @@ def content_of(*, data_type: str, plaintext: bytes) -> Content:
 def _interpret(content: Content, *, data_type: str, document: Any) -> None:
     content.document = document
     data = document.get("K") if isinstance(document, dict) else None
+    header = data.get("header") if isinstance(data, dict) else None
+    seq = header.get("seq") if isinstance(header, dict) else None
+    if isinstance(seq, int) and not isinstance(seq, bool):
+        content.ros_seq = seq
     shown = document
     if data_type in IMAGE_TYPES and isinstance(data, dict):
         content.image_url = image_data_url(data.get("data"))
@@ -191,24 +197,35 @@ def pose_of(plaintext: bytes) -> Pose | None:
     return x, y, _yaw(data.get("orientation"))
 
 
-def trajectory_plot(poses: Sequence[Pose | None]) -> dict[str, object]:
-    """Screen coordinates of the poses on a square-scaled plot (y up), for trajectory.svg.
+def trajectory_plot(
+    poses: Sequence[Pose | None], *, times: Sequence[datetime] | None = None
+) -> dict[str, object]:
+    """Screen coordinates of the poses on a square-scaled plot (y up) with axes in metres and
+    the first and last capture times (`times`, one per pose, if given), for trajectory.svg.
 
     Poses that cannot be plotted (None, a coordinate that is not a finite number within
     POSE_LIMIT) are left out and counted as `skipped`.
     """
-    width, height, margin = 480, 360, 36
-    plotted = [pose for pose in map(_plottable, poses) if pose is not None]
+    width, height = PLOT_WIDTH, PLOT_HEIGHT
+    left, right, top, bottom = 64, 20, 40, 56
+    kept = [
+        (pose, times[index] if times is not None else None)
+        for index, pose in enumerate(map(_plottable, poses))
+        if pose is not None
+    ]
+    plotted = [pose for pose, _ in kept]
     skipped = len(poses) - len(plotted)
     if not plotted:
         return {"width": width, "height": height, "points": "", "count": 0, "skipped": skipped}
     xs, ys = [p[0] for p in plotted], [p[1] for p in plotted]
-    span = max(max(xs) - min(xs), max(ys) - min(ys), 0.5)
-    scale = min(width - 2 * margin, height - 2 * margin) / span
+    area_w, area_h = width - left - right, height - top - bottom
+    span = max(max(xs) - min(xs), max(ys) - min(ys), 0.5) * 1.1
+    scale = min(area_w, area_h) / span
     cx, cy = (max(xs) + min(xs)) / 2, (max(ys) + min(ys)) / 2
+    mid_x, mid_y = left + area_w / 2, top + area_h / 2
 
     def screen(x: float, y: float) -> tuple[float, float]:
-        return round(width / 2 + (x - cx) * scale, 1), round(height / 2 - (y - cy) * scale, 1)
+        return round(mid_x + (x - cx) * scale, 1), round(mid_y - (y - cy) * scale, 1)
 
     points = [screen(x, y) for x, y, _ in plotted]
     last_x, last_y, yaw = plotted[-1]
@@ -216,7 +233,9 @@ def trajectory_plot(poses: Sequence[Pose | None]) -> dict[str, object]:
     arrow = None
     if yaw is not None:
         arrow = (round(end[0] + 22 * math.cos(yaw), 1), round(end[1] - 22 * math.sin(yaw), 1))
-    return {
+    shown_x = (cx - (area_w / 2) / scale, cx + (area_w / 2) / scale)
+    shown_y = (cy - (area_h / 2) / scale, cy + (area_h / 2) / scale)
+    plot: dict[str, object] = {
         "width": width,
         "height": height,
         "points": " ".join(f"{x},{y}" for x, y in points),
@@ -228,7 +247,35 @@ def trajectory_plot(poses: Sequence[Pose | None]) -> dict[str, object]:
         "x_range": f"{min(xs):.2f} … {max(xs):.2f}",
         "y_range": f"{min(ys):.2f} … {max(ys):.2f}",
         "last": f"{last_x:.2f}, {last_y:.2f}",
+        "axes": {"left": left, "right": width - right, "top": top, "bottom": height - bottom},
+        "x_ticks": [(screen(t, cy)[0], label) for t, label in _ticks(*shown_x)],
+        "y_ticks": [(screen(cx, t)[1], label) for t, label in _ticks(*shown_y)],
     }
+    first_time, last_time = kept[0][1], kept[-1][1]
+    if first_time is not None and last_time is not None:
+        plot["first_time"] = _plot_time(first_time)
+        plot["last_time"] = _plot_time(last_time)
+    return plot
+
+
+PLOT_WIDTH, PLOT_HEIGHT = 640, 480
+
+
+def _ticks(low: float, high: float, *, wanted: int = 5) -> list[tuple[float, str]]:
+    """Round axis values (1, 2 or 5 times a power of ten apart) within [low, high]."""
+    raw = (high - low) / wanted
+    power = 10 ** math.floor(math.log10(raw))
+    step = next(m * power for m in (1, 2, 5, 10) if m * power >= raw)
+    decimals = max(0, -math.floor(math.log10(step)))
+    first = math.ceil(low / step)
+    return [
+        (value, f"{value:.{decimals}f}")
+        for value in (n * step for n in range(first, math.floor(high / step) + 1))
+    ]
+
+
+def _plot_time(moment: datetime) -> str:
+    return moment.astimezone(UTC).strftime("%Y-%m-%d %H:%M:%S.%f")[:-3]
 
 
 # --- bounded parsing and formatting ------------------------------------------------------

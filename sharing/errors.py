@@ -127,3 +127,53 @@ class StorageUnavailable(SharingError):
     code = "storage_unavailable"
     http_status = 503
     retry_after = 5
+
+
+class ExportRefused(SharingError):
+    """An export's selection that cannot be exported (nothing in it, too much, a robot the
+    requester may not see)."""
+
+    code = "invalid_selection"
+
+
+class ExportNotFound(SharingError):
+    code = "not_found"
+    http_status = 404
+
+
+class ExportNotReady(SharingError):
+    code = "export_not_ready"
+    http_status = 409
+
+
+class ExportExpired(SharingError):
+    code = "export_expired"
+    http_status = 410
+
+
+class InvalidGrantTerms(SharingError):
+    """A grant's scope or expiry that cannot be granted (a robot not the owner's, a window
+    that ends before it starts, an expiry too soon)."""
+
+    code = "invalid_grant_terms"
+
+
+class RecordDeleted(ViewRefused):
+    """The record was deleted: its ciphertext is gone, its row, digest and proof stay."""
+
+    code = "record_deleted"
+    http_status = 410
+
+
+class NotRecordOwner(SharingError):
+    """Only a record's owner deletes it; a grantee reads it, nothing more."""
+
+    code = "not_record_owner"
+    http_status = 403
+
+
+class NotDeletableYet(SharingError):
+    """A record not anchored yet is not deleted: its tombstone must keep a proof on chain."""
+
+    code = "not_anchored_yet"
+    http_status = 409

@@ -7,8 +7,15 @@ from django.core.exceptions import ValidationError
 from django.db.models import QuerySet
 
 from accounts.models import ChainActivity, Owner, Robot
-from sharing.models import Record
-from sharing.selectors import RECORD_FILTER_STATUSES
+from sharing.models import Record, Verdict
+from sharing.selectors import (
+    ACCESS_LOG_DIRECTIONS,
+    ACCESS_LOG_INCOMING,
+    ACCESS_LOG_OUTGOING,
+    RECORD_FILTER_STATUSES,
+    RECORD_SORT_DEFAULT,
+    RECORD_SORTS,
+)
 
 
 class DateTimeLocalInput(forms.DateTimeInput):
@@ -48,16 +55,46 @@ class PeriodFilterForm(forms.Form):
         return {name: value for name, value in self.cleaned_data.items() if value}
 
 
-class RecordFilterForm(PeriodFilterForm):
-    """Filters of a record list (GET), for `record_list_filtered`."""
+def _sort_choices() -> list[tuple[str, str]]:
+    names = {"captured": "capture time", "robot": "robot", "topic": "topic", "status": "status"}
+    choices = []
+    for key in RECORD_SORTS:
+        newest = key == "captured"
+        choices.append((f"-{key}", f"{names[key]}, {'newest' if newest else 'Z to A'} first"))
+        choices.append((key, f"{names[key]}, {'oldest' if newest else 'A to Z'} first"))
+    return choices
 
+
+class RecordFilterForm(PeriodFilterForm):
+    """Filters and sort order of a record list (GET), for `record_list_filtered` and
+    `record_list_sorted`; `sort` is one of RECORD_SORTS (a form error otherwise)."""
+
+    robot = forms.ChoiceField(required=False)
     topic = forms.ChoiceField(required=False)
     data_type = forms.ChoiceField(label="Type", required=False)
     status = forms.ChoiceField(required=False, choices=[("", "any"), *RECORD_FILTER_STATUSES])
     owner = forms.ChoiceField(required=False)
+    sort = forms.ChoiceField(label="Sort by", required=False, choices=_sort_choices())
 
-    def __init__(self, data: object, *, records: QuerySet[Record], with_owner: bool) -> None:
+    def __init__(
+        self,
+        data: object,
+        *,
+        records: QuerySet[Record],
+        robots: QuerySet[Robot],
+        with_owner: bool,
+    ) -> None:
         super().__init__(data)
+        self.fields["robot"].choices = [
+            ("", "any"),
+            *(
+                (
+                    str(robot.pk),
+                    f"{robot.name} ({robot.owner.username})" if with_owner else robot.name,
+                )
+                for robot in robots
+            ),
+        ]
         topics = records.order_by("topic").values_list("topic", flat=True).distinct()
         types = records.order_by("data_type").values_list("data_type", flat=True).distinct()
         self.fields["topic"].choices = [("", "any"), *((t, t) for t in topics)]
@@ -71,6 +108,26 @@ class RecordFilterForm(PeriodFilterForm):
             self.fields["owner"].choices = [("", "any"), *((o, o) for o in owners)]
         else:
             del self.fields["owner"]
+
+    def filters(self) -> dict[str, Any]:
+        return {name: value for name, value in super().filters().items() if name != "sort"}
+
+    def sort_order(self) -> str:
+        """The sort order asked for; the default while the form is invalid or says none."""
+        if self.is_bound and self.is_valid():
+            return self.cleaned_data["sort"] or RECORD_SORT_DEFAULT
+        return RECORD_SORT_DEFAULT
+
+
+class TopicRangeForm(PeriodFilterForm):
+    """The capture-time range of a topic's plot or image gallery (GET); both ends needed."""
+
+    def clean(self) -> dict:
+        cleaned = super().clean()
+        for name in ("since", "until"):
+            if name in cleaned and cleaned[name] is None:
+                self.add_error(name, "Give both ends of the time range.")
+        return cleaned
 
 
 class AuditFilterForm(PeriodFilterForm):
@@ -87,13 +144,166 @@ class AuditFilterForm(PeriodFilterForm):
 
 
 class GrantForm(forms.Form):
+    """Give access (or, with `change`, change a grant's terms): who, and which records until
+    when. Nothing ticked and no dates: all records, without expiry."""
+
     grantee = forms.CharField(
         label="Username or EOA address",
         max_length=150,
-        help_text="The owner who may read all your records, e.g. bob or 0x3f5c…",
+        help_text="The owner who may read your records, e.g. bob or 0x3f5c…",
         widget=forms.TextInput(attrs={"autocomplete": "off", "spellcheck": "false"}),
+        error_messages={"required": "Enter the username or address of the owner to share with."},
     )
+    robots = forms.MultipleChoiceField(
+        label="Robots",
+        required=False,
+        widget=forms.CheckboxSelectMultiple,
+        help_text="None ticked: all your robots, also those you add later.",
+    )
+    topics = forms.MultipleChoiceField(
+        label="Topics",
+        required=False,
+        widget=forms.CheckboxSelectMultiple,
+        help_text="None ticked: all topics.",
+    )
+    since = _period_field("Captured from (UTC)")
+    until = _period_field("Captured before (UTC)")
+    expires_at = _period_field("Access ends (UTC)")
+    change = forms.BooleanField(required=False, widget=forms.HiddenInput)
+
+    def __init__(
+        self, data: object = None, *, robots: list[Robot], topics: list[str], **kwargs: Any
+    ) -> None:
+        super().__init__(data, **kwargs)
+        self.fields["robots"].choices = [(str(robot.pk), robot.name) for robot in robots]
+        self.fields["topics"].choices = [(topic, topic) for topic in topics]
+        self.fields[
+            "expires_at"
+        ].help_text = "Leave empty for access until you revoke it. At least 5 minutes from now."
+        for name in ("since", "until", "expires_at"):
+            self.fields[name].error_messages["invalid"] = (
+                "Enter a date and time, e.g. 2026-05-01 14:30."
+            )
+
+    def clean(self) -> dict:
+        cleaned = super().clean()
+        since, until = cleaned.get("since"), cleaned.get("until")
+        if since and until and since >= until:
+            self.add_error("until", "“Captured before” must be later than “Captured from”.")
+        return cleaned
 
 
 class GrantRevokeForm(forms.Form):
     grantee = forms.CharField(max_length=150, widget=forms.HiddenInput)
+
+
+class AccessLogFilterForm(PeriodFilterForm):
+    """Filters of the access log (GET), for `verdict_list_filtered`: which side of the log,
+    who viewed (or whose record), robot, topic, verdict, credential and the time of the view.
+
+    `choices` is sharing.selectors.access_log_filter_choices for the side asked for.
+    """
+
+    since = _period_field("Viewed from (UTC)")
+    until = _period_field("Viewed before (UTC)")
+    # Chosen by the page's tabs; kept in the form so that filtering stays on the same side.
+    direction = forms.ChoiceField(
+        required=False, choices=ACCESS_LOG_DIRECTIONS, widget=forms.HiddenInput
+    )
+    viewer = forms.CharField(label="Viewer", required=False, max_length=150)
+    owner = forms.CharField(label="Owner", required=False, max_length=150)
+    robot = forms.ChoiceField(required=False)
+    topic = forms.CharField(required=False, max_length=255)
+    verdict = forms.ChoiceField(required=False, choices=[("", "any"), *Verdict.Outcome.choices])
+    credential = forms.ChoiceField(
+        required=False,
+        choices=[("", "any"), *((v, label) for v, label in Verdict.Credential.choices if v)],
+    )
+
+    def __init__(self, data: object, *, choices: dict[str, QuerySet]) -> None:
+        super().__init__(data)
+        self.fields["robot"].choices = [
+            ("", "any"),
+            *((str(pk), f"{name} ({owner})") for pk, name, owner in choices["robots"]),
+        ]
+        self.topics = choices["topics"]
+        self.people = choices["people"]
+        for name in ("viewer", "owner", "topic"):
+            self.fields[name].widget.attrs.update(
+                {"list": f"{name}-choices", "autocomplete": "off", "spellcheck": "false"}
+            )
+
+    @staticmethod
+    def direction_of(data: object) -> str:
+        """The side of the log asked for, before validation (to offer its choices): one of
+        ACCESS_LOG_DIRECTIONS, incoming unless the other is asked for by name."""
+        asked = data.get("direction") if hasattr(data, "get") else None
+        return ACCESS_LOG_OUTGOING if asked == ACCESS_LOG_OUTGOING else ACCESS_LOG_INCOMING
+
+    def filters(self) -> dict[str, Any]:
+        found = super().filters()
+        found.pop("direction", None)
+        return found
+
+
+class ExportForm(PeriodFilterForm):
+    """What to export: robots and topics the owner may view (none ticked: all), a period."""
+
+    robots = forms.MultipleChoiceField(
+        required=False, widget=forms.CheckboxSelectMultiple, label="Robots (none ticked: all)"
+    )
+    topics = forms.MultipleChoiceField(
+        required=False, widget=forms.CheckboxSelectMultiple, label="Topics (none ticked: all)"
+    )
+
+    def __init__(self, data: object, *, robots: QuerySet[Robot], topics: list[str]) -> None:
+        super().__init__(data)
+        self.fields["robots"].choices = [
+            (str(robot.pk), f"{robot.name} ({robot.owner.username})") for robot in robots
+        ]
+        self.fields["topics"].choices = [(topic, topic) for topic in topics]
+
+
+class RecordDeleteSelectionForm(PeriodFilterForm):
+    """Which of the owner's records to delete: a robot, a topic, a capture-time range; at
+    least one of them (never "everything" by an empty form)."""
+
+    robot = forms.ChoiceField(required=False)
+    topic = forms.ChoiceField(required=False)
+
+    field_order = ("robot", "topic", "since", "until")
+
+    def __init__(self, data: object, *, owner: Owner) -> None:
+        super().__init__(data)
+        robots = Robot.objects.filter(owner=owner).order_by("name").values_list("id", "name")
+        self.fields["robot"].choices = [("", "any"), *((str(pk), name) for pk, name in robots)]
+        topics = (
+            Record.objects.filter(owner=owner, deleted_at__isnull=True)
+            .order_by("topic")
+            .values_list("topic", flat=True)
+            .distinct()
+        )
+        self.fields["topic"].choices = [("", "any"), *((t, t) for t in topics)]
+
+    def clean(self) -> dict:
+        cleaned = super().clean()
+        if not any(cleaned.get(name) for name in ("robot", "topic", "since", "until")):
+            raise ValidationError(
+                "Choose a robot, a topic or a time range: what to delete.", code="required"
+            )
+        return cleaned
+
+
+class AccountDeleteForm(forms.Form):
+    """Deleting the account: the owner's password again, and a tick that they read what
+    happens."""
+
+    password = forms.CharField(
+        label="Your password",
+        strip=False,
+        widget=forms.PasswordInput(attrs={"autocomplete": "current-password"}),
+    )
+    understood = forms.BooleanField(
+        label="I understand that my records and my account are deleted for good, and that what "
+        "is on chain stays there",
+    )

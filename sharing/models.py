@@ -4,8 +4,10 @@ import uuid
 
 from django.conf import settings
 from django.db import models
+from django.utils import timezone
 
 from accounts.models import Owner, OwnerToken, Robot
+from sharing.scope import GrantScope, expiry_seconds, scope_commitment
 
 
 class AnchorRoot(models.Model):
@@ -54,6 +56,13 @@ class Record(models.Model):
         ANCHORED = "anchored", "anchored"
         FAILED = "failed", "failed"
 
+    class Deletion(models.TextChoices):
+        """Why a record was deleted."""
+
+        OWNER = "owner", "deleted by its owner"
+        RETENTION = "retention", "deleted by the robot's retention policy"
+        ACCOUNT = "account", "deleted with its owner's account"
+
     id = models.UUIDField(primary_key=True, default=uuid.uuid4, editable=False)
     owner = models.ForeignKey(Owner, on_delete=models.PROTECT, related_name="records")
     robot = models.ForeignKey(Robot, on_delete=models.PROTECT, related_name="records")
@@ -80,6 +89,21 @@ class Record(models.Model):
     leaf_index = models.PositiveIntegerField(null=True, blank=True)
     merkle_path = models.BinaryField(default=b"", blank=True)
     created_at = models.DateTimeField(auto_now_add=True)
+    # Deletion (sharing/deletion.py): the row stays as a tombstone with its digest and proof;
+    # the ciphertext is removed from storage and cache, then `purged_at` is set.
+    deleted_at = models.DateTimeField(null=True, blank=True)
+    deleted_by = models.ForeignKey(
+        settings.AUTH_USER_MODEL,
+        on_delete=models.SET_NULL,
+        null=True,
+        blank=True,
+        related_name="+",
+        help_text="who deleted it; empty when the robot's retention policy did",
+    )
+    deletion_reason = models.CharField(max_length=16, choices=Deletion.choices, blank=True)
+    purged_at = models.DateTimeField(
+        null=True, blank=True, help_text="when its ciphertext left storage and cache"
+    )
 
     class Meta:
         ordering = ["-captured_at"]
@@ -90,10 +114,34 @@ class Record(models.Model):
             models.Index(fields=["status", "created_at"], name="record_status_created"),
             models.Index(fields=["owner", "status"], name="record_owner_status"),
             models.Index(fields=["tx_hash"], name="record_tx_hash"),
+            # The record pages: a list in capture order, a topic's range (plot, gallery), and
+            # the dashboard's count of tampered records.
+            models.Index(fields=["owner", "captured_at", "seq"], name="record_owner_captured"),
+            models.Index(
+                fields=["owner", "topic", "data_type", "captured_at"],
+                name="record_owner_topic_captured",
+            ),
+            models.Index(
+                fields=["owner"],
+                condition=models.Q(tampered_at__isnull=False),
+                name="record_owner_tampered",
+            ),
+            # Retention: a robot's oldest records first.
+            models.Index(fields=["robot", "captured_at"], name="record_robot_captured"),
+            # Tombstones whose ciphertext is still to be removed.
+            models.Index(
+                fields=["deleted_at"],
+                condition=models.Q(deleted_at__isnull=False, purged_at__isnull=True),
+                name="record_purge_pending",
+            ),
         ]
 
     def __str__(self) -> str:
         return f"{self.owner} {self.topic} #{self.seq}"
+
+    @property
+    def is_deleted(self) -> bool:
+        return self.deleted_at is not None
 
 
 class Grant(models.Model):
@@ -121,6 +169,14 @@ class Grant(models.Model):
     made_with_token = models.ForeignKey(
         OwnerToken, on_delete=models.SET_NULL, null=True, blank=True, related_name="grants_made"
     )
+    # The scope (sharing/scope.py): robot ids and topics (empty: all) and a capture-time
+    # window [since, until); on chain as its SM3 commitment. None of them: all records.
+    scope_robots = models.JSONField(default=list, blank=True)
+    scope_topics = models.JSONField(default=list, blank=True)
+    scope_since = models.DateTimeField(null=True, blank=True)
+    scope_until = models.DateTimeField(null=True, blank=True)
+    # From then on the grant gives no access, in the portal and on chain (whole seconds).
+    expires_at = models.DateTimeField(null=True, blank=True)
     created_at = models.DateTimeField(auto_now_add=True)
     updated_at = models.DateTimeField(auto_now=True)
 
@@ -137,6 +193,44 @@ class Grant(models.Model):
     def __str__(self) -> str:
         return f"{self.owner} -> {self.grantee} ({self.status})"
 
+    @property
+    def scope(self) -> GrantScope:
+        return GrantScope(
+            robots=tuple(uuid.UUID(robot) for robot in self.scope_robots),
+            topics=tuple(self.scope_topics),
+            since=self.scope_since,
+            until=self.scope_until,
+        )
+
+    @property
+    def scope_commitment_hex(self) -> str:
+        return scope_commitment(self.scope).hex()
+
+    @property
+    def expiry(self) -> int:
+        """The expiry as the chain holds it: unix seconds, 0 for never."""
+        return expiry_seconds(self.expires_at)
+
+    @property
+    def is_expired(self) -> bool:
+        return self.expires_at is not None and self.expires_at <= timezone.now()
+
+    @property
+    def is_limited(self) -> bool:
+        """Scoped or expiring: not the plain all-records grant of authorityGrant."""
+        return self.expires_at is not None or not self.scope.is_all
+
+    @property
+    def shown_status(self) -> str:
+        """The status both sides' pages show: "expired" for a live grant past its expiry."""
+        if self.is_expired and self.status in (self.Status.ACTIVE, self.Status.PENDING):
+            return "expired"
+        return self.status
+
+    @property
+    def shown_status_display(self) -> str:
+        return "expired" if self.shown_status == "expired" else self.get_status_display()
+
 
 class Verdict(models.Model):
     """The outcome of one integrity check at view time: the audit trail of who viewed what."""
@@ -146,6 +240,14 @@ class Verdict(models.Model):
         TAMPERED = "tampered", "TAMPERED"
         NOT_ANCHORED_YET = "not_anchored_yet", "not anchored yet"
         NO_ACCESS = "no_access", "no access"
+        # The record was deleted (its ciphertext removed) while the check ran.
+        DELETED = "deleted", "deleted"
+
+    class Credential(models.TextChoices):
+        UNKNOWN = "", "not recorded"
+        SESSION = "session", "browser session"
+        TOKEN = "token", "owner API token"
+        OPERATOR = "operator", "operator check in the admin"
 
     record = models.ForeignKey(Record, on_delete=models.CASCADE, related_name="verdicts")
     viewer = models.ForeignKey(Owner, on_delete=models.CASCADE, related_name="verdicts")
@@ -160,6 +262,21 @@ class Verdict(models.Model):
         help_text="the operator who ran this check; empty when the viewer viewed the record",
     )
     outcome = models.CharField(max_length=20, choices=Outcome.choices)
+    # The access log (sharing.access_log): which credential asked for the view, and the
+    # record's owner copied from the record, so that an owner's log is one indexed range.
+    credential = models.CharField(
+        max_length=16,
+        choices=Credential.choices,
+        blank=True,
+        default=Credential.UNKNOWN,
+        help_text="browser session, owner API token or operator; empty: not recorded (older)",
+    )
+    token = models.ForeignKey(
+        OwnerToken, on_delete=models.SET_NULL, null=True, blank=True, related_name="verdicts"
+    )
+    record_owner = models.ForeignKey(
+        Owner, on_delete=models.CASCADE, null=True, blank=True, related_name="verdicts_received"
+    )
     computed_digest = models.CharField(max_length=64, blank=True)
     chain_digest = models.CharField(max_length=64, blank=True)
     source = models.CharField(max_length=16, blank=True, help_text="cache or storage")
@@ -168,6 +285,10 @@ class Verdict(models.Model):
 
     class Meta:
         ordering = ["-created_at"]
+        indexes = [
+            models.Index(fields=["record_owner", "-created_at", "-id"], name="verdict_owner_time"),
+            models.Index(fields=["viewer", "-created_at", "-id"], name="verdict_viewer_time"),
+        ]
 
     def __str__(self) -> str:
         if self.checked_by_id:
@@ -195,3 +316,53 @@ class SecurityEvent(models.Model):
 
     def __str__(self) -> str:
         return f"{self.kind} at {self.created_at:%Y-%m-%d %H:%M:%S}"
+
+
+class Export(models.Model):
+    """An export of the verified records of a selection: an MCAP file and its proof bundle,
+    made by a worker, kept in the envelope storage until `expires_at`, for its requester only."""
+
+    class Status(models.TextChoices):
+        QUEUED = "queued", "queued"
+        RUNNING = "running", "running"
+        DONE = "done", "ready"
+        FAILED = "failed", "failed"
+        EXPIRED = "expired", "expired"
+
+    id = models.UUIDField(primary_key=True, default=uuid.uuid4, editable=False)
+    requester = models.ForeignKey(Owner, on_delete=models.CASCADE, related_name="exports")
+    # {"robots": [uuid...], "topics": [...], "since": iso or null, "until": iso or null}
+    selection = models.JSONField(default=dict)
+    status = models.CharField(max_length=16, choices=Status.choices, default=Status.QUEUED)
+    total = models.PositiveIntegerField(default=0, help_text="records selected")
+    processed = models.PositiveIntegerField(default=0, help_text="records checked so far")
+    exported = models.PositiveIntegerField(default=0)
+    # [{"record", "topic", "captured_at", "reason"}]: the records left out, and why.
+    excluded = models.JSONField(default=list, blank=True)
+    mcap_name = models.CharField(max_length=255, blank=True)
+    bundle_name = models.CharField(max_length=255, blank=True)
+    mcap_size = models.PositiveBigIntegerField(default=0)
+    bundle_size = models.PositiveBigIntegerField(default=0)
+    mcap_sm3 = models.CharField(max_length=64, blank=True)
+    error = models.CharField(max_length=300, blank=True)
+    created_at = models.DateTimeField(auto_now_add=True)
+    finished_at = models.DateTimeField(null=True, blank=True)
+    expires_at = models.DateTimeField()
+
+    class Meta:
+        ordering = ["-created_at"]
+        indexes = [models.Index(fields=["status", "expires_at"], name="export_status_expiry")]
+
+    def __str__(self) -> str:
+        return f"export {self.pk} by {self.requester} ({self.status})"
+
+    @property
+    def percent(self) -> int:
+        """How far it is, in percent of the records checked."""
+        if self.status == self.Status.DONE:
+            return 100
+        return int(100 * self.processed / self.total) if self.total else 0
+
+    @property
+    def finished(self) -> bool:
+        return self.status not in (self.Status.QUEUED, self.Status.RUNNING)

@@ -27,6 +27,7 @@ from redis.exceptions import LockError, RedisError
 
 from accounts.models import ChainState, Owner
 from accounts.services import owners_chain_reset, owners_reconcile
+from chainworker.chain import AuthROSChain
 from chainworker.services import (
     IDENTITY_RESET,
     IDENTITY_SAME,
@@ -42,6 +43,7 @@ from core.redis_client import get_redis, redis_key
 from sharing.anchoring import anchor_schedule, record_chain_mismatch
 from sharing.models import AnchorRoot, Grant, Record, SecurityEvent
 from sharing.roots import tree_lost
+from sharing.scope import scope_commitment
 
 logger = logging.getLogger(__name__)
 
@@ -246,6 +248,22 @@ def _recent_and_window(anchored: QuerySet, *, name: str) -> dict[Any, Any]:
     return {row.pk: row for row in [*recent, *window]}
 
 
+def _grant_holds(client: AuthROSChain, grant: Grant) -> bool:
+    """Whether the chain gives the grantee access: for an active grant, with the portal's
+    terms (scope commitment and expiry; an expired one counts as holding: it ran out, it was
+    not lost); for a revoked one, any access at all."""
+    owner, grantee = grant.owner.eoa_address, grant.grantee.eoa_address
+    on_chain = client.grant_of(owner, grantee)
+    if on_chain is None:  # a contract from before scoped grants
+        return client.has_access(owner, grantee)
+    if grant.status != Grant.Status.ACTIVE:
+        return on_chain.live
+    return (on_chain.live or grant.is_expired) and (on_chain.scope, on_chain.expiry) == (
+        scope_commitment(grant.scope),
+        grant.expiry,
+    )
+
+
 def grants_reconcile() -> dict[str, int]:
     """Read back grants from the chain (RECONCILE_CHUNK at a time): an active grant without
     access on chain goes back to pending, a revoked one (the pair's newest, with no live grant
@@ -268,7 +286,7 @@ def grants_reconcile() -> dict[str, int]:
     client = chain_client()
     regranted = revoked_again = 0
     for grant in grants:
-        access = client.has_access(grant.owner.eoa_address, grant.grantee.eoa_address)
+        access = _grant_holds(client, grant)
         if grant.status == Grant.Status.ACTIVE and not access:
             target, count_as = Grant.Status.PENDING, "granted"
         elif grant.status == Grant.Status.REVOKED and access:

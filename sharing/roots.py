@@ -37,7 +37,13 @@ from chainworker.chain import (
     TransactionTimeout,
 )
 from chainworker.services import chain_stall_check
-from sharing.anchor_wait import gas_wait_end, gas_wait_start, lock_renew, receipt_await
+from sharing.anchor_wait import (
+    gas_wait_end,
+    gas_wait_start,
+    lock_renew,
+    receipt_await,
+    records_fail_exhausted,
+)
 from sharing.models import AnchorRoot, Record
 from smcrypto.merkle import MerkleTree, leaf_hash, path_split
 
@@ -185,10 +191,7 @@ def _tree_next(owner: Owner, sender: str, prev_root: str) -> AnchorRoot | None:
     pending = Record.objects.filter(
         owner_id=owner.pk, status=Record.Status.PENDING, anchor_root__isnull=True
     )
-    pending.filter(anchor_attempts__gte=settings.ANCHOR_MAX_ATTEMPTS).update(
-        status=Record.Status.FAILED,
-        failure_reason=f"not anchored after {settings.ANCHOR_MAX_ATTEMPTS} attempts",
-    )
+    records_fail_exhausted(owner, pending)
     records = list(
         pending.order_by("created_at", "seq").only("id", "digest")[: settings.ANCHOR_ROOT_MAX]
     )

@@ -1,48 +1,91 @@
 """Reads: which records and grants an owner may see."""
 
 import uuid
+from collections.abc import Iterable
 from datetime import datetime
 
 from django.db.models import F, Q, QuerySet, Window
 from django.db.models.functions import RowNumber
+from django.utils import timezone
 
 from accounts.models import ChainActivity, Owner, OwnerToken, Robot
-from sharing.models import Grant, Record, SecurityEvent, Verdict
+from sharing.models import Export, Grant, Record, SecurityEvent, Verdict
+from sharing.scope import GrantScope
 from smcrypto.merkle import path_split
 
 
+def _unexpired() -> Q:
+    return Q(expires_at__isnull=True) | Q(expires_at__gt=timezone.now())
+
+
+def grant_list_live_received(viewer: Owner) -> QuerySet[Grant]:
+    """The grants that let `viewer` read now, in the portal: active and not expired."""
+    return Grant.objects.filter(_unexpired(), grantee=viewer, status=Grant.Status.ACTIVE)
+
+
+def grant_live(*, owner_id: int, viewer: Owner) -> Grant | None:
+    """The grant from the owner that lets `viewer` read now, in the portal, if any."""
+    return grant_list_live_received(viewer).filter(owner_id=owner_id).first()
+
+
 def owners_granting(viewer: Owner) -> QuerySet[Owner]:
-    """Owners whose grant to `viewer` is active in the portal."""
-    return Owner.objects.filter(
-        grants_given__grantee=viewer, grants_given__status=Grant.Status.ACTIVE
-    )
+    """Owners whose grant to `viewer` is active (and not expired) in the portal."""
+    return Owner.objects.filter(pk__in=grant_list_live_received(viewer).values("owner_id"))
+
+
+def scope_records_q(scope: GrantScope) -> Q:
+    """The records a scope covers, as a filter (GrantScope.covers, in the database)."""
+    q = Q()
+    if scope.robots:
+        q &= Q(robot_id__in=list(scope.robots))
+    if scope.topics:
+        q &= Q(topic__in=list(scope.topics))
+    if scope.since is not None:
+        q &= Q(captured_at__gte=scope.since)
+    if scope.until is not None:
+        q &= Q(captured_at__lt=scope.until)
+    return q
 
 
 def record_list_visible_to(viewer: Owner) -> QuerySet[Record]:
-    """The viewer's own records and those of owners with an active grant to the viewer.
+    """The viewer's own records and, of owners with a live grant to the viewer, the records
+    inside the grant's scope (robots, topics, capture-time window).
 
     Listing is the portal's view; every read of content is checked on chain again.
     """
-    granting = Grant.objects.filter(grantee=viewer, status=Grant.Status.ACTIVE).values("owner_id")
+    visible = Q(owner=viewer)
+    for grant in grant_list_live_received(viewer).only(
+        "owner_id", "scope_robots", "scope_topics", "scope_since", "scope_until"
+    ):
+        visible |= Q(owner_id=grant.owner_id) & scope_records_q(grant.scope)
     return (
-        Record.objects.filter(Q(owner=viewer) | Q(owner_id__in=granting))
-        .select_related("owner__user", "robot")
+        Record.objects.filter(visible)
+        .select_related("owner__user", "robot", "deleted_by")
         .order_by("-captured_at", "-seq")
     )
 
 
 def record_list_owned(owner: Owner) -> QuerySet[Record]:
-    return record_list_visible_to(owner).filter(owner=owner)
+    return (
+        Record.objects.filter(owner=owner)
+        .select_related("owner__user", "robot")
+        .order_by("-captured_at", "-seq")
+    )
 
 
 def record_list_shared_with(viewer: Owner) -> QuerySet[Record]:
     return record_list_visible_to(viewer).exclude(owner=viewer)
 
 
-# The record filters' statuses: anchoring's, and "tampered" (a view found the stored data
-# changed), which is not an anchoring status.
+# The record filters' statuses: anchoring's, "tampered" (a view found the stored data
+# changed) and "deleted" (tombstones, hidden from lists unless asked for).
 RECORD_STATUS_TAMPERED = "tampered"
-RECORD_FILTER_STATUSES = [*Record.Status.choices, (RECORD_STATUS_TAMPERED, "tampered")]
+RECORD_STATUS_DELETED = "deleted"
+RECORD_FILTER_STATUSES = [
+    *Record.Status.choices,
+    (RECORD_STATUS_TAMPERED, "tampered"),
+    (RECORD_STATUS_DELETED, "deleted"),
+]
 
 
 def record_list_filtered(
@@ -59,15 +102,20 @@ def record_list_filtered(
     """The records that match every filter given (None or empty: not filtered).
 
     Capture times are half-open, [since, until); `owner` is a username; `status` is one of
-    RECORD_FILTER_STATUSES. The one filter of the record pages and the API.
+    RECORD_FILTER_STATUSES. Deleted records are left out unless `status` is "deleted". The one
+    filter of the record pages and the API.
     """
+    if status == RECORD_STATUS_DELETED:
+        records = records.filter(deleted_at__isnull=False)
+    else:
+        records = records.filter(deleted_at__isnull=True)
     if topic:
         records = records.filter(topic=topic)
     if data_type:
         records = records.filter(data_type=data_type)
     if status == RECORD_STATUS_TAMPERED:
         records = records.filter(tampered_at__isnull=False)
-    elif status:
+    elif status and status != RECORD_STATUS_DELETED:
         records = records.filter(status=status)
     if since is not None:
         records = records.filter(captured_at__gte=since)
@@ -78,6 +126,93 @@ def record_list_filtered(
     if robot:
         records = records.filter(robot_id=robot)
     return records
+
+
+# How a record list may be sorted: the `sort` value (a leading "-" for descending) and the
+# columns it orders by; capture time and seq break ties, so that pages never overlap.
+RECORD_SORTS = {
+    "captured": ("captured_at", "seq"),
+    "robot": ("robot__name", "captured_at", "seq"),
+    "topic": ("topic", "data_type", "captured_at", "seq"),
+    "status": ("status", "captured_at", "seq"),
+}
+RECORD_SORT_DEFAULT = "-captured"
+
+
+def record_list_sorted(records: QuerySet[Record], sort: str | None) -> QuerySet[Record]:
+    """The records in the order `sort` names (RECORD_SORTS, "-" for descending); an unknown
+    or empty value is the default, newest capture first."""
+    sort = sort or RECORD_SORT_DEFAULT
+    descending = sort.startswith("-")
+    columns = RECORD_SORTS.get(sort.removeprefix("-"))
+    if columns is None:
+        return record_list_sorted(records, RECORD_SORT_DEFAULT)
+    return records.order_by(*(f"-{column}" if descending else column for column in columns))
+
+
+def robots_visible_to(viewer: Owner, *, shared: bool) -> QuerySet[Robot]:
+    """The robots whose records a record list of the viewer may show: the viewer's own, or
+    those of the owners with an active grant to the viewer."""
+    if shared:
+        robots = Robot.objects.filter(owner__in=owners_granting(viewer))
+    else:
+        robots = Robot.objects.filter(owner=viewer)
+    return robots.select_related("owner__user").order_by("owner__user__username", "name")
+
+
+def record_counts_of(owner: Owner) -> dict[str, int]:
+    """The owner's records not deleted: all, pending, failed and tampered; each one count over
+    an index (record_owner_status, record_owner_tampered), never a scan of the records."""
+    owned = Record.objects.filter(owner=owner, deleted_at__isnull=True)
+    return {
+        "total": owned.count(),
+        "pending": owned.filter(status=Record.Status.PENDING).count(),
+        "failed": owned.filter(status=Record.Status.FAILED).count(),
+        "tampered": owned.filter(tampered_at__isnull=False).count(),
+    }
+
+
+def record_list_same_topic(record: Record, *, since: datetime, until: datetime) -> QuerySet[Record]:
+    """The records of the record's owner, topic and type captured in [since, until), oldest
+    first (over the index record_owner_topic_captured)."""
+    return (
+        Record.objects.filter(
+            owner_id=record.owner_id,
+            topic=record.topic,
+            data_type=record.data_type,
+            captured_at__gte=since,
+            captured_at__lt=until,
+        )
+        .select_related("owner__user", "robot")
+        .order_by("captured_at", "seq")
+    )
+
+
+def record_topic_range(
+    record: Record, *, since: datetime, until: datetime, limit: int
+) -> tuple[list[Record], int]:
+    """The records of the record's owner and topic captured in [since, until), oldest first,
+    at most `limit` of them: when the range holds more, the first record of each of `limit`
+    equal slices of the range (a plot over time shows the time evenly). And how many the
+    range holds.
+
+    Bounded whatever the range holds: one count, then at most `limit` single-row reads, each
+    a seek in the index record_owner_topic_captured (measured: a window function numbering
+    25,000 rows took 0.8 s on SQLite, this about as many milliseconds as it reads rows).
+    """
+    in_range = record_list_same_topic(record, since=since, until=until)
+    total = in_range.count()
+    if total <= limit:
+        return list(in_range), total
+    span = (until - since) / limit
+    picked: dict[uuid.UUID, Record] = {}
+    for index in range(limit):
+        start = since + span * index
+        end = until if index == limit - 1 else start + span
+        first = record_list_same_topic(record, since=start, until=end).first()
+        if first is not None:
+            picked[first.pk] = first
+    return list(picked.values()), total
 
 
 def record_get_visible(viewer: Owner, record_id: uuid.UUID | str) -> Record | None:
@@ -101,12 +236,47 @@ def grant_list_received(owner: Owner) -> QuerySet[Grant]:
 GRANTS_COUNTED = (Grant.Status.ACTIVE, Grant.Status.PENDING)
 
 
+def grants_described(grants: Iterable[Grant]) -> list[Grant]:
+    """The grants, each with `robot_names` (its scope's robots by name, in one query for all),
+    for the pages that show what a grant covers."""
+    grants = list(grants)
+    ids = {robot for grant in grants for robot in grant.scope_robots}
+    names = dict(Robot.objects.filter(pk__in=ids).values_list("pk", "name")) if ids else {}
+    for grant in grants:
+        grant.robot_names = sorted(
+            names.get(uuid.UUID(robot), "(removed robot)") for robot in grant.scope_robots
+        )
+    return grants
+
+
 def grant_count_given(owner: Owner) -> int:
-    return grant_list_given(owner).filter(status__in=GRANTS_COUNTED).count()
+    return grant_list_given(owner).filter(_unexpired(), status__in=GRANTS_COUNTED).count()
 
 
 def grant_count_received(owner: Owner) -> int:
-    return grant_list_received(owner).filter(status__in=GRANTS_COUNTED).count()
+    return grant_list_received(owner).filter(_unexpired(), status__in=GRANTS_COUNTED).count()
+
+
+def grant_topic_choices(owner: Owner, robots: list[Robot]) -> list[str]:
+    """Topics a grant of the owner's may name: those of its records and those its robots'
+    agents are set up for, sorted."""
+    recorded = Record.objects.filter(owner=owner).values_list("topic", flat=True).distinct()
+    configured = {entry["name"] for robot in robots for entry in robot.topics}
+    return sorted({*recorded, *configured})
+
+
+def grant_terms_of(owner: Owner, grantee: Owner) -> Grant | None:
+    """The owner's grant to `grantee` whose terms may be changed (pending or active)."""
+    return Grant.objects.filter(
+        owner=owner, grantee=grantee, status__in=[Grant.Status.PENDING, Grant.Status.ACTIVE]
+    ).first()
+
+
+def record_refused_by_grant(viewer: Owner, record_id: uuid.UUID) -> bool:
+    """Whether the record exists and its owner's grant to `viewer` is active but does not let
+    the viewer read it (outside the grant's scope, or expired): refused (403), not unknown."""
+    granting = Grant.objects.filter(grantee=viewer, status=Grant.Status.ACTIVE).values("owner_id")
+    return Record.objects.filter(pk=record_id, owner_id__in=granting).exists()
 
 
 def verdict_list_for_record(record: Record) -> QuerySet[Verdict]:
@@ -122,20 +292,37 @@ def verdict_latest(record: Record, viewer: Owner) -> Verdict | None:
     )
 
 
-def record_topic_history(record: Record, *, limit: int) -> list[Record]:
-    """Up to `limit` records of the record's owner and topic, up to and with it, oldest first."""
+def record_topic_history(record: Record, *, limit: int, viewer: Owner) -> list[Record]:
+    """Up to `limit` records of the record's owner and topic, up to and with it, oldest first;
+    of those before it, only the ones `viewer` may see (record_list_visible_to)."""
     earlier = (
-        Record.objects.filter(
+        record_list_visible_to(viewer)
+        .filter(
             owner_id=record.owner_id,
             topic=record.topic,
             data_type=record.data_type,
             captured_at__lte=record.captured_at,
+            deleted_at__isnull=True,
         )
         .exclude(pk=record.pk)
         .select_related("owner")
         .order_by("-captured_at", "-seq")[: max(limit - 1, 0)]
     )
     return [*reversed(list(earlier)), record]
+
+
+def record_deletion_text(record: Record) -> str:
+    """One line on a deleted record: when, by whom, and what stays."""
+    if record.deletion_reason == Record.Deletion.RETENTION:
+        who = "by its robot's retention policy"
+    elif record.deletion_reason == Record.Deletion.ACCOUNT:
+        who = "with its owner's account"
+    else:
+        who = f"by {record.deleted_by.username}" if record.deleted_by else "by its owner"
+    return (
+        f"this record was deleted on {record.deleted_at:%Y-%m-%d %H:%M:%S} UTC {who}: its "
+        "data is gone; its digest stays on chain and its proof stays available"
+    )
 
 
 def chain_activity_of(owner: Owner) -> QuerySet[ChainActivity]:
@@ -226,3 +413,108 @@ def record_proof(record: Record, *, chain_id: int, contract: str) -> dict[str, o
             "block": block,
         },
     }
+
+
+# --- the access log: views (verdicts) of an owner's records, and an owner's own views --------
+
+# Which views an access log lists: those of the owner's records (by anyone, the owner and the
+# operator included), or the owner's own views of records others shared with the owner.
+ACCESS_LOG_INCOMING = "incoming"
+ACCESS_LOG_OUTGOING = "outgoing"
+ACCESS_LOG_DIRECTIONS = [
+    (ACCESS_LOG_INCOMING, "views of my data"),
+    (ACCESS_LOG_OUTGOING, "my views of data shared with me"),
+]
+
+
+def verdict_list_access_log(owner: Owner, *, direction: str) -> QuerySet[Verdict]:
+    """The owner's access log, newest first, with everything a row shows in the same query.
+
+    Incoming: every view of the owner's records (Verdict.record_owner, indexed with the
+    time), refused ones included. Outgoing: the owner's own views of other owners' records
+    that access was granted for (a refused one would show the metadata of a record the
+    viewer may not read; an operator's checks are made with the record owner's rights, so
+    they are only ever incoming).
+    """
+    if direction == ACCESS_LOG_INCOMING:
+        verdicts = Verdict.objects.filter(record_owner=owner)
+    elif direction == ACCESS_LOG_OUTGOING:
+        verdicts = Verdict.objects.filter(viewer=owner, checked_by__isnull=True).exclude(
+            Q(record_owner=owner) | Q(outcome=Verdict.Outcome.NO_ACCESS)
+        )
+    else:
+        raise ValueError(f"unknown access log direction {direction!r}")
+    return verdicts.select_related(
+        "viewer__user", "record__robot", "record__owner__user", "token", "checked_by"
+    ).order_by("-created_at", "-id")
+
+
+def verdict_list_filtered(
+    verdicts: QuerySet[Verdict],
+    *,
+    viewer: str | None = None,
+    owner: str | None = None,
+    robot: uuid.UUID | str | None = None,
+    topic: str | None = None,
+    verdict: str | None = None,
+    credential: str | None = None,
+    since: datetime | None = None,
+    until: datetime | None = None,
+) -> QuerySet[Verdict]:
+    """The views that match every filter given (None or empty: not filtered): `viewer` and
+    `owner` (the record's) are usernames, `robot` a robot id, `topic` exact, `verdict` an
+    outcome, `credential` a Verdict.Credential; view times half-open, [since, until)."""
+    if viewer:
+        verdicts = verdicts.filter(viewer__user__username=viewer)
+    if owner:
+        verdicts = verdicts.filter(record_owner__user__username=owner)
+    if robot:
+        verdicts = verdicts.filter(record__robot_id=robot)
+    if topic:
+        verdicts = verdicts.filter(record__topic=topic)
+    if verdict:
+        verdicts = verdicts.filter(outcome=verdict)
+    if credential:
+        verdicts = verdicts.filter(credential=credential)
+    if since is not None:
+        verdicts = verdicts.filter(created_at__gte=since)
+    if until is not None:
+        verdicts = verdicts.filter(created_at__lt=until)
+    return verdicts
+
+
+def access_log_filter_choices(owner: Owner, *, direction: str) -> dict[str, QuerySet]:
+    """What the access log's filters offer, each a small query run only when read: robots
+    (id, name, owner's username), topics, and the usernames of the other side (the owner and
+    grantees, or the owners who shared with the owner)."""
+    if direction == ACCESS_LOG_OUTGOING:
+        owners = Owner.objects.filter(grants_given__grantee=owner)
+        robots = Robot.objects.filter(owner__in=owners)
+        topics = Record.objects.filter(owner__in=owners)
+        people = owners
+    else:
+        robots = Robot.objects.filter(owner=owner)
+        topics = Record.objects.filter(owner=owner)
+        people = Owner.objects.filter(Q(pk=owner.pk) | Q(grants_received__owner=owner))
+    return {
+        "robots": robots.order_by("owner__user__username", "name").values_list(
+            "id", "name", "owner__user__username"
+        ),
+        "topics": topics.order_by("topic").values_list("topic", flat=True).distinct(),
+        "people": people.order_by("user__username")
+        .values_list("user__username", flat=True)
+        .distinct(),
+    }
+
+
+def export_list_of(owner: Owner) -> QuerySet[Export]:
+    """The owner's exports, newest first (only their requester sees an export)."""
+    return Export.objects.filter(requester=owner).order_by("-created_at")
+
+
+def export_of(owner: Owner, export_id: uuid.UUID | str) -> Export | None:
+    try:
+        wanted = uuid.UUID(str(export_id))
+    except ValueError:
+        return None
+    return export_list_of(owner).filter(pk=wanted).first()

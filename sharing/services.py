@@ -6,6 +6,7 @@ once `authorityGrant` is confirmed on chain (`grant_sync_on_chain`, run by the w
 revocation is refused by the portal at once and `authorityRevoke` follows.
 """
 
+import dataclasses
 import logging
 import uuid
 from collections.abc import Callable, Sequence
@@ -26,6 +27,7 @@ from accounts.selectors import (
     owner_keys,
 )
 from accounts.services import chain_activity_record
+from alerts.services import grant_received_alert, grant_revoked_alert
 from chainworker.chain import InsufficientFunds, TransactionReverted, TxResult
 from chainworker.services import chain_client, chain_work_check
 from chainworker.work import WAITING_FOR_GAS, ChainWorkNotReady, exclusive
@@ -39,6 +41,7 @@ from sharing.errors import (
     GranteeNotRegistered,
     HeaderMismatch,
     InvalidEnvelope,
+    InvalidGrantTerms,
     NoGrant,
     NotRegisteredYet,
     OwnerNotFound,
@@ -48,6 +51,14 @@ from sharing.errors import (
     UnknownKey,
 )
 from sharing.models import Grant, Record, SecurityEvent
+from sharing.scope import (
+    ALL_RECORDS_COMMITMENT,
+    GrantScope,
+    ScopeError,
+    expiry_seconds,
+    scope_commitment,
+    scope_make,
+)
 from sharing.selectors import grant_list_made_with
 from sharing.storage import envelope_storage, envelopes_save
 from smcrypto import CryptoError, envelope, sm3
@@ -126,7 +137,9 @@ def record_create_batch(*, robot: Robot, envelopes: Sequence[bytes]) -> list[Rec
                     for upload, name in zip(checked, names, strict=True)
                 ]
             )
-            Robot.objects.filter(pk=robot.pk).update(last_seq=seqs[-1])
+            Robot.objects.filter(pk=robot.pk).update(
+                last_seq=seqs[-1], last_upload_at=timezone.now()
+            )
             transaction.on_commit(lambda: _after_upload(robot.owner_id, checked))
     except BaseException as refused:
         # Nothing of a refused or failed upload stays behind, not even its files.
@@ -259,9 +272,81 @@ def owner_resolve(identifier: str) -> Owner:
     """An owner named by username or by EOA address; OwnerNotFound for anything else."""
     owner = owner_by_identifier(identifier)
     if owner is None:
-        raise OwnerNotFound(f"no owner {identifier.strip()!r}")
+        raise OwnerNotFound(
+            f"There is no owner with the username or address “{identifier.strip()}”: check the "
+            "spelling, or ask them for their username."
+        )
     return owner
 
+
+@dataclass(frozen=True)
+class GrantTerms:
+    """What a grant covers and until when: its scope (all records by default) and expiry."""
+
+    scope: GrantScope = dataclasses.field(default_factory=GrantScope)
+    expires_at: datetime | None = None
+
+
+ALL_RECORDS_FOREVER = GrantTerms()
+# An expiry this close to now could pass before the grant is confirmed on chain.
+MIN_GRANT_LIFETIME = timedelta(minutes=5)
+
+
+def grant_terms_make(
+    *,
+    owner: Owner,
+    robots: Sequence[uuid.UUID | str] = (),
+    topics: Sequence[str] = (),
+    since: datetime | None = None,
+    until: datetime | None = None,
+    expires_at: datetime | None = None,
+) -> GrantTerms:
+    """The terms of a grant of `owner`'s, checked: robots must be the owner's, the window
+    ordered, the expiry at least MIN_GRANT_LIFETIME ahead. InvalidGrantTerms says what is
+    wrong, in words for the owner."""
+    try:
+        scope = scope_make(robots=robots, topics=topics, since=since, until=until)
+    except ScopeError as exc:
+        raise InvalidGrantTerms(_sentence(str(exc))) from None
+    if scope.robots:
+        own = set(
+            Robot.objects.filter(owner=owner, pk__in=scope.robots).values_list("pk", flat=True)
+        )
+        if len(own) != len(scope.robots):
+            raise InvalidGrantTerms("A grant can only name your own robots.")
+    if expires_at is not None:
+        if expires_at.tzinfo is None:
+            raise InvalidGrantTerms("The expiry needs a time zone.")
+        expires_at = expires_at.astimezone(UTC).replace(microsecond=0)  # whole seconds on chain
+        if expires_at < timezone.now() + MIN_GRANT_LIFETIME:
+            raise InvalidGrantTerms(
+                "The expiry must be at least "
+                f"{int(MIN_GRANT_LIFETIME.total_seconds() // 60)} minutes in the future."
+            )
+        if expiry_seconds(expires_at) >= 2**64:
+            raise InvalidGrantTerms("The expiry is too far in the future.")
+    return GrantTerms(scope=scope, expires_at=expires_at)
+
+
+def _sentence(text: str) -> str:
+    return text[:1].upper() + text[1:] + ("" if text.endswith(".") else ".")
+
+
+def _terms_fields(terms: GrantTerms) -> dict[str, object]:
+    scope = terms.scope
+    return {
+        "scope_robots": [str(robot) for robot in scope.robots],
+        "scope_topics": list(scope.topics),
+        "scope_since": scope.since,
+        "scope_until": scope.until,
+        "expires_at": terms.expires_at,
+    }
+
+
+_ALREADY_GRANTED = (
+    "{grantee} already has access. To change which records they may read, change that grant "
+    "instead."
+)
 
 # Which credential made a grant (Grant.made_with): a browser session, an owner API token, or an
 # operator's command.
@@ -274,8 +359,10 @@ def grant_create(
     grantee: Owner,
     made_with: str = "session",
     made_with_token: OwnerToken | None = None,
+    terms: GrantTerms = ALL_RECORDS_FOREVER,
 ) -> Grant:
-    """Let `grantee` read `owner`'s records; authorityGrant is sent on commit.
+    """Let `grantee` read `owner`'s records (those `terms` cover, until its expiry);
+    authorityGrant (authorityGrantScoped for limited terms) is sent on commit.
 
     `made_with` says which credential asked, `made_with_token` which owner API token (exactly
     when `made_with` is "token"), so that revoking the token can take its grants back.
@@ -285,22 +372,55 @@ def grant_create(
     if made_with_token is not None and made_with_token.owner_id != owner.pk:
         raise ValueError("a grant is made with a token of its own owner")
     if grantee.pk == owner.pk:
-        raise SelfGrant("an owner always reads its own records")
+        raise SelfGrant("You always see your own records: name another owner.")
     if owner.chain_state != ChainState.CONFIRMED:
-        raise NotRegisteredYet("your account is not registered on chain yet: try again shortly")
+        raise NotRegisteredYet(
+            "Your account is not registered on the chain yet: try again in a minute."
+        )
     if grantee.chain_state != ChainState.CONFIRMED:
-        raise GranteeNotRegistered(f"{grantee} is not registered on chain yet")
+        raise GranteeNotRegistered(
+            f"{grantee}'s account is not registered on the chain yet: try again in a minute."
+        )
     try:
         with transaction.atomic():
             if Grant.objects.filter(owner=owner, grantee=grantee, status__in=Grant.LIVE).exists():
-                raise AlreadyGranted(f"{grantee} already has access")
+                raise AlreadyGranted(_ALREADY_GRANTED.format(grantee=grantee))
             grant = Grant.objects.create(
-                owner=owner, grantee=grantee, made_with=made_with, made_with_token=made_with_token
+                owner=owner,
+                grantee=grantee,
+                made_with=made_with,
+                made_with_token=made_with_token,
+                **_terms_fields(terms),
             )
             transaction.on_commit(lambda: enqueue("sharing.tasks.grant_sync", grant.pk))
     except IntegrityError:
         # A simultaneous grant for the same pair won the race (one live grant per pair).
-        raise AlreadyGranted(f"{grantee} already has access") from None
+        raise AlreadyGranted(_ALREADY_GRANTED.format(grantee=grantee)) from None
+    return grant
+
+
+def grant_terms_change(*, owner: Owner, grantee: Owner, terms: GrantTerms) -> Grant:
+    """Change what a live grant covers or when it expires: the portal enforces the new terms
+    at once (the grant is pending until authorityGrantScoped, a new transaction, confirms
+    them; meanwhile nothing of it can be read), and the chain follows."""
+    with transaction.atomic():
+        grant = (
+            Grant.objects.select_for_update()
+            .filter(
+                owner=owner, grantee=grantee, status__in=[Grant.Status.PENDING, Grant.Status.ACTIVE]
+            )
+            .first()
+        )
+        if grant is None:
+            raise NoGrant(f"{grantee} has no access to change: give access first.")
+        fields = _terms_fields(terms)
+        if all(getattr(grant, name) == value for name, value in fields.items()):
+            return grant  # the same terms: nothing to send
+        for name, value in fields.items():
+            setattr(grant, name, value)
+        grant.status = Grant.Status.PENDING
+        grant.save(update_fields=[*fields, "status", "updated_at"])
+        transaction.on_commit(lambda: enqueue("sharing.tasks.grant_sync", grant.pk))
     return grant
 
 
@@ -313,9 +433,10 @@ def grant_revoke(*, owner: Owner, grantee: Owner) -> Grant:
             .first()
         )
         if grant is None or grant.status == Grant.Status.REVOKING:
-            raise NoGrant(f"{grantee} has no access to revoke")
+            raise NoGrant(f"{grantee} has no access to revoke.")
         grant.status = Grant.Status.REVOKING
         grant.save(update_fields=["status", "updated_at"])
+        grant_revoked_alert(grantee=grant.grantee, owner=owner)
         transaction.on_commit(lambda: enqueue("sharing.tasks.grant_sync", grant.pk))
     return grant
 
@@ -358,7 +479,8 @@ def grant_sync_on_chain(*, grant_id: int) -> Grant:
                 raise  # a revocation is never given up: it fails loudly and the sweep retries
             # The contract will refuse this grant every time: say so, do not retry forever.
             Grant.objects.filter(pk=grant.pk, status=Grant.Status.PENDING).update(
-                status=Grant.Status.FAILED, failure_reason=str(exc)[:300]
+                status=Grant.Status.FAILED,
+                failure_reason=GRANT_REFUSALS.get(exc.error_name, str(exc))[:300],
             )
             logger.error("grant %s refused on chain: %s", grant.pk, exc)
     Grant.objects.filter(pk=grant.pk, failure_reason=WAITING_FOR_GAS).update(failure_reason="")
@@ -366,24 +488,69 @@ def grant_sync_on_chain(*, grant_id: int) -> Grant:
     return grant
 
 
+# Why a scoped or expiring grant cannot be written to a contract deployed before they existed.
+CONTRACT_WITHOUT_SCOPES = (
+    "the contract deployed on this chain predates scoped and expiring grants: an operator must "
+    'upgrade it (docs/grants.md, "Upgrading a deployment"); a grant of all records without '
+    "expiry works meanwhile"
+)
+
+
+# The chain's refusals of a grant that the owner can act on, in words.
+GRANT_REFUSALS = {
+    "ScopedGrantsUnsupported": CONTRACT_WITHOUT_SCOPES,
+    "ExpiryInPast": "the expiry passed before the grant reached the chain: give access again "
+    "with a later expiry",
+}
+
+
 def _grant_sync(grant: Grant) -> None:
     client = chain_client()
     owner, grantee = grant.owner, grant.grantee
-    has_access = client.has_access(owner.eoa_address, grantee.eoa_address)
+    on_chain = client.grant_of(owner.eoa_address, grantee.eoa_address)
+    if on_chain is None:  # a contract from before scoped grants
+        has_access = client.has_access(owner.eoa_address, grantee.eoa_address)
+        exists, same_terms = has_access, has_access
+    else:
+        has_access = on_chain.live
+        # An expired grant is still there (its terms are nonzero) until revoked.
+        exists = on_chain.live or on_chain.expiry != 0 or on_chain.scope != ALL_RECORDS_COMMITMENT
+        same_terms = (
+            on_chain.live
+            and on_chain.scope == scope_commitment(grant.scope)
+            and on_chain.expiry == grant.expiry
+        )
     if grant.status == Grant.Status.PENDING:
         fields: dict[str, object] = {"status": Grant.Status.ACTIVE}
-        if not has_access:
-            result = _tolerating(
-                "AlreadyGranted",
-                lambda: client.authority_grant(owner_eoa_account(owner), grantee.eoa_address),
-            )
+        if not same_terms:
+            if on_chain is None and grant.is_limited:
+                raise TransactionReverted("ScopedGrantsUnsupported")
+            account = owner_eoa_account(owner)
+            if not exists and not grant.is_limited:
+                # The plain grant of DESIGN.md, as before scopes: all records, no expiry.
+                send, tolerated = (
+                    lambda: client.authority_grant(account, grantee.eoa_address),
+                    "AlreadyGranted",
+                )
+            else:
+                send, tolerated = (
+                    lambda: client.authority_grant_scoped(
+                        account,
+                        grantee.eoa_address,
+                        scope_commitment(grant.scope),
+                        grant.expiry,
+                    ),
+                    "SameTerms",
+                )
+            result = _tolerating(tolerated, send)
             if result is not None:
                 fields.update(grant_tx=result.tx_hash, grant_block=result.block_number)
                 _grant_activity_record(grant, ChainActivity.Kind.GRANTED, result)
-        Grant.objects.filter(pk=grant.pk, status=Grant.Status.PENDING).update(**fields)
+        if Grant.objects.filter(pk=grant.pk, status=Grant.Status.PENDING).update(**fields):
+            grant_received_alert(grantee=grantee, owner=owner)
     elif grant.status == Grant.Status.REVOKING:
         fields = {"status": Grant.Status.REVOKED}
-        if has_access:
+        if exists:
             result = _tolerating(
                 "NoGrant",
                 lambda: client.authority_revoke(owner_eoa_account(owner), grantee.eoa_address),

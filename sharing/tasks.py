@@ -11,7 +11,7 @@ from celery import shared_task
 from accounts.errors import IdentityMismatch
 from chainworker.chain import ChainUnavailable
 from chainworker.work import CHAIN_TASK
-from sharing import anchoring, reconcile, services, verification
+from sharing import anchoring, deletion, exports, reconcile, services, verification
 
 
 @shared_task(name="sharing.tasks.records_anchor", **CHAIN_TASK)
@@ -38,6 +38,22 @@ def chain_reconcile() -> dict[str, object]:
     return reconcile.chain_reconcile()
 
 
+# Removing deleted records' ciphertext (queued after each deletion) and the retention policy
+# (beat): idempotent, and the next run finishes what one cut short left, so never retried.
+@shared_task(
+    name="sharing.tasks.records_purge", acks_late=True, soft_time_limit=300, time_limit=360
+)
+def records_purge() -> int:
+    return deletion.records_purge()
+
+
+@shared_task(
+    name="sharing.tasks.retention_apply", acks_late=True, soft_time_limit=600, time_limit=660
+)
+def retention_apply() -> dict[str, int]:
+    return deletion.retention_apply()
+
+
 # A view's check, on the verify queue; a refused identity is an answer, not a task failure.
 VERIFY_TASK = {
     "autoretry_for": (ChainUnavailable,),
@@ -49,13 +65,33 @@ VERIFY_TASK = {
 }
 
 
+# `credential` and `token_id` came later: messages queued without them still run.
 @shared_task(name="sharing.tasks.record_verify", **VERIFY_TASK)
-def record_verify(record_id: str, viewer_id: int) -> dict[str, Any]:
-    checked = verification.record_verify(record_id=record_id, viewer_id=viewer_id)
+def record_verify(
+    record_id: str, viewer_id: int, credential: str = "", token_id: int | None = None
+) -> dict[str, Any]:
+    checked = verification.record_verify(
+        record_id=record_id, viewer_id=viewer_id, credential=credential, token_id=token_id
+    )
     return verification.verification_answer(checked)
 
 
 @shared_task(name="sharing.tasks.records_verify", **VERIFY_TASK)
-def records_verify(record_ids: list[str], viewer_id: int) -> list[dict[str, Any]]:
-    checked = verification.records_verify(record_ids=record_ids, viewer_id=viewer_id)
+def records_verify(
+    record_ids: list[str], viewer_id: int, credential: str = "", token_id: int | None = None
+) -> list[dict[str, Any]]:
+    checked = verification.records_verify(
+        record_ids=record_ids, viewer_id=viewer_id, credential=credential, token_id=token_id
+    )
     return [verification.verification_answer(one) for one in checked]
+
+
+# An export runs for as long as its records take; a message delivered twice finds it done.
+@shared_task(name="sharing.tasks.export_run", acks_late=True, soft_time_limit=3600, time_limit=3660)
+def export_run(export_id: str) -> str:
+    return exports.export_run(export_id=export_id).status
+
+
+@shared_task(name="sharing.tasks.exports_sweep", soft_time_limit=600, time_limit=660)
+def exports_sweep() -> dict[str, int]:
+    return exports.exports_sweep()

@@ -22,8 +22,9 @@ from redis.exceptions import RedisError
 
 from accounts.errors import IdentityMismatch
 from accounts.identity import owner_identity_check
-from accounts.models import Owner, OwnerKey
+from accounts.models import Owner, OwnerKey, OwnerToken
 from accounts.selectors import owner_key_bytes, owner_key_current
+from alerts.services import record_tampered_alert
 from chainworker.chain import AuthROSChain
 from chainworker.services import chain_client, chain_head
 from core.outbox import dispatch
@@ -32,13 +33,15 @@ from sharing.errors import (
     AccessDenied,
     IntegrityCheckFailed,
     NotAnchoredYet,
+    RecordDeleted,
     RecordNotFound,
     SharingError,
     VerificationUnavailable,
 )
 from sharing.models import Grant, Record, SecurityEvent, Verdict
 from sharing.roots import record_path
-from sharing.selectors import record_topic_history
+from sharing.scope import scope_commitment
+from sharing.selectors import grant_live, record_deletion_text, record_topic_history
 from smcrypto import envelope, sm3
 from smcrypto.merkle import leaf_hash, proof_holds
 
@@ -59,15 +62,25 @@ class Verification:
 
 
 def record_verify(
-    *, record_id: uuid.UUID | str, viewer_id: int, checked_by_id: int | None = None
+    *,
+    record_id: uuid.UUID | str,
+    viewer_id: int,
+    checked_by_id: int | None = None,
+    credential: str = Verdict.Credential.UNKNOWN,
+    token_id: int | None = None,
 ) -> Verification:
     """Check access on chain and the stored envelope's SM3 digest against the chain.
 
     Every check leaves a Verdict: the audit trail of who viewed what, when, and the chain's
     head then (as last seen by the portal, at most IDENTITY_BLOCK_CACHE_SECONDS old).
     `checked_by_id` names the operator running the check with the viewer's rights (the admin
-    console's re-verify), so that it is not recorded as the viewer's own view.
+    console's re-verify), so that it is not recorded as the viewer's own view. `credential`
+    and `token_id` say which credential of the viewer asked (the access log's "from which
+    credential"); an operator's check is always `operator`.
     """
+    if checked_by_id is not None:
+        credential, token_id = Verdict.Credential.OPERATOR, None
+    _credential_check(credential, token_id)
     record = Record.objects.select_related("owner", "anchor_root").get(pk=record_id)
     viewer = Owner.objects.get(pk=viewer_id)
     client = chain_client()
@@ -78,6 +91,9 @@ def record_verify(
             record=record,
             viewer=viewer,
             checked_by_id=checked_by_id,
+            record_owner_id=record.owner_id,
+            credential=credential,
+            token_id=token_id,
             outcome=outcome,
             block_number=_verdict_block(block, record),
             **fields,
@@ -85,29 +101,45 @@ def record_verify(
 
     if not _may_view_identified(record, viewer, client):
         return Verification(verdict(Verdict.Outcome.NO_ACCESS), None)
+    if record.deleted_at is not None:
+        return Verification(verdict(Verdict.Outcome.DELETED), None)
     fields, data = _digest_check(record, viewer, client)
     return Verification(verdict(**fields), data)
 
 
-def records_verify(*, record_ids: Sequence[uuid.UUID | str], viewer_id: int) -> list[Verification]:
+def records_verify(
+    *,
+    record_ids: Sequence[uuid.UUID | str],
+    viewer_id: int,
+    credential: str = Verdict.Credential.UNKNOWN,
+    token_id: int | None = None,
+) -> list[Verification]:
     """record_verify for several records of one viewer in one run (a trajectory's poses).
 
     One chain head, one access check per record owner, one digest read on chain per record,
     and every verdict written in one INSERT. One Verification per record that exists, in the
     order asked.
     """
+    _credential_check(credential, token_id)
     wanted = [uuid.UUID(str(record_id)) for record_id in record_ids]
     found = Record.objects.select_related("owner", "anchor_root").in_bulk(wanted)
     records = [found[record_id] for record_id in wanted if record_id in found]
     viewer = Owner.objects.get(pk=viewer_id)
     client = chain_client()
     block = chain_head(client)
-    may_view: dict[int, bool] = {}
+    grants: dict[int, Grant | None] = {}  # per owner: the grant checked on chain, if it holds
+    identified: set[int] = set()
     checked: list[tuple[dict[str, object], bytes | None]] = []
     for record in records:
-        if record.owner_id not in may_view:
-            may_view[record.owner_id] = _may_view_identified(record, viewer, client)
-        if may_view[record.owner_id]:
+        if record.owner_id not in grants:
+            grants[record.owner_id] = _grant_checked(record, viewer, client)
+        grant = grants[record.owner_id]
+        if grant is not None and _in_scope(grant, record) and record.deleted_at is not None:
+            checked.append(({"outcome": Verdict.Outcome.DELETED}, None))
+        elif grant is not None and _in_scope(grant, record):
+            if record.owner_id not in identified:
+                owner_identity_check(owner=record.owner)
+                identified.add(record.owner_id)
             checked.append(_digest_check(record, viewer, client))
         else:
             checked.append(({"outcome": Verdict.Outcome.NO_ACCESS}, None))
@@ -115,6 +147,9 @@ def records_verify(*, record_ids: Sequence[uuid.UUID | str], viewer_id: int) -> 
         Verdict(
             record=record,
             viewer=viewer,
+            record_owner_id=record.owner_id,
+            credential=credential,
+            token_id=token_id,
             block_number=_verdict_block(block, record),
             **fields,
         )
@@ -124,6 +159,14 @@ def records_verify(*, record_ids: Sequence[uuid.UUID | str], viewer_id: int) -> 
         Verification(verdict, data)
         for verdict, (_fields, data) in zip(verdicts, checked, strict=True)
     ]
+
+
+def _credential_check(credential: str, token_id: int | None) -> None:
+    """A verdict's credential is one of Verdict.Credential, with a token exactly for `token`."""
+    if credential not in Verdict.Credential.values:
+        raise ValueError(f"unknown credential {credential!r}")
+    if (credential == Verdict.Credential.TOKEN) != (token_id is not None):
+        raise ValueError("a token id goes with the `token` credential, and only with it")
 
 
 def _verdict_block(head: int, record: Record) -> int:
@@ -140,6 +183,9 @@ def _digest_check(
     try:
         data, source = envelope_fetch(record)
     except FileNotFoundError:
+        if Record.objects.filter(pk=record.pk, deleted_at__isnull=False).exists():
+            # Deleted while this check ran: its ciphertext was removed on purpose.
+            return {"outcome": Verdict.Outcome.DELETED, "source": "storage"}, None
         # The durable copy is gone, removed behind the portal's back: nothing is left that
         # hashes to the digest the chain holds.
         _record_tampered(record, viewer, source="storage", computed="missing", chain="")
@@ -218,15 +264,45 @@ def _may_view_identified(record: Record, viewer: Owner, client: AuthROSChain) ->
 
 
 def _may_view(record: Record, viewer: Owner, client: AuthROSChain) -> bool:
-    """The owner, or a grantee whose grant is live in the portal and on chain."""
+    """The owner, or a grantee whose grant is live in the portal and on chain, with the same
+    terms in both, and covers the record."""
+    grant = _grant_checked(record, viewer, client)
+    return grant is not None and _in_scope(grant, record)
+
+
+# The owner's own records need no grant: _grant_checked answers this for the owner.
+_OWN = Grant(status=Grant.Status.ACTIVE)
+
+
+def _grant_checked(record: Record, viewer: Owner, client: AuthROSChain) -> Grant | None:
+    """The grant that lets `viewer` read the record owner's records, if it holds in the
+    portal (active, not expired) and on chain (grantOf, one eth_call: live at the latest
+    block, the same scope commitment and expiry as the portal's); _OWN for the owner."""
     if viewer.pk == record.owner_id:
-        return True
-    live = Grant.objects.filter(
-        owner_id=record.owner_id, grantee=viewer, status=Grant.Status.ACTIVE
-    ).exists()
-    if not live:
-        return False
-    return client.has_access(record.owner.eoa_address, viewer.eoa_address)
+        return _OWN
+    grant = grant_live(owner_id=record.owner_id, viewer=viewer)
+    if grant is None:
+        return None
+    owner_eoa, viewer_eoa = record.owner.eoa_address, viewer.eoa_address
+    on_chain = client.grant_of(owner_eoa, viewer_eoa)
+    if on_chain is None:  # a contract from before scoped grants: only plain grants hold
+        holds = not grant.is_limited and client.has_access(owner_eoa, viewer_eoa)
+    else:
+        holds = (
+            on_chain.live
+            and on_chain.scope == scope_commitment(grant.scope)
+            and on_chain.expiry == grant.expiry
+        )
+    if not holds:
+        logger.info("grant %s does not hold on chain as the portal has it", grant.pk)
+        return None
+    return grant
+
+
+def _in_scope(grant: Grant, record: Record) -> bool:
+    return grant is _OWN or grant.scope.covers(
+        robot_id=record.robot_id, topic=record.topic, captured_at=record.captured_at
+    )
 
 
 def _record_tampered(
@@ -238,6 +314,13 @@ def _record_tampered(
         record=record,
         owner=record.owner,
         detail={"viewer": viewer.username, "source": source, "computed": computed, "chain": chain},
+    )
+    record_tampered_alert(
+        owner=record.owner,
+        record_id=record.pk,
+        topic=record.topic,
+        robot=record.robot.name,
+        source=source,
     )
     security_log.error(
         "record %s failed its integrity check (%s copy): computed %s, chain %s",
@@ -266,27 +349,44 @@ class OpenedRecord:
     earlier: list["OpenedRecord | SharingError"] = dataclasses.field(default_factory=list)
 
 
-def record_open(*, record_id: uuid.UUID | str, viewer: Owner, earlier: int = 0) -> OpenedRecord:
+def record_open(
+    *,
+    record_id: uuid.UUID | str,
+    viewer: Owner,
+    earlier: int = 0,
+    credential: str = Verdict.Credential.UNKNOWN,
+    token: OwnerToken | None = None,
+) -> OpenedRecord:
     """Have the worker check the record, then decrypt what it checked.
 
     With `earlier`, up to that many earlier records of its topic (record_topic_history) are
     checked in the same run and opened into `OpenedRecord.earlier`: a trajectory is one
-    check, not one per pose.
+    check, not one per pose. `credential` (and `token`, an owner API token's) is the
+    viewer's credential that asked, kept on the verdicts for the access log.
 
-    Raises RecordNotFound, VerificationUnavailable, or (with the record and the verdict
-    attached) AccessDenied, IntegrityCheckFailed or NotAnchoredYet.
+    Raises RecordNotFound, VerificationUnavailable, RecordDeleted (with the record: its
+    ciphertext is gone, nothing is checked), or (with the record and the verdict attached)
+    AccessDenied, IntegrityCheckFailed or NotAnchoredYet.
     """
+    _credential_check(credential, _token_id(token))
     try:
-        record = Record.objects.select_related("owner__user").get(pk=uuid.UUID(str(record_id)))
+        record = Record.objects.select_related("owner__user", "deleted_by").get(
+            pk=uuid.UUID(str(record_id))
+        )
     except (ValueError, Record.DoesNotExist):
         raise RecordNotFound("no such record") from None
+    if record.deleted_at is not None:
+        raise _deleted(record)
     if earlier <= 0:
-        pending = _send(VERIFY_TASK, str(record.pk), viewer.pk)
+        pending = _send(VERIFY_TASK, str(record.pk), viewer.pk, credential, _token_id(token))
         # While the worker checks: the record's key, looked up and unwrapped meanwhile.
         key = _record_key_early(record)
         return _opened(record, viewer, pending, key)
     *before, own = record_open_many(
-        records=record_topic_history(record, limit=earlier + 1), viewer=viewer
+        records=record_topic_history(record, limit=earlier + 1, viewer=viewer),
+        viewer=viewer,
+        credential=credential,
+        token=token,
     )
     if isinstance(own, SharingError):
         raise own
@@ -294,14 +394,20 @@ def record_open(*, record_id: uuid.UUID | str, viewer: Owner, earlier: int = 0) 
 
 
 def record_open_many(
-    *, records: Sequence[Record], viewer: Owner
+    *,
+    records: Sequence[Record],
+    viewer: Owner,
+    credential: str = Verdict.Credential.UNKNOWN,
+    token: OwnerToken | None = None,
 ) -> list[OpenedRecord | SharingError]:
     """record_open for several records at once, in one check on the worker
     (`records_verify`). One result per record, in order: the opened record, or the
     SharingError record_open would have raised."""
+    _credential_check(credential, _token_id(token))
     if not records:
         return []
-    pending = _send(VERIFY_MANY_TASK, [str(record.pk) for record in records], viewer.pk)
+    ids = [str(record.pk) for record in records]
+    pending = _send(VERIFY_MANY_TASK, ids, viewer.pk, credential, _token_id(token))
     try:
         answers = _await_answer(pending, f"{len(records)} records", viewer)
     except VerificationUnavailable as exc:
@@ -325,6 +431,10 @@ def record_reseal_for(*, opened: OpenedRecord, viewer: Owner) -> bytes:
     return envelope.seal(
         owner_key_bytes(owner_key_current(viewer)), opened.header, opened.plaintext
     )
+
+
+def _token_id(token: OwnerToken | None) -> int | None:
+    return token.pk if token is not None else None
 
 
 def _send(task_name: str, *args: Any) -> Any:
@@ -361,6 +471,9 @@ def _decrypted(
     """The record decrypted from the bytes the worker checked, if its verdict allows."""
     if verdict.outcome == Verdict.Outcome.NO_ACCESS:
         raise AccessDenied("you have no live grant to this record", record=record, verdict=verdict)
+    if verdict.outcome == Verdict.Outcome.DELETED:
+        record.refresh_from_db()
+        raise _deleted(record, verdict)
     if verdict.outcome == Verdict.Outcome.TAMPERED:
         raise IntegrityCheckFailed(
             "the stored data differs from the digest on chain", record=record, verdict=verdict
@@ -371,6 +484,10 @@ def _decrypted(
         )
     header, plaintext = envelope.open(key if key is not None else _record_key(record), data)
     return OpenedRecord(record, verdict, header, plaintext, data)
+
+
+def _deleted(record: Record, verdict: Verdict | None = None) -> RecordDeleted:
+    return RecordDeleted(record_deletion_text(record), record=record, verdict=verdict)
 
 
 def _await_answer(pending: Any, what: str, viewer: Owner) -> Any:

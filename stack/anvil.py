@@ -36,10 +36,9 @@ import urllib.request
 import zlib
 from dataclasses import dataclass
 from pathlib import Path
-from types import TracebackType
-from typing import IO, Self
+from typing import IO
 
-from stack.processes import exit_with_parent
+from stack.processes import StopsOnExit, exit_with_parent
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
 HOST = "127.0.0.1"
@@ -109,7 +108,7 @@ def rpc_answers(url: str, timeout: float = 1.0) -> bool:
 
 
 @dataclass
-class AnvilProcess:
+class AnvilProcess(StopsOnExit):
     """A running anvil node; stop() it, or use it as a context manager."""
 
     port: int
@@ -133,17 +132,6 @@ class AnvilProcess:
                 self.process.kill()
                 self.process.wait()
         self.output.close()
-
-    def __enter__(self) -> Self:
-        return self
-
-    def __exit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        self.stop()
 
 
 def start_anvil(

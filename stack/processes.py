@@ -20,9 +20,13 @@ import xmlrpc.client
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from types import TracebackType
+from typing import Self
 from urllib.parse import urlsplit
 
 import redis
+
+from core.redis_url import redis_client_for
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
 PYTHON = sys.executable
@@ -80,8 +84,13 @@ def http_answers(url: str, timeout: float = 2.0) -> bool:
 
 
 def redis_answers(url: str) -> bool:
+    """Whether the Redis at url (any form of core/redis_url.py) answers a PING."""
     try:
-        return bool(redis.Redis.from_url(url, socket_connect_timeout=1, socket_timeout=2).ping())
+        client = redis_client_for(url, socket_connect_timeout=1, socket_timeout=2)
+        try:
+            return bool(client.ping())
+        finally:
+            client.close()
     except (redis.RedisError, OSError):
         return False
 
@@ -101,8 +110,10 @@ def redis_start(url: str, folder: Path) -> None:
     """Start a daemonized redis-server where url points (only on this machine), without
     persistence; return once it answers."""
     parts = urlsplit(url)
-    if parts.hostname not in ("127.0.0.1", "localhost"):
-        raise StackError(f"Redis at {url} does not answer and is not local; start it yourself")
+    if parts.scheme != "redis" or parts.hostname not in ("127.0.0.1", "localhost"):
+        raise StackError(
+            f"Redis at {url} does not answer and is not a plain local one; start it yourself"
+        )
     folder.mkdir(parents=True, exist_ok=True)
     subprocess.run(
         [
@@ -358,6 +369,24 @@ def _signal(pid: int, signum: int, *, group: bool) -> None:
             os.kill(pid, signum)
     except (ProcessLookupError, PermissionError):
         pass  # already gone
+
+
+class StopsOnExit:
+    """A server started for a test or a benchmark: `with` stops it, whatever happens inside."""
+
+    def stop(self) -> None:
+        raise NotImplementedError
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        traceback: TracebackType | None,
+    ) -> None:
+        self.stop()
 
 
 def process_stop(process: subprocess.Popen, *, timeout: float, group: bool = False) -> None:

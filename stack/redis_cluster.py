@@ -3,6 +3,7 @@ redis-server, for the tests that show the portal's Redis scripts are Cluster-saf
 
     with start_redis_cluster(folder) as cluster:
         client = cluster.client()  # a redis.RedisCluster
+        cluster.url()  # redis+cluster://127.0.0.1:P1,127.0.0.1:P2,127.0.0.1:P3 (REDIS_URL)
 """
 
 from __future__ import annotations
@@ -12,13 +13,11 @@ import subprocess
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from types import TracebackType
-from typing import Self
 
 import redis
 
 from stack.anvil import HOST, free_port
-from stack.processes import process_stop
+from stack.processes import StopsOnExit, process_stop
 
 MASTERS = 3
 STARTUP_TIMEOUT = 30.0
@@ -30,7 +29,7 @@ class RedisClusterError(RuntimeError):
 
 
 @dataclass
-class RedisCluster:
+class RedisCluster(StopsOnExit):
     folder: Path
     ports: list[int]
     processes: list[subprocess.Popen[bytes]] = field(default_factory=list)
@@ -38,20 +37,13 @@ class RedisCluster:
     def client(self) -> redis.RedisCluster:
         return redis.RedisCluster(host=HOST, port=self.ports[0])
 
+    def url(self) -> str:
+        """The portal's URL for this cluster (core/redis_url.py)."""
+        return "redis+cluster://" + ",".join(f"{HOST}:{port}" for port in self.ports)
+
     def stop(self) -> None:
         for process in self.processes:
             process_stop(process, timeout=STOP_TIMEOUT)
-
-    def __enter__(self) -> Self:
-        return self
-
-    def __exit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        traceback: TracebackType | None,
-    ) -> None:
-        self.stop()
 
 
 def start_redis_cluster(folder: Path) -> RedisCluster:

@@ -19,14 +19,14 @@ import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from types import TracebackType
-from typing import Any, Self
+from typing import Any
 
 from stack.anvil import HOST, free_port
-from stack.processes import exit_with_parent, process_stop
+from stack.processes import StopsOnExit, exit_with_parent, process_stop
 
 STARTUP_TIMEOUT = 60.0
-STOP_TIMEOUT = 10.0
+# weed finishes SIGTERM only after 12 s or more; a throwaway server's data need not outlive it.
+STOP_TIMEOUT = 1.0
 # Credentials the throwaway server accepts (it checks none); boto3 needs some to sign with.
 ACCESS_KEY = "authros-test"
 SECRET_KEY = "authros-test-secret"  # noqa: S105 (a throwaway server that checks none)
@@ -55,7 +55,7 @@ def weed_binary() -> str:
 
 
 @dataclass
-class SeaweedProcess:
+class SeaweedProcess(StopsOnExit):
     process: subprocess.Popen[bytes]
     folder: Path
     endpoint_url: str
@@ -98,17 +98,6 @@ class SeaweedProcess:
 
     def stop(self) -> None:
         process_stop(self.process, timeout=STOP_TIMEOUT, group=True)
-
-    def __enter__(self) -> Self:
-        return self
-
-    def __exit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        traceback: TracebackType | None,
-    ) -> None:
-        self.stop()
 
 
 def start_seaweedfs(folder: Path) -> SeaweedProcess:

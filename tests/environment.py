@@ -8,6 +8,8 @@ so that the workers of two runs on one machine never take each other's messages.
 import os
 
 os.environ["REDIS_URL"] = os.environ.get("TEST_REDIS_URL", "redis://127.0.0.1:6379/14")
+# Every test closes its connections, so that PostgreSQL can drop the test database.
+os.environ.setdefault("DATABASE_CONN_MAX_AGE", "0")
 os.environ["CELERY_QUEUE"] = f"authros-test-{os.getpid()}"
 os.environ.pop("CELERY_BROKER_URL", None)
 os.environ.pop("CELERY_RESULT_BACKEND", None)

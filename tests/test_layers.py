@@ -13,16 +13,30 @@ import pytest
 pytestmark = pytest.mark.nodb
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
-PACKAGES = ("portal", "accounts", "sharing", "chainworker", "core", "smcrypto", "ros_agent")
+PACKAGES = (
+    "portal",
+    "accounts",
+    "sharing",
+    "alerts",
+    "chainworker",
+    "core",
+    "smcrypto",
+    "ros_agent",
+    "authros_verify",
+)
 # What each package may import of the others; everything not listed is forbidden.
 ALLOWED = {
-    "portal": {"accounts", "sharing", "chainworker", "core", "smcrypto"},
-    "sharing": {"accounts", "chainworker", "core", "smcrypto"},
+    "portal": {"accounts", "sharing", "alerts", "chainworker", "core", "smcrypto"},
+    "sharing": {"accounts", "alerts", "chainworker", "core", "smcrypto", "authros_verify"},
+    # Told of events by sharing; reads owners and robots through accounts.
+    "alerts": {"accounts", "chainworker", "core", "smcrypto"},
     "accounts": {"chainworker", "core", "smcrypto"},
     "chainworker": {"core", "smcrypto"},
     "core": set(),
     "smcrypto": set(),
     "ros_agent": {"smcrypto"},
+    # The standalone verifier of exports: anyone runs it without the portal.
+    "authros_verify": {"smcrypto"},
 }
 # Where a function-level import of the project's own modules is the rule, not a dodge:
 # AppConfig.ready runs once models can be imported.
@@ -132,3 +146,28 @@ def test_the_check_sees_a_forbidden_import(tmp_path):
     assert list(_imports(source)) == [("os", False, 1), ("sharing.services", True, 4)]
     edges, _local = _graph()
     assert "chainworker.chain" in edges["sharing.anchoring"]
+
+
+# What the standalone verifier may never load: Django, its ecosystem, or a portal app.
+NOT_FOR_THE_VERIFIER = {"django", "rest_framework", "drf_spectacular", "celery", "kombu", "redis"}
+
+
+def test_the_export_verifier_needs_neither_django_nor_the_portal():
+    """authros_verify runs where the portal does not: of the project it imports smcrypto
+    only, and neither it nor smcrypto imports Django or its ecosystem (the command's test in
+    tests/authros_verify also checks the modules a real run loads)."""
+    edges, _local = _graph()
+    from_verifier = {
+        target.split(".")[0]
+        for module, targets in edges.items()
+        if module.startswith("authros_verify")
+        for target in targets
+    }
+    assert from_verifier <= {"authros_verify", "smcrypto"}
+    third_party = {
+        name.split(".")[0]
+        for package in ("authros_verify", "smcrypto")
+        for path in _source_files(package)
+        for name, _is_local, _line in _imports(path)
+    }
+    assert not third_party & NOT_FOR_THE_VERIFIER

@@ -31,6 +31,8 @@ from tests.conftest import RobotSetup
 pytestmark = [pytest.mark.slow, pytest.mark.django_db(transaction=True)]
 
 EXAMPLES_PER_OPERATION = 40
+# Exports (issue 16): a valid one runs a whole export inline, so fewer examples.
+EXAMPLES_OF = {"exports_create": 5, "exports_list": 3, "exports_detail": 3, "exports_file": 3}
 
 
 @dataclass
@@ -72,6 +74,10 @@ def _real_values(case: Any, choice: dict[str, Any] | None) -> Any:
             case.body = value()
         elif name == "grantee" and (method, path) == ("POST", "/api/v1/grants/"):
             case.body = {"grantee": value}
+        elif (method, path) == ("DELETE", "/api/v1/records/{record_id}/"):
+            # Deleting the real records would leave every later case about them a 410
+            # (tests/sharing/test_deletion.py covers deleting); random ids still reach it.
+            continue
         elif case.path_parameters and name in case.path_parameters:
             case.path_parameters = {**case.path_parameters, name: value}
     return case
@@ -137,7 +143,9 @@ def _fuzz(
 
     @given(drawn=strategy)
     @settings(
-        max_examples=EXAMPLES_PER_OPERATION,
+        max_examples=EXAMPLES_OF.get(
+            operation.definition.raw.get("operationId"), EXAMPLES_PER_OPERATION
+        ),
         deadline=None,
         database=None,
         derandomize=True,
@@ -178,10 +186,16 @@ def _excluded_checks(operation: Any, identity: Identity) -> list[Callable]:
     if operation.definition.raw.get("operationId") in (
         "records_upload",
         "grants_create",
+        "grants_change",
         "robot_pairing_create",
+        "exports_create",
+        "access_log_list",
     ):
         # Valid by the schema yet refused with 400 by design: random bytes are no envelope
-        # (`invalid_envelope`), granting oneself is `self_grant`, and random hex is no point on
-        # the SM2 curve (`invalid_pairing_request`).
+        # (`invalid_envelope`), granting oneself is `self_grant`, a random robot id is not the
+        # owner's and a window before 1970 holds no capture (`invalid_grant_terms`), random hex
+        # is no point on the SM2 curve (`invalid_pairing_request`), a random robot id or topic
+        # selects no record (`invalid_selection`), and a period may not end before it starts
+        # (`invalid_request`).
         excluded.append(checks.positive_data_acceptance)
     return excluded

@@ -101,6 +101,9 @@ def test_one_record_in_the_list_says_everything_about_it(robot, robot_api, fleet
         "failure_reason": None,
         "tampered_at": None,
         "created_at": listed["created_at"],
+        "deleted_at": None,
+        "deleted_by": None,
+        "deletion_reason": None,
     }
     assert listed["anchored_at"] is not None
 

@@ -30,6 +30,19 @@ PAIRING_OPERATIONS = {
     ("/api/v1/robot-pairings/{pairing_id}/collect/", "post"),
     ("/api/v1/robot-key/", "get"),
 }
+# Added by issue 16 (the owner's access log).
+ACCESS_LOG_OPERATIONS = {("/api/v1/access-log/", "get")}
+# Added by issue 16 (export with proofs, docs/export.md).
+EXPORT_OPERATIONS = {
+    ("/api/v1/exports/", "get"),
+    ("/api/v1/exports/", "post"),
+    ("/api/v1/exports/{export_id}/", "get"),
+    ("/api/v1/exports/{export_id}/{part}/", "get"),
+}
+# Added by issue 16 (scoped grants): changing a grant's terms.
+GRANT_TERMS_OPERATIONS = {("/api/v1/grants/{grantee}/", "patch")}
+# Added by issue 16 (deletion): the owner deletes a record.
+DELETION_OPERATIONS = {("/api/v1/records/{record_id}/", "delete")}
 
 
 def test_the_schema_validates_without_warnings(tmp_path: Path):
@@ -50,7 +63,14 @@ def test_the_served_schema_lists_exactly_the_fixed_endpoints(client):
         for method in item
         if method in {"get", "post", "put", "patch", "delete"}
     }
-    assert operations == FIXED_OPERATIONS | PAIRING_OPERATIONS
+    assert operations == (
+        FIXED_OPERATIONS
+        | PAIRING_OPERATIONS
+        | ACCESS_LOG_OPERATIONS
+        | EXPORT_OPERATIONS
+        | GRANT_TERMS_OPERATIONS
+        | DELETION_OPERATIONS
+    )
     assert schema["paths"]["/api/v1/robot-key/"]["get"]["security"] == [{"robotToken": []}]
     for path in ("/api/v1/robot-pairings/", "/api/v1/robot-pairings/{pairing_id}/collect/"):
         # No credentials yet: the request secret travels in the body, never in the URL.
@@ -75,6 +95,8 @@ def test_the_served_schema_lists_exactly_the_fixed_endpoints(client):
         ("/api/v1/grants/", "get"),
         ("/api/v1/grants/", "post"),
         ("/api/v1/grants/{grantee}/", "delete"),
+        ("/api/v1/access-log/", "get"),
+        ("/api/v1/records/{record_id}/", "delete"),
     ]:
         assert schema["paths"][path][method]["security"] == owner_only, (path, method)
     for path in ("/api/v1/records/", "/api/v1/records/{record_id}/"):

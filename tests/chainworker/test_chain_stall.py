@@ -76,6 +76,13 @@ def head_older_than_stall(node_client) -> bool:
     return timezone.now().timestamp() - timestamp > STALL_AFTER + 0.5
 
 
+def automine_resume(node: AnvilProcess, node_client) -> None:
+    """Automine back on: anvil mines what waits in its pool, though not always before the
+    call returns; wait for the pool to empty."""
+    rpc(node, "evm_setAutomine", True)
+    wait_until(lambda: node_client.pending_transaction_count() == 0, "the pool to be mined")
+
+
 def stall_alerts() -> list[OperatorAlert]:
     return list(OperatorAlert.objects.filter(kind=CHAIN_STALLED_ALERT))
 
@@ -93,7 +100,7 @@ def test_an_idle_automine_chain_is_not_stalled_but_one_that_mines_nothing_is(dep
     wait_until(lambda: chain_stalled().stalled, "the stall to be seen")
     assert "transaction(s) wait" in chain_stalled().reason
 
-    rpc(node, "evm_setAutomine", True)  # mines what waits
+    automine_resume(node, deployed)  # mines what waits
     assert not chain_stalled().stalled
 
 
@@ -127,7 +134,7 @@ def test_records_wait_on_a_stalled_chain_without_using_attempts(
     page = admin_client.get(reverse("admin:chain-status"))
     assert b"chain stalled: no new block for" in page.content
 
-    rpc(node, "evm_setAutomine", True)  # the node mines again (what waited first)
+    automine_resume(node, deployed)  # the node mines again (what waited first)
     chain_stall_forget()
     anchoring.records_anchor(owner_id=setup.owner.pk)
 

@@ -21,6 +21,7 @@ FUNCTIONS = {
     "admin()",
     "anchorRoot(bytes32,uint64,bytes32)",
     "authorityGrant(address)",
+    "authorityGrantScoped(address,bytes32,uint64)",
     "authorityRevoke(address)",
     "commitmentOf(address)",
     "dataCheck(bytes32,bytes32)",
@@ -28,6 +29,7 @@ FUNCTIONS = {
     "dataUpload(bytes32,bytes32,uint64,bytes32)",
     "dataUploadBatch(bytes32[],bytes32[],uint64[],bytes32[])",
     "enroll(address)",
+    "grantOf(address,address)",
     "hasAccess(address,address)",
     "isEnrolled(address)",
     "isRegistered(address)",
@@ -40,6 +42,7 @@ FUNCTIONS = {
 EVENTS = {
     "AuthorityGranted(address,address)",
     "AuthorityRevoked(address,address)",
+    "AuthorityScoped(address,address,bytes32,uint64)",
     "DataUploaded(bytes32,address,bytes32,uint64,bytes32)",
     "Enrolled(address)",
     "KeyRotated(address,bytes32,bytes32)",
@@ -111,4 +114,4 @@ def test_abi_is_the_fixed_interface(artifact):
             signatures[entry["type"]].add(abi_to_signature(entry))
     assert signatures["function"] == FUNCTIONS
     assert signatures["event"] == EVENTS
-    assert len(signatures["error"]) == 22
+    assert len(signatures["error"]) == 24  # + ExpiryInPast, SameTerms (scoped grants)

@@ -296,6 +296,8 @@ def test_two_owners_share_revoke_and_see_tampering(
     # --- 6. A revokes B; B's next view is refused ----------------------------------------------
     a.goto(f"{base}/grants/")
     grant_row.locator("[data-testid=revoke-grant]").click()
+    # The portal asks first (tests/e2e/test_grants_page.py has the cancel).
+    a.get_by_test_id("revoke-confirm-button").click()
     expect(grant_row).to_have_attribute("data-status", re.compile("revoking|revoked"))
     shot(a, "a-grant-revoked")
     refused = b.reload()

@@ -249,6 +249,7 @@ def test_pair_in_the_browser_then_rotate_while_offline_and_lose_nothing(
     # Unpairing stops key delivery: the robot's token no longer fetches anything.
     page.goto(f"{base}/robots/")
     page.click("[data-testid=revoke-robot]")
+    page.click("[data-testid=robot-revoke-confirm]")  # the confirmation page
     token = (robot_dir / "robot.token").read_text().strip()
     refused = requests.get(
         f"{stack.web_url}/api/v1/robot-key/",

@@ -31,6 +31,10 @@ OWNER_PAGES = [
     ("record-trajectory", {"record_id": "7c9e6679-7425-40de-944b-e07fc1f90ae7"}),
     ("grants", {}),
     ("audit", {}),
+    ("record-delete", {"record_id": "7c9e6679-7425-40de-944b-e07fc1f90ae7"}),
+    ("records-delete", {}),
+    ("account-delete", {}),
+    ("robot-revoke", {"robot_id": "7c9e6679-7425-40de-944b-e07fc1f90ae7"}),
 ]
 
 
@@ -43,7 +47,14 @@ def test_anonymous_is_sent_to_login(client, name, kwargs):
 
 
 def test_posts_of_anonymous_change_nothing(client):
-    for name, kwargs in [("robot-revoke", {"robot_id": "7c9e6679-7425-40de-944b-e07fc1f90ae7"})]:
+    some_id = {"robot_id": "7c9e6679-7425-40de-944b-e07fc1f90ae7"}
+    for name, kwargs in [
+        ("robot-revoke", some_id),
+        ("robot-retention", some_id),
+        ("record-delete", {"record_id": some_id["robot_id"]}),
+        ("records-delete", {}),
+        ("account-delete", {}),
+    ]:
         assert client.post(reverse(name, kwargs=kwargs)).status_code == 302
     assert client.post(reverse("grant-revoke"), {"grantee": "x"}).status_code == 302
     assert client.post(reverse("grants"), {"grantee": "x"}).status_code == 302

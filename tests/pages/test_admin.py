@@ -132,6 +132,7 @@ def test_reverify_records(admin_client, make_robot, upload):
     # The operator's check, not the owner viewing their own data.
     assert str(verdict.checked_by.pk) == admin_client.session["_auth_user_id"]
     assert verdict.checked_by.is_staff
+    assert verdict.credential == Verdict.Credential.OPERATOR
     assert "checked by operator" in str(verdict)
     assert verdict_latest(good, alice.owner) is None
     event = AccountEvent.objects.get(owner=alice.owner)

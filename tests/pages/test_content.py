@@ -86,8 +86,8 @@ def test_trajectory_plot_is_square_scaled_with_y_up():
     assert plot["arrow"] == (round(x1 + 22, 1), y1)  # heading 0 points right
     assert plot["last"] == "1.00, 1.00"
     assert trajectory_plot([]) == {
-        "width": 480,
-        "height": 360,
+        "width": 640,
+        "height": 480,
         "points": "",
         "count": 0,
         "skipped": 0,

@@ -224,7 +224,12 @@ def test_revoke_a_robot_token(client, pending_owner):
     client.post(reverse("robots"), {"name": "r1", "topics": "/a std_msgs/String"})
     robot = Robot.objects.get(owner=owner)
     url = reverse("robot-revoke", args=[robot.id])
-    assert client.get(url).status_code == 405
+    # GET is the confirmation: it says what happens, and changes nothing.
+    confirm = client.get(url)
+    assert confirm.status_code == 200
+    assert "stops working at once" in confirm.content.decode()
+    robot.refresh_from_db()
+    assert robot.is_active
     page = client.post(url, follow=True)
     assert "is revoked" in page.content.decode()
     robot.refresh_from_db()

@@ -65,12 +65,12 @@ def test_grant_refusals_change_nothing(client, make_owner, pending_owner):
     client.force_login(alice.user)
     client.post(reverse("grants"), {"grantee": "bob"})
     for grantee, message in [
-        ("", "This field is required"),
-        ("nobody", "no owner &#x27;nobody&#x27;"),
-        ("0x" + "00" * 20, "no owner"),
-        ("alice", "always reads its own records"),
-        ("newbie", "is not registered on chain yet"),
-        ("bob", "already has access"),
+        ("", "Enter the username or address of the owner to share with."),
+        ("nobody", "There is no owner with the username or address “nobody”: check the spelling"),
+        ("0x" + "00" * 20, "There is no owner with the username or address"),
+        ("alice", "You always see your own records: name another owner."),
+        ("newbie", "newbie&#x27;s account is not registered on the chain yet: try again"),
+        ("bob", "bob already has access. To change which records they may read"),
     ]:
         page = client.post(reverse("grants"), {"grantee": grantee})
         assert page.status_code == 400, grantee

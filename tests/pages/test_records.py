@@ -57,7 +57,7 @@ def test_my_data_lists_filters_and_pages(client, alice, make_robot, upload):
     assert set(_rows(html)) == {str(r.id) for r in [*odom, img, pending]}
     assert str(foreign.id) not in html
     assert odom[0].tx_hash in html
-    assert f"<td>{odom[0].block_number}</td>" in html
+    assert f"block {odom[0].block_number}<" in html
     assert "5 of 5 records" in html
 
     assert set(_rows(client.get(url, {"topic": "/cam"}).content.decode())) == {
@@ -141,6 +141,10 @@ def test_verified_odometry_record(client, alice, upload):
     svg = plot.content.decode()
     assert "<polyline" in svg
     assert "3 positions" in svg
+    # Axes in metres, and the capture times of the first and last pose.
+    assert ">x (m)<" in svg
+    assert ">y (m)<" in svg
+    assert re.search(r"\d{4}-\d\d-\d\d \d\d:\d\d:\d\d\.\d{3} → ", svg)
     # Each plotted neighbour went through its own integrity check.
     assert all(Verdict.objects.filter(record=r, outcome="verified").exists() for r in earlier)
 

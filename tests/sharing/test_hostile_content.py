@@ -201,8 +201,8 @@ def test_the_trajectory_skips_what_it_cannot_plot_and_counts_it():
     assert "nan" not in text
     assert "inf" not in text
     assert trajectory_plot([None, None]) == {
-        "width": 480,
-        "height": 360,
+        "width": 640,
+        "height": 480,
         "points": "",
         "count": 0,
         "skipped": 2,

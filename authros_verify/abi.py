@@ -1,0 +1,61 @@
+"""The parts of the AuthROS contract's interface the check uses (contracts/AuthROS.sol)."""
+
+from eth_utils import keccak
+
+ROOT_OF = {
+    "inputs": [
+        {"internalType": "address", "name": "sender", "type": "address"},
+        {"internalType": "bytes32", "name": "root", "type": "bytes32"},
+    ],
+    "name": "rootOf",
+    "outputs": [
+        {"internalType": "uint64", "name": "size", "type": "uint64"},
+        {"internalType": "uint64", "name": "time", "type": "uint64"},
+        {"internalType": "uint64", "name": "blockNumber", "type": "uint64"},
+    ],
+    "stateMutability": "view",
+    "type": "function",
+}
+DATA_QUERY = {
+    "inputs": [{"internalType": "bytes32", "name": "id", "type": "bytes32"}],
+    "name": "dataQuery",
+    "outputs": [
+        {"internalType": "address", "name": "owner", "type": "address"},
+        {"internalType": "bytes32", "name": "digest", "type": "bytes32"},
+        {"internalType": "uint64", "name": "time", "type": "uint64"},
+        {"internalType": "bytes32", "name": "dataType", "type": "bytes32"},
+    ],
+    "stateMutability": "view",
+    "type": "function",
+}
+ROOT_ANCHORED = {
+    "anonymous": False,
+    "inputs": [
+        {"indexed": True, "internalType": "address", "name": "sender", "type": "address"},
+        {"indexed": True, "internalType": "bytes32", "name": "root", "type": "bytes32"},
+        {"indexed": False, "internalType": "uint64", "name": "size", "type": "uint64"},
+        {"indexed": False, "internalType": "bytes32", "name": "prevRoot", "type": "bytes32"},
+        {"indexed": False, "internalType": "uint64", "name": "time", "type": "uint64"},
+    ],
+    "name": "RootAnchored",
+    "type": "event",
+}
+DATA_UPLOADED = {
+    "anonymous": False,
+    "inputs": [
+        {"indexed": True, "internalType": "bytes32", "name": "id", "type": "bytes32"},
+        {"indexed": True, "internalType": "address", "name": "owner", "type": "address"},
+        {"indexed": False, "internalType": "bytes32", "name": "digest", "type": "bytes32"},
+        {"indexed": False, "internalType": "uint64", "name": "time", "type": "uint64"},
+        {"indexed": False, "internalType": "bytes32", "name": "dataType", "type": "bytes32"},
+    ],
+    "name": "DataUploaded",
+    "type": "event",
+}
+ABI = [ROOT_OF, DATA_QUERY, ROOT_ANCHORED, DATA_UPLOADED]
+
+
+def event_topic(event: dict) -> bytes:
+    """topic[0] of an event's logs: keccak of its signature."""
+    types = ",".join(item["type"] for item in event["inputs"])
+    return keccak(text=f"{event['name']}({types})")

@@ -1,0 +1,52 @@
+"""The proof bundle's one serialisation, shared by the portal (which writes it) and the check.
+
+The file is ASCII JSON, keys sorted, no spaces, with one record per line:
+
+    {<every top-level field but "records">,
+    "records":[
+    {<record 0>},
+    {<record 1>}
+    ]}
+
+so that a changed byte, even one that breaks the JSON, can be traced to the record on its
+line. `bundle_sm3` is the SM3 of the compact JSON of the bundle without that field.
+"""
+
+import json
+from typing import Any
+
+from smcrypto.sm3 import sm3_hex
+
+BUNDLE_FORMAT = "authros-export-proofs/v1"
+# Lines before the first record's: the top-level fields, then `"records":[`.
+RECORDS_FIRST_LINE = 3
+
+
+def _compact(value: Any) -> str:
+    return json.dumps(
+        value, sort_keys=True, separators=(",", ":"), ensure_ascii=True, allow_nan=False
+    )
+
+
+def bundle_digest(document: dict[str, Any]) -> str:
+    """ "0x" + SM3 of the compact JSON of the bundle without its `bundle_sm3` field."""
+    body = {name: value for name, value in document.items() if name != "bundle_sm3"}
+    return "0x" + sm3_hex(_compact(body).encode("ascii"))
+
+
+def bundle_serialise(document: dict[str, Any]) -> bytes:
+    """The bundle's bytes, one record per line (the module's docstring)."""
+    head = {name: value for name, value in document.items() if name != "records"}
+    records = document.get("records", [])
+    lines = [_compact(head)[:-1] + ",", '"records":[']
+    lines.extend(
+        _compact(entry) + ("," if i < len(records) - 1 else "") for i, entry in enumerate(records)
+    )
+    lines.append("]}")
+    return ("\n".join(lines) + "\n").encode("ascii")
+
+
+def record_line_index(data: bytes, offset: int, records: int) -> int | None:
+    """The index of the record whose line holds byte `offset` of a bundle, if any."""
+    index = data.count(b"\n", 0, max(offset, 0)) + 1 - RECORDS_FIRST_LINE
+    return index if 0 <= index < records else None

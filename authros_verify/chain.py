@@ -1,0 +1,123 @@
+"""What the check asks the chain, through web3; each answer asked once per run."""
+
+from dataclasses import dataclass
+from typing import Any
+
+import requests
+from eth_abi import decode as abi_decode
+from web3 import Web3
+from web3.exceptions import TransactionNotFound, Web3Exception
+
+from authros_verify.abi import ABI, DATA_UPLOADED, ROOT_ANCHORED, event_topic
+
+
+class ChainUnreachable(Exception):
+    """The node cannot be asked (down, refused, not a node)."""
+
+
+@dataclass(frozen=True)
+class AnchoredRoot:
+    size: int
+    time: int
+    block: int
+
+
+@dataclass(frozen=True)
+class AnchoredRecord:
+    owner: str
+    digest: bytes
+
+
+@dataclass(frozen=True)
+class Receipt:
+    status: int
+    block: int
+    to: str | None
+    # (emitting contract, topics, data) of each log
+    logs: tuple[tuple[str, tuple[bytes, ...], bytes], ...]
+
+    def root_anchored(self, contract: str, sender: str, root: bytes) -> int | None:
+        """The size a RootAnchored(sender, root) of `contract` in this receipt states."""
+        for size, *_ in self._events(contract, ROOT_ANCHORED, _address_topic(sender), root):
+            return int(size)
+        return None
+
+    def data_uploaded(self, contract: str, record_id: bytes, owner: str) -> bytes | None:
+        """The digest a DataUploaded(record id, owner) of `contract` in this receipt states."""
+        for digest, *_ in self._events(contract, DATA_UPLOADED, record_id, _address_topic(owner)):
+            return bytes(digest)
+        return None
+
+    def _events(self, contract: str, event: dict, *indexed: bytes) -> list[tuple]:
+        data_types = [item["type"] for item in event["inputs"] if not item["indexed"]]
+        wanted = (event_topic(event), *indexed)
+        return [
+            abi_decode(data_types, data)
+            for address, topics, data in self.logs
+            if address.lower() == contract.lower() and topics == wanted
+        ]
+
+
+def _address_topic(address: str) -> bytes:
+    return bytes(12) + bytes.fromhex(address.removeprefix("0x"))
+
+
+class ChainReader:
+    """Reads of one chain; `w3` is any Web3 (an HTTP node, or an in-process one in tests)."""
+
+    def __init__(self, w3: Web3) -> None:
+        self.w3 = w3
+        self._cache: dict[tuple, Any] = {}
+
+    @classmethod
+    def from_url(cls, url: str, *, timeout: float = 30.0) -> "ChainReader":
+        return cls(Web3(Web3.HTTPProvider(url, request_kwargs={"timeout": timeout})))
+
+    def chain_id(self) -> int:
+        return self._once(("chain_id",), lambda: int(self.w3.eth.chain_id))
+
+    def has_code(self, contract: str) -> bool:
+        return self._once(("code", contract), lambda: len(self.w3.eth.get_code(contract)) > 0)
+
+    def root_of(self, contract: str, sender: str, root: bytes) -> AnchoredRoot:
+        def ask() -> AnchoredRoot:
+            size, when, block = self._contract(contract).functions.rootOf(sender, root).call()
+            return AnchoredRoot(int(size), int(when), int(block))
+
+        return self._once(("rootOf", contract, sender, root), ask)
+
+    def data_query(self, contract: str, record_id: bytes) -> AnchoredRecord:
+        def ask() -> AnchoredRecord:
+            owner, digest, _when, _type = (
+                self._contract(contract).functions.dataQuery(record_id).call()
+            )
+            return AnchoredRecord(str(owner), bytes(digest))
+
+        return self._once(("dataQuery", contract, record_id), ask)
+
+    def receipt(self, tx: str) -> Receipt | None:
+        def ask() -> Receipt | None:
+            try:
+                answer = self.w3.eth.get_transaction_receipt(tx)
+            except TransactionNotFound:
+                return None
+            logs = tuple(
+                (str(log["address"]), tuple(bytes(t) for t in log["topics"]), bytes(log["data"]))
+                for log in answer["logs"]
+            )
+            return Receipt(int(answer["status"]), int(answer["blockNumber"]), answer["to"], logs)
+
+        return self._once(("receipt", tx), ask)
+
+    def _contract(self, address: str) -> Any:
+        return self.w3.eth.contract(address=address, abi=ABI)
+
+    def _once(self, key: tuple, ask: Any) -> Any:
+        if key not in self._cache:
+            try:
+                self._cache[key] = ask()
+            except (requests.ConnectionError, requests.Timeout, OSError) as exc:
+                raise ChainUnreachable(f"the chain node cannot be reached: {exc}") from exc
+            except Web3Exception as exc:
+                raise ChainUnreachable(f"the chain node refused a read: {exc}") from exc
+        return self._cache[key]

@@ -1,0 +1,382 @@
+"""Verified records back into ROS 2 messages, written as an MCAP file that Foxglove or
+Lichtblick opens: `ros2msg` schemas, `cdr` messages (serialised by rosbags, as the ROS 2
+agent reads them), one channel per topic, log and publish time the capture stamp.
+
+The records' `K` is what ros_agent's extractors made of a message (ros_agent/extractors.py,
+ros_agent/ros2msg.py): nav_msgs/Odometry, sensor_msgs/Image (PNG), CompressedImage and Imu
+have their own shape and are rebuilt here field by field; any other type was walked field by
+field and is rebuilt from rosbags' ROS 2 Humble definition of it. What cannot be rebuilt (a
+type rosbags does not know, a record whose fields do not fit the type) goes on a `json`
+channel of its topic, its Fig. 4 record as it was sealed (docs/export.md).
+
+Pure functions of the decrypted records and a file: no request, no database.
+"""
+
+import base64
+import binascii
+import json
+import math
+from dataclasses import dataclass
+from functools import cache
+from typing import IO, Any
+
+import cv2
+import numpy as np
+from mcap.writer import CompressionType, Writer
+from rosbags.typesys import Stores, get_typestore
+from rosbags.typesys.store import Typestore
+
+JSON_SCHEMA = b'{"type": "object", "description": "an AuthROS Fig. 4 record"}'
+_HEADER = "std_msgs/msg/Header"
+_TIME_TYPES = ("builtin_interfaces/msg/Time", "builtin_interfaces/msg/Duration")
+_NUMPY_TYPES = {
+    "bool": np.bool_,
+    "byte": np.uint8,
+    "char": np.uint8,
+    "int8": np.int8,
+    "uint8": np.uint8,
+    "int16": np.int16,
+    "uint16": np.uint16,
+    "int32": np.int32,
+    "uint32": np.uint32,
+    "int64": np.int64,
+    "uint64": np.uint64,
+    "float32": np.float32,
+    "float64": np.float64,
+}
+# ROS image encoding -> (element type, channels, OpenCV conversion from the decoded PNG)
+_IMAGE_ENCODINGS: dict[str, tuple[type, int, int | None]] = {
+    "rgb8": (np.uint8, 3, cv2.COLOR_BGR2RGB),
+    "bgr8": (np.uint8, 3, None),
+    "rgba8": (np.uint8, 4, cv2.COLOR_BGRA2RGBA),
+    "bgra8": (np.uint8, 4, None),
+    "mono8": (np.uint8, 1, None),
+    "8UC1": (np.uint8, 1, None),
+    "mono16": (np.uint16, 1, None),
+    "16UC1": (np.uint16, 1, None),
+}
+
+
+class Unbuildable(ValueError):
+    """A record's data does not fit its ROS type: it goes on a JSON channel instead."""
+
+
+@dataclass(frozen=True)
+class EncodedMessage:
+    """One record as an MCAP message: its schema, its encoding and its bytes."""
+
+    schema_name: str
+    schema_encoding: str  # "ros2msg" or "jsonschema"
+    schema: bytes
+    message_encoding: str  # "cdr" or "json"
+    data: bytes
+    stamp_ns: int | None  # the message header's stamp, when it has one
+
+
+@cache
+def typestore() -> Typestore:
+    return get_typestore(Stores.ROS2_HUMBLE)
+
+
+def ros2_type_name(data_type: str) -> str:
+    """`nav_msgs/Odometry` -> `nav_msgs/msg/Odometry` (ROS 2 names pass unchanged)."""
+    if data_type.count("/") >= 2:
+        return data_type
+    package, _, name = data_type.partition("/")
+    return f"{package}/msg/{name}"
+
+
+def message_encode(*, data_type: str, document: Any, plaintext: bytes) -> EncodedMessage:
+    """The record as a CDR message of its ROS 2 type, or its Fig. 4 record as JSON."""
+    msgtype = ros2_type_name(data_type)
+    data = document.get("K") if isinstance(document, dict) else None
+    try:
+        if msgtype not in typestore().types:
+            raise Unbuildable(f"{msgtype} is not a ROS 2 Humble type")
+        builder = _BUILDERS.get(msgtype, _generic)
+        message = builder(msgtype, data)
+        encoded = typestore().serialize_cdr(message, msgtype)
+    except (Unbuildable, TypeError, ValueError, OverflowError, KeyError, AttributeError):
+        return _json_message(data_type, document, plaintext)
+    schema = typestore().generate_msgdef(msgtype, ros_version=2)[0].encode()
+    return EncodedMessage(msgtype, "ros2msg", schema, "cdr", bytes(encoded), _stamp_ns(data))
+
+
+def _json_message(data_type: str, document: Any, plaintext: bytes) -> EncodedMessage:
+    if document is None:  # not JSON: its bytes, base64, in a JSON object
+        body = json.dumps({"raw_base64": base64.b64encode(plaintext).decode()}).encode()
+    else:
+        body = plaintext
+    data = document.get("K") if isinstance(document, dict) else None
+    return EncodedMessage(data_type, "jsonschema", JSON_SCHEMA, "json", body, _stamp_ns(data))
+
+
+# --- the types the extractors shape themselves -----------------------------------------------
+
+
+def _odometry(msgtype: str, data: Any) -> Any:
+    data = _object(data)
+    types = typestore().types
+    pose = types["geometry_msgs/msg/Pose"](
+        position=_point(data.get("position")),
+        orientation=_quaternion(data.get("orientation")),
+    )
+    twist = types["geometry_msgs/msg/Twist"](
+        linear=_vector3(data.get("linear_velocity")),
+        angular=_vector3(data.get("angular_velocity")),
+    )
+    return types[msgtype](
+        header=_header(data.get("header")),
+        child_frame_id=_text(data.get("child_frame_id")),
+        pose=types["geometry_msgs/msg/PoseWithCovariance"](
+            pose=pose, covariance=_floats(data.get("pose_covariance"), 36)
+        ),
+        twist=types["geometry_msgs/msg/TwistWithCovariance"](
+            twist=twist, covariance=_floats(data.get("twist_covariance"), 36)
+        ),
+    )
+
+
+def _imu(msgtype: str, data: Any) -> Any:
+    data = _object(data)
+    return typestore().types[msgtype](
+        header=_header(data.get("header")),
+        orientation=_quaternion(data.get("orientation")),
+        orientation_covariance=_floats(data.get("orientation_covariance"), 9),
+        angular_velocity=_vector3(data.get("angular_velocity")),
+        angular_velocity_covariance=_floats(data.get("angular_velocity_covariance"), 9),
+        linear_acceleration=_vector3(data.get("linear_acceleration")),
+        linear_acceleration_covariance=_floats(data.get("linear_acceleration_covariance"), 9),
+    )
+
+
+def _compressed_image(msgtype: str, data: Any) -> Any:
+    data = _object(data)
+    return typestore().types[msgtype](
+        header=_header(data.get("header")),
+        format=_text(data.get("format")),
+        data=np.frombuffer(_base64(data.get("data")), dtype=np.uint8),
+    )
+
+
+def _image(msgtype: str, data: Any) -> Any:
+    """The PNG the extractor made, decoded back into the pixels of the original encoding."""
+    data = _object(data)
+    encoding = _text(data.get("encoding"))
+    if encoding not in _IMAGE_ENCODINGS or data.get("format") != "png":
+        raise Unbuildable(f"image encoding {encoding!r} is not one the agent stores")
+    element, channels, conversion = _IMAGE_ENCODINGS[encoding]
+    pixels = cv2.imdecode(np.frombuffer(_base64(data.get("data")), np.uint8), cv2.IMREAD_UNCHANGED)
+    if pixels is None:
+        raise Unbuildable("the image is not a PNG")
+    if conversion is not None:
+        pixels = cv2.cvtColor(pixels, conversion)
+    width, height = _integer(data.get("width")), _integer(data.get("height"))
+    expected = (height, width) if channels == 1 else (height, width, channels)
+    if pixels.shape != expected or pixels.dtype != element:
+        raise Unbuildable(f"the PNG is {pixels.shape} {pixels.dtype}, not {expected} {encoding}")
+    raw = np.ascontiguousarray(pixels).astype(np.dtype(element).newbyteorder("<")).tobytes()
+    return typestore().types[msgtype](
+        header=_header(data.get("header")),
+        height=height,
+        width=width,
+        encoding=encoding,
+        is_bigendian=0,
+        step=width * channels * np.dtype(element).itemsize,
+        data=np.frombuffer(raw, dtype=np.uint8),
+    )
+
+
+# --- any other type, from its definition -----------------------------------------------------
+
+
+def _generic(msgtype: str, data: Any) -> Any:
+    """A message of `msgtype` from the generic walk's dict (ros_agent.ros2msg._message_dict)."""
+    if msgtype == _HEADER:
+        return _header(data)
+    if msgtype in _TIME_TYPES:
+        return _time(data, msgtype)
+    data = _object(data)
+    _consts, fields = typestore().fielddefs[msgtype]
+    values = {name: _field(definition, data.get(name)) for name, definition in fields}
+    return typestore().types[msgtype](**values)
+
+
+def _field(definition: tuple, value: Any) -> Any:
+    kind, detail = definition
+    kind = int(kind)
+    if kind == 2:  # NAME: a nested message
+        return _generic(detail, value)
+    if kind == 1:  # BASE: a primitive or a string
+        return _primitive(detail[0], value)
+    (element_kind, element_detail), length = detail  # 3 ARRAY, 4 SEQUENCE
+    if int(element_kind) == 1 and element_detail[0] in ("uint8", "byte", "char"):
+        raw = _base64(value) if isinstance(value, str) else bytes(_list(value))
+        if kind == 3 and len(raw) != length:
+            raise Unbuildable(f"{len(raw)} bytes where {length} belong")
+        return np.frombuffer(raw, dtype=np.uint8)
+    items = _list(value)
+    if kind == 3 and len(items) != length:
+        raise Unbuildable(f"{len(items)} values where {length} belong")
+    if int(element_kind) == 1 and element_detail[0] in _NUMPY_TYPES:
+        name = element_detail[0]
+        return np.array([_primitive(name, item) for item in items], dtype=_NUMPY_TYPES[name])
+    return [_field((element_kind, element_detail), item) for item in items]
+
+
+def _primitive(name: str, value: Any) -> Any:
+    if name in ("string", "wstring"):
+        return _text(value)
+    if name in ("float32", "float64"):
+        return _float(value)
+    if name == "bool":
+        if not isinstance(value, bool):
+            raise Unbuildable("a bool field holds something else")
+        return value
+    return _integer(value)
+
+
+# --- shared pieces ---------------------------------------------------------------------------
+
+
+def _header(value: Any) -> Any:
+    value = _object(value)
+    return typestore().types[_HEADER](
+        stamp=_time(value.get("stamp"), "builtin_interfaces/msg/Time"),
+        frame_id=_text(value.get("frame_id")),
+    )
+
+
+def _time(value: Any, msgtype: str) -> Any:
+    value = _object(value)
+    secs, nsecs = _integer(value.get("secs")), _integer(value.get("nsecs"))
+    if not (-(2**31) <= secs < 2**31 and 0 <= nsecs < 10**9):
+        raise Unbuildable("a time out of the range ROS 2 holds")
+    return typestore().types[msgtype](sec=secs, nanosec=nsecs)
+
+
+def _stamp_ns(data: Any) -> int | None:
+    """The message header's stamp in nanoseconds, if it has a valid one."""
+    try:
+        stamp = _object(_object(data).get("header")).get("stamp")
+        secs, nsecs = _integer(_object(stamp).get("secs")), _integer(stamp.get("nsecs"))
+    except Unbuildable:
+        return None
+    return secs * 10**9 + nsecs if secs >= 0 and 0 <= nsecs < 10**9 else None
+
+
+def _point(value: Any) -> Any:
+    value = _object(value)
+    return typestore().types["geometry_msgs/msg/Point"](
+        x=_float(value.get("x")), y=_float(value.get("y")), z=_float(value.get("z"))
+    )
+
+
+def _vector3(value: Any) -> Any:
+    value = _object(value)
+    return typestore().types["geometry_msgs/msg/Vector3"](
+        x=_float(value.get("x")), y=_float(value.get("y")), z=_float(value.get("z"))
+    )
+
+
+def _quaternion(value: Any) -> Any:
+    value = _object(value)
+    return typestore().types["geometry_msgs/msg/Quaternion"](
+        x=_float(value.get("x")),
+        y=_float(value.get("y")),
+        z=_float(value.get("z")),
+        w=_float(value.get("w")),
+    )
+
+
+def _floats(value: Any, length: int) -> np.ndarray:
+    items = _list(value)
+    if len(items) != length:
+        raise Unbuildable(f"{len(items)} values where {length} belong")
+    return np.array([_float(item) for item in items], dtype=np.float64)
+
+
+def _float(value: Any) -> float:
+    """A JSON number; null is what the extractors made of NaN and the infinities."""
+    if value is None:
+        return math.nan
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        raise Unbuildable("a number field holds something else")
+    return float(value)
+
+
+def _integer(value: Any) -> int:
+    if isinstance(value, bool) or not isinstance(value, int):
+        raise Unbuildable("an integer field holds something else")
+    return value
+
+
+def _text(value: Any) -> str:
+    if not isinstance(value, str):
+        raise Unbuildable("a text field holds something else")
+    return value
+
+
+def _object(value: Any) -> dict:
+    if not isinstance(value, dict):
+        raise Unbuildable("a message field holds something else")
+    return value
+
+
+def _list(value: Any) -> list:
+    if not isinstance(value, list):
+        raise Unbuildable("an array field holds something else")
+    return value
+
+
+def _base64(value: Any) -> bytes:
+    try:
+        return base64.b64decode(_text(value), validate=True)
+    except (binascii.Error, ValueError):
+        raise Unbuildable("bytes that are not base64") from None
+
+
+_BUILDERS = {
+    "nav_msgs/msg/Odometry": _odometry,
+    "sensor_msgs/msg/Imu": _imu,
+    "sensor_msgs/msg/Image": _image,
+    "sensor_msgs/msg/CompressedImage": _compressed_image,
+}
+
+
+# --- the file ----------------------------------------------------------------------------------
+
+
+class McapBuilder:
+    """An MCAP file written message by message: a schema per type and a channel per topic
+    (and encoding), registered when first needed. Chunks are not compressed, so anyone can
+    find each message's bytes in the file (authros_verify does, to name a changed record)."""
+
+    def __init__(self, output: IO[bytes], *, profile: str = "ros2") -> None:
+        self._writer = Writer(output, compression=CompressionType.NONE)
+        self._writer.start(profile=profile, library="authros-portal")
+        self._schemas: dict[tuple[str, str], int] = {}
+        self._channels: dict[tuple[str, str, int], int] = {}
+
+    def add(self, *, topic: str, message: EncodedMessage, log_time: int, sequence: int) -> None:
+        schema_key = (message.schema_name, message.schema_encoding)
+        if schema_key not in self._schemas:
+            self._schemas[schema_key] = self._writer.register_schema(
+                name=message.schema_name, encoding=message.schema_encoding, data=message.schema
+            )
+        schema_id = self._schemas[schema_key]
+        channel_key = (topic, message.message_encoding, schema_id)
+        if channel_key not in self._channels:
+            self._channels[channel_key] = self._writer.register_channel(
+                topic=topic, message_encoding=message.message_encoding, schema_id=schema_id
+            )
+        self._writer.add_message(
+            channel_id=self._channels[channel_key],
+            log_time=log_time,
+            publish_time=log_time,
+            data=message.data,
+            sequence=sequence,
+        )
+
+    def finish(self) -> None:
+        self._writer.finish()

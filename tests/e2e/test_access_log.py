@@ -1,0 +1,127 @@
+"""The access log in Chromium, at 1280x900 and on a 390x844 phone: an owner filters the views
+of their data and downloads them as CSV; a grantee reads their own views of shared data as
+cards, every field inside the screen.
+
+No worker, no anvil: the log only reads verdicts, made here straight in the database
+(tests/sharing/access_log_data.py). Screenshots go to test-artifacts/e2e/access-log/.
+"""
+
+import csv
+import io
+from pathlib import Path
+
+import pytest
+from playwright.sync_api import Browser, BrowserContext, Page, expect
+
+from tests.conftest import TEST_PASSWORD
+from tests.e2e.conftest import ARTIFACTS
+from tests.sharing.access_log_data import CAROL_TOPIC, FORMULA_TOKEN, access_log_world
+
+pytestmark = pytest.mark.django_db(transaction=True)
+
+PHONE = {"width": 390, "height": 844}
+
+
+@pytest.fixture
+def world(settings):
+    settings.PASSWORD_HASHERS = ["django.contrib.auth.hashers.MD5PasswordHasher"]
+    # Sign-ups awaiting approval: nothing of theirs goes to the chain, none is needed here.
+    settings.SIGNUP_APPROVAL = True
+    return access_log_world(signed_up=True)
+
+
+def _signed_in(browser: Browser, base: str, username: str, viewport: dict) -> BrowserContext:
+    context = browser.new_context(viewport=viewport, accept_downloads=True)
+    page = context.new_page()
+    page.goto(f"{base}/login/")
+    page.fill("#id_username", username)
+    page.fill("#id_password", TEST_PASSWORD)
+    page.click("#login-submit")
+    expect(page.locator("[data-testid=signed-in-user]")).to_have_text(username)
+    return context
+
+
+def _nothing_overflows(page: Page) -> None:
+    """No horizontal scrolling of the page, and every cell of the log inside the screen."""
+    width = page.viewport_size["width"]
+    assert page.evaluate("document.documentElement.scrollWidth") <= width
+    outside = page.evaluate(
+        """(width) => [...document.querySelectorAll('#access-log-table td')]
+            .map((cell) => cell.getBoundingClientRect())
+            .filter((box) => box.width === 0 || box.left < 0 || box.right > width + 0.5).length""",
+        width,
+    )
+    assert outside == 0
+
+
+def _csv_of(path: Path) -> list[dict[str, str]]:
+    return list(csv.DictReader(io.StringIO(Path(path).read_text(encoding="utf-8"))))
+
+
+def test_the_access_log_on_a_desktop_and_a_phone(live_server, browser: Browser, world):
+    base = live_server.url
+    shots = ARTIFACTS / "access-log"
+    shots.mkdir(parents=True, exist_ok=True)
+
+    # --- alice, desktop: every view of her data, filtered, and the CSV of the filtered set ----
+    desktop = _signed_in(browser, base, world.alice.username, {"width": 1280, "height": 900})
+    page = desktop.pages[0]
+    page.click("[data-testid=nav-access-log]")
+    rows = page.locator("[data-testid=access-log-row]")
+    expect(rows).to_have_count(5)
+    expect(page.locator("#access-log-table thead")).to_be_visible()
+    expect(page.locator("[data-testid=access-log-credential]")).to_contain_text(
+        ["operator check in the admin", "browser session", "owner API token"]
+    )
+    _nothing_overflows(page)
+    page.screenshot(path=shots / "01-desktop.png", full_page=True)
+    page.fill("#id_viewer", world.bob.username)
+    page.select_option("#id_credential", "session")
+    page.click("#filter-submit")
+    expect(rows).to_have_count(1)
+    expect(rows.first.locator("[data-testid=access-log-verdict]")).to_have_text("TAMPERED")
+    expect(page.locator("[data-testid=access-log-count]")).to_have_text(
+        "1 view matches these filters."
+    )
+    with page.expect_download() as download:
+        page.click("[data-testid=access-log-csv]")
+    assert download.value.suggested_filename.startswith("access-log-incoming-")
+    lines = _csv_of(download.value.path())
+    assert [(row["viewer"], row["verdict"], row["credential"]) for row in lines] == [
+        (world.bob.username, "tampered", "session")
+    ]
+    assert lines[0]["record"] == str(world.records["odom"].pk)
+    desktop.close()
+
+    # --- bob, phone: his own views of shared data, as cards -----------------------------------
+    phone = _signed_in(browser, base, world.bob.username, PHONE)
+    page = phone.pages[0]
+    page.goto(f"{base}/access-log/")
+    expect(page.locator("[data-testid=access-log-none]")).to_be_visible()  # nobody viewed his
+    page.click("[data-testid=access-log-tab-outgoing]")
+    rows = page.locator("[data-testid=access-log-row]")
+    expect(rows).to_have_count(3)
+    # A card per view: the table head is hidden, each field labelled in its card.
+    head = page.evaluate("document.querySelector('#access-log-table thead').offsetHeight")
+    assert head <= 1
+    label = page.evaluate(
+        """getComputedStyle(document.querySelector('#access-log-table td'), '::before')
+            .content"""
+    )
+    assert label == '"Viewed (UTC)"'
+    _nothing_overflows(page)
+    expect(page.get_by_text(CAROL_TOPIC)).to_be_visible()
+    expect(page.get_by_text(f"owner API token “{FORMULA_TOKEN}”")).to_be_visible()
+    page.screenshot(path=shots / "02-phone-outgoing.png", full_page=True)
+    page.fill("#id_owner", world.carol.username)
+    page.click("#filter-submit")
+    expect(rows).to_have_count(1)
+    expect(rows.first.locator("[data-testid=access-log-owner]")).to_have_text(world.carol.username)
+    _nothing_overflows(page)
+    with page.expect_download() as download:
+        page.click("[data-testid=access-log-csv]")
+    assert download.value.suggested_filename.startswith("access-log-outgoing-")
+    lines = _csv_of(download.value.path())
+    assert [row["record_owner"] for row in lines] == [world.carol.username]
+    page.screenshot(path=shots / "03-phone-filtered.png", full_page=True)
+    phone.close()

@@ -1,0 +1,343 @@
+"""The access log: who viewed an owner's records, when, the verdict and the credential; the
+owner's own views of shared records; filters, pages, CSV and the API.
+
+The views are made straight in the database (tests/sharing/access_log_data.py); the last
+tests check that the real view paths (page, API, admin, trajectory) record the credential.
+"""
+
+import csv
+import io
+
+import pytest
+from django.db import connection
+from django.test.utils import CaptureQueriesContext
+from django.urls import reverse
+
+from accounts.services import robot_create
+from sharing import access_log
+from sharing.access_log import csv_cell
+from sharing.models import Verdict
+from sharing.selectors import (
+    ACCESS_LOG_INCOMING,
+    ACCESS_LOG_OUTGOING,
+    verdict_list_access_log,
+    verdict_list_filtered,
+)
+from tests.api.conftest import session_client, token_client
+from tests.sharing.access_log_data import (
+    CAROL_TOPIC,
+    FORMULA_ROBOT,
+    FORMULA_TOKEN,
+    FORMULA_TOPIC,
+    access_log_world,
+    at,
+    view,
+)
+
+PAGE = reverse("access-log")
+CSV = reverse("access-log-csv")
+API = "/api/v1/access-log/"
+
+
+@pytest.fixture(autouse=True)
+def fast_password_hashing(settings) -> None:
+    """Four users a test; their password hashes are not under test."""
+    settings.PASSWORD_HASHERS = ["django.contrib.auth.hashers.MD5PasswordHasher"]
+
+
+@pytest.fixture
+def world(db, fast_password_hashing):
+    return access_log_world()
+
+
+def _ids(verdicts) -> list[int]:
+    return [verdict.pk for verdict in verdicts]
+
+
+def test_an_owner_sees_every_view_of_their_records_and_nothing_else(world):
+    incoming = verdict_list_access_log(world.alice, direction=ACCESS_LOG_INCOMING)
+    assert _ids(incoming) == world.ids("a4", "a3", "a2", "a1", "old")
+    carol = verdict_list_access_log(world.carol, direction=ACCESS_LOG_INCOMING)
+    assert _ids(carol) == world.ids("c2", "c1")
+    # Bob owns nothing: nobody viewed his records, and his views are his outgoing side.
+    assert not verdict_list_access_log(world.bob, direction=ACCESS_LOG_INCOMING).exists()
+
+
+def test_a_grantee_sees_their_own_views_of_shared_records_apart(world):
+    # Refused (a revoked grant): the owner sees the attempt, the grantee nothing of the record.
+    refused = view(world.records["odom"], world.bob, 6, outcome=Verdict.Outcome.NO_ACCESS)
+    outgoing = verdict_list_access_log(world.bob, direction=ACCESS_LOG_OUTGOING)
+    assert _ids(outgoing) == world.ids("c1", "a3", "a2")
+    incoming = verdict_list_access_log(world.alice, direction=ACCESS_LOG_INCOMING)
+    assert _ids(incoming)[0] == refused.pk
+    # An owner's views of their own records, and the operator's checks, are incoming only.
+    assert not verdict_list_access_log(world.alice, direction=ACCESS_LOG_OUTGOING).exists()
+    with pytest.raises(ValueError, match="direction"):
+        verdict_list_access_log(world.alice, direction="sideways")
+
+
+@pytest.mark.parametrize(
+    ("filters", "expected"),
+    [
+        ({"viewer": "bob"}, ["a3", "a2"]),
+        ({"viewer": "carol"}, []),  # carol viewed only her own record
+        ({"topic": FORMULA_TOPIC}, ["a4", "a2"]),
+        ({"topic": CAROL_TOPIC}, []),
+        ({"verdict": "tampered"}, ["a3"]),
+        ({"credential": "token"}, ["a2"]),
+        ({"credential": "operator"}, ["a4"]),
+        ({"since": at(1), "until": at(3)}, ["a3", "a2"]),  # half-open
+        ({"since": at(2), "until": at(2)}, []),
+        ({"viewer": "bob", "verdict": "verified"}, ["a2"]),
+    ],
+)
+def test_filters(world, filters, expected):
+    incoming = verdict_list_access_log(world.alice, direction=ACCESS_LOG_INCOMING)
+    assert _ids(verdict_list_filtered(incoming, **filters)) == world.ids(*expected)
+
+
+def test_filters_by_robot_and_by_owner(world):
+    incoming = verdict_list_access_log(world.alice, direction=ACCESS_LOG_INCOMING)
+    assert _ids(verdict_list_filtered(incoming, robot=world.arm.pk)) == world.ids("a3", "a1", "old")
+    outgoing = verdict_list_access_log(world.bob, direction=ACCESS_LOG_OUTGOING)
+    assert _ids(verdict_list_filtered(outgoing, owner="carol")) == world.ids("c1")
+    assert _ids(verdict_list_filtered(outgoing, owner="alice")) == world.ids("a3", "a2")
+
+
+def test_the_page_lists_who_when_which_record_verdict_and_credential(client, world):
+    client.force_login(world.alice.user)
+    html = client.get(PAGE).content.decode()
+    assert html.count('data-testid="access-log-row"') == 5
+    # Bob's token, as alice may know it: a token, not its name or prefix (bob's business).
+    assert 'data-testid="access-log-credential">owner API token</td>' in html
+    assert world.token.token_prefix not in html
+    assert "calc" not in html
+    assert "operator check in the admin (operator)" in html
+    assert "browser session" in html
+    assert "not recorded" in html
+    assert "TAMPERED" in html
+    assert FORMULA_TOPIC in html
+    assert "/odom" in html
+    # Carol's record and her views never reach alice's page.
+    assert CAROL_TOPIC not in html
+    assert 'href="/access-log/"' in client.get(reverse("dashboard")).content.decode()
+    filtered = client.get(PAGE, {"viewer": "bob", "verdict": "tampered"}).content.decode()
+    assert filtered.count('data-testid="access-log-row"') == 1
+    assert "1 view matches these filters" in filtered
+
+
+def test_the_outgoing_tab_shows_my_views_with_whose_record(client, world):
+    client.force_login(world.bob.user)
+    html = client.get(PAGE, {"direction": "outgoing"}).content.decode()
+    assert html.count('data-testid="access-log-row"') == 3
+    assert CAROL_TOPIC in html
+    owners = html.count('data-testid="access-log-owner">alice<') + html.count(
+        'data-testid="access-log-owner">carol<'
+    )
+    assert owners == 3
+    assert "owner API token “+cmd|&#x27; /C calc&#x27;!A0” (aro_" in html
+    # Bob's own data: nobody viewed it.
+    assert "Nobody has viewed your records yet." in client.get(PAGE).content.decode()
+
+
+def test_the_page_costs_the_same_queries_for_2_or_60_rows_and_numbers_its_pages(client, world):
+    client.force_login(world.alice.user)
+    client.get(PAGE)  # the first request of a session writes more (the session itself)
+    with CaptureQueriesContext(connection) as few:
+        assert client.get(PAGE).status_code == 200
+    for minute in range(60):
+        view(world.records["camera"], world.bob, 10 + minute)
+    with CaptureQueriesContext(connection) as many:
+        page = client.get(PAGE)
+    assert len(many) == len(few)
+    html = page.content.decode()
+    assert html.count('data-testid="access-log-row"') == 50
+    assert 'data-testid="page-number">2<' in html
+    second = client.get(PAGE, {"page": "2"}).content.decode()
+    assert second.count('data-testid="access-log-row"') == 15
+    # Page numbers past the end or not numbers give a page, not an error.
+    for junk in ("99", "abc", "-1", "1e9"):
+        assert client.get(PAGE, {"page": junk}).status_code == 200
+
+
+BAD_FILTERS = [
+    {"robot": "not-a-robot"},
+    {"robot": "00000000-0000-0000-0000-000000000000"},  # nobody's robot: not offered
+    {"verdict": "fine"},
+    {"credential": "password"},
+    {"since": "yesterday"},
+    {"since": "2026-03-02T00:00", "until": "2026-03-01T00:00"},
+    {"direction": "sideways"},
+    {"topic": "a\x00b"},
+    {"viewer": "x" * 151},
+]
+
+
+@pytest.mark.parametrize("params", BAD_FILTERS)
+def test_bad_filters_are_a_form_error_never_a_500(client, world, params):
+    client.force_login(world.alice.user)
+    for url in (PAGE, CSV):
+        answer = client.get(url, params)
+        assert answer.status_code == 400, (url, params)
+        assert 'class="errorlist' in answer.content.decode()
+
+
+@pytest.mark.parametrize("params", [*BAD_FILTERS, {"limit": "0"}, {"offset": "x"}])
+def test_bad_filters_are_a_400_in_the_api(world, params):
+    answer = session_client(world.alice).get(API, params)
+    if params.get("robot") == "00000000-0000-0000-0000-000000000000":
+        # The API takes any robot id, as the records API does: nobody's robot lists nothing.
+        assert answer.status_code == 200
+        assert answer.json()["count"] == 0
+        return
+    assert answer.status_code == 400, (params, answer.content)
+    assert answer.json()["error"] == "invalid_request"
+
+
+def _csv_rows(response) -> list[dict[str, str]]:
+    assert response.streaming
+    assert response["Content-Type"] == "text/csv; charset=utf-8"
+    assert response["Content-Disposition"].startswith('attachment; filename="access-log-')
+    text = b"".join(response.streaming_content).decode()
+    return list(csv.DictReader(io.StringIO(text)))
+
+
+def test_the_csv_holds_the_filtered_rows_with_no_formula_cell(client, world):
+    client.force_login(world.alice.user)
+    rows = _csv_rows(client.get(CSV))
+    assert [int(row["block"]) for row in rows] == [7] * 5
+    assert [row["viewer"] for row in rows] == ["alice", "bob", "bob", "alice", "alice"]
+    token_row = rows[2]
+    assert token_row["credential"] == "token"
+    assert token_row["token_name"] == token_row["token_prefix"] == ""  # bob's business
+    assert token_row["robot"] == "'" + FORMULA_ROBOT
+    assert token_row["topic"] == "'" + FORMULA_TOPIC
+    assert token_row["record"] == str(world.records["camera"].pk)
+    assert rows[0]["credential"] == "operator"
+    assert rows[0]["operator"] == "operator"
+    assert rows[-1]["credential"] == "not_recorded"
+    for row in rows:
+        assert not any(cell.startswith(("=", "+", "-", "@")) for cell in row.values()), row
+    assert CAROL_TOPIC not in str(rows)
+    # The page's filters apply to the download.
+    only = _csv_rows(client.get(CSV, {"viewer": "bob", "credential": "session"}))
+    assert [row["verdict"] for row in only] == ["tampered"]
+    # Bob's own download names his token, neutralised.
+    client.force_login(world.bob.user)
+    mine = _csv_rows(client.get(CSV, {"direction": "outgoing", "credential": "token"}))
+    assert [(row["token_name"], row["token_prefix"]) for row in mine] == [
+        ("'" + FORMULA_TOKEN, world.token.token_prefix)
+    ]
+
+
+def test_the_csv_reads_in_chunks_and_loses_no_row_at_equal_times(client, world, monkeypatch):
+    monkeypatch.setattr(access_log, "CSV_CHUNK", 2)
+    for _ in range(4):  # four views at the very same time as a2
+        view(world.records["camera"], world.bob, 1)
+    client.force_login(world.alice.user)
+    with CaptureQueriesContext(connection) as queries:
+        rows = _csv_rows(client.get(CSV))
+    assert len(rows) == 9
+    assert len({row["id"] for row in rows}) == 9
+    # 9 rows in chunks of 2: 5 reads of the log (and a few for the session and choices).
+    log_reads = [q for q in queries.captured_queries if "sharing_verdict" in q["sql"]]
+    assert len(log_reads) == 5
+
+
+@pytest.mark.parametrize(
+    ("value", "cell"),
+    [
+        ("=1+1", "'=1+1"),
+        ("+1", "'+1"),
+        ("-1", "'-1"),
+        ("@A1", "'@A1"),
+        ("\t=1", "'\t=1"),
+        ("/odom", "/odom"),
+        (None, ""),
+        (7, "7"),
+    ],
+)
+def test_csv_cells_never_start_a_formula(value, cell):
+    assert csv_cell(value) == cell
+
+
+def test_the_api_lists_the_same_log_for_an_owner_token_with_read(world, make_owner_token):
+    _, key = make_owner_token(world.alice, scopes=("read",))
+    answer = token_client(key).get(API, {"viewer": "bob"})
+    assert answer.status_code == 200, answer.content
+    body = answer.json()
+    assert body["count"] == 2
+    entry = body["results"][1]
+    assert entry["id"] == world.views["a2"].pk
+    assert entry["credential"] == "token"
+    assert entry["token"] is None  # bob's token: its name and prefix are his
+    assert entry["operator"] is None
+    assert entry["record"] == str(world.records["camera"].pk)
+    assert entry["robot_name"] == FORMULA_ROBOT
+    assert entry["verdict"] == "verified"
+    old = token_client(key).get(API, {"until": "2026-03-01T00:00Z"}).json()["results"]
+    assert [(row["id"], row["credential"]) for row in old] == [(world.views["old"].pk, None)]
+    # Bob's outgoing side, with his session.
+    outgoing = session_client(world.bob).get(API, {"direction": "outgoing", "owner": "carol"})
+    assert [row["id"] for row in outgoing.json()["results"]] == world.ids("c1")
+    mine = session_client(world.bob).get(API, {"direction": "outgoing", "credential": "token"})
+    assert [row["token"] for row in mine.json()["results"]] == [
+        {"name": FORMULA_TOKEN, "prefix": world.token.token_prefix}
+    ]
+
+
+def test_the_api_needs_the_read_scope_and_never_a_robot(world, make_owner_token):
+    _, share_only = make_owner_token(world.alice, scopes=("share",))
+    answer = token_client(share_only).get(API)
+    assert answer.status_code == 403
+    assert answer.json()["error"] == "insufficient_scope"
+    _, robot_token = robot_create(owner=world.alice, name="scout")
+    assert token_client(robot_token).get(API).status_code == 403
+    assert token_client("").get(API).status_code == 401
+
+
+# --- the view paths record the credential -------------------------------------------------------
+
+
+def test_views_record_their_credential(
+    alice, bob, upload, client, make_owner_token, django_user_model
+):
+    from sharing.verification import record_verify, records_verify
+
+    record = upload(alice, 1)
+    second = upload(alice, 2)
+    client.force_login(alice.owner.user)
+    assert client.get(reverse("record-detail", args=[record.pk])).status_code == 200
+    token, key = make_owner_token(bob, scopes=("read",))
+    content = token_client(key).get(f"/api/v1/records/{record.pk}/content/")
+    assert content.status_code == 200, content.content
+    assert session_client(bob).get(f"/api/v1/records/{second.pk}/content/").status_code == 200
+    operator = django_user_model.objects.create_user(username="op", is_staff=True)
+    record_verify(record_id=record.pk, viewer_id=alice.owner.pk, checked_by_id=operator.pk)
+    records_verify(
+        record_ids=[record.pk, second.pk],
+        viewer_id=bob.pk,
+        credential=Verdict.Credential.TOKEN,
+        token_id=token.pk,
+    )
+    made = list(
+        Verdict.objects.order_by("id").values_list(
+            "viewer_id", "record_owner_id", "credential", "token_id", "checked_by_id"
+        )
+    )
+    a, b = alice.owner.pk, bob.pk
+    assert made == [
+        (a, a, "session", None, None),
+        (b, a, "token", token.pk, None),
+        (b, a, "session", None, None),
+        (a, a, "operator", None, operator.pk),
+        (b, a, "token", token.pk, None),
+        (b, a, "token", token.pk, None),
+    ]
+    with pytest.raises(ValueError, match="token"):
+        record_verify(record_id=record.pk, viewer_id=b, credential=Verdict.Credential.TOKEN)
+    assert Verdict.objects.count() == len(made)
+    # And the owner's log lists all of them; bob's outgoing side his own.
+    log = verdict_list_access_log(alice.owner, direction=ACCESS_LOG_INCOMING)
+    assert log.count() == len(made)
+    assert verdict_list_access_log(bob, direction=ACCESS_LOG_OUTGOING).count() == 4
