@@ -211,29 +211,76 @@ class _SharedRateThrottle(throttling.SimpleRateThrottle):
         self.key = self.get_cache_key(request, view)
         if self.key is None:
             return True
-        now = self.timer()
-        window, into = divmod(now, self.duration)
-        current, previous = f"{self.key}:{int(window)}", f"{self.key}:{int(window) - 1}"
-        try:
-            with get_redis().pipeline(transaction=False) as pipe:
-                pipe.incr(current)
-                pipe.expire(current, int(self.duration) * 2 + 1)
-                pipe.get(previous)
-                counted, _, before = pipe.execute()
-        except (RedisError, OSError) as exc:
-            logger.warning("rate limit not checked, Redis is unavailable: %s", exc)
+        counts = _window_counts(request, view, now=self.timer())
+        if self.key not in counts.counted:
+            counts.count([self])  # a throttle the view does not list: counted on its own
+        if counts.failed:
             return True
+        counted, before = counts.counted[self.key]
+        into = counts.now % self.duration
         overlap = (self.duration - into) / self.duration
-        if int(before or 0) * overlap + counted <= self.num_requests:
+        if before * overlap + counted <= self.num_requests:
             return True
         self.retry_after = max(1.0, self.duration - into)
         return False
+
+    def window_keys(self, now: float) -> tuple[str, str]:
+        """This window's counter and the last window's."""
+        window = int(now // self.duration)
+        return f"{self.key}:{window}", f"{self.key}:{window - 1}"
 
     def wait(self) -> float | None:
         return getattr(self, "retry_after", None)
 
     def cache_key_for(self, ident: object) -> str:
         return redis_key("throttle", self.scope, ident)
+
+
+class _WindowCounts:
+    """The sliding-window counts of one request for every rate limit of its view, counted in
+    one round trip to Redis (a robot's upload has two: its owner's and its own)."""
+
+    def __init__(self, now: float) -> None:
+        self.now = now
+        self.counted: dict[str, tuple[int, int]] = {}  # key: (this window, last window)
+        self.failed = False
+
+    def count(self, throttles: list[_SharedRateThrottle]) -> None:
+        throttles = [throttle for throttle in throttles if throttle.key not in self.counted]
+        if not throttles or self.failed:
+            return
+        try:
+            with get_redis().pipeline(transaction=False) as pipe:
+                for throttle in throttles:
+                    current, previous = throttle.window_keys(self.now)
+                    pipe.incr(current)
+                    pipe.expire(current, int(throttle.duration) * 2 + 1)
+                    pipe.get(previous)
+                answers = pipe.execute()
+        except (RedisError, OSError) as exc:
+            logger.warning("rate limit not checked, Redis is unavailable: %s", exc)
+            self.failed = True
+            return
+        for number, throttle in enumerate(throttles):
+            counted, _, before = answers[3 * number : 3 * number + 3]
+            self.counted[throttle.key] = (int(counted), int(before or 0))
+
+
+def _window_counts(request: Request, view: "APIView | None", *, now: float) -> _WindowCounts:
+    """The request's counts, made on its first rate limit for all of the view's at once, at
+    that limit's `now`."""
+    counts = getattr(request, "_authros_window_counts", None)
+    if counts is None:
+        counts = _WindowCounts(now)
+        throttles = []
+        for throttle in view.get_throttles() if view is not None else ():
+            if isinstance(throttle, _SharedRateThrottle) and throttle.rate is not None:
+                throttle.key = throttle.get_cache_key(request, view)
+                if throttle.key is not None:
+                    throttles.append(throttle)
+        counts.count(throttles)
+        request._authros_window_counts = counts
+    return counts
 
 
 class AnonRateThrottle(_SharedRateThrottle):

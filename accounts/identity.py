@@ -18,7 +18,7 @@ from accounts.events import account_event_record
 from accounts.models import AccountEvent, ChainState, Owner, OwnerKey
 from accounts.selectors import owner_keys
 from chainworker.chain import AuthROSChain, ChainError
-from chainworker.services import chain_client, chain_head
+from chainworker.services import chain_client, chain_head_with
 from core.redis_client import get_redis, redis_key
 
 logger = logging.getLogger(__name__)
@@ -86,21 +86,19 @@ def _identity_expected(owner: Owner, keys: Sequence[OwnerKey] | None = None) -> 
 
 
 def _commitment_on_chain(client: AuthROSChain, owner: Owner, *, fresh: bool) -> str:
-    block = client.latest_block() if fresh else chain_head(client)
-    key = redis_key("identity", client.chain_key, client.address, owner.eoa_address, block)
-    if not fresh and (cached := _cache_get(key)) is not None:
-        return cached
+    """The owner's commitment on chain; unless `fresh`, as kept in Redis for the chain head
+    (read with the head in one round trip)."""
+    key = redis_key("identity", client.chain_key, client.address, owner.eoa_address)
+    if fresh:
+        block = client.latest_block()
+    else:
+        block, cached = chain_head_with(client, key)
+        seen_at, _, commitment = (cached or b"").decode().partition(" ")
+        if commitment and seen_at == str(block):
+            return commitment
     on_chain = "0x" + client.commitment_of(owner.eoa_address).hex()
-    _cache_set(key, on_chain, seconds=IDENTITY_CACHE_TTL)
+    _cache_set(key, f"{block} {on_chain}", seconds=IDENTITY_CACHE_TTL)
     return on_chain
-
-
-def _cache_get(key: str) -> str | None:
-    try:
-        value = get_redis().get(key)
-    except RedisError:
-        return None  # without Redis every check asks the chain
-    return value.decode() if value is not None else None
 
 
 def _cache_set(key: str, value: str, *, seconds: float) -> None:

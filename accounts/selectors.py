@@ -21,6 +21,7 @@ from accounts.models import (
     RobotPairing,
 )
 from chainworker.services import chain_client
+from core.rows import FixedSelect
 from smcrypto import sm2
 
 
@@ -90,15 +91,22 @@ def owner_balance_wei(owner: Owner) -> int:
     return chain_client().balance(owner.eoa_address)
 
 
+# Every robot request reads these: written once, not compiled per request (core/rows.py).
+_ROBOT_BY_TOKEN = FixedSelect(
+    Robot, related=("owner", "user"), where="t0.token_hash = %s AND t0.is_active = %s"
+)
+_OWNER_KEYS = FixedSelect(
+    OwnerKey, where="t0.owner_id = %s", order_by="t0.created_at DESC, t0.id DESC"
+)
+
+
 def robot_by_token(token: str) -> Robot | None:
-    """The active robot holding `token`; tokens are compared by their SHA-256 only."""
-    # get(), not first(): the hash is unique, and an ORDER BY costs every upload its compiling.
-    try:
-        return Robot.objects.select_related("owner__user").get(
-            token_hash=robot_token_hash(token), is_active=True
-        )
-    except Robot.DoesNotExist:
-        return None
+    """The active robot holding `token` (its owner and user joined); tokens are compared by
+    their SHA-256 only."""
+    return _ROBOT_BY_TOKEN.fetch_one([robot_token_hash(token), True])
+
+
+_KEY_OWNER = OwnerKey._meta.get_field("owner")
 
 
 def robot_token_hash(token: str) -> str:
@@ -114,7 +122,10 @@ def owner_for_user(user: object) -> Owner | None:
 
 def owner_keys(owner: Owner) -> list[OwnerKey]:
     """All keys of an owner, newest first (the current one, then retired ones)."""
-    return list(owner.keys.order_by("-created_at", "-pk"))
+    keys = _OWNER_KEYS.fetch([owner.pk])
+    for key in keys:
+        _KEY_OWNER.set_cached_value(key, owner)
+    return keys
 
 
 def robot_list_of(owner: Owner) -> list[Robot]:

@@ -1,15 +1,38 @@
 """WSGI entry point (gunicorn portal.wsgi)."""
 
+import logging
 import os
 
 from django.core.wsgi import get_wsgi_application
+from django.db import connections
 from django.urls import get_resolver
+
+from portal.celery import app
+from portal.middleware import service_problems
 
 os.environ.setdefault("DJANGO_SETTINGS_MODULE", "portal.settings")
 
 application = get_wsgi_application()
 
-# Import every view now, while the worker boots, not on the first requests it serves: a cold
-# worker (after a start or a max-requests recycle) would otherwise spend its first seconds
-# importing the URLconf, DRF and the apps on the clock of the requests waiting for it.
-get_resolver().url_patterns  # noqa: B018
+logger = logging.getLogger(__name__)
+
+
+def warm_up() -> None:
+    """What every worker would otherwise do on the clock of its first requests, done while it
+    boots (after a start or a max-requests recycle): import every view, run the service checks
+    (database, master key, the chain's operator: portal/middleware.py), and set up the Celery
+    result backend and broker producers that uploads and views use. A part that cannot be
+    reached now is only logged: the requests meet it again, as without this."""
+    get_resolver().url_patterns  # noqa: B018
+    try:
+        service_problems()
+        app.loader.import_default_modules()
+        app.backend  # noqa: B018
+        app.producer_pool  # noqa: B018
+    except Exception as exc:  # the first requests meet it again and report it
+        logger.warning("worker warm-up incomplete: %s", exc)
+    finally:
+        connections.close_all()  # the boot thread serves nothing; request threads have theirs
+
+
+warm_up()

@@ -13,6 +13,7 @@ from collections.abc import Callable, Sequence
 from contextlib import suppress
 from dataclasses import dataclass
 from datetime import UTC, datetime, timedelta
+from typing import NoReturn
 
 from django.conf import settings
 from django.db import IntegrityError, transaction
@@ -116,9 +117,14 @@ def record_create_batch(*, robot: Robot, envelopes: Sequence[bytes]) -> list[Rec
     )
     try:
         with transaction.atomic():
-            locked = Robot.objects.select_for_update().get(pk=robot.pk)
-            if seqs[0] <= locked.last_seq:
-                _sequence_check(robot, checked, last_seq=locked.last_seq)
+            # Moving the robot's last seq on is the check and the row lock in one statement:
+            # it only moves when every seq of the upload is above it.
+            moved = Robot.objects.filter(pk=robot.pk, last_seq__lt=seqs[0]).update(
+                last_seq=seqs[-1], last_upload_at=timezone.now()
+            )
+            if not moved:
+                last_seq = Robot.objects.values_list("last_seq", flat=True).get(pk=robot.pk)
+                _sequence_check(robot, checked, last_seq=last_seq)
             records = Record.objects.bulk_create(
                 [
                     Record(
@@ -137,9 +143,6 @@ def record_create_batch(*, robot: Robot, envelopes: Sequence[bytes]) -> list[Rec
                     for upload, name in zip(checked, names, strict=True)
                 ]
             )
-            Robot.objects.filter(pk=robot.pk).update(
-                last_seq=seqs[-1], last_upload_at=timezone.now()
-            )
             transaction.on_commit(lambda: _after_upload(robot.owner_id, checked))
     except BaseException as refused:
         # Nothing of a refused or failed upload stays behind, not even its files.
@@ -150,7 +153,7 @@ def record_create_batch(*, robot: Robot, envelopes: Sequence[bytes]) -> list[Rec
     return records
 
 
-def _sequence_check(robot: Robot, checked: Sequence[_CheckedUpload], *, last_seq: int) -> None:
+def _sequence_check(robot: Robot, checked: Sequence[_CheckedUpload], *, last_seq: int) -> NoReturn:
     """An upload whose first seq is not above the robot's last: ReplayedSequence if these very
     envelopes are stored (the agent counts them delivered), else SequenceConflict and a
     SecurityEvent (the agent keeps them as refused, and the owner is told)."""

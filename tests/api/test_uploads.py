@@ -8,8 +8,10 @@ from django.db import connection
 from django.test.utils import CaptureQueriesContext
 from django.utils import timezone
 
+from accounts import authentication
 from accounts.services import key_rotate, robot_create, robot_token_revoke
 from chainworker import services as chain_services
+from core.redis_client import get_redis, redis_key
 from sharing.models import Record, SecurityEvent
 from sharing.services import KEY_ROTATION_GRACE
 from smcrypto import envelope, sm3, sm4
@@ -378,6 +380,41 @@ def test_uploads_above_the_rate_limit_get_429_with_retry_after(
     assert robot_api.get(RECORDS).status_code == 200
     other = make_robot()
     assert upload(token_client(other.token), other.seal(1)).status_code == 201
+
+
+def test_an_upload_counts_its_owners_limit_and_its_robots_in_one_round_trip(
+    robot, robot_api, upload, settings, monkeypatch
+):
+    settings.REST_FRAMEWORK = {
+        **settings.REST_FRAMEWORK,
+        "DEFAULT_THROTTLE_RATES": {
+            **settings.REST_FRAMEWORK["DEFAULT_THROTTLE_RATES"],
+            "user": "2/minute",
+        },
+    }
+    pipelines = []
+    real = authentication.get_redis
+
+    class Counting:
+        def pipeline(self, **options):
+            pipelines.append(options)
+            return real().pipeline(**options)
+
+    monkeypatch.setattr(authentication, "get_redis", Counting)
+    assert upload(robot_api, robot.seal(1)).status_code == 201
+    assert len(pipelines) == 1
+    counted = {
+        key.decode().removeprefix(redis_key("throttle", "")).split(":")[0]
+        for key in get_redis().scan_iter(redis_key("throttle", "*"))
+    }
+    assert counted == {"user", "upload"}
+    # The owner's limit holds across its robots: a second robot of the owner gets the rest.
+    other, token = robot_create(owner=robot.owner, name="second")
+    assert upload(token_client(token), seal_for(other, robot.key, seq=1)).status_code == 201
+    before = Snapshot()
+    refused = upload(token_client(token), seal_for(other, robot.key, seq=2))
+    assert refused.status_code == 429
+    assert before.unchanged()
 
 
 def test_anonymous_requests_are_rate_limited_per_address(client, settings):
