@@ -31,7 +31,12 @@ def owner_eoa_account(owner: Owner) -> LocalAccount:
 
 
 def owner_key_current(owner: Owner) -> OwnerKey:
-    return owner.keys.get(is_current=True)
+    """The owner's current key; OwnerKey.DoesNotExist if it has none."""
+    key = _OWNER_KEY_CURRENT.fetch_one(owner.pk, True)
+    if key is None:
+        raise OwnerKey.DoesNotExist("the owner has no current key")
+    _KEY_OWNER.set_cached_value(key, owner)
+    return key
 
 
 # Answers to a robot's uploads name its owner's current key in this header, so that a paired
@@ -46,7 +51,10 @@ def owner_key_current_id(owner_id: int) -> str | None:
 
 
 def owner_key_by_id(owner: Owner, key_id: str) -> OwnerKey | None:
-    return owner.keys.filter(key_id=key_id).first()
+    key = _OWNER_KEY.fetch_one(owner.pk, key_id)
+    if key is not None:
+        _KEY_OWNER.set_cached_value(key, owner)
+    return key
 
 
 def owner_key_bytes(owner_key: OwnerKey) -> bytes:
@@ -93,17 +101,32 @@ def owner_balance_wei(owner: Owner) -> int:
 
 # Every robot request reads these: written once, not compiled per request (core/rows.py).
 _ROBOT_BY_TOKEN = FixedSelect(
-    Robot, related=("owner", "user"), where="t0.token_hash = %s AND t0.is_active = %s"
+    Robot,
+    related=("owner__user",),
+    where="t0.token_hash = %s AND t0.is_active = %s",
+    params_of=("token_hash", "is_active"),
 )
 _OWNER_KEYS = FixedSelect(
-    OwnerKey, where="t0.owner_id = %s", order_by="t0.created_at DESC, t0.id DESC"
+    OwnerKey,
+    where="t0.owner_id = %s",
+    params_of=("owner",),
+    order_by="t0.created_at DESC, t0.id DESC",
+)
+_OWNER_KEY = FixedSelect(
+    OwnerKey, where="t0.owner_id = %s AND t0.key_id = %s", params_of=("owner", "key_id")
+)
+_OWNER_KEY_CURRENT = FixedSelect(
+    OwnerKey, where="t0.owner_id = %s AND t0.is_current = %s", params_of=("owner", "is_current")
+)
+_OWNER_TOKEN_BY_HASH = FixedSelect(
+    OwnerToken, related=("owner__user",), where="t0.token_hash = %s", params_of=("token_hash",)
 )
 
 
 def robot_by_token(token: str) -> Robot | None:
     """The active robot holding `token` (its owner and user joined); tokens are compared by
     their SHA-256 only."""
-    return _ROBOT_BY_TOKEN.fetch_one([robot_token_hash(token), True])
+    return _ROBOT_BY_TOKEN.fetch_one(robot_token_hash(token), True)
 
 
 _KEY_OWNER = OwnerKey._meta.get_field("owner")
@@ -122,7 +145,7 @@ def owner_for_user(user: object) -> Owner | None:
 
 def owner_keys(owner: Owner) -> list[OwnerKey]:
     """All keys of an owner, newest first (the current one, then retired ones)."""
-    keys = _OWNER_KEYS.fetch([owner.pk])
+    keys = _OWNER_KEYS.fetch(owner.pk)
     for key in keys:
         _KEY_OWNER.set_cached_value(key, owner)
     return keys
@@ -175,12 +198,7 @@ OWNER_TOKEN_PREFIX = "aro_"  # noqa: S105 (a marker, not a secret)
 def owner_token_by_key(key: str) -> OwnerToken | None:
     """The owner API token whose key is `key`, live or not; compared by SHA-256 only (the same
     hash as robot tokens)."""
-    try:  # the hash is unique: get(), without the ORDER BY of first()
-        return OwnerToken.objects.select_related("owner__user").get(
-            token_hash=robot_token_hash(key)
-        )
-    except OwnerToken.DoesNotExist:
-        return None
+    return _OWNER_TOKEN_BY_HASH.fetch_one(robot_token_hash(key))
 
 
 def owner_token_list(owner: Owner) -> list[OwnerToken]:

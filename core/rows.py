@@ -9,17 +9,31 @@ Only for reads whose shape never changes; everything else uses the ORM.
 """
 
 from collections.abc import Sequence
+from dataclasses import dataclass
 from typing import Any, LiteralString
 
 from django.db import connections, router
 from django.db.models import Field, Model
 
 
+@dataclass(frozen=True)
+class _Table:
+    """One model in the SELECT: its alias, and the foreign key (of the table at `parent`)
+    that reaches it; the first table has neither."""
+
+    model: type[Model]
+    alias: str
+    parent: int | None = None
+    foreign_key: Field | None = None
+
+
 class FixedSelect:
     """SELECT `model` WHERE `where` [ORDER BY `order_by`] [LIMIT `limit`], with the models of
-    `related` (a chain of foreign keys from `model`, as `select_related("a__b")`) joined and
-    cached on each instance. In `where` and `order_by` the tables are `t0` (`model`), `t1`,
-    ... along the chain, and values are `%s` placeholders."""
+    `related` joined and cached on each instance, as `select_related(*related)` (paths such as
+    "owner__user"; a nullable key is a LEFT JOIN and caches None). In `where` and `order_by`
+    `t0` is `model`'s table, `t1`, `t2`... the related ones in the order named; values are
+    `%s` placeholders, one per name in `params_of`: the fields of `model` each value is
+    prepared for the database as (a UUID, a boolean...)."""
 
     def __init__(
         self,
@@ -27,37 +41,43 @@ class FixedSelect:
         *,
         related: Sequence[str] = (),
         where: LiteralString,
+        params_of: Sequence[str],
         order_by: LiteralString = "",
         limit: int | None = None,
     ) -> None:
         self.model = model
-        self.related = tuple(related)
+        self._params_of = [model._meta.get_field(name) for name in params_of]
         self.where = where
         self.order_by = order_by
         self.limit = limit
-        self._chain = self._models_along(model, self.related)
+        self._tables = self._tables_for(model, related)
         self._sql: dict[str, str] = {}
-        self._converters: dict[str, list[list[Any]]] = {}
+        self._converters: dict[str, list[tuple[Any, list[Any]]]] = {}
 
     @staticmethod
-    def _models_along(
-        model: type[Model], related: Sequence[str]
-    ) -> list[tuple[type[Model], Field | None]]:
-        """(model, the foreign key reaching the next one) along the chain; the last has None."""
-        chain = []
-        current = model
-        for name in related:
-            field = current._meta.get_field(name)
-            chain.append((current, field))
-            current = field.related_model
-        chain.append((current, None))
-        return chain
+    def _tables_for(model: type[Model], related: Sequence[str]) -> list[_Table]:
+        tables = [_Table(model, "t0")]
+        by_path = {"": 0}
+        for path in related:
+            walked = ""
+            for name in path.split("__"):
+                parent = by_path[walked]
+                walked = f"{walked}__{name}" if walked else name
+                if walked not in by_path:
+                    field = tables[parent].model._meta.get_field(name)
+                    by_path[walked] = len(tables)
+                    tables.append(_Table(field.related_model, f"t{len(tables)}", parent, field))
+        return tables
 
-    def fetch(self, params: Sequence[object]) -> list[Model]:
-        """The instances matching, in order."""
+    def fetch(self, *values: object) -> list[Model]:
+        """The instances matching `values` (one per `params_of`), in order."""
         alias = router.db_for_read(self.model)
         connection = connections[alias]
         sql = self._sql.get(alias) or self._sql.setdefault(alias, self._build(connection))
+        params = [
+            field.get_db_prep_value(value, connection)
+            for field, value in zip(self._params_of, values, strict=True)
+        ]
         with connection.cursor() as cursor:
             cursor.execute(sql, params)
             rows = cursor.fetchall()
@@ -66,26 +86,30 @@ class FixedSelect:
             converters = self._converters.setdefault(alias, self._converters_for(connection))
         return [self._instance(alias, connection, row, converters) for row in rows]
 
-    def fetch_one(self, params: Sequence[object]) -> Model | None:
-        found = self.fetch(params)
+    def fetch_one(self, *values: object) -> Model | None:
+        found = self.fetch(*values)
         return found[0] if found else None
 
-    def _fields(self, model: type[Model]) -> list[Field]:
+    @staticmethod
+    def _fields(model: type[Model]) -> list[Field]:
         return list(model._meta.concrete_fields)
 
     def _build(self, connection: Any) -> str:
         quote = connection.ops.quote_name
-        columns = []
+        columns = [
+            f"{table.alias}.{quote(field.column)}"
+            for table in self._tables
+            for field in self._fields(table.model)
+        ]
         joins = [f"{quote(self.model._meta.db_table)} t0"]
-        for number, (model, foreign_key) in enumerate(self._chain):
-            columns += [f"t{number}.{quote(f.column)}" for f in self._fields(model)]
-            if foreign_key is not None:
-                target = foreign_key.related_model
-                joins.append(
-                    f"INNER JOIN {quote(target._meta.db_table)} t{number + 1} ON "
-                    f"t{number + 1}.{quote(foreign_key.target_field.column)} = "
-                    f"t{number}.{quote(foreign_key.column)}"
-                )
+        for table in self._tables[1:]:
+            key, parent = table.foreign_key, self._tables[table.parent]
+            join = "LEFT OUTER JOIN" if key.null else "INNER JOIN"
+            joins.append(
+                f"{join} {quote(table.model._meta.db_table)} {table.alias} ON "
+                f"{table.alias}.{quote(key.target_field.column)} = "
+                f"{parent.alias}.{quote(key.column)}"
+            )
         # Names from the models' metadata, quoted; `where` and `order_by` are literals in the
         # code (LiteralString); values only ever travel as parameters.
         sql = f"SELECT {', '.join(columns)} FROM {' '.join(joins)} WHERE {self.where}"  # noqa: S608
@@ -95,34 +119,44 @@ class FixedSelect:
             sql += f" LIMIT {int(self.limit)}"
         return sql
 
-    def _converters_for(self, connection: Any) -> list[list[Any]]:
+    def _converters_for(self, connection: Any) -> list[tuple[Any, list[Any]]]:
         """Per column: (expression, converters), as the ORM's compiler applies them."""
         converters = []
-        for number, (model, _foreign_key) in enumerate(self._chain):
-            for field in self._fields(model):
-                column = field.get_col(f"t{number}")
+        for table in self._tables:
+            for field in self._fields(table.model):
+                column = field.get_col(table.alias)
                 found = connection.ops.get_db_converters(column) + column.get_db_converters(
                     connection
                 )
-                converters.append([column, found])
+                converters.append((column, found))
         return converters
 
     def _instance(
-        self, alias: str, connection: Any, row: Sequence[object], converters: list[list[Any]]
+        self,
+        alias: str,
+        connection: Any,
+        row: Sequence[object],
+        converters: list[tuple[Any, list[Any]]],
     ) -> Model:
         values = list(row)
         for index, (column, found) in enumerate(converters):
+            if values[index] is None:
+                continue  # NULL: no converter of the ORM's changes it
             for converter in found:
                 values[index] = converter(values[index], column, connection)
-        instances = []
+        instances: list[Model | None] = []
         start = 0
-        for model, _foreign_key in self._chain:
-            fields = self._fields(model)
-            names = [field.attname for field in fields]
-            instances.append(model.from_db(alias, names, values[start : start + len(fields)]))
+        for table in self._tables:
+            fields = self._fields(table.model)
+            own = values[start : start + len(fields)]
             start += len(fields)
-        for (_model, foreign_key), child, parent in zip(
-            self._chain, instances, instances[1:], strict=False
-        ):
-            foreign_key.set_cached_value(child, parent)
+            parent = None if table.parent is None else instances[table.parent]
+            pk_index = fields.index(table.model._meta.pk)
+            if table.parent is not None and (parent is None or own[pk_index] is None):
+                instances.append(None)  # LEFT JOIN found nothing (or its parent is None)
+            else:
+                names = [field.attname for field in fields]
+                instances.append(table.model.from_db(alias, names, own))
+            if table.foreign_key is not None and parent is not None:
+                table.foreign_key.set_cached_value(parent, instances[-1])
         return instances[0]

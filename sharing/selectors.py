@@ -9,6 +9,7 @@ from django.db.models.functions import RowNumber
 from django.utils import timezone
 
 from accounts.models import ChainActivity, Owner, OwnerToken, Robot
+from core.rows import FixedSelect
 from sharing.models import Export, Grant, Record, SecurityEvent, Verdict
 from sharing.scope import GrantScope
 from smcrypto.merkle import path_split
@@ -518,3 +519,36 @@ def export_of(owner: Owner, export_id: uuid.UUID | str) -> Export | None:
     except ValueError:
         return None
     return export_list_of(owner).filter(pk=wanted).first()
+
+
+# --- the reads of every view (written once: core/rows.py) -------------------------------------
+
+_RECORD_TO_OPEN = FixedSelect(
+    Record, related=("owner__user", "deleted_by"), where="t0.id = %s", params_of=("id",)
+)
+_RECORD_TO_CHECK = FixedSelect(
+    Record, related=("owner", "anchor_root"), where="t0.id = %s", params_of=("id",)
+)
+_VERDICT = FixedSelect(Verdict, where="t0.id = %s", params_of=("id",))
+
+
+def record_to_open(record_id: uuid.UUID) -> Record | None:
+    """The record a view opens, with its owner (and user) and who deleted it, if anyone."""
+    return _RECORD_TO_OPEN.fetch_one(record_id)
+
+
+def record_to_check(record_id: uuid.UUID | str) -> Record:
+    """The record the worker checks, with its owner and its Merkle root, if it has one;
+    Record.DoesNotExist if there is none."""
+    record = _RECORD_TO_CHECK.fetch_one(uuid.UUID(str(record_id)))
+    if record is None:
+        raise Record.DoesNotExist("no such record")
+    return record
+
+
+def verdict_by_id(verdict_id: int) -> Verdict:
+    """A verdict the worker just wrote; Verdict.DoesNotExist if it is not there."""
+    verdict = _VERDICT.fetch_one(verdict_id)
+    if verdict is None:
+        raise Verdict.DoesNotExist("no such verdict")
+    return verdict

@@ -23,7 +23,7 @@ from redis.exceptions import RedisError
 from accounts.errors import IdentityMismatch
 from accounts.identity import owner_identity_check
 from accounts.models import Owner, OwnerKey, OwnerToken
-from accounts.selectors import owner_key_bytes, owner_key_current
+from accounts.selectors import owner_key_by_id, owner_key_bytes, owner_key_current
 from alerts.services import record_tampered_alert
 from chainworker.chain import AuthROSChain
 from chainworker.services import chain_client, chain_head
@@ -41,7 +41,14 @@ from sharing.errors import (
 from sharing.models import Grant, Record, SecurityEvent, Verdict
 from sharing.roots import record_path
 from sharing.scope import scope_commitment
-from sharing.selectors import grant_live, record_deletion_text, record_topic_history
+from sharing.selectors import (
+    grant_live,
+    record_deletion_text,
+    record_to_check,
+    record_to_open,
+    record_topic_history,
+    verdict_by_id,
+)
 from smcrypto import envelope, sm3
 from smcrypto.merkle import leaf_hash, proof_holds
 
@@ -81,7 +88,7 @@ def record_verify(
     if checked_by_id is not None:
         credential, token_id = Verdict.Credential.OPERATOR, None
     _credential_check(credential, token_id)
-    record = Record.objects.select_related("owner", "anchor_root").get(pk=record_id)
+    record = record_to_check(record_id)
     viewer = Owner.objects.get(pk=viewer_id)
     client = chain_client()
     block = chain_head(client)
@@ -370,11 +377,11 @@ def record_open(
     """
     _credential_check(credential, _token_id(token))
     try:
-        record = Record.objects.select_related("owner__user", "deleted_by").get(
-            pk=uuid.UUID(str(record_id))
-        )
-    except (ValueError, Record.DoesNotExist):
-        raise RecordNotFound("no such record") from None
+        record = record_to_open(uuid.UUID(str(record_id)))
+    except ValueError:
+        record = None
+    if record is None:
+        raise RecordNotFound("no such record")
     if record.deleted_at is not None:
         raise _deleted(record)
     if earlier <= 0:
@@ -447,13 +454,15 @@ def _send(task_name: str, *args: Any) -> Any:
 
 def _opened(record: Record, viewer: Owner, pending: Any, key: bytes | None) -> OpenedRecord:
     answer = _await_answer(pending, str(record.pk), viewer)
-    verdict = Verdict.objects.get(pk=answer["verdict_id"])
-    return _decrypted(record, verdict, _envelope_of(answer), key=key)
+    return _decrypted(record, verdict_by_id(answer["verdict_id"]), _envelope_of(answer), key=key)
 
 
 def _record_key(record: Record) -> bytes:
     """The SM4 key the record was sealed under."""
-    return owner_key_bytes(record.owner.keys.get(key_id=record.key_id))
+    key = owner_key_by_id(record.owner, record.key_id)
+    if key is None:
+        raise OwnerKey.DoesNotExist(f"no key {record.key_id} of the record's owner")
+    return owner_key_bytes(key)
 
 
 def _record_key_early(record: Record) -> bytes | None:
