@@ -28,7 +28,9 @@ in the same run.
 """
 
 import argparse
+import asyncio
 import base64
+import json
 import statistics
 import subprocess
 import sys
@@ -40,6 +42,7 @@ from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
+from urllib.parse import SplitResult, urlsplit
 
 import psutil
 import requests
@@ -63,6 +66,7 @@ from bench.stack import (
 from stack.anvil import anvil_version
 
 REQUEST_TIMEOUT = 300.0
+CLIENTS = ("threads", "asyncio")
 
 
 @dataclass(frozen=True)
@@ -84,6 +88,13 @@ class UploadRun:
     uploads_per_agent: int = 1
     anchor_mode: str = "records"  # the baseline; bench/roots.py measures "root" too
     engines: str = "sqlite-disk"  # or "postgres-s3" (bench.stack.ENGINES)
+    # "threads": a thread and a requests.Session per agent (the paper's analog processes);
+    # "asyncio": every agent a connection of one asyncio loop in this process, a load
+    # generator that leaves the machine's cores to the stack (CLIENTS).
+    client: str = "threads"
+    # Open records only once every one is anchored, so that the checks do not compete with
+    # the uploads for this machine's cores (bench/roots.py's time to anchored).
+    verify_after_anchored: bool = False
 
     @property
     def mode(self) -> str:
@@ -287,10 +298,17 @@ def measure(run: UploadRun) -> dict[str, Any]:
     try:
         stack.start()
         agents = _agents_create(run, stack)
-        post_uploads(f"{stack.web_url}/api/v1/records/", agents)
+        post = post_uploads if run.client == "threads" else post_uploads_asyncio
+        cpu_before = psutil.Process().cpu_times()
+        post(f"{stack.web_url}/api/v1/records/", agents)
+        cpu_after = psutil.Process().cpu_times()
         uploads = [upload for agent in agents for upload in agent]
         _await_verified(run, stack, uploads)
         row = _statistics(run, uploads)
+        row["client"] = run.client
+        row["client_cpu_s"] = round(
+            cpu_after.user + cpu_after.system - cpu_before.user - cpu_before.system, 3
+        )
     finally:
         stack.stop()
     return run_finished(row, stack, keep_logs=run.keep_logs)
@@ -359,6 +377,54 @@ def post_uploads(url: str, agents: list[list[Upload]]) -> None:
     progress.close()
 
 
+def post_uploads_asyncio(url: str, agents: list[list[Upload]]) -> None:
+    """post_uploads from one asyncio loop: every agent a coroutine that opens a connection
+    per envelope (HTTP/1.1, `Connection: close`), all released together."""
+    asyncio.run(_agents_post_asyncio(urlsplit(url), agents))
+
+
+async def _agents_post_asyncio(url: SplitResult, agents: list[list[Upload]]) -> None:
+    start = asyncio.Event()
+    progress = progress_bar(sum(len(agent) for agent in agents), "201 received", unit="req")
+
+    async def agent_post(uploads: list[Upload]) -> None:
+        await start.wait()
+        for upload in uploads:
+            await _post_one_asyncio(url, upload)
+            progress.update(1)
+
+    tasks = [asyncio.create_task(agent_post(agent)) for agent in agents]
+    await asyncio.sleep(0)  # every agent waiting at the start
+    start.set()
+    await asyncio.gather(*tasks)
+    progress.close()
+
+
+async def _post_one_asyncio(url: SplitResult, upload: Upload) -> None:
+    body = json.dumps(upload.body).encode()
+    head = (
+        f"POST {url.path} HTTP/1.1\r\nHost: {url.netloc}\r\n"
+        f"Authorization: Token {upload.token}\r\nContent-Type: application/json\r\n"
+        f"Content-Length: {len(body)}\r\nConnection: close\r\n\r\n"
+    )
+    upload.sent_at = time.time()
+    try:
+        async with asyncio.timeout(REQUEST_TIMEOUT):
+            reader, writer = await asyncio.open_connection(url.hostname, url.port)
+            writer.write(head.encode() + body)
+            await writer.drain()
+            answer = await reader.read()
+            writer.close()
+        upload.answered_at = time.time()
+        status_line, _, rest = answer.partition(b"\r\n")
+        upload.status = status_line.split(b" ")[1].decode()
+        if upload.status == "201":
+            upload.record_id = json.loads(rest.partition(b"\r\n\r\n")[2])["id"]
+    except (OSError, TimeoutError, IndexError, ValueError) as exc:
+        upload.answered_at = time.time()
+        upload.status = type(exc).__name__
+
+
 def _post_one(session: requests.Session, url: str, upload: Upload) -> None:
     upload.sent_at = time.time()
     try:
@@ -391,7 +457,8 @@ def _await_verified(run: UploadRun, stack: BenchStack, uploads: list[Upload]) ->
                 upload = by_id[str(pk)]
                 upload.anchored_at = anchored_at.timestamp()
                 anchoring.update(1)
-                pending.append(verifiers.submit(_verify, upload, verifying))
+                if not run.verify_after_anchored:
+                    pending.append(verifiers.submit(_verify, upload, verifying))
             failed = Record.objects.filter(
                 pk__in=[a.record_id for a in waiting], status=Record.Status.FAILED
             ).count()
@@ -402,6 +469,9 @@ def _await_verified(run: UploadRun, stack: BenchStack, uploads: list[Upload]) ->
                 print(f"timed out after {run.timeout:.0f}s", file=sys.stderr)
                 break
             time.sleep(POLL_INTERVAL)
+        if run.verify_after_anchored:
+            anchored = [upload for upload in by_id.values() if upload.anchored_at is not None]
+            pending = [verifiers.submit(_verify, upload, verifying) for upload in anchored]
         for future in pending:
             future.result()
     anchoring.close()

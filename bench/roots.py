@@ -35,6 +35,7 @@ Run: `python -m bench roots [--quick]`. Writes bench/results/roots.json, roots.c
 import argparse
 import base64
 import cProfile
+import dataclasses
 import io
 import itertools
 import pstats
@@ -546,13 +547,17 @@ def main(argv: list[str]) -> int:
         )
         print(f"== {run.describe()}", flush=True)
         row = run_in_child(measure, run)
-        concurrent = upload_run(
-            args,
-            block_time=None,
-            batch_max=100,
-            agents=args.agents,
-            plaintext_bytes=PLAINTEXT_BYTES,
-            anchor_mode=mode,
+        concurrent = dataclasses.replace(
+            upload_run(
+                args,
+                block_time=None,
+                batch_max=100,
+                agents=args.agents,
+                plaintext_bytes=PLAINTEXT_BYTES,
+                anchor_mode=mode,
+            ),
+            client="asyncio",
+            verify_after_anchored=True,
         )
         print(f"== {concurrent.describe()}", flush=True)
         burst = run_in_child(concurrent_measure, concurrent)
@@ -560,6 +565,8 @@ def main(argv: list[str]) -> int:
         row["concurrent_700_sent"] = burst.get("sent")
         row["concurrent_700_total_s"] = burst.get("total_to_anchored_s")
         row["concurrent_700_total_response_s"] = burst.get("total_response_s")
+        row["concurrent_700_client_cpu_s"] = burst.get("client_cpu_s")
+        row["concurrent_700_verified"] = burst.get("verified")
         row["concurrent_agents"] = args.agents
         rows.append(row)
     _ratios(rows)
@@ -573,6 +580,7 @@ def main(argv: list[str]) -> int:
         "idle_views": args.views,
         "load_seconds": args.load_seconds,
         "concurrent_agents": args.agents,
+        "concurrent_client": "asyncio",
         "chain": "anvil, automine",
     }
     report["paper"] = PAPER

@@ -318,14 +318,15 @@ def _post_server(record_ids: list[str], concurrent: list[int]) -> ThreadingHTTPS
     return ThreadingHTTPServer(("127.0.0.1", 0), Handler)
 
 
-def test_one_agent_posts_its_uploads_in_order_one_at_a_time():
+@pytest.mark.parametrize("post", [rest.post_uploads, rest.post_uploads_asyncio])
+def test_one_agent_posts_its_uploads_in_order_one_at_a_time(post):
     received: list[str] = []
     concurrent: list[int] = []
     server = _post_server(received, concurrent)
     threading.Thread(target=server.serve_forever, daemon=True).start()
     try:
         uploads = [rest.Upload(None, "token", {"envelope": f"seq-{n}"}) for n in range(1, 6)]
-        rest.post_uploads(f"http://127.0.0.1:{server.server_port}/", [uploads])
+        post(f"http://127.0.0.1:{server.server_port}/", [uploads])
     finally:
         server.shutdown()
         server.server_close()
@@ -334,6 +335,28 @@ def test_one_agent_posts_its_uploads_in_order_one_at_a_time():
     assert [u.record_id for u in uploads] == received
     assert all(u.status == "201" for u in uploads)
     assert all(a.answered_at <= b.sent_at for a, b in itertools.pairwise(uploads))
+
+
+def test_the_asyncio_client_sends_every_agents_upload_and_reads_each_answer():
+    received: list[str] = []
+    server = _post_server(received, [])
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    try:
+        agents = [[rest.Upload(None, f"t{n}", {"envelope": f"agent-{n}"})] for n in range(40)]
+        rest.post_uploads_asyncio(f"http://127.0.0.1:{server.server_port}/api/", agents)
+        # A server that is not there: every upload says why, none is lost from the count.
+        server.shutdown()
+        server.server_close()
+        gone = [[rest.Upload(None, "t", {"envelope": "x"})]]
+        rest.post_uploads_asyncio(f"http://127.0.0.1:{server.server_port}/api/", gone)
+    finally:
+        server.server_close()
+    assert sorted(received) == sorted(f"agent-{n}" for n in range(40))
+    assert all(agent[0].record_id == agent[0].body["envelope"] for agent in agents)
+    assert all(agent[0].status == "201" for agent in agents)
+    assert all(a[0].sent_at <= a[0].answered_at for a in agents)
+    assert gone[0][0].status == "ConnectionRefusedError"
+    assert gone[0][0].record_id is None
 
 
 def test_upload_runs_describe_their_pattern():
