@@ -10,6 +10,7 @@ import logging
 from collections.abc import Sequence
 from contextlib import suppress
 
+from django.conf import settings
 from django.db import transaction
 from redis.exceptions import RedisError
 
@@ -18,12 +19,13 @@ from accounts.events import account_event_record
 from accounts.models import AccountEvent, ChainState, Owner, OwnerKey
 from accounts.selectors import owner_keys
 from chainworker.chain import AuthROSChain, ChainError
-from chainworker.services import chain_client, chain_head_with
+from chainworker.services import chain_client
 from core.redis_client import get_redis, redis_key
 
 logger = logging.getLogger(__name__)
 security_log = logging.getLogger("authros.security")
-# Seconds the chain's commitment for an owner at one block stays in Redis (blocks move on).
+# Seconds the chain's commitment for an owner at one block stays in Redis when
+# IDENTITY_BLOCK_CACHE_SECONDS is 0 (checked per block: blocks move on).
 IDENTITY_CACHE_TTL = 300
 # What the contract answers for an EOA that has no commitment on it.
 NOT_REGISTERED = "0x" + "00" * 32
@@ -86,19 +88,31 @@ def _identity_expected(owner: Owner, keys: Sequence[OwnerKey] | None = None) -> 
 
 
 def _commitment_on_chain(client: AuthROSChain, owner: Owner, *, fresh: bool) -> str:
-    """The owner's commitment on chain; unless `fresh`, as kept in Redis for the chain head
-    (read with the head in one round trip)."""
+    """The owner's commitment on chain; unless `fresh`, as some process read it at most
+    IDENTITY_BLOCK_CACHE_SECONDS ago (as fresh as the chain head every process shares), or,
+    with that set to 0, at the latest block."""
     key = redis_key("identity", client.chain_key, client.address, owner.eoa_address)
-    if fresh:
-        block = client.latest_block()
-    else:
-        block, cached = chain_head_with(client, key)
-        seen_at, _, commitment = (cached or b"").decode().partition(" ")
-        if commitment and seen_at == str(block):
+    seconds = settings.IDENTITY_BLOCK_CACHE_SECONDS
+    block = client.latest_block() if fresh or seconds <= 0 else None
+    if not fresh:
+        seen_at, _, commitment = _cache_get(key).partition(" ")
+        if commitment and (block is None or seen_at == str(block)):
             return commitment
     on_chain = "0x" + client.commitment_of(owner.eoa_address).hex()
-    _cache_set(key, f"{block} {on_chain}", seconds=IDENTITY_CACHE_TTL)
+    _cache_set(
+        key,
+        f"{'-' if block is None else block} {on_chain}",
+        seconds=seconds if seconds > 0 else IDENTITY_CACHE_TTL,
+    )
     return on_chain
+
+
+def _cache_get(key: str) -> str:
+    try:
+        value = get_redis().get(key)
+    except RedisError:
+        return ""  # without Redis every check asks the chain
+    return value.decode() if value is not None else ""
 
 
 def _cache_set(key: str, value: str, *, seconds: float) -> None:

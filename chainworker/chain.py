@@ -672,7 +672,9 @@ class AuthROSChain:
         return bool(self._call("isRegistered", Web3.to_checksum_address(eoa)))
 
     def commitment_of(self, eoa: str) -> bytes:
-        return bytes(self._call("commitmentOf", Web3.to_checksum_address(eoa)))
+        """The owner's key commitment (the identity check of uploads and views: lean)."""
+        (commitment,) = self._call_lean("commitmentOf", Web3.to_checksum_address(eoa))
+        return bytes(commitment)
 
     def record_count(self) -> int:
         return int(self._call("recordCount"))
@@ -841,13 +843,15 @@ class AuthROSChain:
                 raise ContractNotDeployed(f"{function}: no contract at {self._address}") from exc
 
     def _call_lean(self, function: str, *args: Any) -> tuple:
-        """`_call` for the read every view makes (rootOf): the calldata encoded here and one
+        """`_call` for the reads every view and upload makes (rootOf, grantOf, commitmentOf):
+        the calldata encoded here and one
         eth_call sent by the provider itself, past web3's contract and middleware layers,
         which cost more than the request. A view function: it reverts only on bad input.
         In-process chains (eth-tester, the tests') take the usual way."""
-        if self.is_in_process:
-            return self._call(function, *args)  # eth-tester wants web3's filled-in fields
         selector, inputs, outputs = self._function_types[function]
+        if self.is_in_process:  # eth-tester wants web3's filled-in fields
+            answer = self._call(function, *args)
+            return tuple(answer) if len(outputs) > 1 else (answer,)
         data = selector + abi_encode(inputs, args)
         with _translated_errors(function):
             answer = self.w3.provider.make_request(

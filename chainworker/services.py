@@ -21,7 +21,7 @@ from chainworker.chain import AuthROSChain, ContractNotDeployed
 from chainworker.models import Deployment, OperatorAlert
 from chainworker.selectors import deployment_active
 from chainworker.work import ChainWorkNotReady, exclusive
-from core.redis_client import get_redis, redis_key, redis_mget
+from core.redis_client import get_redis, redis_key
 from core.secrets import SecretFileError, load_or_create_secret
 
 logger = logging.getLogger(__name__)
@@ -93,28 +93,17 @@ def chain_client() -> AuthROSChain:
 def chain_head(client: AuthROSChain) -> int:
     """The chain's latest block, as every process saw it at most IDENTITY_BLOCK_CACHE_SECONDS
     ago (kept in Redis): a burst of views and uploads costs one eth_blockNumber."""
-    return chain_head_with(client, None)[0]
-
-
-def chain_head_with(client: AuthROSChain, key: str | None) -> tuple[int, bytes | None]:
-    """chain_head, and the Redis value at `key` (None without one, or without Redis) read in
-    the same round trip: a cache kept per block costs one round trip, not two."""
     seconds = settings.IDENTITY_BLOCK_CACHE_SECONDS
-    head_key = redis_key("latest-block", client.chain_key)
-    cached, value = None, None
-    if seconds > 0 or key is not None:
-        with suppress(RedisError):
-            if key is None:
-                cached = get_redis().get(head_key)
-            else:
-                cached, value = redis_mget([head_key, key])
-    if seconds > 0 and cached is not None:
-        return int(cached), value
+    if seconds <= 0:
+        return client.latest_block()
+    key = redis_key("latest-block", client.chain_key)
+    with suppress(RedisError):
+        if (cached := get_redis().get(key)) is not None:
+            return int(cached)
     block = client.latest_block()
-    if seconds > 0:
-        with suppress(RedisError):
-            get_redis().set(head_key, str(block), px=max(1, int(seconds * 1000)))
-    return block, value
+    with suppress(RedisError):
+        get_redis().set(key, str(block), px=max(1, int(seconds * 1000)))
+    return block
 
 
 def _recorded_address(client: AuthROSChain) -> str | None:

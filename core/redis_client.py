@@ -24,15 +24,6 @@ def get_redis() -> redis.Redis | RedisCluster:
     return redis_client(settings.REDIS_URL)
 
 
-def redis_mget(keys: list[str]) -> list[bytes | None]:
-    """The values at `keys`, in one round trip on a plain Redis; on a Cluster (keys of
-    several slots) slot by slot. Raises RedisError."""
-    client = get_redis()
-    if isinstance(client, RedisCluster):
-        return client.mget_nonatomic(keys)
-    return client.mget(keys)
-
-
 def redis_key(*parts: object) -> str:
     """A key in the portal's namespace: `<REDIS_KEY_PREFIX>:part:part...`."""
     return ":".join([settings.REDIS_KEY_PREFIX, *map(str, parts)])
