@@ -5,7 +5,9 @@ from django.urls import include, path
 
 from portal import views
 
+# The API first: every robot upload and view is matched against these before the pages'.
 urlpatterns = [
+    path("api/", include("portal.api_urls")),
     path("", views.home, name="home"),
     path("dashboard/", views.dashboard, name="dashboard"),
     path("account/security/", views.security, name="security"),
@@ -13,5 +15,4 @@ urlpatterns = [
     path("", include("sharing.urls")),
     path("", include("alerts.urls")),
     path("admin/", admin.site.urls),
-    path("api/", include("portal.api_urls")),
 ]
