@@ -596,7 +596,14 @@ def _section_roots(results: Path) -> str | None:
         f"{mode}: {row.get('ingested')} envelopes taken in {_num(row.get('ingest_seconds'), 1)} s "
         f"flat out and {row.get('sustained_uploaded')} paced "
         f"({_num(row.get('sustained_uploaded_per_s'), 0)}/s), {row.get('anchored')} anchored "
-        f"in {row.get('transactions')} transactions, "
+        f"in {row.get('transactions')} transactions"
+        + (
+            f" (gas read from the {row['transactions_measured']} whose receipts the node "
+            "still kept)"
+            if row.get("transactions_measured") not in (None, row.get("transactions"))
+            else ""
+        )
+        + ", "
         f"{row.get('failed')} failed, {row.get('pending_at_timeout')} left pending; "
         f"{row.get('concurrent_700_anchored')} of {row.get('concurrent_700_sent')} concurrent "
         "uploads anchored"

@@ -323,21 +323,35 @@ def _upload_phase(
 
 def _gas(run: RootsRun) -> dict[str, Any]:
     """Gas the anchoring transactions used, per record; the block gas limit and how many
-    records one block can anchor at that price."""
+    records one block can anchor at that price. From the transactions whose receipts the node
+    still keeps (make run's anvil keeps those of its last 1,024 blocks)."""
+    from django.db.models import Count
+    from web3.exceptions import TransactionNotFound
+
     from chainworker.services import chain_client
-    from sharing.models import AnchorRoot, Record
+    from sharing.models import Record
 
     client = chain_client()
-    if run.anchor_mode == "root":
-        hashes = set(AnchorRoot.objects.exclude(tx_hash="").values_list("tx_hash", flat=True))
-    else:
-        hashes = set(Record.objects.exclude(tx_hash="").values_list("tx_hash", flat=True))
-    gas = sum(client.w3.eth.get_transaction_receipt(h)["gasUsed"] for h in hashes)
-    records = Record.objects.filter(status=Record.Status.ANCHORED).count()
+    by = "anchor_root__tx_hash" if run.anchor_mode == "root" else "tx_hash"
+    per_transaction = (
+        Record.objects.filter(status=Record.Status.ANCHORED)
+        .exclude(**{by: ""})
+        .values_list(by)
+        .annotate(records=Count("pk"))
+    )
+    gas = counted = kept = 0
+    for tx_hash, records in per_transaction:
+        try:
+            gas += client.w3.eth.get_transaction_receipt(tx_hash)["gasUsed"]
+        except TransactionNotFound:
+            continue  # older than the node keeps
+        counted += records
+        kept += 1
     limit = client.w3.eth.get_block("latest")["gasLimit"]
-    per_record = gas / records if records else None
+    per_record = gas / counted if counted else None
     return {
-        "transactions": len(hashes),
+        "transactions": len(per_transaction),
+        "transactions_measured": kept,
         "gas_total": gas,
         "gas_per_record": per_record,
         "block_gas_limit": limit,
