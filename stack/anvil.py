@@ -51,6 +51,11 @@ PREVIOUS_SUFFIX = ".prev"
 BAD_SUFFIX = ".bad"
 # A base fee and gas price of zero, and no minimum tip suggested: gas costs nothing.
 ZERO_GAS_ARGS = ("--base-fee", "0", "--gas-price", "0", "--disable-min-priority-fee")
+# A node that keeps only its latest blocks' transactions keeps only this many blocks' states,
+# in memory: anvil otherwise writes every older state under ~/.foundry/anvil/tmp, tens of GB
+# in a day of uploads, and leaves them there when it stops. Enough to replay a failed
+# transaction at its parent block (chain.py's _explain_failure).
+KEPT_STATES = 64
 
 _OS_NAMES = {"Linux": "linux", "Darwin": "darwin", "Windows": "win32"}
 _ARCH_NAMES = {"x86_64": "amd64", "AMD64": "amd64", "aarch64": "arm64", "arm64": "arm64"}
@@ -157,8 +162,9 @@ def start_anvil(
     die_with_parent: the kernel stops it if the process that started it dies (see Children).
     zero_gas: gas costs nothing (ZERO_GAS_ARGS); else anvil's own fees (1 gwei base fee).
     transaction_blocks: keep the transactions (and their receipts and logs) of only this many
-        latest blocks; else all of them. The node's memory and its state file then grow with
-        block headers alone (about 1.7 KiB a block, against several KiB with transactions).
+        latest blocks, and the states of only KEPT_STATES, in memory; else all of them. The
+        node's memory and its state file then grow with block headers alone (about 1.7 KiB a
+        block, against several KiB with transactions).
     """
 
     args = [str(anvil_binary()), "--host", HOST]
@@ -170,6 +176,7 @@ def start_anvil(
         args += ["--block-time", str(block_time)]
     if transaction_blocks is not None:
         args += ["--transaction-block-keeper", str(transaction_blocks)]
+        args += ["--prune-history", str(KEPT_STATES)]
     if state_path is not None and (loaded := usable_state(Path(state_path))) is not None:
         args += ["--load-state", str(loaded)]
     last_error = ""

@@ -14,9 +14,10 @@ import pytest
 import redis
 from eth_account import Account
 from web3 import Web3
+from web3.exceptions import Web3RPCError
 
 from chainworker.chain import AuthROSChain
-from stack.anvil import AnvilProcess, StateKeeper, start_anvil
+from stack.anvil import KEPT_STATES, AnvilProcess, StateKeeper, start_anvil
 from stack.run import ANVIL_STATE_INTERVAL, ANVIL_TRANSACTION_BLOCKS
 from tests.chainworker.test_chain_anvil import _item, _registered
 
@@ -237,3 +238,18 @@ def test_make_runs_node_drops_old_transactions_and_keeps_all_state(tmp_path):
         w3 = Web3(Web3.HTTPProvider(again.url))
         assert w3.eth.get_balance(receiver) == before + 12
         assert w3.eth.block_number == 12
+
+
+def test_make_runs_node_keeps_recent_states_in_memory_and_no_older_ones(tmp_path):
+    """Older states are dropped, not written under ~/.foundry/anvil/tmp (tens of GB in a day of
+    uploads, left behind when the node stops); the latest ones serve a failed transaction's
+    replay at its parent block."""
+    with start_anvil(transaction_blocks=4, zero_gas=True) as node:
+        w3 = Web3(Web3.HTTPProvider(node.url))
+        receiver = w3.eth.accounts[1]
+        before = w3.eth.get_balance(receiver)
+        _send(w3, KEPT_STATES + 16)
+        latest = w3.eth.block_number
+        assert w3.eth.get_balance(receiver, block_identifier=latest - 1) == before + latest - 1
+        with pytest.raises(Web3RPCError):
+            w3.eth.get_balance(receiver, block_identifier=1)
