@@ -32,11 +32,7 @@ def owner_eoa_account(owner: Owner) -> LocalAccount:
 
 def owner_key_current(owner: Owner) -> OwnerKey:
     """The owner's current key; OwnerKey.DoesNotExist if it has none."""
-    key = _OWNER_KEY_CURRENT.fetch_one(owner.pk, True)
-    if key is None:
-        raise OwnerKey.DoesNotExist("the owner has no current key")
-    _KEY_OWNER.set_cached_value(key, owner)
-    return key
+    return _owned_by(owner, [_OWNER_KEY_CURRENT.get(owner.pk, True)])[0]
 
 
 # Answers to a robot's uploads name its owner's current key in this header, so that a paired
@@ -51,10 +47,8 @@ def owner_key_current_id(owner_id: int) -> str | None:
 
 
 def owner_key_by_id(owner: Owner, key_id: str) -> OwnerKey | None:
-    key = _OWNER_KEY.fetch_one(owner.pk, key_id)
-    if key is not None:
-        _KEY_OWNER.set_cached_value(key, owner)
-    return key
+    found = _owned_by(owner, _OWNER_KEY.fetch(owner.pk, key_id))
+    return found[0] if found else None
 
 
 def owner_key_bytes(owner_key: OwnerKey) -> bytes:
@@ -121,15 +115,20 @@ _OWNER_KEY_CURRENT = FixedSelect(
 _OWNER_TOKEN_BY_HASH = FixedSelect(
     OwnerToken, related=("owner__user",), where="t0.token_hash = %s", params_of=("token_hash",)
 )
+_KEY_OWNER = OwnerKey._meta.get_field("owner")
+
+
+def _owned_by(owner: Owner, keys: list[OwnerKey]) -> list[OwnerKey]:
+    """Keys read for `owner`, each knowing its owner (as `owner.keys` would), read no more."""
+    for key in keys:
+        _KEY_OWNER.set_cached_value(key, owner)
+    return keys
 
 
 def robot_by_token(token: str) -> Robot | None:
     """The active robot holding `token` (its owner and user joined); tokens are compared by
     their SHA-256 only."""
     return _ROBOT_BY_TOKEN.fetch_one(robot_token_hash(token), True)
-
-
-_KEY_OWNER = OwnerKey._meta.get_field("owner")
 
 
 def robot_token_hash(token: str) -> str:
@@ -145,10 +144,7 @@ def owner_for_user(user: object) -> Owner | None:
 
 def owner_keys(owner: Owner) -> list[OwnerKey]:
     """All keys of an owner, newest first (the current one, then retired ones)."""
-    keys = _OWNER_KEYS.fetch(owner.pk)
-    for key in keys:
-        _KEY_OWNER.set_cached_value(key, owner)
-    return keys
+    return _owned_by(owner, _OWNER_KEYS.fetch(owner.pk))
 
 
 def robot_list_of(owner: Owner) -> list[Robot]:

@@ -844,10 +844,10 @@ class AuthROSChain:
 
     def _call_lean(self, function: str, *args: Any) -> tuple:
         """`_call` for the reads every view and upload makes (rootOf, grantOf, commitmentOf):
-        the calldata encoded here and one
-        eth_call sent by the provider itself, past web3's contract and middleware layers,
-        which cost more than the request. A view function: it reverts only on bad input.
-        In-process chains (eth-tester, the tests') take the usual way."""
+        the calldata encoded here and one eth_call sent by the provider itself, past web3's
+        contract and middleware layers, which cost more than the request. A view function: it
+        reverts only on bad input. In-process chains (eth-tester, the tests') take the usual
+        way. Always a tuple of the function's outputs."""
         selector, inputs, outputs = self._function_types[function]
         if self.is_in_process:  # eth-tester wants web3's filled-in fields
             answer = self._call(function, *args)

@@ -90,6 +90,13 @@ class FixedSelect:
         found = self.fetch(*values)
         return found[0] if found else None
 
+    def get(self, *values: object) -> Model:
+        """fetch_one, raising the model's DoesNotExist when nothing matches (as `get()`)."""
+        found = self.fetch_one(*values)
+        if found is None:
+            raise self.model.DoesNotExist(f"no {self.model._meta.verbose_name} matches")
+        return found
+
     @staticmethod
     def _fields(model: type[Model]) -> list[Field]:
         return list(model._meta.concrete_fields)

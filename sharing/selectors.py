@@ -540,15 +540,9 @@ def record_to_open(record_id: uuid.UUID) -> Record | None:
 def record_to_check(record_id: uuid.UUID | str) -> Record:
     """The record the worker checks, with its owner and its Merkle root, if it has one;
     Record.DoesNotExist if there is none."""
-    record = _RECORD_TO_CHECK.fetch_one(uuid.UUID(str(record_id)))
-    if record is None:
-        raise Record.DoesNotExist("no such record")
-    return record
+    return _RECORD_TO_CHECK.get(uuid.UUID(str(record_id)))
 
 
 def verdict_by_id(verdict_id: int) -> Verdict:
     """A verdict the worker just wrote; Verdict.DoesNotExist if it is not there."""
-    verdict = _VERDICT.fetch_one(verdict_id)
-    if verdict is None:
-        raise Verdict.DoesNotExist("no such verdict")
-    return verdict
+    return _VERDICT.get(verdict_id)
