@@ -24,7 +24,6 @@ from django.utils import timezone
 
 from accounts.errors import IdentityMismatch
 from accounts.models import Owner, OwnerKey, Robot
-from accounts.selectors import owner_key_bytes
 from authros_verify.bundle import BUNDLE_FORMAT, bundle_digest, bundle_serialise
 from chainworker.chain import ChainError
 from chainworker.services import chain_client
@@ -41,7 +40,7 @@ from sharing.mcap_export import McapBuilder, message_encode
 from sharing.models import Export, Record, Verdict
 from sharing.selectors import export_of, record_list_visible_to, record_proof
 from sharing.storage import envelope_storage, envelopes_save
-from sharing.verification import records_verify
+from sharing.verification import record_key, records_verify
 from smcrypto import envelope as envelopes
 from smcrypto.errors import CryptoError
 from smcrypto.sm3 import sm3_hex
@@ -273,7 +272,7 @@ class _Keys:
     def of(self, record: Record) -> bytes:
         wanted = (record.owner_id, record.key_id)
         if wanted not in self._keys:
-            self._keys[wanted] = owner_key_bytes(record.owner.keys.get(key_id=record.key_id))
+            self._keys[wanted] = record_key(record)
         return self._keys[wanted]
 
 

@@ -457,7 +457,7 @@ def _opened(record: Record, viewer: Owner, pending: Any, key: bytes | None) -> O
     return _decrypted(record, verdict_by_id(answer["verdict_id"]), _envelope_of(answer), key=key)
 
 
-def _record_key(record: Record) -> bytes:
+def record_key(record: Record) -> bytes:
     """The SM4 key the record was sealed under."""
     key = owner_key_by_id(record.owner, record.key_id)
     if key is None:
@@ -466,10 +466,10 @@ def _record_key(record: Record) -> bytes:
 
 
 def _record_key_early(record: Record) -> bytes | None:
-    """_record_key while the worker checks; None if it fails now (the check's verdict
+    """record_key while the worker checks; None if it fails now (the check's verdict
     comes first: _decrypted asks again only for a record it may show)."""
     try:
-        return _record_key(record)
+        return record_key(record)
     except OwnerKey.DoesNotExist:  # reported where the record is opened, as before
         return None
 
@@ -491,7 +491,7 @@ def _decrypted(
         raise NotAnchoredYet(
             "the record is not anchored on chain yet", record=record, verdict=verdict
         )
-    header, plaintext = envelope.open(key if key is not None else _record_key(record), data)
+    header, plaintext = envelope.open(key if key is not None else record_key(record), data)
     return OpenedRecord(record, verdict, header, plaintext, data)
 
 
