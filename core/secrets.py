@@ -22,10 +22,31 @@ def load_or_create_secret(path: Path, *, nbytes: int) -> bytes:
     ever reads an empty or partly written file.
     """
     path = Path(path)
+    seen = _file_state(path)
+    read = _secrets_read.get((path, nbytes))
+    if read is not None and seen is not None and read[0] == seen:
+        return read[1]  # the file as it was read: the same inode, size, time and mode
     path.parent.mkdir(mode=0o700, parents=True, exist_ok=True)
-    if not path.exists():
+    if seen is None:
         _create_secret(path, nbytes=nbytes)
-    return _read_secret(path, nbytes=nbytes)
+        seen = _file_state(path)
+    value = _read_secret(path, nbytes=nbytes)
+    _secrets_read[(path, nbytes)] = (seen, value)
+    return value
+
+
+# Secrets as last read, with the file's state then: a request that needs one (the master key,
+# at every upload and view) pays one stat, not a read; a file replaced, changed or chmod'ed
+# is read (and its permissions checked) again.
+_secrets_read: dict[tuple[Path, int], tuple[tuple[int, ...], bytes]] = {}
+
+
+def _file_state(path: Path) -> tuple[int, ...] | None:
+    try:
+        state = os.stat(path)
+    except FileNotFoundError:
+        return None
+    return (state.st_dev, state.st_ino, state.st_size, state.st_mtime_ns, state.st_mode)
 
 
 def _create_secret(path: Path, *, nbytes: int) -> None:

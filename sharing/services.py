@@ -33,6 +33,7 @@ from chainworker.chain import InsufficientFunds, TransactionReverted, TxResult
 from chainworker.services import chain_client, chain_work_check
 from chainworker.work import WAITING_FOR_GAS, ChainWorkNotReady, exclusive
 from core.outbox import enqueue
+from core.rows import FixedInsert, FixedUpdate
 from sharing.anchoring import anchor_schedule
 from sharing.cache import envelope_cache_put_many
 from sharing.errors import (
@@ -91,6 +92,17 @@ def record_create(*, robot: Robot, data: bytes) -> Record:
     return record_create_batch(robot=robot, envelopes=[data])[0]
 
 
+# An upload's two writes, their SQL written once (core/rows.py): the robot's last seq moved on
+# only if every seq of the upload is above it, and the new records.
+_ROBOT_SEQ_MOVE = FixedUpdate(
+    Robot,
+    columns=("last_seq", "last_upload_at"),
+    where="id = %s AND last_seq < %s",
+    params_of=("id", "last_seq"),
+)
+_RECORD_INSERT = FixedInsert(Record)
+
+
 def record_create_batch(*, robot: Robot, envelopes: Sequence[bytes]) -> list[Record]:
     """Store envelopes uploaded by `robot`, all or none, and queue their anchoring.
 
@@ -119,30 +131,27 @@ def record_create_batch(*, robot: Robot, envelopes: Sequence[bytes]) -> list[Rec
         with transaction.atomic():
             # Moving the robot's last seq on is the check and the row lock in one statement:
             # it only moves when every seq of the upload is above it.
-            moved = Robot.objects.filter(pk=robot.pk, last_seq__lt=seqs[0]).update(
-                last_seq=seqs[-1], last_upload_at=timezone.now()
-            )
+            moved = _ROBOT_SEQ_MOVE.run((seqs[-1], timezone.now()), (robot.pk, seqs[0]))
             if not moved:
                 last_seq = Robot.objects.values_list("last_seq", flat=True).get(pk=robot.pk)
                 _sequence_check(robot, checked, last_seq=last_seq)
-            records = Record.objects.bulk_create(
-                [
-                    Record(
-                        id=upload.record_id,
-                        owner_id=robot.owner_id,
-                        robot=robot,
-                        topic=upload.header["topic"],
-                        data_type=upload.header["type"],
-                        seq=upload.header["seq"],
-                        captured_at=upload.captured_at,
-                        key_id=upload.key.key_id,
-                        digest=upload.digest,
-                        size=len(upload.data),
-                        storage_name=name,
-                    )
-                    for upload, name in zip(checked, names, strict=True)
-                ]
-            )
+            records = [
+                Record(
+                    id=upload.record_id,
+                    owner_id=robot.owner_id,
+                    robot=robot,
+                    topic=upload.header["topic"],
+                    data_type=upload.header["type"],
+                    seq=upload.header["seq"],
+                    captured_at=upload.captured_at,
+                    key_id=upload.key.key_id,
+                    digest=upload.digest,
+                    size=len(upload.data),
+                    storage_name=name,
+                )
+                for upload, name in zip(checked, names, strict=True)
+            ]
+            _RECORD_INSERT.insert(records)
             transaction.on_commit(lambda: _after_upload(robot.owner_id, checked))
     except BaseException as refused:
         # Nothing of a refused or failed upload stays behind, not even its files.

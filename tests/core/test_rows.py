@@ -1,5 +1,6 @@
 """FixedSelect, the hot path's reads written once: the same instances as the ORM's, its
-converters applied (UUIDs, datetimes, JSON, booleans), related objects joined and cached."""
+converters applied (UUIDs, datetimes, JSON, booleans), related objects joined and cached; and
+FixedInsert and FixedUpdate, an upload's writes, storing what the ORM's would."""
 
 import uuid
 
@@ -10,11 +11,12 @@ from django.test.utils import CaptureQueriesContext
 from accounts.models import OwnerKey, Robot
 from accounts.selectors import owner_keys, robot_by_token, robot_token_hash
 from accounts.services import key_rotate, robot_token_revoke
+from core.rows import FixedInsert
 from sharing.anchoring import records_anchor
 from sharing.deletion import record_delete
 from sharing.models import Record
 from sharing.selectors import record_to_check, record_to_open
-from sharing.services import record_create
+from sharing.services import _ROBOT_SEQ_MOVE, record_create, record_create_batch
 from smcrypto import sm4
 
 pytestmark = pytest.mark.django_db
@@ -101,3 +103,55 @@ def test_a_record_to_open_and_to_check_are_the_orms_with_nullable_keys_left_join
     assert record_to_open(uuid.uuid4()) is None
     with pytest.raises(Record.DoesNotExist):
         record_to_check(uuid.uuid4())
+
+
+def test_an_uploads_rows_are_those_the_orm_writes(make_robot):
+    """The insert and the seq update written once store what bulk_create and update() do:
+    the same values read back for every field, created_at set, one statement each."""
+    setup = make_robot("alice")
+    with CaptureQueriesContext(connection) as queries:
+        first = record_create_batch(robot=setup.robot, envelopes=[setup.seal(1), setup.seal(2)])
+    writes = [q["sql"].split()[0] for q in queries if q["sql"].startswith(("INSERT", "UPDATE"))]
+    assert writes == ["UPDATE", "INSERT"]
+    for record in first:
+        assert (record._state.adding, record._state.db) == (False, "default")
+        stored = Record.objects.get(pk=record.pk)
+        assert fields_of(stored) == fields_of(record) | {"created_at": stored.created_at}
+        assert stored.created_at is not None
+        assert stored.status == Record.Status.PENDING
+        assert stored.merkle_path == b""
+        assert stored.anchor_root_id is None
+    robot = Robot.objects.get(pk=setup.robot.pk)
+    assert robot.last_seq == 2
+    assert robot.last_upload_at is not None
+
+    # The ORM's own writes of the same upload (another robot) hold the same values.
+    twin = make_robot("bob")
+    orm = Record.objects.bulk_create(
+        [
+            Record(**(fields_of(record) | {"id": uuid.uuid4(), "robot_id": twin.robot.pk}))
+            for record in first
+        ]
+    )
+    for ours, theirs in zip(first, orm, strict=True):
+        mine = fields_of(Record.objects.get(pk=ours.pk))
+        other = fields_of(Record.objects.get(pk=theirs.pk))
+        for name in ("id", "robot_id", "created_at"):
+            mine.pop(name), other.pop(name)
+        assert mine == other
+
+
+def test_the_seq_update_moves_only_above_the_last_seq_and_says_so(make_robot):
+    setup = make_robot("alice")
+    record_create_batch(robot=setup.robot, envelopes=[setup.seal(5)])
+    assert _ROBOT_SEQ_MOVE.run((3, None), (setup.robot.pk, 3)) == 0  # 3 is not above 5
+    assert Robot.objects.get(pk=setup.robot.pk).last_seq == 5
+    assert _ROBOT_SEQ_MOVE.run((7, None), (setup.robot.pk, 6)) == 1
+    robot = Robot.objects.get(pk=setup.robot.pk)
+    assert (robot.last_seq, robot.last_upload_at) == (7, None)
+    assert _ROBOT_SEQ_MOVE.run((9, None), (uuid.uuid4(), 8)) == 0  # no such robot
+
+
+def test_a_model_with_an_automatic_key_is_refused_by_the_insert():
+    with pytest.raises(TypeError, match="automatic primary key"):
+        FixedInsert(OwnerKey)

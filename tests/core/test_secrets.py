@@ -107,3 +107,39 @@ def test_a_secret_file_that_cannot_be_trusted_is_refused(tmp_path, content, mode
     with pytest.raises(SecretFileError, match=problem):
         load_or_create_secret(path, nbytes=32)
     assert path.read_text() == content
+
+
+def test_a_secret_is_read_once_until_its_file_changes(tmp_path, monkeypatch):
+    """A request pays a stat, not a read; a file rewritten, replaced or made readable by
+    others is read and checked again."""
+    path = tmp_path / "master.key"
+    first = load_or_create_secret(path, nbytes=NBYTES)
+    reads = []
+    real_read = core_secrets._read_secret
+    monkeypatch.setattr(
+        core_secrets, "_read_secret", lambda *a, **k: reads.append(a) or real_read(*a, **k)
+    )
+    assert load_or_create_secret(path, nbytes=NBYTES) == first
+    assert load_or_create_secret(path, nbytes=NBYTES) == first
+    assert reads == []
+
+    other = bytes(range(NBYTES))
+    replacement = tmp_path / "new.key"
+    replacement.write_text(other.hex() + "\n")
+    replacement.chmod(0o600)
+    replacement.replace(path)  # another inode
+    assert load_or_create_secret(path, nbytes=NBYTES) == other
+    assert len(reads) == 1
+
+    path.chmod(0o644)
+    with pytest.raises(SecretFileError, match="readable by other users"):
+        load_or_create_secret(path, nbytes=NBYTES)
+    path.chmod(0o600)
+    path.write_text("zz\n")  # the same inode, rewritten
+    with pytest.raises(SecretFileError, match="hex digits"):
+        load_or_create_secret(path, nbytes=NBYTES)
+
+    path.unlink()
+    created = load_or_create_secret(path, nbytes=NBYTES)
+    assert created not in (first, other)
+    assert load_or_create_secret(path, nbytes=NBYTES) == created

@@ -9,6 +9,7 @@ from django.utils import timezone
 
 from accounts.services import key_rotate
 from sharing import errors
+from sharing import services as services_module
 from sharing import storage as storage_module
 from sharing.cache import envelope_cache_get
 from sharing.models import Record, SecurityEvent
@@ -170,7 +171,7 @@ def test_a_batch_the_database_refuses_leaves_no_file_behind(make_robot, monkeypa
     def disk_full(*args, **kwargs):
         raise DatabaseError("disk full")
 
-    monkeypatch.setattr(Record.objects, "bulk_create", disk_full)
+    monkeypatch.setattr(services_module._RECORD_INSERT, "insert", disk_full)
     with pytest.raises(DatabaseError):
         record_create_batch(robot=setup.robot, envelopes=[setup.seal(seq) for seq in (1, 2, 3)])
     _batch_left_nothing(setup)
