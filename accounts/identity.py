@@ -7,6 +7,7 @@ answer is kept in Redis per owner and block, so a burst of requests costs one ch
 """
 
 import logging
+import time
 from collections.abc import Sequence
 from contextlib import suppress
 
@@ -89,14 +90,22 @@ def _identity_expected(owner: Owner, keys: Sequence[OwnerKey] | None = None) -> 
 
 def _commitment_on_chain(client: AuthROSChain, owner: Owner, *, fresh: bool) -> str:
     """The owner's commitment on chain; unless `fresh`, as some process read it at most
-    IDENTITY_BLOCK_CACHE_SECONDS ago (as fresh as the chain head every process shares), or,
-    with that set to 0, at the latest block."""
+    IDENTITY_BLOCK_CACHE_SECONDS ago (as fresh as the chain head every process shares: this
+    process keeps that answer until its Redis entry expires), or, with that set to 0, at the
+    latest block."""
     key = redis_key("identity", client.chain_key, client.address, owner.eoa_address)
     seconds = settings.IDENTITY_BLOCK_CACHE_SECONDS
     block = client.latest_block() if fresh or seconds <= 0 else None
     if not fresh:
-        seen_at, _, commitment = _cache_get(key).partition(" ")
+        if block is None:
+            known = _known.get(key)
+            if known is not None and known[0] > time.monotonic():
+                return known[1]
+        value, expires_in = _cache_get(key)
+        seen_at, _, commitment = value.partition(" ")
         if commitment and (block is None or seen_at == str(block)):
+            if block is None:
+                _know(key, commitment, expires_in)
             return commitment
     on_chain = "0x" + client.commitment_of(owner.eoa_address).hex()
     _cache_set(
@@ -104,15 +113,34 @@ def _commitment_on_chain(client: AuthROSChain, owner: Owner, *, fresh: bool) -> 
         f"{'-' if block is None else block} {on_chain}",
         seconds=seconds if seconds > 0 else IDENTITY_CACHE_TTL,
     )
+    if seconds > 0:
+        _know(key, on_chain, seconds)
     return on_chain
 
 
-def _cache_get(key: str) -> str:
+# What this process read from Redis (or the chain) under IDENTITY_BLOCK_CACHE_SECONDS, until
+# the Redis entry it came from expires: as fresh as every other process's answer, without a
+# round trip per request. Per block (the setting at 0) every request still asks Redis.
+_known: dict[str, tuple[float, str]] = {}
+_KNOWN_MAX = 10_000
+
+
+def _know(key: str, commitment: str, seconds: float) -> None:
+    if len(_known) >= _KNOWN_MAX:
+        _known.clear()
+    _known[key] = (time.monotonic() + seconds, commitment)
+
+
+def _cache_get(key: str) -> tuple[str, float]:
+    """The cached value and the seconds it has left ("" and 0 when there is none)."""
     try:
-        value = get_redis().get(key)
+        with get_redis().pipeline(transaction=False) as pipe:
+            value, left_ms = pipe.get(key).pttl(key).execute()
     except RedisError:
-        return ""  # without Redis every check asks the chain
-    return value.decode() if value is not None else ""
+        return "", 0.0  # without Redis every check asks the chain
+    if value is None:
+        return "", 0.0
+    return value.decode(), max(0, left_ms) / 1000
 
 
 def _cache_set(key: str, value: str, *, seconds: float) -> None:

@@ -11,13 +11,15 @@ indexed for the owner's audit page (accounts.models.ChainActivity).
 import logging
 import time
 import uuid
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from contextlib import suppress
 
 from django.conf import settings
 from django.db import transaction
 from django.db.models import F
 from django.utils import timezone
+from redis import Redis
+from redis.client import Pipeline
 from redis.exceptions import LockError, RedisError
 from redis.lock import Lock
 
@@ -56,11 +58,29 @@ ANCHOR_RECHECK_DELAY = 2.0
 
 def anchor_schedule(*, owner_id: int, countdown: float | None = None) -> None:
     """Queue a run of `records_anchor` for an owner, unless one is queued already."""
-    flag_ttl = max(30, int(settings.ANCHOR_MAX_WAIT * 4 + (countdown or 0)))
     try:
-        first = get_redis().set(redis_key("anchor-scheduled", owner_id), 1, nx=True, ex=flag_ttl)
+        first = _anchor_flag_set(get_redis(), owner_id, countdown)
     except RedisError:
         first = True
+    _anchor_enqueue(owner_id, first=first, countdown=countdown)
+
+
+def anchor_schedule_queued(pipe: Pipeline, *, owner_id: int) -> Callable[[object], None]:
+    """anchor_schedule's round trip queued in `pipe` (to share it with other commands): what
+    takes the pipeline's answer to it (raise_on_error=False; a RedisError queues the run)."""
+    _anchor_flag_set(pipe, owner_id, None)
+    return lambda answer: _anchor_enqueue(
+        owner_id, first=isinstance(answer, Exception) or bool(answer), countdown=None
+    )
+
+
+def _anchor_flag_set(client: Redis | Pipeline, owner_id: int, countdown: float | None) -> object:
+    """The "a run is queued" flag set unless it is: true when this call set it."""
+    flag_ttl = max(30, int(settings.ANCHOR_MAX_WAIT * 4 + (countdown or 0)))
+    return client.set(redis_key("anchor-scheduled", owner_id), 1, nx=True, ex=flag_ttl)
+
+
+def _anchor_enqueue(owner_id: int, *, first: bool, countdown: float | None) -> None:
     if first and not enqueue("sharing.tasks.records_anchor", owner_id, countdown=countdown):
         _anchor_unschedule(owner_id)  # not queued: the flag must not keep the sweep from it
 

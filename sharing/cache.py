@@ -15,16 +15,18 @@ All in one hash slot (the {envelope} tag), and every script names the keys it to
 the cache runs on a Redis Cluster as on one Redis.
 """
 
+import hashlib
 import logging
 import time
 import uuid
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
+from contextlib import suppress
 from functools import lru_cache
 
 import redis
 from django.conf import settings
 from redis.commands.core import Script
-from redis.exceptions import RedisError
+from redis.exceptions import NoScriptError, RedisError
 
 from core.redis_client import get_redis, redis_key
 from sharing.models import Record
@@ -92,6 +94,8 @@ return evicted
 """
 )
 _EVICT = _DROP + "drop(ARGV[4])\nredis.call('DEL', KEYS[4])\nreturn 0\n"
+# What EVALSHA names _PUT by, as redis-py's Script computes it.
+_PUT_SHA = hashlib.sha1(_PUT.encode(), usedforsecurity=False).hexdigest()
 
 
 def _keys(*record_ids: uuid.UUID | str) -> list[str]:
@@ -125,24 +129,62 @@ def envelope_cache_put_many(
 ) -> None:
     """Cache each (record id, data), in one round trip to Redis (one script for them all);
     one too big is not cached."""
-    limit = min(settings.ENVELOPE_CACHE_MAX_ITEM_BYTES, settings.ENVELOPE_CACHE_MAX_BYTES)
-    items = [(record_id, data) for record_id, data in items if len(data) <= limit]
+    items = _cacheable(items)
     if not items:
         return
-    now = int(time.time() * 1000) if now_ms is None else now_ms
     try:
         client = get_redis()
-        ids = [str(record_id) for record_id, _ in items]
-        args = _args(now, *(part for record_id, data in items for part in (str(record_id), data)))
-        evicted = [old.decode() for old in _script(client, _PUT)(keys=_keys(*ids), args=args)]
-        if evicted:
-            # Out of the bookkeeping already; their entries go now (a second round trip only
-            # when the cache is full).
-            client.delete(*(_key(old) for old in evicted))
+        keys, args = _put_call(items, now_ms)
+        _evicted_drop(client, _script(client, _PUT)(keys=keys, args=args))
     except RedisError as exc:
         logger.warning("envelope cache unavailable (put %d envelopes): %s", len(items), exc)
-        return
+
+
+def envelope_cache_put_queued(
+    pipe: redis.client.Pipeline, items: Sequence[tuple[uuid.UUID | str, bytes]]
+) -> Callable[[object], None] | None:
+    """envelope_cache_put_many queued in `pipe`, to share its round trip with other commands:
+    what takes the pipeline's answer to it (raise_on_error=False: a RedisError is logged, a
+    script Redis no longer holds is loaded and run again), or None when nothing was queued."""
+    items = _cacheable(items)
+    if not items:
+        return None
+    keys, args = _put_call(items, None)
+    pipe.evalsha(_PUT_SHA, len(keys), *keys, *args)
+
+    def finish(answer: object) -> None:
+        if isinstance(answer, NoScriptError):
+            envelope_cache_put_many(items)  # Redis restarted: loads the script
+        elif isinstance(answer, Exception):
+            logger.warning("envelope cache unavailable (put %d envelopes): %s", len(items), answer)
+        else:
+            with suppress(RedisError):
+                _evicted_drop(get_redis(), answer)
+
+    return finish
+
+
+def _cacheable(
+    items: Sequence[tuple[uuid.UUID | str, bytes]],
+) -> list[tuple[uuid.UUID | str, bytes]]:
+    limit = min(settings.ENVELOPE_CACHE_MAX_ITEM_BYTES, settings.ENVELOPE_CACHE_MAX_BYTES)
+    return [(record_id, data) for record_id, data in items if len(data) <= limit]
+
+
+def _put_call(
+    items: Sequence[tuple[uuid.UUID | str, bytes]], now_ms: int | None
+) -> tuple[list[str], list[object]]:
+    now = int(time.time() * 1000) if now_ms is None else now_ms
+    ids = [str(record_id) for record_id, _ in items]
+    args = _args(now, *(part for record_id, data in items for part in (str(record_id), data)))
+    return _keys(*ids), args
+
+
+def _evicted_drop(client: redis.Redis, evicted: Sequence[bytes]) -> None:
+    """The entries a put evicted: out of the bookkeeping already, their keys go now (a second
+    round trip only when the cache is full)."""
     if evicted:
+        client.delete(*(_key(old.decode()) for old in evicted))
         logger.debug("envelope cache full: evicted the %d oldest entries", len(evicted))
 
 

@@ -18,6 +18,7 @@ from typing import NoReturn
 from django.conf import settings
 from django.db import IntegrityError, transaction
 from django.utils import timezone
+from redis.exceptions import RedisError
 
 from accounts.identity import owner_identity_check
 from accounts.models import ChainActivity, ChainState, Owner, OwnerKey, OwnerToken, Robot
@@ -33,9 +34,10 @@ from chainworker.chain import InsufficientFunds, TransactionReverted, TxResult
 from chainworker.services import chain_client, chain_work_check
 from chainworker.work import WAITING_FOR_GAS, ChainWorkNotReady, exclusive
 from core.outbox import enqueue
+from core.redis_client import get_redis
 from core.rows import FixedInsert, FixedUpdate
-from sharing.anchoring import anchor_schedule
-from sharing.cache import envelope_cache_put_many
+from sharing.anchoring import anchor_schedule, anchor_schedule_queued
+from sharing.cache import envelope_cache_put_queued
 from sharing.errors import (
     AlreadyGranted,
     EnvelopeTooLarge,
@@ -201,8 +203,23 @@ def _files_forget(names: Sequence[str]) -> None:
 
 
 def _after_upload(owner_id: int, uploads: Sequence[_CheckedUpload]) -> None:
-    envelope_cache_put_many([(upload.record_id, upload.data) for upload in uploads])
-    anchor_schedule(owner_id=owner_id)
+    """Cache the envelopes and queue the owner's anchoring, in one round trip to Redis."""
+    items = [(upload.record_id, upload.data) for upload in uploads]
+    with get_redis().pipeline(transaction=False) as pipe:
+        finishers = [
+            finish
+            for finish in (
+                envelope_cache_put_queued(pipe, items),
+                anchor_schedule_queued(pipe, owner_id=owner_id),
+            )
+            if finish is not None
+        ]
+        try:
+            answers = pipe.execute(raise_on_error=False)
+        except RedisError as exc:  # Redis unreachable: each says what that means for it
+            answers = [exc] * len(finishers)
+    for finish, answer in zip(finishers, answers, strict=True):
+        finish(answer)
 
 
 class _UploadKeys:

@@ -3,11 +3,13 @@ when a registration or rotation is confirmed, before uploads and before views; a
 changed on chain behind the portal's back refuses both (409) and is written down once."""
 
 import logging
+import time
 from collections.abc import Callable
 
 import pytest
 from django.test import Client
 
+from accounts import identity as identity_module
 from accounts.errors import IdentityMismatch
 from accounts.identity import owner_identity_check
 from accounts.models import AccountEvent, ChainState, Owner
@@ -128,6 +130,51 @@ def test_the_check_costs_no_chain_call_per_request_once_cached(
         answer = uploads.post(RECORDS, {"envelope": b64(robot.seal(seq))}, format="json")
         assert answer.status_code == 201
     assert calls == []
+
+
+def test_a_process_keeps_the_cached_answer_until_its_redis_entry_expires(
+    make_robot, deployed, settings, monkeypatch
+):
+    """No round trip to Redis per request: this process reuses what it read for as long as
+    the Redis entry it read has left, then reads Redis again (so it is never staler than any
+    other process's answer), and asks the chain only once the entry is gone."""
+    settings.IDENTITY_BLOCK_CACHE_SECONDS = 0.5
+    robot = make_robot()
+    client = chain_client()
+    asked = _calls_counted(client, "commitment_of", monkeypatch)
+    read = []
+    real_read = identity_module._cache_get
+    monkeypatch.setattr(
+        identity_module, "_cache_get", lambda key: read.append(key) or real_read(key)
+    )
+    identity_module._known.clear()
+    for _ in range(5):
+        assert owner_identity_check(owner=robot.owner) is True
+    # The registration's check left the answer in Redis: read once, then kept.
+    assert (len(read), len(asked)) == (1, 0)
+    time.sleep(0.6)
+    for _ in range(3):
+        assert owner_identity_check(owner=robot.owner) is True
+    assert (len(read), len(asked)) == (2, 1)  # both expired: Redis empty, the chain once
+    identity_module._known.clear()  # another process: its first check reads Redis's entry
+    assert owner_identity_check(owner=robot.owner) is True
+    assert (len(read), len(asked)) == (3, 1)
+    assert owner_identity_check(owner=robot.owner) is True
+    assert len(read) == 3  # kept for what the entry had left
+    time.sleep(0.6)
+    assert owner_identity_check(owner=robot.owner) is True
+    assert (len(read), len(asked)) == (4, 2)
+
+
+def test_a_commitment_changed_on_chain_is_refused_once_the_kept_answer_expires(
+    make_robot, deployed, settings, post
+):
+    settings.IDENTITY_BLOCK_CACHE_SECONDS = 0.5
+    robot = make_robot()
+    assert post(robot, 1).status_code == 201
+    _commitment_changed_behind_the_portals_back(deployed, robot.owner)
+    time.sleep(0.6)
+    assert post(robot, 2).status_code == 409
 
 
 def test_the_commitment_is_asked_once_per_block(make_robot, deployed, settings, monkeypatch):

@@ -1,10 +1,13 @@
-"""The envelope cache's bounds: a TTL per entry and a total size, oldest evicted first."""
+"""The envelope cache's bounds: a TTL per entry and a total size, oldest evicted first; and
+an upload's cache and anchoring flag set in one round trip, whatever state Redis is in."""
 
 import uuid
 
 import pytest
+import redis
 
-from core.redis_client import get_redis
+from core.redis_client import get_redis, redis_key
+from sharing import anchoring
 from sharing.cache import (
     _key,
     envelope_cache_bytes,
@@ -12,6 +15,8 @@ from sharing.cache import (
     envelope_cache_get,
     envelope_cache_put,
 )
+from sharing.models import Record
+from sharing.services import record_create_batch
 
 NOW = 1_800_000_000_000  # ms
 
@@ -88,3 +93,67 @@ def test_entries_cached_in_the_same_millisecond_are_still_evicted_oldest_first(s
         envelope_cache_put(record_id, b"s" * 1000, now_ms=NOW)
     assert envelope_cache_bytes() == 3000
     assert envelope_cache_get(ids[-1]) == b"s" * 1000
+
+
+@pytest.mark.django_db
+def test_an_upload_caches_and_queues_its_anchoring_in_one_round_trip(
+    make_robot, monkeypatch, django_capture_on_commit_callbacks
+):
+    """After the commit: the envelopes cached and the owner's anchoring flagged and queued,
+    one round trip to Redis for both."""
+    setup = make_robot()
+    queued = []
+    monkeypatch.setattr(anchoring, "enqueue", lambda *args, **kwargs: queued.append(args) or True)
+    sent = []
+    real_send = redis.connection.AbstractConnection.send_packed_command
+    monkeypatch.setattr(
+        redis.connection.AbstractConnection,
+        "send_packed_command",
+        lambda self, *a, **k: sent.append(a) or real_send(self, *a, **k),
+    )
+    with django_capture_on_commit_callbacks() as after_commit:
+        records = record_create_batch(robot=setup.robot, envelopes=[setup.seal(1), setup.seal(2)])
+    sent.clear()
+    for callback in after_commit:
+        callback()
+    assert len(sent) == 1
+    assert [envelope_cache_get(record.id) is not None for record in records] == [True, True]
+    assert queued == [("sharing.tasks.records_anchor", setup.owner.pk)]
+    assert get_redis().exists(redis_key("anchor-scheduled", setup.owner.pk))
+
+    # The flag set: the next upload queues no second run.
+    with django_capture_on_commit_callbacks(execute=True):
+        record_create_batch(robot=setup.robot, envelopes=[setup.seal(3)])
+    assert len(queued) == 1
+
+
+@pytest.mark.django_db
+def test_an_upload_after_redis_forgot_its_scripts_is_still_cached(
+    make_robot, django_capture_on_commit_callbacks
+):
+    setup = make_robot()
+    get_redis().script_flush()
+    with django_capture_on_commit_callbacks(execute=True):
+        record = record_create_batch(robot=setup.robot, envelopes=[setup.seal(1)])[0]
+    assert envelope_cache_get(record.id) is not None
+
+
+@pytest.mark.django_db
+def test_an_upload_while_redis_is_unreachable_is_stored_and_its_anchoring_queued(
+    make_robot, monkeypatch, django_capture_on_commit_callbacks
+):
+    """The cache is skipped and the run queued anyway (the flag cannot say one is queued)."""
+    setup = make_robot()
+    queued = []
+    monkeypatch.setattr(anchoring, "enqueue", lambda *args, **kwargs: queued.append(args) or True)
+
+    def unreachable(self, *args, **kwargs):
+        raise redis.ConnectionError("Redis is down")
+
+    monkeypatch.setattr(redis.client.Pipeline, "execute", unreachable)
+    with django_capture_on_commit_callbacks(execute=True):
+        record = record_create_batch(robot=setup.robot, envelopes=[setup.seal(1)])[0]
+    monkeypatch.undo()
+    assert Record.objects.filter(pk=record.pk).exists()
+    assert envelope_cache_get(record.id) is None
+    assert queued == [("sharing.tasks.records_anchor", setup.owner.pk)]
