@@ -446,3 +446,34 @@ def test_a_warm_upload_reads_the_owners_keys_once_and_the_deployment_not_at_all(
     tables = [q["sql"] for q in queries]
     assert len([sql for sql in tables if '"accounts_ownerkey"' in sql]) == 1, tables
     assert not [sql for sql in tables if '"chainworker_deployment"' in sql], tables
+
+
+@pytest.mark.parametrize(
+    ("accept", "query", "status"),
+    [
+        (None, "", 201),
+        ("*/*", "", 201),
+        ("application/json", "", 201),
+        ("application/json; indent=2", "", 201),
+        ("text/html, application/json;q=0.5", "", 201),
+        ("text/html", "", 406),
+        ("image/png, text/*", "", 406),
+        (None, "?format=json", 201),
+        (None, "?format=xml", 404),
+    ],
+)
+def test_the_api_answers_json_to_whoever_accepts_it_and_406_otherwise(
+    robot, robot_api, django_capture_on_commit_callbacks, accept, query, status
+):
+    """Negotiated as DRF does, the common Accept headers without parsing; a refusal stores
+    nothing."""
+    headers = {} if accept is None else {"HTTP_ACCEPT": accept}
+    with django_capture_on_commit_callbacks(execute=True):
+        answer = robot_api.post(
+            RECORDS + query, {"envelope": b64(robot.seal(1))}, format="json", **headers
+        )
+    assert answer.status_code == status
+    assert answer["Content-Type"].startswith("application/json")
+    assert Record.objects.count() == (1 if status == 201 else 0)
+    if status == 406:
+        assert answer.json()["error"] == "not_acceptable"

@@ -2,6 +2,7 @@
 
 import logging
 import multiprocessing
+import threading
 import uuid
 from datetime import UTC, datetime
 
@@ -18,6 +19,7 @@ from chainworker.chain import (
     ContractNotDeployed,
     TransactionReverted,
     TransactionTimeout,
+    rpc_session,
 )
 from smcrypto import key_commitment, sm3, sm4
 from stack.anvil import start_anvil
@@ -204,3 +206,46 @@ def test_the_views_read_at_an_address_without_code_is_contract_not_deployed(anvi
     client.use_contract(Account.create().address)
     with pytest.raises(ContractNotDeployed):
         client.root_of(Account.create().address, b"\x01" * 32)
+
+
+def test_the_nodes_session_reads_the_environment_once_and_is_shared_by_threads(
+    anvil, redis_client, monkeypatch
+):
+    """Proxies and CA bundle from the environment when the client is made, not at every call
+    (requests would read every variable again); one session for all of a process's threads."""
+    monkeypatch.setenv("HTTP_PROXY", "http://proxy.invalid:3128")
+    monkeypatch.setenv("NO_PROXY", "127.0.0.1,localhost")
+    monkeypatch.setenv("REQUESTS_CA_BUNDLE", "/etc/ssl/certs/ca-certificates.crt")
+    assert rpc_session("http://10.1.2.3:8545").proxies == {"http": "http://proxy.invalid:3128"}
+    assert rpc_session("http://10.1.2.3:8545").verify == "/etc/ssl/certs/ca-certificates.crt"
+    assert rpc_session(anvil.url).proxies == {}  # NO_PROXY names it
+
+    client, operator = _deployed(anvil.url, redis_client)
+    owner = _registered(client, operator)
+    environment_read = []
+    real_proxies = requests.utils.get_environ_proxies
+    monkeypatch.setattr(
+        requests.utils,
+        "get_environ_proxies",
+        lambda *a, **k: environment_read.append(a) or real_proxies(*a, **k),
+    )
+    sessions = set()
+    session_post = requests.Session.post
+
+    def post(session, url, *args, **kwargs):
+        sessions.add(id(session))
+        return session_post(session, url, *args, **kwargs)
+
+    monkeypatch.setattr(requests.Session, "post", post)
+    threads = [
+        threading.Thread(target=client.root_of, args=(owner.address, b"\x01" * 32))
+        for _ in range(4)
+    ]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join()
+    client.anchor_root(owner, b"\x03" * 32, 2)
+    assert client.last_root_of(owner.address) == b"\x03" * 32
+    assert environment_read == []
+    assert len(sessions) == 1
