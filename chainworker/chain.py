@@ -17,6 +17,7 @@ import re
 import threading
 import time
 import uuid
+import weakref
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
@@ -348,7 +349,8 @@ def rpc_session(url: str) -> requests.Session:
 
     Proxies and the CA bundle come from the environment, read here once: requests otherwise
     reads every variable of the environment again at each call (HTTP(S)_PROXY, NO_PROXY,
-    REQUESTS_CA_BUNDLE), about a tenth of a chain worker's CPU.
+    REQUESTS_CA_BUNDLE), about a tenth of a chain worker's CPU. A forked child closes its
+    copy's connections (it opens its own).
     """
     session = requests.Session()
     session.trust_env = False
@@ -360,7 +362,18 @@ def rpc_session(url: str) -> requests.Session:
     adapter = requests.adapters.HTTPAdapter(pool_connections=1, pool_maxsize=RPC_POOL_SIZE)
     session.mount("http://", adapter)
     session.mount("https://", adapter)
+    # A process forked from this one (Celery's pool, from a parent that checked the chain)
+    # must not share its open connections: two processes reading answers from one socket get
+    # each other's. The child drops them and opens its own.
+    held = weakref.ref(session)
+    os.register_at_fork(after_in_child=lambda: _session_forget_connections(held))
     return session
+
+
+def _session_forget_connections(held: weakref.ref[requests.Session]) -> None:
+    session = held()
+    if session is not None:
+        session.close()
 
 
 def forget_in_process_chain(url: str) -> None:
@@ -879,19 +892,23 @@ class AuthROSChain:
             answer = self._call(function, *args)
             return tuple(answer) if len(outputs) > 1 else (answer,)
         data = selector + abi_encode(inputs, args)
-        with _translated_errors(function):
-            answer = self.w3.provider.make_request(
-                "eth_call", [{"to": self.address, "data": "0x" + data.hex()}, "latest"]
-            )
-        if "error" in answer:
-            error = answer["error"]
-            message = error.get("message", error) if isinstance(error, dict) else error
-            raise ChainError(f"{function}: the node refused the call: {message}")
-        result = HexBytes(answer.get("result") or b"")
+        call = {"to": self.address, "data": "0x" + data.hex()}
+        result = HexBytes(self._rpc_lean("eth_call", [call, "latest"], label=function) or b"")
         if not result:
             # An empty answer: no code at the address (a reset chain), not a crash.
             raise ContractNotDeployed(f"{function}: no contract at {self._address}")
         return abi_decode(outputs, result)
+
+    def _rpc_lean(self, method: str, params: list[Any], *, label: str) -> Any:
+        """One JSON-RPC request sent by the provider itself, past web3's middleware and
+        formatters; its raw result, or ChainError with what the node said."""
+        with _translated_errors(label):
+            answer = self.w3.provider.make_request(method, params)
+        if "error" in answer:
+            error = answer["error"]
+            message = error.get("message", error) if isinstance(error, dict) else error
+            raise ChainError(f"{label}: the node refused the call: {message}")
+        return answer.get("result")
 
     @cached_property
     def _function_types(self) -> dict[str, tuple[bytes, list[str], list[str]]]:
@@ -984,7 +1001,10 @@ class AuthROSChain:
         raise AssertionError("unreachable")
 
     def _pending_nonce(self, address: str) -> int:
-        return int(self.w3.eth.get_transaction_count(address, "pending"))
+        if self.is_in_process:
+            return int(self.w3.eth.get_transaction_count(address, "pending"))
+        count = self._rpc_lean("eth_getTransactionCount", [address, "pending"], label="nonce")
+        return int(count, 16)
 
     def _build(
         self,

@@ -249,3 +249,36 @@ def test_the_nodes_session_reads_the_environment_once_and_is_shared_by_threads(
     assert client.last_root_of(owner.address) == b"\x03" * 32
     assert environment_read == []
     assert len(sessions) == 1
+
+
+def _forked_reads(client: AuthROSChain, owner: str, answers) -> None:
+    """In a forked child: the pool it inherited is empty, and its reads get their answers."""
+    session = client.w3.provider._request_session_manager._explicit_session
+    inherited = len(session.adapters["http://"].poolmanager.pools)
+    results = [client.last_root_of(owner) for _ in range(30)]
+    answers.put((inherited, {result.hex() for result in results}))
+
+
+def test_a_process_forked_after_a_call_opens_its_own_connections(anvil, redis_client):
+    """Celery's pool processes fork from a parent that checked the chain: a connection they
+    shared would hand each of them the other's answers."""
+    client, operator = _deployed(anvil.url, redis_client)
+    owner = _registered(client, operator)
+    client.anchor_root(owner, b"\x07" * 32, 3)
+    session = client.w3.provider._request_session_manager._explicit_session
+    assert client.last_root_of(owner.address) == b"\x07" * 32
+    assert len(session.adapters["http://"].poolmanager.pools) == 1  # a connection is open
+    context = multiprocessing.get_context("fork")
+    answers = context.Queue()
+    children = [
+        context.Process(target=_forked_reads, args=(client, owner.address, answers))
+        for _ in range(3)
+    ]
+    for child in children:
+        child.start()
+    # Meanwhile the parent reads too, on the connection it kept.
+    assert {type(client.w3.eth.block_number) for _ in range(30)} == {int}
+    outcomes = [answers.get(timeout=60) for _ in children]
+    for child in children:
+        child.join(timeout=60)
+    assert outcomes == [(0, {"07" * 32})] * 3
