@@ -70,7 +70,7 @@ def _callers(tmp_path, count: int) -> list[tuple[float, float]]:
 def test_threads_that_sync_together_share_few_syncs_each_started_after_they_asked(
     slow_syncfs, tmp_path
 ):
-    slow_syncfs.seconds = 0.1
+    slow_syncfs.seconds = 0.3
     times = _callers(tmp_path, 32)
     assert len(times) == 32
     # One running when the others ask, then one for them (two more for stragglers).
@@ -86,7 +86,8 @@ def test_a_thread_arriving_during_a_sync_waits_for_the_next_one(slow_syncfs, tmp
     slow_syncfs.seconds = 0.2
     first = threading.Thread(target=storage_module._sync, args=(["a"], str(tmp_path)))
     first.start()
-    time.sleep(0.05)  # the first sync is running
+    while slow_syncfs.running == 0:  # until the first sync is running
+        time.sleep(0.001)
     entered = time.monotonic()
     storage_module._sync(["b"], str(tmp_path))
     returned = time.monotonic()
