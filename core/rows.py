@@ -11,12 +11,31 @@ UPDATE of set columns under a fixed condition. Only for statements whose shape n
 everything else uses the ORM.
 """
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any, LiteralString
 
 from django.db import connections, router
 from django.db.models import AutoField, Field, Model
+
+
+def _built(cache: dict[Any, Any], key: Any, build: Callable[[], Any]) -> Any:
+    """What `cache` holds under `key` (an alias, or an alias and a row count), built once."""
+    found = cache.get(key)
+    return found if found is not None else cache.setdefault(key, build())
+
+
+def _prepared(
+    fields: Sequence[Field], values: Sequence[object], connection: Any, *, saved: bool = False
+) -> list[object]:
+    """Each value as the database takes it for its field: to compare with, or `saved` into a
+    column."""
+    return [
+        field.get_db_prep_save(value, connection)
+        if saved
+        else field.get_db_prep_value(value, connection)
+        for field, value in zip(fields, values, strict=True)
+    ]
 
 
 @dataclass(frozen=True)
@@ -76,17 +95,11 @@ class FixedSelect:
         """The instances matching `values` (one per `params_of`), in order."""
         alias = router.db_for_read(self.model)
         connection = connections[alias]
-        sql = self._sql.get(alias) or self._sql.setdefault(alias, self._build(connection))
-        params = [
-            field.get_db_prep_value(value, connection)
-            for field, value in zip(self._params_of, values, strict=True)
-        ]
+        sql = _built(self._sql, alias, lambda: self._build(connection))
         with connection.cursor() as cursor:
-            cursor.execute(sql, params)
+            cursor.execute(sql, _prepared(self._params_of, values, connection))
             rows = cursor.fetchall()
-        converters = self._converters.get(alias)
-        if converters is None:
-            converters = self._converters.setdefault(alias, self._converters_for(connection))
+        converters = _built(self._converters, alias, lambda: self._converters_for(connection))
         return [self._instance(alias, connection, row, converters) for row in rows]
 
     def fetch_one(self, *values: object) -> Model | None:
@@ -195,10 +208,8 @@ class FixedInsert:
                 for instance in chunk
                 for field in self._fields
             ]
-            key = (alias, len(chunk))
-            sql = self._sql.get(key) or self._sql.setdefault(
-                key, self._build(connection, len(chunk))
-            )
+            rows = len(chunk)
+            sql = _built(self._sql, (alias, rows), lambda rows=rows: self._build(connection, rows))
             with connection.cursor() as cursor:
                 cursor.execute(sql, params)
         for instance in instances:
@@ -236,16 +247,10 @@ class FixedUpdate:
         """Set the columns to `values` where `where` (one per `params_of`) holds."""
         alias = router.db_for_write(self.model)
         connection = connections[alias]
-        sql = self._sql.get(alias) or self._sql.setdefault(alias, self._build(connection))
+        sql = _built(self._sql, alias, lambda: self._build(connection))
         params = [
-            *(
-                field.get_db_prep_save(value, connection)
-                for field, value in zip(self._columns, values, strict=True)
-            ),
-            *(
-                field.get_db_prep_value(value, connection)
-                for field, value in zip(self._params_of, where, strict=True)
-            ),
+            *_prepared(self._columns, values, connection, saved=True),
+            *_prepared(self._params_of, where, connection),
         ]
         with connection.cursor() as cursor:
             cursor.execute(sql, params)
