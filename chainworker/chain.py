@@ -18,7 +18,7 @@ import threading
 import time
 import uuid
 import weakref
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
@@ -35,6 +35,7 @@ from eth_utils import ValidationError as EthValidationError
 from eth_utils import event_abi_to_log_topic, function_abi_to_4byte_selector, keccak
 from hexbytes import HexBytes
 from web3 import Web3
+from web3._utils.method_formatters import receipt_formatter
 from web3.exceptions import (
     BadFunctionCallOutput,
     ContractLogicError,
@@ -85,6 +86,16 @@ _ALREADY_KNOWN = re.compile(r"already known|known transaction|already imported",
 
 class ChainError(Exception):
     """Base of everything this client raises."""
+
+
+class NodeRefused(ChainError):
+    """The node answered a JSON-RPC request with an error (a lean request's; see
+    `AuthROSChain._rpc_lean`): its message, and the revert data if it carried any."""
+
+    def __init__(self, label: str, message: str, data: str | None = None) -> None:
+        super().__init__(f"{label}: the node refused the call: {message}")
+        self.message = message
+        self.data = data
 
 
 class ChainUnavailable(ChainError):
@@ -304,6 +315,18 @@ class ContractArtifact:
             for arg, v in zip(entry["inputs"], values, strict=True)
         }
         return entry["name"], args
+
+
+@dataclass(frozen=True)
+class _Calldata:
+    """A contract call encoded here (a real node's transactions): where and what."""
+
+    to: str
+    data: bytes
+
+
+# Revert data of a Solidity panic (assert, overflow): Panic(uint256).
+_PANIC_SELECTOR = bytes.fromhex("4e487b71")
 
 
 # --- connections ---------------------------------------------------------------------------
@@ -904,11 +927,22 @@ class AuthROSChain:
         formatters; its raw result, or ChainError with what the node said."""
         with _translated_errors(label):
             answer = self.w3.provider.make_request(method, params)
-        if "error" in answer:
-            error = answer["error"]
-            message = error.get("message", error) if isinstance(error, dict) else error
-            raise ChainError(f"{label}: the node refused the call: {message}")
-        return answer.get("result")
+        return _rpc_result(answer, label)
+
+    def _rpc_lean_batch(self, calls: list[tuple[str, list[Any]]], *, label: str) -> list[Any]:
+        """`_rpc_lean` for several requests in one JSON-RPC batch (one round trip): each
+        answer's result, or the NodeRefused the node's error for it makes, in order."""
+        with _translated_errors(label):
+            answers = self.w3.provider.make_batch_request(calls)
+        if not isinstance(answers, list):  # the node refused the whole batch
+            raise NodeRefused(label, _error_message(answers.get("error")))
+        results: list[Any] = []
+        for answer in answers:
+            try:
+                results.append(_rpc_result(answer, label))
+            except NodeRefused as refused:
+                results.append(refused)
+        return results
 
     @cached_property
     def _function_types(self) -> dict[str, tuple[bytes, list[str], list[str]]]:
@@ -926,8 +960,14 @@ class AuthROSChain:
     def _transact(
         self, sender: LocalAccount, function: str, *args: Any, wait: bool, gas: int | None = None
     ) -> TxResult | str:
-        fn = getattr(self.contract.functions, function)(*args)
-        tx_hash = self._send(sender, fn, label=function, gas=gas)
+        if self.is_in_process:  # eth-tester wants web3's filled-in fields
+            call: Any = getattr(self.contract.functions, function)(*args)
+        else:
+            # Encoded here and sent past web3's contract and middleware layers, which cost
+            # more than the node's work (an anchoring run is a few of these).
+            selector, inputs, _outputs = self._function_types[function]
+            call = _Calldata(self.address, selector + abi_encode(inputs, args))
+        tx_hash = self._send(sender, call, label=function, gas=gas)
         if not wait:
             return tx_hash
         return self._result(self.wait_for_receipt(tx_hash, function=function))
@@ -974,8 +1014,8 @@ class AuthROSChain:
                 signed = sender.sign_transaction({**tx, "nonce": slot.nonce})
                 slot.hold()
                 try:
-                    tx_hash = self.w3.eth.send_raw_transaction(signed.raw_transaction)
-                except (Web3RPCError, EthValidationError, ValueError) as exc:
+                    tx_hash = self._send_raw(signed.raw_transaction, label=label)
+                except (NodeRefused, Web3RPCError, EthValidationError, ValueError) as exc:
                     message = str(exc)
                     if _ALREADY_KNOWN.search(message):
                         slot.commit()
@@ -999,6 +1039,12 @@ class AuthROSChain:
                 slot.commit()
                 return "0x" + bytes(tx_hash).hex()
         raise AssertionError("unreachable")
+
+    def _send_raw(self, raw: bytes, *, label: str) -> bytes:
+        if self.is_in_process:
+            return bytes(self.w3.eth.send_raw_transaction(raw))
+        answer = self._rpc_lean("eth_sendRawTransaction", ["0x" + raw.hex()], label=label)
+        return bytes(HexBytes(answer))
 
     def _pending_nonce(self, address: str) -> int:
         if self.is_in_process:
@@ -1025,6 +1071,8 @@ class AuthROSChain:
                 params["to"] = to
                 params["gas"] = 21_000
                 tx = self._fill_fees(params)
+            elif isinstance(fn, _Calldata):
+                tx = self._build_lean(params, fn, label=label, gas=gas)
             else:
                 # Estimated at zero fees: the gas does not depend on them, and a sender funded
                 # for the gas it needs cannot cover a node's estimate at the block gas limit.
@@ -1039,17 +1087,84 @@ class AuthROSChain:
             raise
         return dict(tx)
 
+    def _build_lean(
+        self, params: dict[str, Any], call: _Calldata, *, label: str, gas: int | None
+    ) -> dict[str, Any]:
+        """`_build` for a real node: the gas estimate (unless given) and the fees asked in one
+        JSON-RPC batch, the transaction written here."""
+        data = "0x" + call.data.hex()
+        requests_ = [
+            ("eth_getBlockByNumber", ["latest", False]),
+            ("eth_gasPrice", []),
+            ("eth_maxPriorityFeePerGas", []),
+        ]
+        if gas is None:
+            # At zero fees, as `_build` estimates: the gas does not depend on them.
+            estimate = {"from": params["from"], "to": call.to, "data": data, "gasPrice": "0x0"}
+            if params.get("value"):
+                estimate["value"] = hex(params["value"])
+            requests_.append(("eth_estimateGas", [estimate]))
+        block, gas_price, tip, *estimated = self._rpc_lean_batch(requests_, label=label)
+        for answer in (*estimated, block, gas_price):  # a refused estimate says why first
+            if isinstance(answer, NodeRefused):
+                raise self._refused(answer, label, sender=params["from"])
+        if estimated:
+            gas = int(int(estimated[0], 16) * GAS_MARGIN)
+        base_fee = block.get("baseFeePerGas") if isinstance(block, dict) else None
+        tx = {**params, "to": call.to, "data": data, "value": params.get("value", 0), "gas": gas}
+        return self._fees(
+            tx,
+            base_fee=None if base_fee is None else int(base_fee, 16),
+            gas_price=lambda: int(gas_price, 16),
+            # A node without eth_maxPriorityFeePerGas: web3's estimate from the fee history.
+            tip=lambda: (
+                int(self.w3.eth.max_priority_fee) if isinstance(tip, NodeRefused) else int(tip, 16)
+            ),
+        )
+
+    def _refused(self, refused: NodeRefused, label: str, *, sender: str) -> ChainError:
+        """What a node's refusal to estimate or call means: the contract's revert (decoded),
+        a sender who cannot pay, or the node's own refusal."""
+        if _INSUFFICIENT_FUNDS.search(refused.message):
+            return InsufficientFunds(f"{sender} cannot pay for {label}")
+        data = HexBytes(refused.data) if refused.data else None
+        if data and bytes(data[:4]) == _PANIC_SELECTOR:
+            return TransactionReverted("Panic", {"detail": refused.message}, function=label)
+        if data or "revert" in refused.message.lower():
+            name, args = self.artifact.decode_error(data)
+            if name == "Reverted" and refused.message:
+                args = {"reason": refused.message}
+            return TransactionReverted(name, args, function=label)
+        return refused
+
     def _fill_fees(self, params: dict[str, Any]) -> dict[str, Any]:
         block = self.w3.eth.get_block("latest")
         base_fee = block.get("baseFeePerGas")
+        return self._fees(
+            params,
+            base_fee=None if base_fee is None else int(base_fee),
+            gas_price=lambda: int(self.w3.eth.gas_price),
+            tip=lambda: int(self.w3.eth.max_priority_fee),
+        )
+
+    @staticmethod
+    def _fees(
+        params: dict[str, Any],
+        *,
+        base_fee: int | None,
+        gas_price: Callable[[], int],
+        tip: Callable[[], int],
+    ) -> dict[str, Any]:
+        """params with their fees: the legacy gas price on a chain without a base fee, else
+        twice the base fee plus the node's tip (none on a zero-gas chain)."""
         if base_fee is None:
-            params["gasPrice"] = self.w3.eth.gas_price
+            params["gasPrice"] = gas_price()
             return params
         # A zero-gas chain (a private PoA network): no fee, so unfunded EOAs can send too.
-        free = int(base_fee) == 0 and int(self.w3.eth.gas_price) == 0
-        tip = 0 if free else int(self.w3.eth.max_priority_fee)
-        params["maxPriorityFeePerGas"] = tip
-        params["maxFeePerGas"] = 2 * int(base_fee) + tip
+        free = base_fee == 0 and gas_price() == 0
+        priority = 0 if free else tip()
+        params["maxPriorityFeePerGas"] = priority
+        params["maxFeePerGas"] = 2 * base_fee + priority
         return params
 
     def wait_for_receipt(
@@ -1059,16 +1174,30 @@ class AuthROSChain:
         timeout = self.receipt_timeout if timeout is None else timeout
         deadline = time.monotonic() + timeout
         with _translated_errors(function):
-            try:
-                receipt = self.w3.eth.wait_for_transaction_receipt(
-                    HexBytes(tx_hash), timeout=timeout, poll_latency=self.poll_interval
-                )
-            except TimeExhausted as exc:
-                raise TransactionTimeout(tx_hash, timeout) from exc
+            if self.is_in_process:
+                try:
+                    receipt = self.w3.eth.wait_for_transaction_receipt(
+                        HexBytes(tx_hash), timeout=timeout, poll_latency=self.poll_interval
+                    )
+                except TimeExhausted as exc:
+                    raise TransactionTimeout(tx_hash, timeout) from exc
+            else:
+                receipt = self._receipt_poll(tx_hash, deadline, timeout)
             if receipt["status"] != 1:
                 raise self._explain_failure(receipt, tx_hash, function)
             self._await_confirmations(receipt, tx_hash, deadline, timeout)
         return receipt
+
+    def _receipt_poll(self, tx_hash: str, deadline: float, timeout: float) -> TxReceipt:
+        """The receipt from a real node, asked every poll_interval by lean requests (a receipt
+        is formatted as web3 formats it once it is there)."""
+        while True:
+            raw = self._rpc_lean("eth_getTransactionReceipt", [tx_hash], label="receipt")
+            if isinstance(raw, dict) and raw.get("blockHash") is not None:
+                return receipt_formatter(raw)
+            if time.monotonic() >= deadline:
+                raise TransactionTimeout(tx_hash, timeout)
+            time.sleep(min(self.poll_interval, max(deadline - time.monotonic(), 0)))
 
     def _await_confirmations(
         self, receipt: TxReceipt, tx_hash: str, deadline: float, timeout: float
@@ -1113,6 +1242,19 @@ class AuthROSChain:
         """Forget our nonce counter for `address` (after a timeout or a dropped transaction)."""
         with _translated_errors():
             self.nonces.forget(address)
+
+
+def _error_message(error: Any) -> str:
+    return str(error.get("message", error)) if isinstance(error, dict) else str(error)
+
+
+def _rpc_result(answer: Any, label: str) -> Any:
+    """A JSON-RPC answer's result, or NodeRefused with its error's message and data."""
+    error = answer.get("error") if isinstance(answer, dict) else "no answer"
+    if error is not None:
+        data = error.get("data") if isinstance(error, dict) else None
+        raise NodeRefused(label, _error_message(error), data if isinstance(data, str) else None)
+    return answer.get("result")
 
 
 def _bytes32(value: bytes) -> bytes:

@@ -60,6 +60,7 @@ def roots_anchor_round(client: AuthROSChain, owner: Owner, lock: Lock) -> tuple[
     for _ in range(settings.ANCHOR_INFLIGHT):
         if not lock_renew(lock):
             break
+        resent = bool(again)
         tree = again.pop(0) if again else _tree_next(owner, account.address, tip)
         if tree is None:
             break
@@ -86,6 +87,11 @@ def roots_anchor_round(client: AuthROSChain, owner: Owner, lock: Lock) -> tuple[
             gas_wait_end(owner.pk)
         in_flight.append((tree, tx_hash))
         tip = tree.root
+        if not resent and tree.size < settings.ANCHOR_ROOT_MAX:
+            # The backlog fitted in a new tree: records that arrived since wait for the next
+            # run (a tree of their own after ANCHOR_MAX_WAIT), not a transaction each for the
+            # few that came in while this one was built and sent.
+            break
     anchored = 0
     for position, (tree, tx_hash) in enumerate(in_flight):
         try:

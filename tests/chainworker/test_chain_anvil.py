@@ -1,5 +1,6 @@
 """The chain client against a real anvil node: several processes sending at once."""
 
+import json
 import logging
 import multiprocessing
 import threading
@@ -13,10 +14,12 @@ from eth_account import Account
 from web3 import Web3
 
 from chainworker.chain import (
+    ANCHOR_ROOT_GAS,
     AnchorItem,
     AuthROSChain,
     ChainUnavailable,
     ContractNotDeployed,
+    InsufficientFunds,
     TransactionReverted,
     TransactionTimeout,
     rpc_session,
@@ -282,3 +285,65 @@ def test_a_process_forked_after_a_call_opens_its_own_connections(anvil, redis_cl
     for child in children:
         child.join(timeout=60)
     assert outcomes == [(0, {"07" * 32})] * 3
+
+
+def _methods_of(kwargs: dict) -> list[str] | str:
+    """The JSON-RPC method of a request the client posts, or the methods of a batch."""
+    body = kwargs["json"] if "json" in kwargs else json.loads(kwargs["data"])
+    return [call["method"] for call in body] if isinstance(body, list) else body["method"]
+
+
+def test_a_send_is_one_batch_the_nonce_the_transaction_and_its_receipt(
+    anvil, redis_client, monkeypatch
+):
+    """A contract transaction to a real node is encoded and signed here: the estimate and the
+    fees (this anvil charges for gas) in one batch, then the pending nonce, the raw transaction
+    and its receipt, each one request past web3's formatters, the receipt formatted as web3
+    formats it."""
+    client, operator = _deployed(anvil.url, redis_client)
+    owner = _registered(client, operator)
+    methods = []
+    session_post = requests.Session.post
+
+    def post(session, url, *args, **kwargs):
+        methods.append(_methods_of(kwargs))
+        return session_post(session, url, *args, **kwargs)
+
+    monkeypatch.setattr(requests.Session, "post", post)
+    result = client.anchor_root(owner, b"\x05" * 32, 9)
+    assert methods[:3] == [
+        ["eth_getBlockByNumber", "eth_gasPrice", "eth_maxPriorityFeePerGas", "eth_estimateGas"],
+        "eth_getTransactionCount",
+        "eth_sendRawTransaction",
+    ]
+    assert methods[3:]
+    assert set(methods[3:]) == {"eth_getTransactionReceipt"}
+    (event,) = result.events
+    assert event.name == "RootAnchored"
+    assert event.args["size"] == 9
+    assert event.tx_hash == result.tx_hash
+    assert client.root_of(owner.address, b"\x05" * 32).block_number == result.block_number
+    assert 0 < result.gas_used < ANCHOR_ROOT_GAS
+
+
+def test_a_refused_send_says_why(anvil, redis_client):
+    """The node's refusals of a lean send: the contract's custom error with its arguments,
+    and an account that cannot pay for gas (this anvil charges for gas)."""
+    client, operator = _deployed(anvil.url, redis_client)
+    owner = _registered(client, operator)
+    first = client.anchor_root(owner, b"\x01" * 32, 1)
+    assert first.events[0].args["prevRoot"] == bytes(32)
+    with pytest.raises(TransactionReverted) as wrong:
+        client.anchor_root(owner, b"\x02" * 32, 1, prev_root=b"\x09" * 32)
+    assert wrong.value.error_name == "WrongPrevRoot"
+    assert wrong.value.error_args == {"expected": b"\x01" * 32, "given": b"\x09" * 32}
+    with pytest.raises(TransactionReverted) as again:
+        client.anchor_root(owner, b"\x01" * 32, 1, prev_root=b"\x01" * 32)
+    assert again.value.error_name == "RootExists"
+    assert client.last_root_of(owner.address) == b"\x01" * 32  # nothing else landed
+
+    poor = Account.create()
+    client.enroll(operator, poor.address)
+    with pytest.raises(InsufficientFunds):
+        client.register(poor, key_commitment(poor.address, sm4.generate_key()))
+    assert not client.is_registered(poor.address)

@@ -85,6 +85,38 @@ def test_trees_are_cut_at_their_size_and_chained(make_robot, deployed, settings)
     assert [tree.size for tree in trees] == [4, 4, 2]
 
 
+def test_records_that_come_while_a_partial_tree_is_sent_wait_for_the_next_run(
+    make_robot, deployed, monkeypatch
+):
+    """A run sends another tree only for a backlog bigger than a tree: records uploaded while
+    its last tree (not full) was sent go into one tree of their own in the next run (queued
+    by this one), not a transaction each for whatever came in meanwhile."""
+    from sharing import anchoring, roots
+
+    setup = make_robot()
+    _pending(setup, 3)
+    runs = []  # per run, the sizes of the trees it sent
+    run_round, send = anchoring.roots_anchor_round, roots._send
+
+    def counted_round(*args):
+        runs.append([])
+        return run_round(*args)
+
+    def send_then_more_come(client, account, tree, *, estimate):
+        runs[-1].append(tree.size)
+        tx_hash = send(client, account, tree, estimate=estimate)
+        if runs == [[3]]:
+            _pending(setup, 2, first=4)
+        return tx_hash
+
+    monkeypatch.setattr(anchoring, "roots_anchor_round", counted_round)
+    monkeypatch.setattr(roots, "_send", send_then_more_come)
+    assert records_anchor(owner_id=setup.owner.pk) == 3
+    records_anchor(owner_id=setup.owner.pk)  # the next run, if the first did not run it yet
+    assert [sizes for sizes in runs if sizes] == [[3], [2]]
+    assert [tree.size for tree in _assert_anchored_once(deployed, setup.owner)] == [3, 2]
+
+
 def test_a_tree_lost_before_its_send_is_sent_again_as_it_was(make_robot, deployed):
     """A run died after writing its tree: the next run sends the same root after the same
     previous root, then goes on with what came after."""
