@@ -1190,9 +1190,14 @@ class AuthROSChain:
 
     def _receipt_poll(self, tx_hash: str, deadline: float, timeout: float) -> TxReceipt:
         """The receipt from a real node, asked every poll_interval by lean requests (a receipt
-        is formatted as web3 formats it once it is there)."""
+        is formatted as web3 formats it once it is there). A node that cannot tell yet (geth
+        while it indexes transactions) is asked again, as web3 does."""
         while True:
-            raw = self._rpc_lean("eth_getTransactionReceipt", [tx_hash], label="receipt")
+            try:
+                raw = self._rpc_lean("eth_getTransactionReceipt", [tx_hash], label="receipt")
+            except NodeRefused as refused:
+                logger.debug("receipt of %s not known yet: %s", tx_hash, refused.message)
+                raw = None
             if isinstance(raw, dict) and raw.get("blockHash") is not None:
                 return receipt_formatter(raw)
             if time.monotonic() >= deadline:

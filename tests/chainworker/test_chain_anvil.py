@@ -20,6 +20,7 @@ from chainworker.chain import (
     ChainUnavailable,
     ContractNotDeployed,
     InsufficientFunds,
+    NodeRefused,
     TransactionReverted,
     TransactionTimeout,
     rpc_session,
@@ -347,3 +348,26 @@ def test_a_refused_send_says_why(anvil, redis_client):
     with pytest.raises(InsufficientFunds):
         client.register(poor, key_commitment(poor.address, sm4.generate_key()))
     assert not client.is_registered(poor.address)
+
+
+def test_a_receipt_the_node_cannot_tell_yet_is_asked_again(anvil, redis_client, monkeypatch):
+    """A node that refuses a receipt for now (geth while it indexes transactions) is asked
+    again at the next poll rather than failing the send."""
+    client, operator = _deployed(anvil.url, redis_client)
+    owner = _registered(client, operator)
+    tx_hash = client.anchor_root(owner, b"\x06" * 32, 3, wait=False)
+    refusals = []
+    lean = client._rpc_lean
+
+    def indexing_at_first(method, params, *, label):
+        if method == "eth_getTransactionReceipt" and len(refusals) < 2:
+            refusals.append(method)
+            raise NodeRefused(label, "transaction indexing is in progress")
+        return lean(method, params, label=label)
+
+    monkeypatch.setattr(client, "_rpc_lean", indexing_at_first)
+    client.poll_interval = 0.01
+    receipt = client.wait_for_receipt(tx_hash, timeout=10)
+    assert len(refusals) == 2
+    assert receipt["status"] == 1
+    assert "0x" + bytes(receipt["transactionHash"]).hex() == tx_hash
