@@ -546,6 +546,19 @@ ROOTS_GOALS = (
 )
 
 
+def _burst_cpu(row: dict[str, Any]) -> str:
+    """Where the 700 uploads' CPU went, from the first POST to the last record anchored."""
+    used = row.get("concurrent_700_stack_cpu_s")
+    if not used:
+        return ""
+    roles = ", ".join(f"{role} {_num(seconds, 2)} s" for role, seconds in used.items() if seconds)
+    busy = row.get("concurrent_700_machine_busy_share")
+    share = f", the machine's two cores {_num(100 * busy, 0)}% busy" if busy is not None else ""
+    transactions = row.get("concurrent_700_transactions")
+    sent = f", in {transactions} anchoring transactions" if transactions is not None else ""
+    return f"; up to the last one anchored the stack used {roles} of CPU{share}{sent}"
+
+
 def _section_roots(results: Path) -> str | None:
     """Merkle roots against one slot per record (issue 13): each goal, both modes, the ratio,
     the paper where it has a number; the physical limits; the profiles."""
@@ -617,6 +630,7 @@ def _section_roots(results: Path) -> str | None:
             if row.get("concurrent_700_client_cpu_s") is not None
             else ""
         )
+        + _burst_cpu(row)
         for mode, row in rows.items()
     )
     quick = " Quick (smoke) run." if settings.get("quick") else ""

@@ -38,6 +38,7 @@ import tempfile
 import threading
 import time
 from collections import Counter
+from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -299,12 +300,25 @@ def measure(run: UploadRun) -> dict[str, Any]:
         stack.start()
         agents = _agents_create(run, stack)
         post = post_uploads if run.client == "threads" else post_uploads_asyncio
+        stack_before, machine_before = stack.cpu_seconds(), psutil.cpu_times()
         cpu_before = psutil.Process().cpu_times()
         post(f"{stack.web_url}/api/v1/records/", agents)
         cpu_after = psutil.Process().cpu_times()
         uploads = [upload for agent in agents for upload in agent]
-        _await_verified(run, stack, uploads)
-        row = _statistics(run, uploads)
+        anchored: dict[str, Any] = {}
+
+        def all_anchored() -> None:  # where the CPU went, up to the last record anchored
+            stack_after, machine_after = stack.cpu_seconds(), psutil.cpu_times()
+            anchored["stack_cpu_s"] = {
+                role: round(stack_after[role] - stack_before.get(role, 0.0), 2)
+                for role in stack_after
+            }
+            busy = sum(machine_after) - sum(machine_before)
+            idle = machine_after.idle - machine_before.idle
+            anchored["machine_busy_share"] = round(1 - idle / busy, 3) if busy > 0 else None
+
+        _await_verified(run, stack, uploads, on_anchored=all_anchored)
+        row = _statistics(run, uploads) | anchored
         row["client"] = run.client
         row["client_cpu_s"] = round(
             cpu_after.user + cpu_after.system - cpu_before.user - cpu_before.system, 3
@@ -438,8 +452,15 @@ def _post_one(session: requests.Session, url: str, upload: Upload) -> None:
         upload.status = type(exc).__name__
 
 
-def _await_verified(run: UploadRun, stack: BenchStack, uploads: list[Upload]) -> None:
-    """Watch for anchored records and open each as soon as it is; until all are settled."""
+def _await_verified(
+    run: UploadRun,
+    stack: BenchStack,
+    uploads: list[Upload],
+    *,
+    on_anchored: Callable[[], None] | None = None,
+) -> None:
+    """Watch for anchored records and open each as soon as it is; until all are settled.
+    on_anchored is called once none is left to anchor (before the checks that wait for it)."""
     from sharing.models import Record
 
     by_id = {upload.record_id: upload for upload in uploads if upload.record_id}
@@ -463,6 +484,8 @@ def _await_verified(run: UploadRun, stack: BenchStack, uploads: list[Upload]) ->
                 pk__in=[a.record_id for a in waiting], status=Record.Status.FAILED
             ).count()
             if len(waiting) - len(newly) - failed <= 0:
+                if on_anchored is not None:
+                    on_anchored()
                 break
             stack.check_alive()
             if time.monotonic() > deadline:

@@ -580,6 +580,9 @@ def main(argv: list[str]) -> int:
         row["concurrent_700_total_s"] = burst.get("total_to_anchored_s")
         row["concurrent_700_total_response_s"] = burst.get("total_response_s")
         row["concurrent_700_client_cpu_s"] = burst.get("client_cpu_s")
+        row["concurrent_700_stack_cpu_s"] = burst.get("stack_cpu_s")
+        row["concurrent_700_machine_busy_share"] = burst.get("machine_busy_share")
+        row["concurrent_700_transactions"] = burst.get("transactions")
         row["concurrent_700_verified"] = burst.get("verified")
         row["concurrent_agents"] = args.agents
         rows.append(row)

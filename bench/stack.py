@@ -33,6 +33,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, LiteralString, Protocol
 
+import psutil
+
 from bench import progress_bar
 from core.redis_url import redis_client_for
 from smcrypto import sm4
@@ -313,6 +315,27 @@ class BenchStack:
             role: [processes[name] for name in names if name in processes]
             for role, names in ROLES.items()
         }
+
+    def cpu_seconds(self) -> dict[str, float]:
+        """CPU seconds (user and system) used so far by each role's processes (ROLES) and
+        their children that are still running: take two and subtract for a phase's share."""
+        used = {}
+        for role, pids in self.pids().items():
+            total = 0.0
+            for pid in pids:
+                try:
+                    root = psutil.Process(pid)
+                    members = [root, *root.children(recursive=True)]
+                except psutil.Error:
+                    continue
+                for process in members:
+                    try:
+                        times = process.cpu_times()
+                    except psutil.Error:
+                        continue
+                    total += times.user + times.system
+            used[role] = total
+        return used
 
     def check_alive(self) -> None:
         """RuntimeError if the stack exited (it does when any of its processes does)."""
