@@ -983,9 +983,20 @@ class AuthROSChain:
                 "Panic", {"detail": str(exc.message)}, tx_hash=tx_hash, function=function
             )
         data = exc.data if isinstance(exc.data, str) else None
+        return self._revert_decoded(data, exc.message, function, tx_hash)
+
+    def _revert_decoded(
+        self,
+        data: str | bytes | None,
+        message: str | None,
+        function: str | None,
+        tx_hash: str | None = None,
+    ) -> TransactionReverted:
+        """The contract's custom error from a revert's data, or the node's reason when the
+        data names none."""
         name, args = self.artifact.decode_error(data)
-        if name == "Reverted" and exc.message:
-            args = {"reason": exc.message}
+        if name == "Reverted" and message:
+            args = {"reason": message}
         return TransactionReverted(name, args, tx_hash=tx_hash, function=function)
 
     def _send(
@@ -1131,10 +1142,7 @@ class AuthROSChain:
         if data and bytes(data[:4]) == _PANIC_SELECTOR:
             return TransactionReverted("Panic", {"detail": refused.message}, function=label)
         if data or "revert" in refused.message.lower():
-            name, args = self.artifact.decode_error(data)
-            if name == "Reverted" and refused.message:
-                args = {"reason": refused.message}
-            return TransactionReverted(name, args, function=label)
+            return self._revert_decoded(data, refused.message, label)
         return refused
 
     def _fill_fees(self, params: dict[str, Any]) -> dict[str, Any]:
