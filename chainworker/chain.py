@@ -343,7 +343,13 @@ def connect(url: str, *, timeout: float = 10.0) -> Web3:
                 from eth_tester import EthereumTester, PyEVMBackend
                 from web3 import EthereumTesterProvider
 
-                tester = EthereumTester(PyEVMBackend())
+                # A genesis of its own, as every real chain has: eth-tester's is the same for
+                # all chains made within one second (it differs only by timestamp), so a reset
+                # chain would pass for the old one by chain id and genesis.
+                genesis = PyEVMBackend.generate_genesis_params(
+                    overrides={"extra_data": keccak(text=url)}
+                )
+                tester = EthereumTester(PyEVMBackend(genesis_parameters=genesis))
                 _in_process_chains[url] = Web3(EthereumTesterProvider(tester))
             return _in_process_chains[url]
     if url.startswith(("http://", "https://")):

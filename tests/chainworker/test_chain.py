@@ -18,8 +18,10 @@ from chainworker.chain import (
     bytes32_to_data_type,
     bytes32_to_record_id,
     chain_time_to_datetime,
+    connect,
     data_type_to_bytes32,
     datetime_to_chain_time,
+    forget_in_process_chain,
     record_id_to_bytes32,
 )
 from smcrypto import key_commitment, sm3, sm4
@@ -349,3 +351,16 @@ def test_a_read_at_an_address_without_code_is_contract_not_deployed(chain):
         chain.commitment_of(Account.create().address)
     with pytest.raises(ContractNotDeployed):  # the lean read of every view, too
         chain.root_of(Account.create().address, b"\x01" * 32)
+
+
+def test_in_process_chains_made_in_the_same_second_have_genesis_blocks_of_their_own():
+    """A reset in-process chain is told from the old one by its genesis, as a real one is:
+    eth-tester alone gives every chain made within a second the same genesis block."""
+    urls = [f"eth-tester://genesis-{uuid.uuid4().hex}" for _ in range(2)]
+    try:
+        first, second = (connect(url).eth.get_block(0)["hash"] for url in urls)
+        assert first != second
+        assert connect(urls[0]).eth.get_block(0)["hash"] == first  # one chain per name
+    finally:
+        for url in urls:
+            forget_in_process_chain(url)
