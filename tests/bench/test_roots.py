@@ -1,0 +1,65 @@
+"""The roots benchmark's bursts: the median burst is the figure, none is left out."""
+
+import pytest
+
+from bench import roots
+
+
+@pytest.fixture
+def bursts_of(monkeypatch):
+    """Bursts answered in turn from the given results, no stack started."""
+
+    def make(results):
+        answers = iter(results)
+        monkeypatch.setattr(roots, "run_in_child", lambda function, run: next(answers))
+
+    return make
+
+
+class _Run:
+    def describe(self):
+        return "a burst"
+
+
+def _burst(total, *, anchored=700, transactions=30):
+    return {
+        "total_to_anchored_s": total,
+        "anchored": anchored,
+        "sent": 700,
+        "verified": anchored,
+        "transactions": transactions,
+        "stack_cpu_s": {"web": total},
+    }
+
+
+def test_the_figure_is_the_median_burst_and_every_total_is_kept(bursts_of):
+    bursts_of(
+        [_burst(2.6, transactions=1), _burst(1.5, transactions=2), _burst(1.8, transactions=3)]
+    )
+
+    row = roots._bursts(_Run(), 3)
+
+    assert row["concurrent_700_total_s"] == 1.8
+    assert row["concurrent_700_total_s_runs"] == [2.6, 1.5, 1.8]
+    # The other figures are the median burst's own, not a mix of bursts.
+    assert row["concurrent_700_transactions"] == 3
+    assert row["concurrent_700_stack_cpu_s"] == {"web": 1.8}
+    assert (row["concurrent_700_anchored"], row["concurrent_700_sent"]) == (2100, 2100)
+    assert row["concurrent_700_bursts"] == 3
+
+
+def test_an_even_count_takes_the_lower_middle_burst(bursts_of):
+    bursts_of([_burst(2.0), _burst(1.0), _burst(3.0), _burst(1.5)])
+
+    assert roots._bursts(_Run(), 4)["concurrent_700_total_s"] == 1.5
+
+
+def test_a_burst_that_did_not_finish_leaves_no_figure_and_counts_its_unanchored(bursts_of):
+    bursts_of([_burst(1.5), _burst(None, anchored=650), _burst(1.7)])
+
+    row = roots._bursts(_Run(), 3)
+
+    assert row["concurrent_700_total_s"] is None
+    assert row["concurrent_700_total_s_runs"] == [1.5, None, 1.7]
+    assert (row["concurrent_700_anchored"], row["concurrent_700_sent"]) == (2050, 2100)
+    assert roots._goals_met(row)["concurrent_all_anchored"] is False
