@@ -406,15 +406,23 @@ def chain_work_check() -> None:
     """Raise ChainWorkNotReady while the node is not the chain the portal deployed on, so that
     nothing is sent to a reset chain, and while the chain is stalled (chain_stalled). Each
     verdict is kept in Redis for CHAIN_IDENTITY_CACHE_SECONDS, so the senders of every process
-    cost one chain look-up."""
+    cost one chain look-up.
+
+    A verdict names the chain it was made for. A process whose client was built for another
+    chain (before a reset that another process found and repaired) checks for itself, which
+    replaces its client: otherwise it would go on with the old chain's nonce counters, and a
+    nonce above the account's on the new chain waits in the node's pool for ever."""
     cached = None
     with suppress(RedisError):
         cached = get_redis().get(_identity_cache_key())
-    if cached is not None:
-        verdict = json.loads(cached)
-    else:
+    verdict = json.loads(cached) if cached is not None else None
+    if verdict is None or verdict.get("chain") != _chain_of(chain_client()):
         identity = chain_identity()
-        verdict = {"state": identity.state, "reason": identity.reason}
+        verdict = {
+            "state": identity.state,
+            "reason": identity.reason,
+            "chain": _chain_of(chain_client()),
+        }
         with suppress(RedisError):
             get_redis().set(
                 _identity_cache_key(),
@@ -426,6 +434,11 @@ def chain_work_check() -> None:
     # A stalled chain: every sender pauses, using up no attempt, until blocks move again.
     if stalled := _stall_reason():
         raise ChainWorkNotReady(f"sending is paused, the chain is stalled: {stalled}")
+
+
+def _chain_of(client: AuthROSChain) -> str:
+    """The chain a client was built for (its cached chain id and genesis)."""
+    return f"{client.chain_id}:{client.genesis_hash}"
 
 
 def chain_identity_forget() -> None:

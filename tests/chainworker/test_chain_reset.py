@@ -1,6 +1,7 @@
 """Chain reset detection: the node compared with the active deployment, and what the portal
 does on a real network (stops sending and tells the operator)."""
 
+import json
 import logging
 
 import pytest
@@ -11,6 +12,7 @@ from accounts.services import owner_top_up
 from chainworker import services as chain_services
 from chainworker.models import Deployment
 from chainworker.work import ChainWorkNotReady
+from core.redis_client import get_redis
 from sharing import anchoring
 from sharing.models import Grant, Record
 from sharing.reconcile import chain_reconcile
@@ -83,3 +85,46 @@ def test_chain_status_on_a_reset_development_chain(deployed, fresh_chain, capsys
     out, err = capsys.readouterr()
     assert "chain identity: reset" in out
     assert "re-created from the database" in err
+
+
+def _verdict_keep(state: str, chain: str) -> None:
+    """A verdict of chain_work_check as another process keeps it in Redis."""
+    get_redis().set(
+        chain_services._identity_cache_key(),
+        json.dumps({"state": state, "reason": "", "chain": chain}),
+        ex=60,
+    )
+
+
+def test_a_kept_verdict_for_this_process_chain_costs_no_chain_look_up(deployed, monkeypatch):
+    _verdict_keep("same", f"{deployed.chain_id}:{deployed.genesis_hash}")
+    monkeypatch.setattr(
+        chain_services, "chain_identity", lambda: pytest.fail("the node was asked again")
+    )
+
+    chain_services.chain_work_check()
+
+
+def test_a_process_whose_client_predates_a_reset_follows_the_chain_another_process_checked(
+    deployed,
+):
+    """Another process found the reset, deployed again and kept "same" for the new chain: a
+    process whose client was built before the reset must not send with it (its nonce counters
+    are the old chain's: a nonce above the account's waits in the new node's pool for ever)."""
+    node = f"{deployed.chain_id}:{deployed.genesis_hash}"
+    deployed.__dict__["genesis_hash"] = "0x" + "ab" * 32  # built for the chain before the reset
+    _verdict_keep("same", node)
+
+    chain_services.chain_work_check()
+
+    client = chain_services.chain_client()
+    assert client is not deployed
+    assert f"{client.chain_id}:{client.genesis_hash}" == node
+    assert json.loads(get_redis().get(chain_services._identity_cache_key()))["chain"] == node
+
+
+def test_a_kept_reset_verdict_for_another_chain_is_checked_again(deployed):
+    """A "reset" kept for a chain this process's client is not on is not taken on trust."""
+    _verdict_keep("reset", f"{deployed.chain_id}:0x{'cd' * 32}")
+
+    chain_services.chain_work_check()  # the node is the deployment's chain: no refusal
