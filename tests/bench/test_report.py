@@ -7,8 +7,12 @@ benchmarks write is read back faithfully, and that nothing in the report is inve
 import itertools
 import json
 import math
+import os
+import subprocess
+import sys
 import threading
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+from pathlib import Path
 
 import pytest
 from tqdm import tqdm
@@ -538,6 +542,16 @@ def test_the_concurrency_section_names_the_stack_that_served_the_uploads(tmp_pat
     ) in output.read_text()
 
 
+ROOTS_GOALS = {
+    "anchored_per_s": 2000.0,
+    "latency_p95_s": 3.0,
+    "ingest_per_s": 1500.0,
+    "view_idle_p50_ms": 20.0,
+    "view_load_p95_ms": 250.0,
+    "concurrent_700_total_s": 2.2,
+}
+
+
 def _roots_row(mode: str, **values: float) -> dict:
     row = {
         "anchor_mode": mode,
@@ -596,14 +610,7 @@ def test_the_roots_section_judges_each_goal_of_issue_13_from_the_root_mode_row(t
                 "machine": _machine(),
                 "settings": settings,
                 "paper": {"anchored_per_s": 63.0, "concurrent_700_total_s": 11.09},
-                "goals": {
-                    "anchored_per_s": 2000.0,
-                    "latency_p95_s": 3.0,
-                    "ingest_per_s": 1500.0,
-                    "view_idle_p50_ms": 20.0,
-                    "view_load_p95_ms": 250.0,
-                    "concurrent_700_total_s": 2.2,
-                },
+                "goals": ROOTS_GOALS,
                 "goals_met": {"root": goals_met},
                 "results": [records, root],
             }
@@ -659,14 +666,7 @@ def test_the_roots_section_lists_every_burst_behind_the_median(tmp_path):
                 "date": "2031-02-03T04:05:06Z",
                 "machine": _machine(),
                 "settings": settings,
-                "goals": {
-                    "anchored_per_s": 2000.0,
-                    "latency_p95_s": 3.0,
-                    "ingest_per_s": 1500.0,
-                    "view_idle_p50_ms": 20.0,
-                    "view_load_p95_ms": 250.0,
-                    "concurrent_700_total_s": 2.2,
-                },
+                "goals": ROOTS_GOALS,
                 "results": [root],
             }
         )
@@ -682,3 +682,59 @@ def test_the_roots_section_lists_every_burst_behind_the_median(tmp_path):
         "to last anchored: 1.81, 2.64, 1.52, 1.90, 1.77 s; the figure is their median"
     ) in text
     assert "| 700 concurrent uploads, first POST to last anchored | <= 2.2 s | - | 1.81 |" in text
+
+
+@pytest.mark.parametrize(
+    ("wait", "said"),
+    [(0.2, "; ANCHOR_MAX_WAIT 0.2 s, where `make run` keeps 1 s)."), (1.0, None)],
+)
+def test_the_roots_section_says_when_it_anchored_with_another_flush_interval(tmp_path, wait, said):
+    results = tmp_path / "results"
+    results.mkdir()
+    settings = {
+        "chain": "anvil, automine",
+        "web_command": "gunicorn",
+        "anchor_max_wait_s": wait,
+        "clients": 4,
+        "batch_per_post": 100,
+        "ingest_seconds": 15,
+        "idle_views": 300,
+        "load_seconds": 60,
+        "concurrent_agents": 700,
+    }
+    (results / "roots.json").write_text(
+        json.dumps(
+            {
+                "benchmark": "roots",
+                "date": "2031-02-03T04:05:06Z",
+                "machine": _machine(),
+                "settings": settings,
+                "goals": ROOTS_GOALS,
+                "results": [_roots_row("root")],
+            }
+        )
+    )
+    output = tmp_path / "REPORT.md"
+    assert report.main(["--results-dir", str(results), "--output", str(output)]) == 0
+    text = output.read_text()
+    if said:
+        assert f"(anvil, automine; the portal served by `gunicorn`{said}" in text
+    else:
+        assert "(anvil, automine; the portal served by `gunicorn`). Ingest" in text
+
+
+def test_make_runs_flush_interval_is_the_one_the_report_names():
+    """The report names make run's ANCHOR_MAX_WAIT: the settings' default, unset variable."""
+    program = "import portal.settings as s; print(s.ANCHOR_MAX_WAIT)"
+    environment = {k: v for k, v in os.environ.items() if k != "ANCHOR_MAX_WAIT"}
+    done = subprocess.run(
+        [sys.executable, "-c", program],
+        cwd=Path(report.__file__).resolve().parents[1],
+        env=environment,
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=False,
+    )
+    assert done.returncode == 0, done.stderr
+    assert float(done.stdout.strip().splitlines()[-1]) == report.MAKE_RUN_ANCHOR_MAX_WAIT
