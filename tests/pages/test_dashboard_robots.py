@@ -260,12 +260,15 @@ def test_robots_of_another_owner_are_out_of_reach(client, pending_owner):
     mallory = pending_owner("mallory")
     victim = pending_owner("victim")
     client.force_login(victim.user)
-    client.post(reverse("robots"), {"name": "r1", "topics": "/a std_msgs/String"})
+    # A name no random token on the page can contain by chance (a CSRF token once held "r1").
+    client.post(reverse("robots"), {"name": "victims-turtlebot", "topics": "/a std_msgs/String"})
     robot = Robot.objects.get(owner=victim)
     client.force_login(mallory.user)
     assert client.post(reverse("robot-revoke", args=[robot.id])).status_code == 404
     assert client.get(reverse("robot-config", args=[robot.id])).status_code == 404
-    assert "r1" not in client.get(reverse("robots")).content.decode()
+    page = client.get(reverse("robots")).content.decode()
+    assert "victims-turtlebot" not in page
+    assert str(robot.id) not in page
     robot.refresh_from_db()
     assert robot.is_active
 
