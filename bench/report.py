@@ -616,6 +616,11 @@ def _section_roots(results: Path) -> str | None:
             ("gas per record", lambda r: _num(r.get("gas_per_record"), 0)),
             ("block gas limit", lambda r: _num(r.get("block_gas_limit"), 0)),
             ("records per block at most", lambda r: _num(r.get("records_per_block_limit"), 0)),
+            ("web CPU per single upload, ms", lambda r: _num(r.get("single_upload_web_cpu_ms"), 2)),
+            (
+                "concurrent uploads, web CPU over the cores, s",
+                lambda r: _num(r.get("concurrent_700_web_floor_s"), 2),
+            ),
         ),
     )
     counts = "; ".join(
@@ -683,6 +688,7 @@ def _section_roots(results: Path) -> str | None:
         f"{counts}.\n",
         "Physical limits beside them (measured in the same run, in the benchmark's process):\n",
         limits,
+        *_floor_note(root, settings),
         "Where the time goes: cProfile of one 100-envelope upload and one view through Django's "
         "test client against the running stack, and of the worker's check alone, the top "
         "functions by cumulative time:\n",
@@ -912,6 +918,21 @@ def _groups(rows: list[dict[str, Any]]) -> list[list[dict[str, Any]]]:
         key=lambda key: (key[0] != "sequential", key[1]),
     )
     return [[r for r in rows if (_pattern(r), r["batch_max"]) == key] for key in keys]
+
+
+def _floor_note(row: dict[str, Any], settings: dict[str, Any]) -> list[str]:
+    """What the single uploads' CPU says about the concurrent figure (root mode), if measured."""
+    per_upload, floor = row.get("single_upload_web_cpu_ms"), row.get("concurrent_700_web_floor_s")
+    if per_upload is None or floor is None:
+        return []
+    agents = settings["concurrent_agents"]
+    return [
+        f"The web CPU per upload is that of {row.get('single_uploads')} single-envelope "
+        "uploads one after another, each on a new connection as each concurrent agent sends "
+        f"its one: {agents} of them need {agents} x {per_upload:.2f} ms of the web's CPU, at "
+        f"least {floor:.2f} s on this machine's cores before anything waits, contends, anchors "
+        "or serves the load generator (root mode).\n"
+    ]
 
 
 def _max_wait_note(settings: dict[str, Any]) -> str:

@@ -583,6 +583,9 @@ def test_the_roots_section_judges_each_goal_of_issue_13_from_the_root_mode_row(t
     records = _roots_row("records", **{key: pair[0] for key, pair in figures.items()})
     root = _roots_row("root", **{key: pair[1] for key, pair in figures.items()})
     root |= {
+        "single_upload_web_cpu_ms": 4.9,
+        "single_uploads": 200,
+        "concurrent_700_web_floor_s": 1.715,
         "concurrent_700_stack_cpu_s": {"web": 3.21, "workers": 0.64, "beat": 0.0, "anvil": 0.07},
         "concurrent_700_machine_busy_share": 0.87,
         "concurrent_700_transactions": 27,
@@ -635,6 +638,13 @@ def test_the_roots_section_judges_each_goal_of_issue_13_from_the_root_mode_row(t
         "of CPU, the machine's two cores 87% busy, in 27 anchoring transactions"
     ) in text
     assert text.count("up to the last one anchored") == 1
+    # The concurrent figure's floor, from the single uploads' web CPU, and the records row's
+    # blanks where it has none.
+    assert "| 4.90 | 1.72 |" in text
+    assert (
+        "700 of them need 700 x 4.90 ms of the web's CPU, at least 1.72 s on this machine's "
+        "cores" in text
+    )
     assert "<summary>root mode: view</summary>" in text
 
 

@@ -63,3 +63,10 @@ def test_a_burst_that_did_not_finish_leaves_no_figure_and_counts_its_unanchored(
     assert row["concurrent_700_total_s_runs"] == [1.5, None, 1.7]
     assert (row["concurrent_700_anchored"], row["concurrent_700_sent"]) == (2050, 2100)
     assert roots._goals_met(row)["concurrent_all_anchored"] is False
+
+
+def test_the_web_floor_is_the_single_uploads_cpu_spread_over_the_cores(monkeypatch):
+    monkeypatch.setattr(roots.os, "cpu_count", lambda: 2)
+
+    assert roots._web_floor({"single_upload_web_cpu_ms": 5.0}, 700) == pytest.approx(1.75)
+    assert roots._web_floor({}, 700) is None
