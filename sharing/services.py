@@ -33,6 +33,7 @@ from alerts.services import grant_received_alert, grant_revoked_alert
 from chainworker.chain import InsufficientFunds, TransactionReverted, TxResult
 from chainworker.services import chain_client, chain_work_check
 from chainworker.work import WAITING_FOR_GAS, ChainWorkNotReady, exclusive
+from core.commits import commits_durable
 from core.outbox import enqueue
 from core.redis_client import get_redis
 from core.rows import FixedInsert, FixedUpdate
@@ -52,6 +53,7 @@ from sharing.errors import (
     ReplayedSequence,
     SelfGrant,
     SequenceConflict,
+    StorageUnavailable,
     UnknownKey,
 )
 from sharing.models import Grant, Record, SecurityEvent
@@ -161,6 +163,16 @@ def record_create_batch(*, robot: Robot, envelopes: Sequence[bytes]) -> list[Rec
         if isinstance(refused, SequenceConflict):
             _sequence_conflict_alarm(robot, refused.detail)  # outside the refused transaction
         raise
+    # The robot drops its copies once answered: the rows must outlive a power loss too. (Not
+    # in the block above: the rows are committed, so their files stay whatever happens here;
+    # a robot told to send again is answered replayed_sequence, which it counts delivered.)
+    try:
+        commits_durable()
+    except OSError as exc:
+        logger.error("an upload's rows could not be made durable: %s", exc)
+        raise StorageUnavailable(
+            "the portal could not make the upload durable; send it again"
+        ) from exc
     return records
 
 

@@ -8,6 +8,7 @@ from django.db import DatabaseError
 from django.utils import timezone
 
 from accounts.services import key_rotate
+from core import files as files_module
 from sharing import errors
 from sharing import services as services_module
 from sharing import storage as storage_module
@@ -201,7 +202,7 @@ def test_a_batch_whose_third_file_fails_leaves_no_file_behind(make_robot, monkey
 def test_without_syncfs_every_file_and_folder_is_fsynced(make_robot, monkeypatch):
     """Where there is no syncfs (not Linux), the batch fsyncs each file and its folder."""
     setup = make_robot()
-    monkeypatch.setattr(storage_module, "_SYNCFS", None)
+    monkeypatch.setattr(files_module, "_SYNCFS", None)
     synced = []
     real_fsync = storage_module.fsync_path
     monkeypatch.setattr(

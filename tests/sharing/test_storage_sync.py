@@ -8,6 +8,7 @@ import time
 
 import pytest
 
+from core import files as files_module
 from sharing import storage as storage_module
 
 
@@ -39,8 +40,8 @@ class _SlowSyncfs:
 @pytest.fixture
 def slow_syncfs(monkeypatch):
     syncfs = _SlowSyncfs()
-    monkeypatch.setattr(storage_module, "_SYNCFS", syncfs)
-    monkeypatch.setattr(storage_module, "_sync_groups", {})
+    monkeypatch.setattr(files_module, "_SYNCFS", syncfs)
+    monkeypatch.setattr(files_module, "_sync_groups", {})
     return syncfs
 
 
