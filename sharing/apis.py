@@ -480,6 +480,7 @@ class RecordsApi(APIView):
                 409,
                 413,
                 415,
+                503,
                 e400="`invalid_request` (not JSON, not base64, both or neither of "
                 "`envelope`/`envelopes`), `invalid_envelope` (does not parse, seq not "
                 "increasing within the batch)",
@@ -491,6 +492,10 @@ class RecordsApi(APIView):
                 "(the owner is told: a robot that lost its state, or a stolen token and key); "
                 "`identity_check_failed`: the owner's key commitment on chain differs from "
                 "the key the portal holds (an operator must look)",
+                e503="`storage_unavailable`: the upload could not be stored durably (nothing "
+                "was kept), or its stored rows could not be synced to disk; send it again "
+                "after `Retry-After` seconds (a resend of what was stored is answered "
+                "`replayed_sequence`)",
             ),
         },
     )

@@ -143,3 +143,11 @@ def test_methods_the_api_does_not_have_get_405(client, make_owner, make_owner_to
         answer = getattr(client, method)(path, **auth)
         assert answer.status_code == 405, (method, path)
         assert answer.json()["error"] == "method_not_allowed"
+
+
+def test_the_upload_documents_its_storage_refusal(client):
+    """An upload the storage cannot make durable is answered 503 storage_unavailable: the
+    schema says so, so that an agent's author retries it."""
+    schema = client.get("/api/schema/", HTTP_ACCEPT="application/vnd.oai.openapi+json").json()
+    responses = schema["paths"]["/api/v1/records/"]["post"]["responses"]
+    assert "storage_unavailable" in responses["503"]["description"]
