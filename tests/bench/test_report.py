@@ -7,18 +7,15 @@ benchmarks write is read back faithfully, and that nothing in the report is inve
 import itertools
 import json
 import math
-import os
-import subprocess
-import sys
 import threading
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
-from pathlib import Path
 
 import pytest
 from tqdm import tqdm
 
-from bench import available, common, crypto, message_size, report, rest, sustained
+from bench import available, common, crypto, message_size, report, rest, roots, sustained
 from bench.__main__ import main as bench_main
+from tests.fresh_python import fresh_python
 
 
 def _machine() -> dict:
@@ -542,14 +539,34 @@ def test_the_concurrency_section_names_the_stack_that_served_the_uploads(tmp_pat
     ) in output.read_text()
 
 
-ROOTS_GOALS = {
-    "anchored_per_s": 2000.0,
-    "latency_p95_s": 3.0,
-    "ingest_per_s": 1500.0,
-    "view_idle_p50_ms": 20.0,
-    "view_load_p95_ms": 250.0,
-    "concurrent_700_total_s": 2.2,
+ROOTS_SETTINGS = {
+    "chain": "anvil, automine",
+    "web_command": "gunicorn",
+    "clients": 4,
+    "batch_per_post": 100,
+    "ingest_seconds": 15,
+    "idle_views": 300,
+    "load_seconds": 60,
+    "concurrent_agents": 700,
 }
+
+
+def _roots_report(tmp_path, rows: list[dict], settings: dict, **more: object) -> str:
+    """The report of a roots.json with these rows and settings (and `more` top-level keys)."""
+    results = tmp_path / "results"
+    results.mkdir()
+    data = {
+        "benchmark": "roots",
+        "date": "2031-02-03T04:05:06Z",
+        "machine": _machine(),
+        "settings": settings,
+        "goals": roots.GOALS,
+        "results": rows,
+    }
+    (results / "roots.json").write_text(json.dumps(data | more))
+    output = tmp_path / "REPORT.md"
+    assert report.main(["--results-dir", str(results), "--output", str(output)]) == 0
+    return output.read_text()
 
 
 def _roots_row(mode: str, **values: float) -> dict:
@@ -570,8 +587,6 @@ def _roots_row(mode: str, **values: float) -> dict:
 
 
 def test_the_roots_section_judges_each_goal_of_issue_13_from_the_root_mode_row(tmp_path):
-    results = tmp_path / "results"
-    results.mkdir()
     figures = {
         "anchored_per_s": (600.0, 2179.0),
         "latency_p95_s": (230.0, 0.54),
@@ -592,36 +607,14 @@ def test_the_roots_section_judges_each_goal_of_issue_13_from_the_root_mode_row(t
     }
     for key, (theirs, ours) in figures.items():
         root[f"{key}_ratio_vs_records"] = ours / theirs
-    settings = {
-        "chain": "anvil, automine",
-        "web_command": "gunicorn",
-        "clients": 4,
-        "batch_per_post": 100,
-        "ingest_seconds": 15,
-        "sustained_rate_per_s": 2200,
-        "sustained_seconds": 30,
-        "idle_views": 300,
-        "load_seconds": 60,
-        "concurrent_agents": 700,
-    }
     goals_met = {"anchored_per_s": True, "latency_p95_s": True, "view_idle_p50_ms": False}
-    (results / "roots.json").write_text(
-        json.dumps(
-            {
-                "benchmark": "roots",
-                "date": "2031-02-03T04:05:06Z",
-                "machine": _machine(),
-                "settings": settings,
-                "paper": {"anchored_per_s": 63.0, "concurrent_700_total_s": 11.09},
-                "goals": ROOTS_GOALS,
-                "goals_met": {"root": goals_met},
-                "results": [records, root],
-            }
-        )
+    text = _roots_report(
+        tmp_path,
+        [records, root],
+        ROOTS_SETTINGS | {"sustained_rate_per_s": 2200, "sustained_seconds": 30},
+        paper={"anchored_per_s": 63.0, "concurrent_700_total_s": 11.09},
+        goals_met={"root": goals_met},
     )
-    output = tmp_path / "REPORT.md"
-    assert report.main(["--results-dir", str(results), "--output", str(output)]) == 0
-    text = output.read_text()
     assert "## Merkle roots against one slot per record" in text
     assert "| anchoring throughput | >= 2000 records/s | 600 | 2179 | 3.63x | 63 | met |" in text
     assert "| anchoring latency p95 | <= 3 s | 230.00 | 0.54 | 0.0023x | - | met |" in text
@@ -649,8 +642,6 @@ def test_the_roots_section_judges_each_goal_of_issue_13_from_the_root_mode_row(t
 
 
 def test_the_roots_section_lists_every_burst_behind_the_median(tmp_path):
-    results = tmp_path / "results"
-    results.mkdir()
     root = _roots_row(
         "root",
         concurrent_700_total_s=1.81,
@@ -658,32 +649,7 @@ def test_the_roots_section_lists_every_burst_behind_the_median(tmp_path):
         concurrent_700_sent=3500,
         concurrent_700_total_s_runs=[1.81, 2.64, 1.52, 1.9, 1.77],
     )
-    settings = {
-        "chain": "anvil, automine",
-        "web_command": "gunicorn",
-        "clients": 4,
-        "batch_per_post": 100,
-        "ingest_seconds": 15,
-        "idle_views": 300,
-        "load_seconds": 60,
-        "concurrent_agents": 700,
-        "concurrent_bursts": 5,
-    }
-    (results / "roots.json").write_text(
-        json.dumps(
-            {
-                "benchmark": "roots",
-                "date": "2031-02-03T04:05:06Z",
-                "machine": _machine(),
-                "settings": settings,
-                "goals": ROOTS_GOALS,
-                "results": [root],
-            }
-        )
-    )
-    output = tmp_path / "REPORT.md"
-    assert report.main(["--results-dir", str(results), "--output", str(output)]) == 0
-    text = output.read_text()
+    text = _roots_report(tmp_path, [root], ROOTS_SETTINGS | {"concurrent_bursts": 5})
     assert "700 concurrent 1 KB uploads on a fresh stack, 5 times (the figure is the median)" in (
         text
     )
@@ -699,34 +665,8 @@ def test_the_roots_section_lists_every_burst_behind_the_median(tmp_path):
     [(0.2, "; ANCHOR_MAX_WAIT 0.2 s, where `make run` keeps 1 s)."), (1.0, None)],
 )
 def test_the_roots_section_says_when_it_anchored_with_another_flush_interval(tmp_path, wait, said):
-    results = tmp_path / "results"
-    results.mkdir()
-    settings = {
-        "chain": "anvil, automine",
-        "web_command": "gunicorn",
-        "anchor_max_wait_s": wait,
-        "clients": 4,
-        "batch_per_post": 100,
-        "ingest_seconds": 15,
-        "idle_views": 300,
-        "load_seconds": 60,
-        "concurrent_agents": 700,
-    }
-    (results / "roots.json").write_text(
-        json.dumps(
-            {
-                "benchmark": "roots",
-                "date": "2031-02-03T04:05:06Z",
-                "machine": _machine(),
-                "settings": settings,
-                "goals": ROOTS_GOALS,
-                "results": [_roots_row("root")],
-            }
-        )
-    )
-    output = tmp_path / "REPORT.md"
-    assert report.main(["--results-dir", str(results), "--output", str(output)]) == 0
-    text = output.read_text()
+    settings = ROOTS_SETTINGS | {"anchor_max_wait_s": wait}
+    text = _roots_report(tmp_path, [_roots_row("root")], settings)
     if said:
         assert f"(anvil, automine; the portal served by `gunicorn`{said}" in text
     else:
@@ -736,15 +676,5 @@ def test_the_roots_section_says_when_it_anchored_with_another_flush_interval(tmp
 def test_make_runs_flush_interval_is_the_one_the_report_names():
     """The report names make run's ANCHOR_MAX_WAIT: the settings' default, unset variable."""
     program = "import portal.settings as s; print(s.ANCHOR_MAX_WAIT)"
-    environment = {k: v for k, v in os.environ.items() if k != "ANCHOR_MAX_WAIT"}
-    done = subprocess.run(
-        [sys.executable, "-c", program],
-        cwd=Path(report.__file__).resolve().parents[1],
-        env=environment,
-        capture_output=True,
-        text=True,
-        timeout=60,
-        check=False,
-    )
-    assert done.returncode == 0, done.stderr
-    assert float(done.stdout.strip().splitlines()[-1]) == report.MAKE_RUN_ANCHOR_MAX_WAIT
+    waits = fresh_python(program, unset=["ANCHOR_MAX_WAIT"])
+    assert float(waits) == report.MAKE_RUN_ANCHOR_MAX_WAIT
