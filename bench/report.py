@@ -572,6 +572,28 @@ def _burst_cpu(row: dict[str, Any]) -> str:
     return f"; up to the last one anchored the stack used {roles} of CPU{share}{sent}"
 
 
+def _burst_phases(row: dict[str, Any]) -> str:
+    """Where the median burst's seconds went: until the first answer (connections opening),
+    the answers, and from the last answer to the last record anchored."""
+    first, p99 = row.get("concurrent_700_first_answer_s"), row.get("concurrent_700_answer_p99_s")
+    last, total = row.get("concurrent_700_total_response_s"), row.get("concurrent_700_total_s")
+    if None in (first, p99, last, total):
+        return ""
+    web = (row.get("concurrent_700_stack_cpu_s") or {}).get("web")
+    sent = row.get("concurrent_700_sent")
+    bursts = row.get("concurrent_700_bursts") or 1
+    per_upload = (
+        f"; the web's CPU per upload in it {_num(web * 1000 / (sent / bursts), 2)} ms"
+        if web is not None and sent
+        else ""
+    )
+    return (
+        f". The median burst, from its first POST: the first answer at {_num(first, 2)} s, "
+        f"99% answered at {_num(p99, 2)} s, the last at {_num(last, 2)} s, the last record "
+        f"anchored {_num(total - last, 2)} s after that{per_upload}"
+    )
+
+
 def _section_roots(results: Path) -> str | None:
     """Merkle roots against one slot per record (issue 13): each goal, both modes, the ratio,
     the paper where it has a number; the physical limits; the profiles."""
@@ -650,6 +672,7 @@ def _section_roots(results: Path) -> str | None:
             else ""
         )
         + _burst_cpu(row)
+        + _burst_phases(row)
         for mode, row in rows.items()
     )
     quick = " Quick (smoke) run." if settings.get("quick") else ""

@@ -516,6 +516,14 @@ def _verify(upload: Upload, progress: Any) -> None:
         connections.close_all()
 
 
+def _answer_p99(responses: list[Upload]) -> float:
+    """When 99% of the uploads had been answered (the last one's time for a single upload)."""
+    times = [upload.answered_at for upload in responses]
+    if len(times) < 2:
+        return times[0]
+    return statistics.quantiles(times, n=100, method="inclusive")[98]
+
+
 def _statistics(run: UploadRun, uploads: list[Upload]) -> dict[str, Any]:
     """The row of one run, from every upload (one per agent unless M > 1)."""
     from sharing.models import Record
@@ -566,6 +574,9 @@ def _statistics(run: UploadRun, uploads: list[Upload]) -> dict[str, Any]:
             "response_p95_s": response["p95_ms"] / 1000,
             "response_max_s": response["max_ms"] / 1000,
             "total_response_s": max(a.answered_at for a in responses) - first_sent,
+            # Where a burst's time goes: until the first answer, and until nearly all answered
+            "first_answer_s": min(a.answered_at for a in responses) - first_sent,
+            "answer_p99_s": _answer_p99(responses) - first_sent,
         }
         row["uploads_per_s"] = len(answered) / row["total_response_s"]
     timed = [("anchored", anchored, "anchored_at")]

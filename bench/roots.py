@@ -676,6 +676,8 @@ def _bursts(run: Any, count: int) -> dict[str, Any]:
         "concurrent_700_total_s": median.get("total_to_anchored_s"),
         "concurrent_700_total_s_runs": totals,
         "concurrent_700_total_response_s": median.get("total_response_s"),
+        "concurrent_700_first_answer_s": median.get("first_answer_s"),
+        "concurrent_700_answer_p99_s": median.get("answer_p99_s"),
         "concurrent_700_client_cpu_s": median.get("client_cpu_s"),
         "concurrent_700_stack_cpu_s": median.get("stack_cpu_s"),
         "concurrent_700_machine_busy_share": median.get("machine_busy_share"),

@@ -660,6 +660,53 @@ def test_the_roots_section_lists_every_burst_behind_the_median(tmp_path):
     assert "| 700 concurrent uploads, first POST to last anchored | <= 2.2 s | - | 1.81 |" in text
 
 
+def test_the_roots_section_says_where_the_median_bursts_seconds_went(tmp_path):
+    root = _roots_row(
+        "root",
+        concurrent_700_total_s=2.61,
+        concurrent_700_sent=3500,
+        concurrent_700_bursts=5,
+        concurrent_700_first_answer_s=0.2,
+        concurrent_700_answer_p99_s=2.404,
+        concurrent_700_total_response_s=2.45,
+        concurrent_700_stack_cpu_s={"web": 3.21, "workers": 0.64},
+    )
+    records = _roots_row("records", concurrent_700_total_s=3.0)  # older results: no phases
+    text = _roots_report(tmp_path, [records, root], ROOTS_SETTINGS)
+    assert (
+        ". The median burst, from its first POST: the first answer at 0.20 s, 99% answered at "
+        "2.40 s, the last at 2.45 s, the last record anchored 0.16 s after that; the web's CPU "
+        "per upload in it 4.59 ms"
+    ) in text
+    assert text.count("The median burst, from its first POST") == 1
+
+
+def test_a_bursts_statistics_say_when_it_was_first_and_nearly_all_answered():
+    run = rest.UploadRun(
+        block_time=None,
+        batch_max=100,
+        agents=200,
+        plaintext_bytes=1024,
+        owners=1,
+        workers=1,
+        web_workers=0,
+        verifiers=1,
+        max_wait=0.2,
+        timeout=1.0,
+        redis_url="redis://127.0.0.1:6379/13",
+        keep_logs=False,
+    )
+    uploads = [
+        rest.Upload(None, "t", {"envelope": "AAAA"}, sent_at=100.0, answered_at=101.0 + n / 100)
+        for n in range(200)
+    ]
+    uploads[-1].answered_at = 109.0  # a straggler: the last answer, not the 99th percentile
+    row = rest._statistics(run, uploads)
+    assert row["first_answer_s"] == pytest.approx(1.0)
+    assert row["answer_p99_s"] == pytest.approx(2.9701)
+    assert row["total_response_s"] == pytest.approx(9.0)
+
+
 @pytest.mark.parametrize(
     ("wait", "said"),
     [(0.2, "; ANCHOR_MAX_WAIT 0.2 s, where `make run` keeps 1 s)."), (1.0, None)],
