@@ -1,7 +1,9 @@
 """URL routes of the portal: its own pages, the apps' pages, the REST API, the admin console."""
 
 from django.contrib import admin
+from django.templatetags.static import static
 from django.urls import include, path
+from django.views.generic import RedirectView
 
 from portal import views
 
@@ -15,4 +17,6 @@ urlpatterns = [
     path("", include("sharing.urls")),
     path("", include("alerts.urls")),
     path("admin/", admin.site.urls),
+    # Browsers ask for /favicon.ico on pages that name no icon (the admin console's).
+    path("favicon.ico", RedirectView.as_view(url=static("portal/favicon.svg"), permanent=True)),
 ]
