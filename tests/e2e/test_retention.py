@@ -47,6 +47,20 @@ def no_sideways_scroll(page: Page) -> None:
     assert width <= page.viewport_size["width"], (page.url, width)
 
 
+def every_cell_on_screen(page: Page, cells: str) -> None:
+    """Each of the cells lies inside the viewport: a table shown as cards, not one to scroll
+    sideways in its box."""
+    width = page.viewport_size["width"]
+    outside = page.evaluate(
+        """([cells, width]) => [...document.querySelectorAll(cells)]
+            .map((cell) => cell.getBoundingClientRect())
+            .filter((box) => box.width === 0 || box.left < 0 || box.right > width + 0.5).length""",
+        [cells, width],
+    )
+    assert page.locator(cells).count() > 0
+    assert outside == 0, f"{outside} of {cells} outside the screen"
+
+
 def test_retention_deletion_and_robot_removal_with_confirmation(
     live_server, browser: Browser, make_robot, artifacts: Path
 ):
@@ -108,6 +122,14 @@ def test_retention_deletion_and_robot_removal_with_confirmation(
 
     phone.goto(f"{base}/robots/")
     no_sideways_scroll(phone)
+    # A card per robot, its fields labelled, all on the screen: the retention form and the
+    # revoke button need no sideways scrolling to be found.
+    every_cell_on_screen(phone, "#robots-table td")
+    label = phone.evaluate(
+        "getComputedStyle(document.querySelector('#robots-table td'), '::before').content"
+    )
+    assert label == '"Name"'
+    phone.screenshot(path=artifacts / "retention-robots-phone.png", full_page=True)
     phone.locator(robot_row).locator("[data-testid=revoke-robot]").click()
     expect(phone.locator("h1")).to_contain_text("Revoke the token of")
     no_sideways_scroll(phone)
