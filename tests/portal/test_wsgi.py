@@ -22,3 +22,9 @@ def test_a_worker_imports_every_view_at_boot_and_keeps_its_database_connections(
     assert booted["views"] == ["sharing.apis", "accounts.views", "rest_framework.views"]
     assert booted["max_age"] > 0
     assert booted["health"] is True
+
+
+def test_a_worker_keeps_what_its_boot_made_out_of_the_collectors_walks():
+    program = "import gc, portal.wsgi\nprint(gc.get_freeze_count())"
+    frozen = int(fresh_python(program))
+    assert frozen > 100_000  # Django, DRF, web3 and the portal's modules: hundreds of thousands
