@@ -388,6 +388,10 @@ _ALREADY_GRANTED = (
     "{grantee} already has access. To change which records they may read, change that grant "
     "instead."
 )
+_GRANT_EXPIRED = (
+    "Your grant to {grantee} expired at {expiry:%Y-%m-%d %H:%M} UTC. To give access again, "
+    "change that grant: a new expiry, or none."
+)
 
 # Which credential made a grant (Grant.made_with): a browser session, an owner API token, or an
 # operator's command.
@@ -424,8 +428,8 @@ def grant_create(
         )
     try:
         with transaction.atomic():
-            if Grant.objects.filter(owner=owner, grantee=grantee, status__in=Grant.LIVE).exists():
-                raise AlreadyGranted(_ALREADY_GRANTED.format(grantee=grantee))
+            live = Grant.objects.filter(owner=owner, grantee=grantee, status__in=Grant.LIVE)
+            _refuse_second_grant(live.first(), grantee)
             grant = Grant.objects.create(
                 owner=owner,
                 grantee=grantee,
@@ -438,6 +442,17 @@ def grant_create(
         # A simultaneous grant for the same pair won the race (one live grant per pair).
         raise AlreadyGranted(_ALREADY_GRANTED.format(grantee=grantee)) from None
     return grant
+
+
+def _refuse_second_grant(live: Grant | None, grantee: Owner) -> None:
+    """AlreadyGranted if the pair has a live grant. One past its expiry gives nothing, but it
+    is the pair's grant still: renewed by a change of its terms, which the refusal says."""
+    if live is None:
+        return
+    if live.is_expired and live.status != Grant.Status.REVOKING:
+        expiry = live.expires_at.astimezone(UTC)
+        raise AlreadyGranted(_GRANT_EXPIRED.format(grantee=grantee, expiry=expiry))
+    raise AlreadyGranted(_ALREADY_GRANTED.format(grantee=grantee))
 
 
 def grant_terms_change(*, owner: Owner, grantee: Owner, terms: GrantTerms) -> Grant:

@@ -1,6 +1,9 @@
 """Grants on chain, and the integrity check every view goes through."""
 
+from datetime import UTC, datetime, timedelta
+
 import pytest
+from django.utils import timezone
 
 from core.redis_client import get_redis
 from sharing import errors
@@ -77,6 +80,25 @@ def test_grant_refusals(make_owner, django_capture_on_commit_callbacks):
         grant_create(owner=alice, grantee=carol)
     with pytest.raises(errors.NotRegisteredYet):
         grant_create(owner=carol, grantee=alice)
+    assert Grant.objects.count() == 1
+
+
+def test_giving_access_again_after_a_grant_expired_says_to_renew_it(
+    make_owner, django_capture_on_commit_callbacks
+):
+    alice, bob = make_owner("alice"), make_owner("bob")
+    grant = _grant(alice, bob, django_capture_on_commit_callbacks)
+    Grant.objects.filter(pk=grant.pk).update(expires_at=datetime(2026, 3, 1, 12, 30, tzinfo=UTC))
+    with pytest.raises(errors.AlreadyGranted) as refused:
+        grant_create(owner=alice, grantee=bob)
+    assert str(refused.value) == (
+        "Your grant to bob expired at 2026-03-01 12:30 UTC. To give access again, change that "
+        "grant: a new expiry, or none."
+    )
+    # Not expired yet: the plain refusal.
+    Grant.objects.filter(pk=grant.pk).update(expires_at=timezone.now() + timedelta(days=1))
+    with pytest.raises(errors.AlreadyGranted, match="bob already has access"):
+        grant_create(owner=alice, grantee=bob)
     assert Grant.objects.count() == 1
 
 
