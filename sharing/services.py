@@ -449,7 +449,7 @@ def _refuse_second_grant(live: Grant | None, grantee: Owner) -> None:
     is the pair's grant still: renewed by a change of its terms, which the refusal says."""
     if live is None:
         return
-    if live.is_expired and live.status != Grant.Status.REVOKING:
+    if live.shown_status == "expired":  # the pages' word for it: pending or active, past expiry
         expiry = live.expires_at.astimezone(UTC)
         raise AlreadyGranted(_GRANT_EXPIRED.format(grantee=grantee, expiry=expiry))
     raise AlreadyGranted(_ALREADY_GRANTED.format(grantee=grantee))
