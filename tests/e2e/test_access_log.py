@@ -15,6 +15,7 @@ from playwright.sync_api import Browser, BrowserContext, Page, expect
 
 from tests.conftest import TEST_PASSWORD
 from tests.e2e.conftest import ARTIFACTS
+from tests.e2e.layout import cells_off_screen
 from tests.sharing.access_log_data import CAROL_TOPIC, FORMULA_TOKEN, access_log_world
 
 pytestmark = pytest.mark.django_db(transaction=True)
@@ -45,13 +46,7 @@ def _nothing_overflows(page: Page) -> None:
     """No horizontal scrolling of the page, and every cell of the log inside the screen."""
     width = page.viewport_size["width"]
     assert page.evaluate("document.documentElement.scrollWidth") <= width
-    outside = page.evaluate(
-        """(width) => [...document.querySelectorAll('#access-log-table td')]
-            .map((cell) => cell.getBoundingClientRect())
-            .filter((box) => box.width === 0 || box.left < 0 || box.right > width + 0.5).length""",
-        width,
-    )
-    assert outside == 0
+    assert cells_off_screen(page, "#access-log-table td") == 0
 
 
 def _csv_of(path: Path) -> list[dict[str, str]]:

@@ -15,6 +15,7 @@ from accounts.models import Robot
 from sharing.models import Record
 from sharing.services import record_create
 from tests.conftest import TEST_PASSWORD
+from tests.e2e.layout import cells_off_screen
 
 pytestmark = pytest.mark.django_db(transaction=True)
 
@@ -50,13 +51,7 @@ def no_sideways_scroll(page: Page) -> None:
 def every_cell_on_screen(page: Page, cells: str) -> None:
     """Each of the cells lies inside the viewport: a table shown as cards, not one to scroll
     sideways in its box."""
-    width = page.viewport_size["width"]
-    outside = page.evaluate(
-        """([cells, width]) => [...document.querySelectorAll(cells)]
-            .map((cell) => cell.getBoundingClientRect())
-            .filter((box) => box.width === 0 || box.left < 0 || box.right > width + 0.5).length""",
-        [cells, width],
-    )
+    outside = cells_off_screen(page, cells)
     assert page.locator(cells).count() > 0
     assert outside == 0, f"{outside} of {cells} outside the screen"
 
