@@ -412,6 +412,11 @@ ANCHOR_BATCH_MAX = env.int("ANCHOR_BATCH_MAX", default=100)
 ANCHOR_ROOT_MAX = env.int("ANCHOR_ROOT_MAX", default=4096)
 # Seconds a new record may wait for others of its owner to fill a batch.
 ANCHOR_MAX_WAIT = env.float("ANCHOR_MAX_WAIT", default=1.0)
+# Seconds without a new record of the owner that close its batch before ANCHOR_MAX_WAIT (the
+# uploads paused: a robot's batch or a burst is complete); 0 waits ANCHOR_MAX_WAIT always.
+ANCHOR_QUIET = env.float("ANCHOR_QUIET", default=0.1)
+if ANCHOR_QUIET < 0 or ANCHOR_MAX_WAIT < 0:
+    raise ImproperlyConfigured("ANCHOR_MAX_WAIT and ANCHOR_QUIET must not be negative")
 # Pending work older than this is queued again by the sweep (lost message, dead worker).
 ANCHOR_STALE_AFTER = env.float("ANCHOR_STALE_AFTER", default=60.0)
 ANCHOR_MAX_ATTEMPTS = env.int("ANCHOR_MAX_ATTEMPTS", default=20)

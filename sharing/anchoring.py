@@ -16,7 +16,7 @@ from contextlib import suppress
 
 from django.conf import settings
 from django.db import transaction
-from django.db.models import F
+from django.db.models import Count, F, Max, Min
 from django.utils import timezone
 from redis import Redis
 from redis.client import Pipeline
@@ -160,16 +160,36 @@ def records_reanchor(*, record_ids: Sequence[uuid.UUID]) -> int:
 
 
 def _wait_for_batch_to_fill(owner_id: int) -> None:
-    """Let records that arrive together share a batch: wait until the oldest pending record
-    is ANCHOR_MAX_WAIT old, unless a full batch is already waiting."""
+    """Let records that arrive together share a batch: wait while the owner's uploads keep
+    coming (one came in the last ANCHOR_QUIET seconds), until the oldest pending record is
+    ANCHOR_MAX_WAIT old, unless a full batch is already waiting. A pause in the uploads
+    closes the batch at once: after a robot's batch or a burst the records go on chain
+    ANCHOR_QUIET after the last one, not ANCHOR_MAX_WAIT after the first; under a steady
+    stream a run still takes what ANCHOR_MAX_WAIT gathered (ANCHOR_QUIET 0: always that)."""
     pending = Record.objects.filter(owner_id=owner_id, status=Record.Status.PENDING)
-    oldest = pending.order_by("created_at").values_list("created_at", flat=True).first()
     full = settings.ANCHOR_ROOT_MAX if settings.ANCHOR_MODE == "root" else settings.ANCHOR_BATCH_MAX
-    if oldest is None or pending.count() >= full:
-        return
-    remaining = settings.ANCHOR_MAX_WAIT - (timezone.now() - oldest).total_seconds()
-    if remaining > 0:
-        time.sleep(min(remaining, settings.ANCHOR_MAX_WAIT))
+    quiet = settings.ANCHOR_QUIET
+    # However the hosts' clocks disagree with the records' times, a run waits at most this.
+    deadline = time.monotonic() + settings.ANCHOR_MAX_WAIT
+    while True:
+        batch = pending.aggregate(
+            oldest=Min("created_at"), newest=Max("created_at"), size=Count("pk")
+        )
+        if batch["oldest"] is None or batch["size"] >= full:
+            return
+        now = timezone.now()
+        waits = [
+            settings.ANCHOR_MAX_WAIT - (now - batch["oldest"]).total_seconds(),
+            deadline - time.monotonic(),
+        ]
+        if quiet > 0:
+            waits.append(quiet - (now - batch["newest"]).total_seconds())
+        wait = min(waits)
+        if wait <= 0:
+            return
+        time.sleep(wait)
+        if quiet <= 0:
+            return
 
 
 def _anchor_round(client: AuthROSChain, owner: Owner, lock: Lock) -> tuple[int, int]:
