@@ -831,7 +831,9 @@ class GrantsApi(APIView):
                 "ending before it starts, an expiry less than 5 minutes ahead), or `self_grant`",
                 e403=ROBOT_REFUSED.format(scope="share"),
                 e404="`owner_not_found`: no owner with that username or address",
-                e409="`already_granted`, `not_registered_yet` (you), `grantee_not_registered`",
+                e409="`already_granted`, `revocation_pending` (your revocation of that owner is "
+                "not on chain yet: try again in a few seconds), `not_registered_yet` (you), "
+                "`grantee_not_registered`",
             ),
         },
     )

@@ -87,6 +87,13 @@ class AlreadyGranted(SharingError):
     http_status = 409
 
 
+class RevocationPending(SharingError):
+    """Access given again while the pair's revocation is still on its way to the chain."""
+
+    code = "revocation_pending"
+    http_status = 409
+
+
 class NoGrant(SharingError):
     code = "no_grant"
     http_status = 404

@@ -51,6 +51,7 @@ from sharing.errors import (
     NotRegisteredYet,
     OwnerNotFound,
     ReplayedSequence,
+    RevocationPending,
     SelfGrant,
     SequenceConflict,
     StorageUnavailable,
@@ -388,6 +389,10 @@ _ALREADY_GRANTED = (
     "{grantee} already has access. To change which records they may read, change that grant "
     "instead."
 )
+_REVOCATION_PENDING = (
+    "{grantee} no longer has access, but the revocation is still on its way to the chain. "
+    "Give access again once it is confirmed, in a few seconds."
+)
 _GRANT_EXPIRED = (
     "Your grant to {grantee} expired at {expiry:%Y-%m-%d %H:%M} UTC. To give access again, "
     "change that grant: a new expiry, or none."
@@ -446,9 +451,13 @@ def grant_create(
 
 def _refuse_second_grant(live: Grant | None, grantee: Owner) -> None:
     """AlreadyGranted if the pair has a live grant. One past its expiry gives nothing, but it
-    is the pair's grant still: renewed by a change of its terms, which the refusal says."""
+    is the pair's grant still: renewed by a change of its terms, which the refusal says. One
+    being revoked gives nothing either, and blocks a new grant until the chain has the
+    revocation (RevocationPending)."""
     if live is None:
         return
+    if live.status == Grant.Status.REVOKING:  # no access since the revocation: not "has access"
+        raise RevocationPending(_REVOCATION_PENDING.format(grantee=grantee))
     if live.shown_status == "expired":  # the pages' word for it: pending or active, past expiry
         expiry = live.expires_at.astimezone(UTC)
         raise AlreadyGranted(_GRANT_EXPIRED.format(grantee=grantee, expiry=expiry))

@@ -102,6 +102,23 @@ def test_giving_access_again_after_a_grant_expired_says_to_renew_it(
     assert Grant.objects.count() == 1
 
 
+def test_giving_access_again_while_the_revocation_is_on_its_way_says_so(
+    make_owner, django_capture_on_commit_callbacks
+):
+    """A grant being revoked gives nothing: not "already has access", and no second grant."""
+    alice, bob = make_owner("alice"), make_owner("bob")
+    grant = _grant(alice, bob, django_capture_on_commit_callbacks)
+    Grant.objects.filter(pk=grant.pk).update(status=Grant.Status.REVOKING)
+    with pytest.raises(errors.RevocationPending) as refused:
+        grant_create(owner=alice, grantee=bob)
+    assert str(refused.value) == (
+        "bob no longer has access, but the revocation is still on its way to the chain. Give "
+        "access again once it is confirmed, in a few seconds."
+    )
+    assert (refused.value.code, refused.value.http_status) == ("revocation_pending", 409)
+    assert list(Grant.objects.values_list("status", flat=True)) == [Grant.Status.REVOKING]
+
+
 def test_grantee_by_username_or_address(make_owner):
     alice = make_owner("alice")
     assert owner_resolve("alice") == alice
