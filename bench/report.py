@@ -959,11 +959,21 @@ def _floor_note(row: dict[str, Any], settings: dict[str, Any]) -> list[str]:
 
 
 def _max_wait_note(settings: dict[str, Any]) -> str:
-    """The flush interval a run anchored with, where it is not make run's own."""
-    wait = settings.get("anchor_max_wait_s")
+    """The flush interval a run anchored with, where it is not make run's own, and the pause
+    that closes a batch earlier (runs that recorded it)."""
+    wait, quiet = settings.get("anchor_max_wait_s"), settings.get("anchor_quiet_s")
+    closes = (
+        f"; a batch closes once its owner's uploads pause for {quiet:g} s (ANCHOR_QUIET), at "
+        f"most ANCHOR_MAX_WAIT after its first record"
+        if quiet
+        else ""
+    )
     if wait is None or wait == MAKE_RUN_ANCHOR_MAX_WAIT:
-        return ""
-    return f"; ANCHOR_MAX_WAIT {wait:g} s, where `make run` keeps {MAKE_RUN_ANCHOR_MAX_WAIT:g} s"
+        return closes
+    return (
+        f"; ANCHOR_MAX_WAIT {wait:g} s, where `make run` keeps {MAKE_RUN_ANCHOR_MAX_WAIT:g} s"
+        + closes
+    )
 
 
 def _burst_client(settings: dict[str, Any]) -> str:

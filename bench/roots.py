@@ -184,6 +184,7 @@ def measure(run: RootsRun) -> dict[str, Any]:
         row |= _limits(robots[0])
         row |= _single_upload_cost(stack, robots[-1])
         row["profiles"] = _profiles(stack, clients[0], viewer, robots[0][0].owner)
+        row["anchor_quiet_s"] = stack.portal_settings["anchor_quiet"]
     finally:
         stack.stop()
     return run_finished(row, stack, keep_logs=run.keep_logs)
@@ -645,6 +646,7 @@ def main(argv: list[str]) -> int:
         "load_seconds": args.load_seconds,
         "concurrent_agents": args.agents,
         "concurrent_bursts": args.bursts,
+        "anchor_quiet_s": rows[0].get("anchor_quiet_s") if rows else None,
         "concurrent_client": "asyncio",
         "chain": "anvil, automine",
     }

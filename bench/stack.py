@@ -294,6 +294,7 @@ class BenchStack:
             for name in (
                 "ANCHOR_MODE",
                 "ANCHOR_MAX_WAIT",
+                "ANCHOR_QUIET",
                 "ANCHOR_STALE_AFTER",
                 "ANCHOR_LOCK_TTL",
                 "CHAIN_CONFIRMATIONS",

@@ -720,6 +720,15 @@ def test_the_roots_section_says_when_it_anchored_with_another_flush_interval(tmp
         assert "(anvil, automine; the portal served by `gunicorn`). Ingest" in text
 
 
+def test_the_roots_section_names_the_pause_that_closed_its_batches(tmp_path):
+    settings = ROOTS_SETTINGS | {"anchor_max_wait_s": 1.0, "anchor_quiet_s": 0.1}
+    text = _roots_report(tmp_path, [_roots_row("root")], settings)
+    assert (
+        "the portal served by `gunicorn`; a batch closes once its owner's uploads pause for "
+        "0.1 s (ANCHOR_QUIET), at most ANCHOR_MAX_WAIT after its first record). Ingest"
+    ) in text
+
+
 def test_make_runs_flush_interval_is_the_one_the_report_names():
     """The report names make run's ANCHOR_MAX_WAIT: the settings' default, unset variable."""
     program = "import portal.settings as s; print(s.ANCHOR_MAX_WAIT)"
