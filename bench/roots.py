@@ -57,10 +57,9 @@ from typing import Any
 
 import requests
 
-from bench import now_iso, run_in_child, summarize
+from bench import MAKE_RUN_ANCHOR_MAX_WAIT, now_iso, run_in_child, summarize
 from bench.common import print_table, seal_record, write_results
 from bench.plotting import machine_line, plt, save_figure
-from bench.report import MAKE_RUN_ANCHOR_MAX_WAIT
 from bench.rest import (
     Upload,
     add_arguments,

@@ -39,7 +39,13 @@ from typing import Any
 import psutil
 import requests
 
-from bench import RESULTS_DIR, machine_info, now_iso, progress_bar
+from bench import (
+    MAKE_RUN_ANCHOR_MAX_WAIT,
+    RESULTS_DIR,
+    machine_info,
+    now_iso,
+    progress_bar,
+)
 from bench.common import check_redis_url, run_configurations, write_results
 from bench.plotting import machine_line, plt, save_figure
 from bench.stack import BENCH_REDIS_URL, BenchStack, StackOptions, run_finished, web_description
@@ -57,7 +63,6 @@ RSS_NOT_JUDGED = ("anvil",)
 PAGE_TIMEOUT = 60.0
 MAKE_RUN_WORKERS = 2  # STACK_WORKERS' default
 MAKE_RUN_BATCH_MAX = 100  # ANCHOR_BATCH_MAX's default (portal/settings.py)
-MAKE_RUN_MAX_WAIT = 1.0  # ANCHOR_MAX_WAIT's default
 NOTES = (
     "counts are the stack's Record rows by status at each sample; uploads a minute = "
     "records created in the 60 s before the sample (scaled to a minute while the first "
@@ -99,7 +104,7 @@ class SoakRun:
     block_time: float | None = None  # make run: automine
     batch_max: int = MAKE_RUN_BATCH_MAX
     workers: int = MAKE_RUN_WORKERS
-    max_wait: float = MAKE_RUN_MAX_WAIT
+    max_wait: float = MAKE_RUN_ANCHOR_MAX_WAIT
 
     def describe(self) -> str:
         return (

@@ -1,26 +1,16 @@
 """The batching settings a process reads at start: nonsense stops it with the setting named."""
 
-import os
 import subprocess
-import sys
 
 import pytest
 
-from stack.processes import REPO_ROOT
+from tests.fresh_python import fresh_python_run
 
 pytestmark = pytest.mark.nodb
 
 
 def _settings_with(**environment: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [sys.executable, "-c", "import portal.settings as s; print(s.ANCHOR_QUIET)"],
-        cwd=REPO_ROOT,
-        env={**os.environ, **environment},
-        capture_output=True,
-        text=True,
-        timeout=60,
-        check=False,
-    )
+    return fresh_python_run("import portal.settings as s; print(s.ANCHOR_QUIET)", env=environment)
 
 
 @pytest.mark.parametrize("name", ["ANCHOR_QUIET", "ANCHOR_MAX_WAIT"])
