@@ -3,7 +3,7 @@
 For N in 300, 500 and 700 (`--quick`: 30 and 50), on anvil with automine, `--block-time 1` and
 `--block-time 2`, each with ANCHOR_BATCH_MAX 1 (one transaction per record, the paper's way and
 the baseline) and 100 (batching), every configuration in its own process with a fresh stack:
-the one `make run` starts, gunicorn settings included (bench/stack.py, bench/rest.py).
+the one `make run` starts, web server settings included (bench/stack.py, bench/rest.py).
 Measures total response time (first POST to last 201), time until anchored and until
 verified, and success rate = verified / sent. Batching is reported as a ratio against batch
 size 1 of the same block mode and N, measured in the same run.

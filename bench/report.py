@@ -467,7 +467,7 @@ def _section_sustained(results: Path) -> str | None:
         ),
         ours=(
             f"{report['settings']['agents']}, for {report['settings']['duration_s']:g} s, "
-            "through the portal (gunicorn), Celery workers and anvil; a sample of the records "
+            "through the portal, Celery workers and anvil; a sample of the records "
             "is viewed through `/api/v1/records/{id}/content/` as soon as it is anchored. "
             "Latencies are from the POST that carried the record. The ratio column divides "
             "the sustained anchoring rate by ANCHOR_BATCH_MAX=1's (same block mode and engines, "

@@ -1,7 +1,7 @@
 """One measured run's stack: `python -m stack run`, what `make run` execs, with its settings.
 
 Each run gets a fresh work folder (SQLite database, secrets, logs, anvil state), anvil on a
-free port (automine or a block time), the portal on a free port under gunicorn exactly as
+free port (automine or a block time), the portal on a free port under granian exactly as
 `make run` serves it, a chain worker with W pool processes, a verify worker and beat, all
 sharing a Redis database of the benchmark's own (flushed first); the ROS side only with
 StackOptions.ros (the soak: roscore on a free port, the simulated robot, the demo agent).
@@ -38,7 +38,7 @@ import psutil
 from bench import progress_bar
 from core.redis_url import redis_client_for
 from smcrypto import sm4
-from stack.processes import REPO_ROOT, WebSizing, gunicorn, log_tail, web_sizing
+from stack.processes import REPO_ROOT, WebSizing, log_tail, web_server, web_sizing
 from stack.run import STATE_FILE
 from stack.seaweedfs import SeaweedProcess, start_seaweedfs
 
@@ -169,10 +169,10 @@ def _identifier(name: str) -> str:
 
 
 def web_description(web_workers: int = 0) -> str:
-    """The gunicorn command line the runs serve with (port aside)."""
+    """The web server's command line the runs serve with (port aside)."""
     machine = web_sizing()
     sizing = WebSizing(web_workers or machine.workers, machine.threads)
-    return " ".join(gunicorn("127.0.0.1:PORT", sizing)[2:])
+    return " ".join(web_server("127.0.0.1", "PORT", sizing)[2:])
 
 
 class BenchStack:

@@ -63,7 +63,7 @@ INSTALLED_APPS = [
 
 MIDDLEWARE = [
     "django.middleware.security.SecurityMiddleware",
-    # Serves /static/ from gunicorn too, so pages work without DEBUG and without a web server.
+    # Serves /static/ from the portal itself, so pages work without DEBUG and without a proxy.
     "whitenoise.middleware.WhiteNoiseMiddleware",
     # 503 for everything but /static/ while the portal's own secrets or operator key are wrong.
     "portal.middleware.ServiceChecksMiddleware",
@@ -104,7 +104,7 @@ DATABASES = {
     "default": env.db("DATABASE_URL", default=f"sqlite:///{VAR_DIR / 'db.sqlite3'}"),
 }
 # Persistent connections: a new one per request costs more than the request (SQLite's PRAGMAs,
-# PostgreSQL's connection set-up). Each gunicorn thread and worker process keeps one; with a
+# PostgreSQL's connection set-up). Each web thread and worker process keeps one; with a
 # pooler (PgBouncer, transaction mode) in front set DATABASE_CONN_MAX_AGE=0.
 DATABASES["default"]["CONN_MAX_AGE"] = env.int("DATABASE_CONN_MAX_AGE", default=60)
 DATABASES["default"]["CONN_HEALTH_CHECKS"] = True

@@ -1,4 +1,4 @@
-"""WSGI entry point (gunicorn portal.wsgi)."""
+"""WSGI entry point (granian portal.wsgi:application --interface wsgi)."""
 
 import gc
 import logging

@@ -2,7 +2,7 @@
 
 Redis (reused if one answers at REDIS_URL), anvil with its state file (reused if a node
 answers at CHAIN_RPC_URL), `manage.py migrate` and `chain_deploy`, a Celery worker for chain
-work, one for the verify queue alone, beat, the portal under gunicorn, and on the ROS side a
+work, one for the verify queue alone, beat, the portal under granian, and on the ROS side a
 roscore (reused if one answers), the simulated robot and an agent for a demo owner (with
 --ros2 / STACK_ROS2=true: no roscore, the simulated ROS 2 robot and the agent in ROS 2 mode,
 over Cyclone DDS on loopback, <workdir>/cyclonedds.xml, domain ROS_DOMAIN_ID). It prints
@@ -37,7 +37,6 @@ from stack.processes import (
     WebSizing,
     celery_beat,
     celery_worker,
-    gunicorn,
     http_answers,
     log_tail,
     manage,
@@ -46,6 +45,7 @@ from stack.processes import (
     redis_stop,
     ros_master_answers,
     wait_until,
+    web_server,
     web_sizing,
 )
 
@@ -276,10 +276,10 @@ class Stack:
         config = self.config
         sizing = config.sizing()
         self._say(
-            f"starting the portal on {self.web_url}/ (gunicorn, {sizing.workers} workers x "
+            f"starting the portal on {self.web_url}/ (granian, {sizing.workers} workers x "
             f"{sizing.threads} threads, DEBUG {'on' if config.debug else 'off'})"
         )
-        self._web_command = gunicorn(f"{config.host}:{config.port}", sizing)
+        self._web_command = web_server(config.host, config.port, sizing)
         self._spawn("web", self._web_command)
         wait_until(
             lambda: http_answers(f"{self.web_url}/admin/login/"),

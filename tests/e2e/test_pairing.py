@@ -1,14 +1,14 @@
 """Issue 14 end to end: robots get their key by SM2, and a rotation loses nothing.
 
 Real parts only: a ROS master, the agent process (`python -m ros_agent pair`, then the node),
-the simulated robot, the portal under gunicorn for the robot, the same portal (live server,
+the simulated robot, the portal under granian for the robot, the same portal (live server,
 same database) in Chromium for its owner, Celery workers and anvil.
 
 1. Two robots ask to be paired; the owner types each one's code on the robots page, checks
    the fingerprint against what the robot printed, approves one and refuses the other. The
    refused one gets nothing; the approved one writes its config with no key copied by hand.
 2. The paired agent records the simulated robot and uploads.
-3. The robot loses the portal (its gunicorn stops; the owner's browser still works) and spools.
+3. The robot loses the portal (its web server stops; the owner's browser still works) and spools.
    The owner rotates the key in the browser; the robot keeps spooling under the old key.
 4. The portal is back: every envelope arrives, none is rejected, those sealed under the old key
    after the rotation were re-sealed by the agent under the new key it fetched (encrypted to
@@ -62,7 +62,7 @@ CLOCK_SKEW = "1"
 
 @pytest.fixture
 def robot_stack(tmp_path, settings):
-    """anvil, two workers, beat, and gunicorn for the robot (stopped to take it offline)."""
+    """anvil, two workers, beat, and granian for the robot (stopped to take it offline)."""
     stack = WorkerStack(tmp_path, env_overrides={"KEY_ROTATION_CLOCK_SKEW": CLOCK_SKEW})
     try:
         stack.configure_test_process(settings)

@@ -1,4 +1,4 @@
-"""What a gunicorn worker has done once it imported portal.wsgi, before its first request."""
+"""What a web worker has done once it imported portal.wsgi, before its first request."""
 
 import json
 

@@ -1,5 +1,5 @@
 """Real Celery worker and beat processes, sharing the test's database, Redis and anvil,
-and the portal itself (gunicorn) for clients that talk to it over HTTP.
+and the portal itself (granian) for clients that talk to it over HTTP.
 
 The tests that use this are about the queue, so nothing runs eagerly: the test process only
 writes rows and queues messages, exactly like the web processes do in production. The
@@ -23,12 +23,13 @@ from portal.celery import app as celery_app
 from stack.anvil import AnvilProcess, free_port, start_anvil
 from stack.processes import (
     REPO_ROOT,
+    WEB_WORKER_MAX_RSS_MIB,
     Children,
     StackError,
     WebSizing,
     celery_beat,
     celery_worker,
-    gunicorn,
+    web_server,
 )
 from stack.processes import wait_until as _wait_until
 
@@ -58,7 +59,7 @@ def wait_for(
 
 
 class WorkerStack:
-    """anvil + N Celery workers (+ beat, + the portal under gunicorn), configured like the
+    """anvil + N Celery workers (+ beat, + the portal under granian), configured like the
     test process."""
 
     def __init__(
@@ -163,19 +164,22 @@ class WorkerStack:
         timeout: float = 60,
         name: str = "web",
         env: dict[str, str] | None = None,
+        max_rss_mib: int = WEB_WORKER_MAX_RSS_MIB,
     ) -> str:
-        """The portal under gunicorn on 127.0.0.1 (the same port again after a stop_web);
+        """The portal under granian on 127.0.0.1 (the same port again after a stop_web);
         returns its URL once it answers. Another `name` is another portal, on its own port."""
         if name == "web":
             self.web_port = self.web_port or free_port()
         port = self.web_port if name == "web" else self._web_ports.setdefault(name, free_port())
-        command = gunicorn(f"127.0.0.1:{port}", WebSizing(workers, WEB_THREADS))
+        command = web_server(
+            "127.0.0.1", port, WebSizing(workers, WEB_THREADS), max_rss_mib=max_rss_mib
+        )
         self.children.spawn(name, command, env=env or self.env(), stop_timeout=15)
         url = f"http://127.0.0.1:{port}"
         wait_for(
             lambda: self._web_answers(name, url),
             timeout=timeout,
-            what=f"the portal {name} (gunicorn) to answer",
+            what=f"the portal {name} (granian) to answer",
         )
         return url
 
