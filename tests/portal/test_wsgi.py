@@ -4,7 +4,7 @@ import json
 
 import pytest
 
-from tests.fresh_python import fresh_python
+from tests.fresh_python import fresh_python, fresh_python_run
 
 pytestmark = pytest.mark.nodb
 
@@ -28,3 +28,55 @@ def test_a_worker_keeps_what_its_boot_made_out_of_the_collectors_walks():
     program = "import gc, portal.wsgi\nprint(gc.get_freeze_count())"
     frozen = int(fresh_python(program))
     assert frozen > 100_000  # Django, DRF, web3 and the portal's modules: hundreds of thousands
+
+
+def test_a_request_carries_none_of_the_servers_environment():
+    """granian starts each request's environ from a copy of the process's environment (secrets
+    included); the portal sees only what the request and the server set. Driven through
+    granian's own environ builder, as a worker calls it."""
+    program = """
+import io, json, os
+import portal.wsgi
+from granian.wsgi import _callback_wrapper
+
+seen = []
+
+def app(environ, start_response):
+    seen.append(environ)
+    return portal.wsgi.application(environ, start_response)
+
+class Proto:
+    status = None
+    def response_bytes(self, status, headers, body):
+        self.status = status
+    def response_iter(self, status, headers, body):
+        self.status = status
+        body.close()
+
+scope = {
+    "REQUEST_METHOD": "GET", "PATH_INFO": "/api/", "QUERY_STRING": "", "SCRIPT_NAME": "",
+    "SERVER_NAME": "127.0.0.1", "SERVER_PORT": "8000", "SERVER_PROTOCOL": "HTTP/1.1",
+    "REMOTE_ADDR": "127.0.0.1", "HTTP_HOST": "127.0.0.1", "HTTP_X_ROBOT_NOTE": "from the request",
+    "wsgi.url_scheme": "http", "wsgi.input": io.BytesIO(b""),
+}
+proto = Proto()
+_callback_wrapper(app, {}, None)(proto, scope)
+environ = seen[0]
+print(json.dumps({
+    "status": proto.status,
+    "from_process": sorted(k for k in os.environ if k in environ and k not in scope),
+    "header": environ.get("HTTP_X_ROBOT_NOTE"),
+    "method": environ.get("REQUEST_METHOD"),
+}))
+"""
+    done = fresh_python_run(
+        program,
+        env={"AUTHROS_PROBE_SECRET": "s3cret", "HTTP_X_OPERATOR_NOTE": "not a request header"},
+    )
+    assert done.returncode == 0, done.stderr
+    seen = json.loads(done.stdout.strip().splitlines()[-1])
+    # Only the keys a server sets itself (it set these two to its own values) are left.
+    assert set(seen["from_process"]) <= {"GATEWAY_INTERFACE", "SERVER_SOFTWARE"}
+    assert seen["header"] == "from the request"
+    assert seen["method"] == "GET"
+    assert seen["status"] == 404  # the request itself was served
