@@ -47,6 +47,13 @@ WEB_MAX_THREADS = 4
 WEB_WORKER_LIFETIME = 900
 WEB_WORKER_MAX_RSS_MIB = 400
 WEB_GRACEFUL_TIMEOUT = 10
+# Seconds between starting a replacement and telling the process it replaces to stop: the new
+# one loads the portal first (2-3 s on a busy 2-core machine), so that the others are not left
+# to serve alone. Each process has a listening socket of its own (SO_REUSEPORT): the
+# connections waiting at one that stops move to the others only with the kernel's
+# net.ipv4.tcp_migrate_req=1, which scripts/bootstrap.sh sets where it runs as root; without
+# it they are reset (granian says so in the web log at start).
+WEB_RESPAWN_INTERVAL = 10
 _PR_SET_PDEATHSIG = 1
 
 
@@ -241,6 +248,8 @@ def web_server(
         str(max_rss_mib),
         "--workers-kill-timeout",
         str(WEB_GRACEFUL_TIMEOUT),
+        "--respawn-interval",
+        str(WEB_RESPAWN_INTERVAL),
         *(["--access-log"] if access_log else []),
     ]
 

@@ -1,6 +1,6 @@
 """The portal's web server as `make run` runs it (stack/processes.py, `web_server`): granian
 replaces a web process that holds too much memory, one at a time, while robots upload, and no
-upload is lost or refused on the way."""
+upload is lost or refused on the way; a process that dies is started again."""
 
 import base64
 import threading
@@ -22,6 +22,7 @@ pytestmark = [
 ]
 
 UPLOADERS = 4
+RESENDS = 3
 RECYCLE_LOG = "RSS over threshold, gracefully respawning"
 
 
@@ -34,12 +35,17 @@ def test_web_processes_over_their_memory_limit_are_replaced_while_uploads_go_on(
     stack = worker_stack(workers=1)
     setups = _robots(UPLOADERS)
     # A limit of 1 MiB, sampled every second: every process is over it at every sample, so
-    # the processes are replaced one after another for as long as the uploads run.
+    # the processes are replaced one after another for as long as the uploads run. The robots
+    # upload as fast as they are answered: no rate limit here.
+    unlimited = {"API_RATE_UPLOAD": "1000000/minute", "API_RATE_USER": "1000000/minute"}
     stack.start_web(
-        workers=2, max_rss_mib=1, env={**stack.env(), "GRANIAN_RSS_SAMPLE_INTERVAL": "1"}
+        workers=2,
+        max_rss_mib=1,
+        env={**stack.env(), "GRANIAN_RSS_SAMPLE_INTERVAL": "1", **unlimited},
     )
     first = _web_processes(stack)
-    answers: list[int | str] = []
+    answers: list[int] = []  # the answer each upload got in the end
+    dropped: list[str] = []  # connections closed without an answer, each sent again
     stop = threading.Event()
 
     def upload(setup) -> None:
@@ -47,17 +53,22 @@ def test_web_processes_over_their_memory_limit_are_replaced_while_uploads_go_on(
         while not stop.is_set():
             seq += 1
             envelope = base64.b64encode(setup.seal(seq)).decode()
-            try:
-                # A connection of its own each time, as each of a fleet's agents has.
-                answer = requests.post(
-                    f"{stack.web_url}/api/v1/records/",
-                    json={"envelopes": [envelope]},
-                    headers={"Authorization": f"Token {setup.token}", "Connection": "close"},
-                    timeout=60,
-                )
+            for _ in range(RESENDS + 1):  # as the agent does: the same envelope again
+                try:
+                    # A connection of its own each time, as each of a fleet's agents has.
+                    answer = requests.post(
+                        f"{stack.web_url}/api/v1/records/",
+                        json={"envelopes": [envelope]},
+                        headers={"Authorization": f"Token {setup.token}", "Connection": "close"},
+                        timeout=60,
+                    )
+                except requests.ConnectionError as exc:
+                    dropped.append(f"{type(exc).__name__}: {exc}")
+                    continue
                 answers.append(answer.status_code)
-            except requests.RequestException as exc:
-                answers.append(f"{type(exc).__name__}: {exc}")
+                break
+            else:
+                answers.append(0)
 
     threads = [threading.Thread(target=upload, args=(setup,)) for setup in setups]
     for thread in threads:
@@ -65,7 +76,7 @@ def test_web_processes_over_their_memory_limit_are_replaced_while_uploads_go_on(
     try:
         wait_for(
             lambda: not (first & _web_processes(stack)),
-            timeout=90,
+            timeout=120,
             what="both web processes replaced",
             interval=0.5,
         )
@@ -73,9 +84,43 @@ def test_web_processes_over_their_memory_limit_are_replaced_while_uploads_go_on(
     finally:
         stop.set()
         for thread in threads:
-            thread.join(timeout=90)
+            thread.join(timeout=120)
     log = (stack.logs / "web.log").read_text()
+    events = "\n".join(line for line in log.splitlines() if not line.startswith("[20"))
     assert log.count(RECYCLE_LOG) >= 2
-    assert [a for a in answers if a != 201] == []
     assert len(answers) > 50
+    # Every upload stored, once: 201, or 409 replayed_sequence for one whose 201 was lost with
+    # a dropped connection. A dropped connection is the only failure, and rare: granian closes
+    # the connections a stopping process has taken but not read yet (those still waiting to be
+    # taken move to another process with net.ipv4.tcp_migrate_req=1).
+    refused = [a for a in answers if a not in (201, 409)]
+    said = f"{len(answers)} uploads; dropped {dropped[:3]}\n{events[-6000:]}"
+    assert refused == [], f"{refused[:3]} of {said}"
+    assert len(dropped) <= len(answers) // 100, said
     assert Record.objects.count() == len(answers)
+
+
+def test_a_web_process_that_dies_is_started_again(worker_stack):
+    """A web process killed outright (an OOM kill, a crash in a C library) is replaced; the
+    portal answers on through the others meanwhile and on the new one after."""
+    stack = worker_stack(workers=1)
+    setup = _robots(1)[0]
+    stack.start_web(workers=2)
+    first = _web_processes(stack)
+    victim = min(first)
+    psutil.Process(victim).kill()
+    wait_for(
+        lambda: len(_web_processes(stack)) == 2 and victim not in _web_processes(stack),
+        timeout=60,
+        what="the killed web process replaced",
+        interval=0.5,
+    )
+    for seq in range(1, 21):  # new connections, spread over both processes
+        answer = requests.post(
+            f"{stack.web_url}/api/v1/records/",
+            json={"envelopes": [base64.b64encode(setup.seal(seq)).decode()]},
+            headers={"Authorization": f"Token {setup.token}", "Connection": "close"},
+            timeout=60,
+        )
+        assert answer.status_code == 201, answer.text
+    assert stack.children["web"].running()
