@@ -31,6 +31,17 @@ def _web_processes(stack) -> set[int]:
     return {child.pid for child in psutil.Process(stack.children["web"].pid).children()}
 
 
+def _upload_one(stack, setup, envelope: bytes) -> requests.Response:
+    """The robot's sealed envelope POSTed on a connection of its own, as each agent of a fleet
+    has one."""
+    return requests.post(
+        f"{stack.web_url}/api/v1/records/",
+        json={"envelopes": [base64.b64encode(envelope).decode()]},
+        headers={"Authorization": f"Token {setup.token}", "Connection": "close"},
+        timeout=60,
+    )
+
+
 def test_web_processes_over_their_memory_limit_are_replaced_while_uploads_go_on(worker_stack):
     stack = worker_stack(workers=1)
     setups = _robots(UPLOADERS)
@@ -52,16 +63,10 @@ def test_web_processes_over_their_memory_limit_are_replaced_while_uploads_go_on(
         seq = 0
         while not stop.is_set():
             seq += 1
-            envelope = base64.b64encode(setup.seal(seq)).decode()
+            envelope = setup.seal(seq)
             for _ in range(RESENDS + 1):  # as the agent does: the same envelope again
                 try:
-                    # A connection of its own each time, as each of a fleet's agents has.
-                    answer = requests.post(
-                        f"{stack.web_url}/api/v1/records/",
-                        json={"envelopes": [envelope]},
-                        headers={"Authorization": f"Token {setup.token}", "Connection": "close"},
-                        timeout=60,
-                    )
+                    answer = _upload_one(stack, setup, envelope)
                 except requests.ConnectionError as exc:
                     dropped.append(f"{type(exc).__name__}: {exc}")
                     continue
@@ -116,11 +121,6 @@ def test_a_web_process_that_dies_is_started_again(worker_stack):
         interval=0.5,
     )
     for seq in range(1, 21):  # new connections, spread over both processes
-        answer = requests.post(
-            f"{stack.web_url}/api/v1/records/",
-            json={"envelopes": [base64.b64encode(setup.seal(seq)).decode()]},
-            headers={"Authorization": f"Token {setup.token}", "Connection": "close"},
-            timeout=60,
-        )
+        answer = _upload_one(stack, setup, setup.seal(seq))
         assert answer.status_code == 201, answer.text
     assert stack.children["web"].running()
