@@ -977,11 +977,15 @@ def _max_wait_note(settings: dict[str, Any]) -> str:
 
 def _burst_client(settings: dict[str, Any]) -> str:
     """How the roots benchmark sent its concurrent uploads (older results: threads)."""
-    if settings.get("concurrent_client") != "asyncio":
+    loop = {
+        "asyncio": "one asyncio loop",
+        "sockets": "one selector loop of non-blocking sockets, the requests encoded beforehand,",
+    }.get(settings.get("concurrent_client"))
+    if loop is None:
         return ""
     return (
-        " (each agent its own robot token and its own connection, all opened at once from one "
-        "asyncio loop in the benchmark's process, so that the load generator leaves the two "
+        " (each agent its own robot token and its own connection, all opened at once from "
+        f"{loop} in the benchmark's process, so that the load generator leaves the two "
         "cores to the stack; the records are opened and checked on chain once all are "
         "anchored, so the checks do not compete with the uploads)"
     )

@@ -28,9 +28,12 @@ in the same run.
 """
 
 import argparse
-import asyncio
 import base64
+import errno
 import json
+import os
+import selectors
+import socket
 import statistics
 import subprocess
 import sys
@@ -38,7 +41,7 @@ import tempfile
 import threading
 import time
 from collections import Counter
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -67,7 +70,7 @@ from bench.stack import (
 from stack.anvil import anvil_version
 
 REQUEST_TIMEOUT = 300.0
-CLIENTS = ("threads", "asyncio")
+CLIENTS = ("threads", "sockets")
 
 
 @dataclass(frozen=True)
@@ -90,8 +93,8 @@ class UploadRun:
     anchor_mode: str = "records"  # the baseline; bench/roots.py measures "root" too
     engines: str = "sqlite-disk"  # or "postgres-s3" (bench.stack.ENGINES)
     # "threads": a thread and a requests.Session per agent (the paper's analog processes);
-    # "asyncio": every agent a connection of one asyncio loop in this process, a load
-    # generator that leaves the machine's cores to the stack (CLIENTS).
+    # "sockets": every upload a non-blocking connection of one selector loop in this process,
+    # a load generator that leaves the machine's cores to the stack (CLIENTS).
     client: str = "threads"
     # Open records only once every one is anchored, so that the checks do not compete with
     # the uploads for this machine's cores (bench/roots.py's time to anchored).
@@ -299,7 +302,7 @@ def measure(run: UploadRun) -> dict[str, Any]:
     try:
         stack.start()
         agents = _agents_create(run, stack)
-        post = post_uploads if run.client == "threads" else post_uploads_asyncio
+        post = post_uploads if run.client == "threads" else post_uploads_sockets
         stack_before, machine_before = stack.cpu_seconds(), psutil.cpu_times()
         cpu_before = psutil.Process().cpu_times()
         post(f"{stack.web_url}/api/v1/records/", agents)
@@ -391,52 +394,128 @@ def post_uploads(url: str, agents: list[list[Upload]]) -> None:
     progress.close()
 
 
-def post_uploads_asyncio(url: str, agents: list[list[Upload]]) -> None:
-    """post_uploads from one asyncio loop: every agent a coroutine that opens a connection
-    per envelope (HTTP/1.1, `Connection: close`), all released together."""
-    asyncio.run(_agents_post_asyncio(urlsplit(url), agents))
-
-
-async def _agents_post_asyncio(url: SplitResult, agents: list[list[Upload]]) -> None:
-    start = asyncio.Event()
+def post_uploads_sockets(url: str, agents: list[list[Upload]]) -> None:
+    """post_uploads from one thread: each agent's envelopes one after another, each on a new
+    non-blocking connection (HTTP/1.1, `Connection: close`), every agent's first one opened at
+    once, all driven by one selector (epoll). The requests are encoded before the first is
+    sent, and a connection costs this process a few system calls (no coroutine, no stream
+    objects), so the load generator leaves the machine's cores to the stack."""
+    target = urlsplit(url)
+    address = (target.hostname or "127.0.0.1", target.port or 80)
+    requests_of = [[_request_bytes(target, upload) for upload in uploads] for uploads in agents]
     progress = progress_bar(sum(len(agent) for agent in agents), "201 received", unit="req")
+    selector = selectors.DefaultSelector()
+    in_flight: set[_Connection] = set()
 
-    async def agent_post(uploads: list[Upload]) -> None:
-        await start.wait()
-        for upload in uploads:
-            await _post_one_asyncio(url, upload)
+    def next_of(queue: Iterator[tuple[Upload, bytes]]) -> None:
+        """Open the agent's next upload; one refused at once settles and the next follows."""
+        for upload, request in queue:
+            connection = _Connection(upload, request, queue)
+            if connection.open(address, selector):
+                in_flight.add(connection)
+                return
             progress.update(1)
 
-    tasks = [asyncio.create_task(agent_post(agent)) for agent in agents]
-    await asyncio.sleep(0)  # every agent waiting at the start
-    start.set()
-    await asyncio.gather(*tasks)
+    for uploads, encoded in zip(agents, requests_of, strict=True):
+        next_of(zip(uploads, encoded, strict=True))
+    while in_flight:
+        for key, _ in selector.select(timeout=1.0):
+            connection = key.data
+            if connection.step(selector):
+                in_flight.discard(connection)
+                progress.update(1)
+                next_of(connection.queue)
+        now = time.time()
+        for connection in [c for c in in_flight if c.deadline < now]:
+            connection.settle(selector, TimeoutError())
+            in_flight.discard(connection)
+            progress.update(1)
+            next_of(connection.queue)
+    selector.close()
     progress.close()
 
 
-async def _post_one_asyncio(url: SplitResult, upload: Upload) -> None:
+def _request_bytes(target: SplitResult, upload: Upload) -> bytes:
     body = json.dumps(upload.body).encode()
     head = (
-        f"POST {url.path} HTTP/1.1\r\nHost: {url.netloc}\r\n"
+        f"POST {target.path} HTTP/1.1\r\nHost: {target.netloc}\r\n"
         f"Authorization: Token {upload.token}\r\nContent-Type: application/json\r\n"
         f"Content-Length: {len(body)}\r\nConnection: close\r\n\r\n"
     )
-    upload.sent_at = time.time()
-    try:
-        async with asyncio.timeout(REQUEST_TIMEOUT):
-            reader, writer = await asyncio.open_connection(url.hostname, url.port)
-            writer.write(head.encode() + body)
-            await writer.drain()
-            answer = await reader.read()
-            writer.close()
+    return head.encode() + body
+
+
+class _Connection:
+    """One upload on a non-blocking socket of its own: connect, send the request, read the
+    answer until the server closes; then the upload says what became of it."""
+
+    def __init__(self, upload: Upload, request: bytes, queue: Iterator[tuple[Upload, bytes]]):
+        self.upload, self.queue = upload, queue
+        self.unsent = memoryview(request)
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+        self.sock.setblocking(False)
+        self.connected = False
+        self.answer: list[bytes] = []
+        self.deadline = 0.0
+
+    def open(self, address: tuple[str, int], selector: selectors.BaseSelector) -> bool:
+        """Start connecting; False when that failed at once (the upload is settled)."""
+        self.upload.sent_at = time.time()
+        self.deadline = self.upload.sent_at + REQUEST_TIMEOUT
+        error = self.sock.connect_ex(address)
+        if error not in (0, errno.EINPROGRESS):
+            self.settle(None, _os_error(error))
+            return False
+        selector.register(self.sock, selectors.EVENT_WRITE, self)
+        return True
+
+    def step(self, selector: selectors.BaseSelector) -> bool:
+        """Go on with what the socket is ready for; True once the upload is settled."""
+        try:
+            if not self.connected:
+                if error := self.sock.getsockopt(socket.SOL_SOCKET, socket.SO_ERROR):
+                    raise _os_error(error)
+                self.connected = True
+            if self.unsent:
+                self.unsent = self.unsent[self.sock.send(self.unsent) :]
+                if not self.unsent:
+                    selector.modify(self.sock, selectors.EVENT_READ, self)
+                return False
+            chunk = self.sock.recv(65536)
+        except BlockingIOError:
+            return False
+        except OSError as exc:
+            self.settle(selector, exc)
+            return True
+        if chunk:
+            self.answer.append(chunk)
+            return False
+        self.settle(selector, None)
+        return True
+
+    def settle(self, selector: selectors.BaseSelector | None, error: Exception | None) -> None:
+        """The upload's answer (or `error`, by its name), and the socket closed."""
+        upload = self.upload
         upload.answered_at = time.time()
-        status_line, _, rest = answer.partition(b"\r\n")
-        upload.status = status_line.split(b" ")[1].decode()
-        if upload.status == "201":
-            upload.record_id = json.loads(rest.partition(b"\r\n\r\n")[2])["id"]
-    except (OSError, TimeoutError, IndexError, ValueError) as exc:
-        upload.answered_at = time.time()
-        upload.status = type(exc).__name__
+        if selector is not None:
+            selector.unregister(self.sock)
+        self.sock.close()
+        if error is not None:
+            upload.status = type(error).__name__
+            return
+        answer = b"".join(self.answer)
+        try:
+            status_line, _, rest = answer.partition(b"\r\n")
+            upload.status = status_line.split(b" ")[1].decode()
+            if upload.status == "201":
+                upload.record_id = json.loads(rest.partition(b"\r\n\r\n")[2])["id"]
+        except (IndexError, ValueError) as exc:
+            upload.status = type(exc).__name__
+
+
+def _os_error(number: int) -> OSError:
+    """The OSError subclass of an errno (ConnectionRefusedError for ECONNREFUSED, ...)."""
+    return OSError(number, os.strerror(number))
 
 
 def _post_one(session: requests.Session, url: str, upload: Upload) -> None:

@@ -64,7 +64,7 @@ from bench.rest import (
     Upload,
     add_arguments,
     check_arguments,
-    post_uploads_asyncio,
+    post_uploads_sockets,
     report_header,
     upload_run,
 )
@@ -501,9 +501,9 @@ def _single_upload_cost(stack: BenchStack, robot_key: tuple[Any, bytes]) -> dict
         for body in client.bodies(warm + SINGLE_UPLOADS, 1)
     ]
     url = f"{stack.web_url}/api/v1/records/"
-    post_uploads_asyncio(url, [uploads[:warm]])
+    post_uploads_sockets(url, [uploads[:warm]])
     before = stack.cpu_seconds()
-    post_uploads_asyncio(url, [uploads[warm:]])
+    post_uploads_sockets(url, [uploads[warm:]])
     after = stack.cpu_seconds()
     answered = sum(upload.status == "201" for upload in uploads[warm:])
     if answered != SINGLE_UPLOADS:
@@ -626,7 +626,7 @@ def main(argv: list[str]) -> int:
                 plaintext_bytes=PLAINTEXT_BYTES,
                 anchor_mode=mode,
             ),
-            client="asyncio",
+            client="sockets",
             verify_after_anchored=True,
         )
         row |= _bursts(concurrent, args.bursts)
@@ -646,7 +646,7 @@ def main(argv: list[str]) -> int:
         "concurrent_agents": args.agents,
         "concurrent_bursts": args.bursts,
         "anchor_quiet_s": rows[0].get("anchor_quiet_s") if rows else None,
-        "concurrent_client": "asyncio",
+        "concurrent_client": "sockets",
         "chain": "anvil, automine",
     }
     report["paper"] = PAPER

@@ -319,7 +319,7 @@ def _post_server(record_ids: list[str], concurrent: list[int]) -> ThreadingHTTPS
     return ThreadingHTTPServer(("127.0.0.1", 0), Handler)
 
 
-@pytest.mark.parametrize("post", [rest.post_uploads, rest.post_uploads_asyncio])
+@pytest.mark.parametrize("post", [rest.post_uploads, rest.post_uploads_sockets])
 def test_one_agent_posts_its_uploads_in_order_one_at_a_time(post):
     received: list[str] = []
     concurrent: list[int] = []
@@ -338,18 +338,18 @@ def test_one_agent_posts_its_uploads_in_order_one_at_a_time(post):
     assert all(a.answered_at <= b.sent_at for a, b in itertools.pairwise(uploads))
 
 
-def test_the_asyncio_client_sends_every_agents_upload_and_reads_each_answer():
+def test_the_sockets_client_sends_every_agents_upload_and_reads_each_answer():
     received: list[str] = []
     server = _post_server(received, [])
     threading.Thread(target=server.serve_forever, daemon=True).start()
     try:
         agents = [[rest.Upload(None, f"t{n}", {"envelope": f"agent-{n}"})] for n in range(40)]
-        rest.post_uploads_asyncio(f"http://127.0.0.1:{server.server_port}/api/", agents)
+        rest.post_uploads_sockets(f"http://127.0.0.1:{server.server_port}/api/", agents)
         # A server that is not there: every upload says why, none is lost from the count.
         server.shutdown()
         server.server_close()
         gone = [[rest.Upload(None, "t", {"envelope": "x"})]]
-        rest.post_uploads_asyncio(f"http://127.0.0.1:{server.server_port}/api/", gone)
+        rest.post_uploads_sockets(f"http://127.0.0.1:{server.server_port}/api/", gone)
     finally:
         server.server_close()
     assert sorted(received) == sorted(f"agent-{n}" for n in range(40))
