@@ -37,7 +37,12 @@ WEB_MAX_WORKERS = 8
 # Threads per web process: enough for views that wait for their integrity check, few enough that
 # uploads (CPU-bound) do not crowd one process's interpreter. 700 uploads at once on 2 cores took
 # 2.37 s to anchored with 8 threads, 2.20 s with 4 and 2.17 s with 2 (medians of 3 fresh stacks,
-# run in alternation), the web's CPU about 5% lower with 4 than with 8.
+# run in alternation), the web's CPU about 5% lower with 4 than with 8. Processes: cores + 1.
+# With 5 (gunicorn's 2 x cores + 1), 3 and 2 processes of 4 threads the same bursts took alike
+# (medians 2.29, 2.25 and 2.27 s of 6-7 fresh stacks each, in alternation; one stack differed
+# from the next by up to 50% on this shared machine), the web's CPU for them 3.36, 3.20 and
+# 3.10 s: more processes than cores only add switching between them and their memory (about
+# 190 MiB each). The one beyond the cores serves while another is being replaced.
 WEB_MAX_THREADS = 4
 # Each web process is replaced by a fresh one after WEB_WORKER_LIFETIME seconds, or sooner once
 # it holds more than WEB_WORKER_MAX_RSS_MIB of memory (checked every 30 s), one at a time, the new
@@ -206,10 +211,10 @@ class WebSizing:
 
 
 def web_sizing(cores: int | None = None) -> WebSizing:
-    """2 x cores + 1 processes (at most WEB_MAX_WORKERS); threads, because a view that waits
-    for its integrity check holds its thread, not a whole process."""
+    """cores + 1 processes (at most WEB_MAX_WORKERS); threads, because a view that waits for
+    its integrity check holds its thread, not a whole process."""
     cores = cores or os.cpu_count() or 1
-    return WebSizing(workers=min(2 * cores + 1, WEB_MAX_WORKERS), threads=WEB_MAX_THREADS)
+    return WebSizing(workers=min(cores + 1, WEB_MAX_WORKERS), threads=WEB_MAX_THREADS)
 
 
 def web_server(

@@ -32,6 +32,7 @@ from stack.anvil import AnvilError, AnvilProcess, free_port, rpc_answers, start_
 from stack.processes import (
     PYTHON,
     REPO_ROOT,
+    WEB_MAX_THREADS,
     Children,
     StackError,
     WebSizing,
@@ -559,8 +560,13 @@ def main(argv: list[str]) -> int:
         ("--queue", str, defaults.queue, "CELERY_QUEUE (verify queue: QUEUE-verify)"),
         ("--workers", int, defaults.workers, "STACK_WORKERS: chain worker processes"),
         ("--verify-workers", int, defaults.verify_workers, "STACK_VERIFY_WORKERS"),
-        ("--web-workers", int, defaults.web_workers, "WEB_WORKERS (0 = 2 x cores + 1)"),
-        ("--web-threads", int, defaults.web_threads, "WEB_THREADS per web worker (0 = 8)"),
+        ("--web-workers", int, defaults.web_workers, "WEB_WORKERS (0 = cores + 1)"),
+        (
+            "--web-threads",
+            int,
+            defaults.web_threads,
+            f"WEB_THREADS per web worker (0 = {WEB_MAX_THREADS})",
+        ),
     )
     for flag, kind, default, what in options:
         run_parser.add_argument(flag, type=kind, default=default, help=f"{what} [{default}]")
