@@ -30,6 +30,7 @@ in the same run.
 import argparse
 import base64
 import errno
+import http.client
 import json
 import os
 import selectors
@@ -500,15 +501,17 @@ class _Connection:
         if selector is not None:
             selector.unregister(self.sock)
         self.sock.close()
+        if error is None and not self.answer:
+            error = http.client.RemoteDisconnected("closed without an answer")
         if error is not None:
             upload.status = type(error).__name__
             return
         answer = b"".join(self.answer)
         try:
-            status_line, _, rest = answer.partition(b"\r\n")
-            upload.status = status_line.split(b" ")[1].decode()
+            head, _, body = answer.partition(b"\r\n\r\n")
+            upload.status = head.split(b"\r\n", 1)[0].split(b" ")[1].decode()
             if upload.status == "201":
-                upload.record_id = json.loads(rest.partition(b"\r\n\r\n")[2])["id"]
+                upload.record_id = json.loads(body)["id"]
         except (IndexError, ValueError) as exc:
             upload.status = type(exc).__name__
 

@@ -8,6 +8,7 @@ import itertools
 import json
 import math
 import threading
+import time
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 
 import pytest
@@ -358,6 +359,49 @@ def test_the_sockets_client_sends_every_agents_upload_and_reads_each_answer():
     assert all(a[0].sent_at <= a[0].answered_at for a in agents)
     assert gone[0][0].status == "ConnectionRefusedError"
     assert gone[0][0].record_id is None
+
+
+def test_the_sockets_client_settles_uploads_that_get_no_proper_answer(monkeypatch):
+    """A connection closed without an answer, an answer sent in pieces, and one that never
+    comes: each upload says what became of it and the others are not held up."""
+    import socket
+
+    monkeypatch.setattr(rest, "REQUEST_TIMEOUT", 1.0)
+    listener = socket.create_server(("127.0.0.1", 0))
+    port = listener.getsockname()[1]
+    held: list[socket.socket] = []
+
+    def serve() -> None:
+        for _ in range(3):
+            connection, _peer = listener.accept()
+            request = b""
+            while b"\r\n\r\n" not in request:
+                request += connection.recv(65536)
+            if b"Token silent" in request:
+                connection.close()
+            elif b"Token pieces" in request:
+                for piece in (b"HTTP/1.1 201 Created\r\n", b"\r\n", b'{"id": "in-pieces"}'):
+                    connection.sendall(piece)
+                    time.sleep(0.05)
+                connection.close()
+            else:
+                held.append(connection)  # never answered
+
+    server = threading.Thread(target=serve, daemon=True)
+    server.start()
+    agents = [
+        [rest.Upload(None, token, {"envelope": token})] for token in ("silent", "pieces", "held")
+    ]
+    try:
+        rest.post_uploads_sockets(f"http://127.0.0.1:{port}/api/", agents)
+    finally:
+        for connection in held:
+            connection.close()
+        listener.close()
+    silent, pieces, never = (agent[0] for agent in agents)
+    assert (silent.status, silent.record_id) == ("RemoteDisconnected", None)
+    assert (pieces.status, pieces.record_id) == ("201", "in-pieces")
+    assert (never.status, never.record_id) == ("TimeoutError", None)
 
 
 def test_upload_runs_describe_their_pattern():
