@@ -16,8 +16,14 @@ authros_bench_<pid>_<n> on the PostgreSQL server at BENCH_PG_URL (default
 postgres://postgres@127.0.0.1:5432/postgres; the role must be allowed to create databases) and a
 SeaweedFS server (stack/seaweedfs.py, `weed server -s3`) in the work folder, envelopes in its
 bucket. stop() stops SeaweedFS and drops the database, whether the run succeeded or not.
+
+A stack holds its Redis database from start() to stop() (redis_database_claim): a second
+benchmark started on the same database meanwhile is refused, not let flush the first one's
+queues and keys.
 """
 
+import fcntl
+import hashlib
 import itertools
 import json
 import os
@@ -27,11 +33,12 @@ import shutil
 import signal
 import subprocess
 import sys
+import tempfile
 import time
 from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, LiteralString, Protocol
+from typing import IO, Any, LiteralString, Protocol
 
 import psutil
 
@@ -175,6 +182,23 @@ def web_description(web_workers: int = 0) -> str:
     return " ".join(web_server("127.0.0.1", "PORT", sizing)[2:])
 
 
+def redis_database_claim(redis_url: str) -> IO[str]:
+    """Hold `redis_url`'s database for one stack until the returned file is closed (a lock
+    on this machine; the OS drops it when the process ends). A stack flushes its database
+    as it starts: two benchmarks on one database would wipe each other's work."""
+    name = hashlib.sha256(redis_url.encode()).hexdigest()[:16]
+    handle = (Path(tempfile.gettempdir()) / f"authros-bench-redis-{name}.lock").open("a")
+    try:
+        fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        handle.close()
+        raise RuntimeError(
+            "another benchmark's stack is using this Redis database (its start flushes it): "
+            "wait for it to finish, or give this one another database with --redis-url"
+        ) from None
+    return handle
+
+
 class BenchStack:
     """`python -m stack run` in workdir (`--no-ros` unless options.ros); start(), use, stop()
     (always)."""
@@ -191,6 +215,7 @@ class BenchStack:
         self.database_name = ""
         self.seaweed: SeaweedProcess | None = None
         self.storage_environment: dict[str, str] = {}
+        self.redis_claim: IO[str] | None = None
         if options.engines not in ENGINES:
             raise ValueError(f"engines must be one of {ENGINES}, not {options.engines!r}")
         if options.engines == "postgres-s3":
@@ -232,10 +257,11 @@ class BenchStack:
         }
 
     def start(self) -> None:
-        """Flush the benchmark's Redis database, with postgres-s3 create the run's database
-        and start SeaweedFS, start the stack, wait until everything answers, then set up this
-        process's Django against it."""
+        """Claim and flush the benchmark's Redis database, with postgres-s3 create the run's
+        database and start SeaweedFS, start the stack, wait until everything answers, then set
+        up this process's Django against it."""
         options = self.options
+        self.redis_claim = redis_database_claim(options.redis_url)
         redis_client_for(options.redis_url).flushdb()
         self.var.mkdir(parents=True, exist_ok=True)
         if options.engines == "postgres-s3":
@@ -364,7 +390,12 @@ class BenchStack:
 
                 connections.close_all()
         finally:
-            self._engines_stop()
+            try:
+                self._engines_stop()
+            finally:
+                if self.redis_claim is not None:
+                    self.redis_claim.close()
+                    self.redis_claim = None
 
     def _engines_start(self) -> None:
         """The run's own database on the PostgreSQL server, and SeaweedFS with its bucket."""

@@ -33,6 +33,22 @@ def _options(engines: str = "sqlite-disk") -> StackOptions:
 # --- what a run's stack is given ----------------------------------------------------------------
 
 
+def test_a_stack_holds_its_redis_database_until_it_stops(tmp_path):
+    """A second benchmark on the same Redis database is refused while a stack holds it (its
+    start would flush the first one's queues), another database is not, and stop() lets go."""
+    url = f"redis://127.0.0.1:6379/11?claim-test={os.getpid()}"
+    first = BenchStack(_options(), tmp_path)
+    first.redis_claim = stack.redis_database_claim(url)
+    try:
+        with pytest.raises(RuntimeError, match="another benchmark's stack is using this Redis"):
+            stack.redis_database_claim(url)
+        stack.redis_database_claim(f"{url}-other").close()
+    finally:
+        first.stop()
+    assert first.redis_claim is None
+    stack.redis_database_claim(url).close()
+
+
 def test_sqlite_disk_is_the_default_and_keeps_everything_in_the_work_folder(tmp_path):
     bench_stack = BenchStack(_options(), tmp_path)
 
