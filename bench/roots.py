@@ -47,6 +47,7 @@ import itertools
 import os
 import pstats
 import secrets
+import sys
 import tempfile
 import threading
 import time
@@ -557,11 +558,20 @@ def _profiles(stack: BenchStack, client: Client, token: str, owner: Any) -> dict
 
 
 def _trimmed(text: str) -> str:
-    """pstats output from its table's header on, paths shortened to the repository's."""
+    """pstats output from its table's header on, paths shortened to the repository's (and the
+    virtual environment's to `.venv/`, wherever it is: a run from a worktree uses another's)."""
     lines = text.splitlines()
     start = next((n for n, line in enumerate(lines) if "ncalls" in line), 0)
-    root = str(Path(__file__).resolve().parents[1]) + "/"
-    return "\n".join(line.replace(root, "") for line in lines[start:] if line.strip())
+    shorter = {str(Path(__file__).resolve().parents[1]) + "/": ""}
+    if sys.prefix != sys.base_prefix:
+        shorter = {str(Path(sys.prefix)) + "/": ".venv/", **shorter}
+
+    def short(line: str) -> str:
+        for long, replacement in shorter.items():
+            line = line.replace(long, replacement)
+        return line
+
+    return "\n".join(short(line) for line in lines[start:] if line.strip())
 
 
 # --- the benchmark -----------------------------------------------------------------------------

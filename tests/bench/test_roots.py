@@ -70,3 +70,24 @@ def test_the_web_floor_is_the_single_uploads_cpu_spread_over_the_cores(monkeypat
 
     assert roots._web_floor({"single_upload_web_cpu_ms": 5.0}, 700) == pytest.approx(1.75)
     assert roots._web_floor({}, 700) is None
+
+
+def test_profiles_name_paths_from_the_repository_and_the_virtual_environment(monkeypatch):
+    """A run from a worktree uses a virtual environment outside it: both are shortened."""
+    repository = str(roots.Path(roots.__file__).resolve().parents[1])
+    monkeypatch.setattr(roots.sys, "prefix", "/elsewhere/.venv")
+    monkeypatch.setattr(roots.sys, "base_prefix", "/usr")
+    profile = (
+        "   12 function calls in 0.002 seconds\n\n"
+        "   ncalls  tottime  percall  cumtime  percall filename:lineno(function)\n"
+        f"        1    0.000    0.000    0.001    0.001 {repository}/sharing/services.py:1(f)\n"
+        "        1    0.000    0.000    0.001    0.001 /elsewhere/.venv/lib/django/a.py:2(g)\n"
+        "        1    0.000    0.000    0.001    0.001 /usr/lib/python3.11/json/b.py:3(h)\n"
+    )
+
+    lines = roots._trimmed(profile).splitlines()
+
+    assert lines[0].lstrip().startswith("ncalls")
+    assert lines[1].endswith(" sharing/services.py:1(f)")
+    assert lines[2].endswith(" .venv/lib/django/a.py:2(g)")
+    assert lines[3].endswith(" /usr/lib/python3.11/json/b.py:3(h)")
