@@ -417,21 +417,25 @@ def post_uploads_sockets(url: str, agents: list[list[Upload]]) -> None:
                 return
             progress.update(1)
 
+    def settled(connection: _Connection) -> None:
+        in_flight.discard(connection)
+        progress.update(1)
+        next_of(connection.queue)
+
     for uploads, encoded in zip(agents, requests_of, strict=True):
         next_of(zip(uploads, encoded, strict=True))
+    next_scan = time.time() + 1.0
     while in_flight:
         for key, _ in selector.select(timeout=1.0):
-            connection = key.data
-            if connection.step(selector):
-                in_flight.discard(connection)
-                progress.update(1)
-                next_of(connection.queue)
+            if key.data.step(selector):
+                settled(key.data)
         now = time.time()
+        if now < next_scan:  # deadlines are looked at once a second, not after every event
+            continue
+        next_scan = now + 1.0
         for connection in [c for c in in_flight if c.deadline < now]:
             connection.settle(selector, TimeoutError())
-            in_flight.discard(connection)
-            progress.update(1)
-            next_of(connection.queue)
+            settled(connection)
     selector.close()
     progress.close()
 
