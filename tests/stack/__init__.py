@@ -14,6 +14,7 @@ import uuid
 from collections.abc import Callable
 from pathlib import Path
 
+import psutil
 import redis
 import requests
 from django.conf import settings
@@ -181,7 +182,33 @@ class WorkerStack:
             timeout=timeout,
             what=f"the portal {name} (granian) to answer",
         )
+        # Each process loads the portal and only then opens its own listening socket: the
+        # first answer says one of them is up, not all (on a busy machine the last one takes
+        # seconds longer). A test that kills or replaces one expects the others to serve.
+        wait_for(
+            lambda: len(self.web_listening(name)) == workers,
+            timeout=timeout,
+            what=f"all {workers} processes of the portal {name} to listen",
+        )
         return url
+
+    def web_processes(self, name: str = "web") -> set[int]:
+        """The pids of the web server's worker processes (the children of its main one)."""
+        return {child.pid for child in psutil.Process(self.children[name].pid).children()}
+
+    def web_listening(self, name: str = "web") -> set[int]:
+        """The web server's worker processes that listen on its port (each has a socket of
+        its own, SO_REUSEPORT), so a new connection may reach any of them."""
+        port = self.web_port if name == "web" else self._web_ports[name]
+        listening = set()
+        for pid in self.web_processes(name):
+            try:
+                sockets = psutil.Process(pid).net_connections(kind="tcp")
+            except psutil.NoSuchProcess:
+                continue
+            if any(s.status == psutil.CONN_LISTEN and s.laddr.port == port for s in sockets):
+                listening.add(pid)
+        return listening
 
     @property
     def web_url(self) -> str:

@@ -26,11 +26,6 @@ RESENDS = 3
 RECYCLE_LOG = "RSS over threshold, gracefully respawning"
 
 
-def _web_processes(stack) -> set[int]:
-    """The pids of the web server's worker processes (the children of its main process)."""
-    return {child.pid for child in psutil.Process(stack.children["web"].pid).children()}
-
-
 def _upload_one(stack, setup, envelope: bytes) -> requests.Response:
     """The robot's sealed envelope POSTed on a connection of its own, as each agent of a fleet
     has one."""
@@ -54,7 +49,7 @@ def test_web_processes_over_their_memory_limit_are_replaced_while_uploads_go_on(
         max_rss_mib=1,
         env={**stack.env(), "GRANIAN_RSS_SAMPLE_INTERVAL": "1", **unlimited},
     )
-    first = _web_processes(stack)
+    first = stack.web_processes()
     answers: list[int] = []  # the answer each upload got in the end
     dropped: list[str] = []  # connections closed without an answer, each sent again
     stop = threading.Event()
@@ -80,7 +75,7 @@ def test_web_processes_over_their_memory_limit_are_replaced_while_uploads_go_on(
         thread.start()
     try:
         wait_for(
-            lambda: not (first & _web_processes(stack)),
+            lambda: not (first & stack.web_processes()),
             timeout=120,
             what="both web processes replaced",
             interval=0.5,
@@ -110,17 +105,20 @@ def test_a_web_process_that_dies_is_started_again(worker_stack):
     portal answers on through the others meanwhile and on the new one after."""
     stack = worker_stack(workers=1)
     setup = _robots(1)[0]
-    stack.start_web(workers=2)
-    first = _web_processes(stack)
-    victim = min(first)
+    stack.start_web(workers=2)  # returns once both processes listen
+    victim = min(stack.web_listening())
     psutil.Process(victim).kill()
+    wait_for(lambda: victim not in stack.web_listening(), timeout=10, what="the kill to land")
+    for seq in range(1, 6):  # meanwhile the other one serves
+        answer = _upload_one(stack, setup, setup.seal(seq))
+        assert answer.status_code == 201, answer.text
     wait_for(
-        lambda: len(_web_processes(stack)) == 2 and victim not in _web_processes(stack),
+        lambda: len(stack.web_listening()) == 2 and victim not in stack.web_processes(),
         timeout=60,
-        what="the killed web process replaced",
+        what="the killed web process replaced by one that listens",
         interval=0.5,
     )
-    for seq in range(1, 21):  # new connections, spread over both processes
+    for seq in range(6, 26):  # new connections, spread over both processes
         answer = _upload_one(stack, setup, setup.seal(seq))
         assert answer.status_code == 201, answer.text
     assert stack.children["web"].running()
