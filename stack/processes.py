@@ -52,13 +52,14 @@ WEB_MAX_THREADS = 4
 WEB_WORKER_LIFETIME = 900
 WEB_WORKER_MAX_RSS_MIB = 400
 WEB_GRACEFUL_TIMEOUT = 10
-# Seconds between starting a replacement and telling the process it replaces to stop: the new
-# one loads the portal first (2-3 s on a busy 2-core machine), so that the others are not left
-# to serve alone. Each process has a listening socket of its own (SO_REUSEPORT): the
+# A replacement loads the portal, then opens a listening socket of its own (SO_REUSEPORT); the
+# process it replaces is told to stop once it listens (stack/webserver.py), or after this many
+# seconds at most: 2-3 s on an idle 2-core machine, longer on a loaded one (a full test run
+# refused connections when granian's fixed 10 s were not enough). The
 # connections waiting at one that stops move to the others only with the kernel's
 # net.ipv4.tcp_migrate_req=1, which scripts/bootstrap.sh sets where it runs as root; without
 # it they are reset (granian says so in the web log at start).
-WEB_RESPAWN_INTERVAL = 10
+WEB_REPLACEMENT_TIMEOUT = 60
 _PR_SET_PDEATHSIG = 1
 
 
@@ -227,11 +228,12 @@ def web_server(
     access_log: bool = True,
 ) -> list[str]:
     """The portal under granian (a WSGI server written in Rust), as `make run` serves it:
-    sizing.workers processes, each running the portal in sizing.threads threads."""
+    sizing.workers processes, each running the portal in sizing.threads threads, each replaced
+    once its successor listens (stack/webserver.py)."""
     return [
         PYTHON,
         "-m",
-        "granian",
+        "stack.webserver",
         "portal.wsgi:application",
         "--interface",
         "wsgi",
@@ -254,7 +256,7 @@ def web_server(
         "--workers-kill-timeout",
         str(WEB_GRACEFUL_TIMEOUT),
         "--respawn-interval",
-        str(WEB_RESPAWN_INTERVAL),
+        str(WEB_REPLACEMENT_TIMEOUT),
         *(["--access-log"] if access_log else []),
     ]
 

@@ -233,6 +233,7 @@ _NO_DATABASE = (
     "tests/ros_agent/test_uploader.py",
     "tests/ros_agent/test_wrapping.py",
     "tests/stack/test_stack_ros2.py",
+    "tests/stack/test_webserver.py",
 )
 
 
