@@ -14,6 +14,7 @@ import json
 import logging
 import os
 import re
+import sys
 import threading
 import time
 import uuid
@@ -50,12 +51,16 @@ from web3.types import TxReceipt
 
 from chainworker.nonces import NonceLockTimeout, NonceStoreUnavailable, RedisNonceManager
 
-try:
-    from eth_tester.exceptions import TransactionFailed as _EthTesterReverted
-except ImportError:  # eth-tester is only needed for eth-tester:// URLs
-    _EthTesterReverted = ContractLogicError
-# What a refused call raises: web3's errors for real nodes, eth-tester's for in-process.
-_REVERTS: tuple[type[Exception], ...] = (ContractLogicError, _EthTesterReverted)
+
+def _reverts() -> tuple[type[Exception], ...]:
+    """What a refused call raises: web3's errors for real nodes, and eth-tester's for an
+    in-process chain. eth-tester (py-evm, about 0.4 s to import) is loaded only by eth-tester://
+    URLs, so a process that has not loaded it cannot meet its error."""
+    tester = sys.modules.get("eth_tester.exceptions")
+    if tester is None:
+        return (ContractLogicError,)
+    return (ContractLogicError, tester.TransactionFailed)
+
 
 logger = logging.getLogger(__name__)
 
@@ -904,7 +909,7 @@ class AuthROSChain:
         with _translated_errors(function):
             try:
                 return fn.call()
-            except _REVERTS as exc:
+            except _reverts() as exc:
                 raise self._reverted(exc, function) from exc
             except BadFunctionCallOutput as exc:
                 # An empty answer: no code at the address (a reset chain), not a crash.
@@ -1096,7 +1101,7 @@ class AuthROSChain:
                 if gas is None:
                     gas = int(fn.estimate_gas({**params, "gasPrice": 0}) * GAS_MARGIN)
                 tx = fn.build_transaction(self._fill_fees({**params, "gas": gas}))
-        except _REVERTS as exc:
+        except _reverts() as exc:
             raise self._reverted(exc, label) from exc
         except (Web3RPCError, EthValidationError, ValueError) as exc:
             if _INSUFFICIENT_FUNDS.search(str(exc)):
@@ -1243,7 +1248,7 @@ class AuthROSChain:
         call = {"from": tx["from"], "to": tx["to"], "data": tx["input"], "value": tx["value"]}
         try:
             self.w3.eth.call(call, block_identifier=int(receipt["blockNumber"]) - 1)
-        except _REVERTS as exc:
+        except _reverts() as exc:
             return self._reverted(exc, function, tx_hash)
         except Web3RPCError:
             pass

@@ -87,5 +87,5 @@ def warm_up() -> None:
 
 warm_up()
 # The environment as the server copies it: after the settings read `.env` into it and the
-# warm-up's imports added theirs (OpenCV's sets LD_LIBRARY_PATH).
+# warm-up's imports added theirs.
 application = without_process_environment(application, os.environ)

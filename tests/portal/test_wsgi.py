@@ -24,6 +24,17 @@ def test_a_worker_imports_every_view_at_boot_and_keeps_its_database_connections(
     assert booted["health"] is True
 
 
+def test_a_worker_loads_neither_the_in_process_chain_nor_opencv():
+    """eth-tester (py-evm) is for eth-tester:// chains, OpenCV for MCAP exports in the worker:
+    together about 1 s of CPU and 37 MiB in every web process that loaded them at boot."""
+    program = (
+        "import sys, json, portal.wsgi\n"
+        "print(json.dumps(sorted(m for m in ('eth_tester', 'eth', 'cv2', 'sharing.mcap_export') "
+        "if m in sys.modules)))"
+    )
+    assert json.loads(fresh_python(program)) == []
+
+
 def test_a_worker_keeps_what_its_boot_made_out_of_the_collectors_walks():
     program = "import gc, portal.wsgi\nprint(gc.get_freeze_count())"
     frozen = int(fresh_python(program))
