@@ -16,6 +16,7 @@ once, as before.
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 
 import granian.cli
 import psutil
@@ -35,14 +36,17 @@ def listening(pid: int, port: int) -> bool:
     return any(s.status == psutil.CONN_LISTEN and s.laddr.port == port for s in sockets)
 
 
-def successor_ready(worker: WorkerProcess, port: int, timeout: float) -> bool:
-    """Wait until the new worker listens on `port`: True once it does, False if it died or
-    `timeout` seconds passed first."""
+def successor_ready(
+    worker: WorkerProcess, port: int, timeout: float, stopping: Callable[[], bool]
+) -> bool:
+    """Wait until the new worker listens on `port`: True once it does, False if it died, the
+    server is stopping (a SIGTERM or Ctrl-C must not wait for it) or `timeout` seconds passed
+    first."""
     deadline = time.monotonic() + timeout
     while True:
         if listening(worker._id(), port):
             return True
-        if not worker.inner.is_alive() or time.monotonic() >= deadline:
+        if not worker.inner.is_alive() or stopping() or time.monotonic() >= deadline:
             return False
         time.sleep(READY_POLL_INTERVAL)
 
@@ -63,10 +67,10 @@ class ReadyReplacingServer(MPServer):
             self.wrks.insert(idx, wrk)
             if delay:  # a graceful replacement; a crashed process has nothing left to serve
                 started = time.monotonic()
-                if successor_ready(wrk, self.bind_port, delay):
+                if successor_ready(wrk, self.bind_port, delay, self._stopping):
                     waited = time.monotonic() - started
                     logger.info(f"worker-{idx + 1} replacement listens after {waited:.1f}s")
-                else:
+                elif not self._stopping():
                     logger.warning(
                         f"worker-{idx + 1} replacement does not listen after {delay:g}s; "
                         "stopping the old one anyway"
@@ -86,6 +90,10 @@ class ReadyReplacingServer(MPServer):
                     old_wrk.join()
             logger.info(f"Stopped old worker-{idx + 1}")
         self._metrics.incr_spawn(len(workers))
+
+    def _stopping(self) -> bool:
+        """A SIGTERM or Ctrl-C arrived (granian's handler sets this)."""
+        return self.interrupt_signal
 
 
 def main() -> None:
