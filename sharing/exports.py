@@ -16,7 +16,6 @@ import uuid
 from collections.abc import Sequence
 from dataclasses import dataclass
 from datetime import UTC, datetime, timedelta
-from typing import TYPE_CHECKING
 
 from django.conf import settings
 from django.db import transaction
@@ -37,6 +36,7 @@ from sharing.errors import (
     ExportRefused,
     SharingError,
 )
+from sharing.mcap_export import McapBuilder, message_encode
 from sharing.models import Export, Record, Verdict
 from sharing.selectors import export_of, record_list_visible_to, record_proof
 from sharing.storage import envelope_storage, envelopes_save
@@ -44,9 +44,6 @@ from sharing.verification import record_key, records_verify
 from smcrypto import envelope as envelopes
 from smcrypto.errors import CryptoError
 from smcrypto.sm3 import sm3_hex
-
-if TYPE_CHECKING:
-    from sharing.mcap_export import McapBuilder
 
 logger = logging.getLogger(__name__)
 
@@ -174,10 +171,6 @@ def export_run(*, export_id: uuid.UUID | str) -> Export:
 
 
 def _run(export: Export) -> None:
-    # Here, not at the top: OpenCV and the ROS 2 type store (about 0.3 s and tens of MiB) load
-    # in the worker that runs an export, not in every web and worker process.
-    from sharing.mcap_export import McapBuilder
-
     selection = Selection.from_json(export.selection)
     records = list(
         export_records(export.requester, selection).select_related("owner__user", "anchor_root")
@@ -284,7 +277,7 @@ class _Keys:
 
 
 def _exported(
-    record: Record, data: bytes, keys: _Keys, builder: "McapBuilder", sequence: int
+    record: Record, data: bytes, keys: _Keys, builder: McapBuilder, sequence: int
 ) -> dict[str, object]:
     """Write the record's message into the MCAP file; its bundle entry but the proof."""
     header, plaintext = envelopes.open(keys.of(record), data)
@@ -292,8 +285,6 @@ def _exported(
         document = document_parse(plaintext)
     except Uninterpretable:
         document = None
-    from sharing.mcap_export import message_encode  # loaded by _run already
-
     message = message_encode(data_type=record.data_type, document=document, plaintext=plaintext)
     captured_ns = _micros(record.captured_at) * 1000
     # The message's own stamp when it is the capture time (the header keeps microseconds).

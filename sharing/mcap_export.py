@@ -20,7 +20,6 @@ from dataclasses import dataclass
 from functools import cache
 from typing import IO, Any
 
-import cv2
 import numpy as np
 from mcap.writer import CompressionType, Writer
 from rosbags.typesys import Stores, get_typestore
@@ -45,10 +44,10 @@ _NUMPY_TYPES = {
     "float64": np.float64,
 }
 # ROS image encoding -> (element type, channels, OpenCV conversion from the decoded PNG)
-_IMAGE_ENCODINGS: dict[str, tuple[type, int, int | None]] = {
-    "rgb8": (np.uint8, 3, cv2.COLOR_BGR2RGB),
+_IMAGE_ENCODINGS: dict[str, tuple[type, int, str | None]] = {
+    "rgb8": (np.uint8, 3, "COLOR_BGR2RGB"),
     "bgr8": (np.uint8, 3, None),
-    "rgba8": (np.uint8, 4, cv2.COLOR_BGRA2RGBA),
+    "rgba8": (np.uint8, 4, "COLOR_BGRA2RGBA"),
     "bgra8": (np.uint8, 4, None),
     "mono8": (np.uint8, 1, None),
     "8UC1": (np.uint8, 1, None),
@@ -165,12 +164,16 @@ def _image(msgtype: str, data: Any) -> Any:
     encoding = _text(data.get("encoding"))
     if encoding not in _IMAGE_ENCODINGS or data.get("format") != "png":
         raise Unbuildable(f"image encoding {encoding!r} is not one the agent stores")
+    # OpenCV (about 17 MiB) loads with the first image of an export, in the worker running it,
+    # not in every web and worker process that imports this module.
+    import cv2
+
     element, channels, conversion = _IMAGE_ENCODINGS[encoding]
     pixels = cv2.imdecode(np.frombuffer(_base64(data.get("data")), np.uint8), cv2.IMREAD_UNCHANGED)
     if pixels is None:
         raise Unbuildable("the image is not a PNG")
     if conversion is not None:
-        pixels = cv2.cvtColor(pixels, conversion)
+        pixels = cv2.cvtColor(pixels, getattr(cv2, conversion))
     width, height = _integer(data.get("width")), _integer(data.get("height"))
     expected = (height, width) if channels == 1 else (height, width, channels)
     if pixels.shape != expected or pixels.dtype != element:

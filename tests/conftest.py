@@ -237,6 +237,15 @@ _NO_DATABASE = (
 )
 
 
+def pytest_configure(config: pytest.Config) -> None:
+    """Passwords hashed in this process at few iterations (tests/hashers.py), before anything
+    has hashed one (Django caches the hashers it built)."""
+    django_settings.PASSWORD_HASHERS = [
+        "tests.hashers.FewIterationsPBKDF2PasswordHasher",
+        *django_settings.PASSWORD_HASHERS,
+    ]
+
+
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
     root = str(config.rootpath) + "/"
     for item in items:
