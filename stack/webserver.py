@@ -20,7 +20,6 @@ from collections.abc import Callable
 
 import granian.cli
 import psutil
-from granian.cli import entrypoint
 from granian.log import logger
 from granian.server.mp import MPServer, WorkerProcess
 
@@ -101,7 +100,7 @@ def main() -> None:
     # one wherever the interpreter has a GIL (the threaded one otherwise, left as it is).
     if granian.cli.Server is MPServer:
         granian.cli.Server = ReadyReplacingServer
-    entrypoint()
+    granian.cli.entrypoint()
 
 
 if __name__ == "__main__":

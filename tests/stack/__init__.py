@@ -33,6 +33,7 @@ from stack.processes import (
     web_server,
 )
 from stack.processes import wait_until as _wait_until
+from stack.webserver import listening
 
 __all__ = ["REPO_ROOT", "WorkerStack", "database_url", "wait_for"]
 
@@ -200,15 +201,7 @@ class WorkerStack:
         """The web server's worker processes that listen on its port (each has a socket of
         its own, SO_REUSEPORT), so a new connection may reach any of them."""
         port = self.web_port if name == "web" else self._web_ports[name]
-        listening = set()
-        for pid in self.web_processes(name):
-            try:
-                sockets = psutil.Process(pid).net_connections(kind="tcp")
-            except psutil.NoSuchProcess:
-                continue
-            if any(s.status == psutil.CONN_LISTEN and s.laddr.port == port for s in sockets):
-                listening.add(pid)
-        return listening
+        return {pid for pid in self.web_processes(name) if listening(pid, port)}
 
     @property
     def web_url(self) -> str:
