@@ -83,6 +83,8 @@ _NONCE_ERROR = re.compile(
 )
 # The node has this very transaction already (an earlier send that timed out did arrive):
 # it is sent, and signing it again with another nonce would send it twice.
+# How often a receipt wait asks whether the node can still mine the transaction at all.
+DROPPED_CHECK_INTERVAL = 5.0
 _ALREADY_KNOWN = re.compile(r"already known|known transaction|already imported", re.IGNORECASE)
 
 
@@ -137,6 +139,17 @@ class TransactionTimeout(ChainError):
     def __init__(self, tx_hash: str, timeout: float) -> None:
         self.tx_hash = tx_hash
         super().__init__(f"no receipt for {tx_hash} within {timeout:.0f}s")
+
+
+class TransactionDropped(ChainError):
+    """The node will never mine a transaction we sent: it no longer holds it, or holds it
+    behind a gap in its sender's nonces (the node lost the sender's earlier transactions: it
+    restarted without them, or lost its latest blocks). Send again; the sender's nonce counter
+    was resynced from the node when the gap was seen."""
+
+    def __init__(self, tx_hash: str, reason: str) -> None:
+        self.tx_hash = tx_hash
+        super().__init__(f"{tx_hash} will never be mined: {reason}")
 
 
 class NonceError(ChainError):
@@ -691,13 +704,32 @@ class AuthROSChain:
         )
 
     def transaction_pending(self, tx_hash: str) -> bool:
-        """Whether the node holds the transaction and has not mined it yet (its pool)."""
+        """Whether the node holds the transaction ready to mine and has not mined it yet. One
+        it holds behind a gap in its sender's nonces is not: it waits for transactions the
+        node lost, and is mined only if someone sends them."""
+        mined, never = self._transaction_fate(tx_hash)
+        return not mined and not never
+
+    def _transaction_fate(self, tx_hash: str) -> tuple[bool, str]:
+        """(mined, why the node will never mine it): "" while it may. Never: the node does not
+        hold it, or holds it behind a nonce gap. A gap means the node lost its sender's earlier
+        transactions, so the sender's nonce counter is resynced: the next send counts from the
+        node instead of queueing behind the gap too."""
         with _translated_errors():
             try:
                 tx = self.w3.eth.get_transaction(HexBytes(tx_hash))
             except TransactionNotFound:
-                return False
-        return tx.get("blockNumber") is None
+                return False, "the node does not hold it"
+            if tx.get("blockNumber") is not None:
+                return True, ""
+            ready = self._pending_nonce(tx["from"])
+        if tx["nonce"] < ready:
+            return False, ""
+        self.resync_nonce(tx["from"])
+        return False, (
+            f"its nonce {tx['nonce']} waits behind a gap (the node's next nonce for "
+            f"{tx['from']} is {ready}: it lost the transactions before it)"
+        )
 
     def last_root_of(self, sender: str) -> bytes:
         """The last root `sender` anchored (zeros before its first)."""
@@ -1210,7 +1242,12 @@ class AuthROSChain:
     def _receipt_poll(self, tx_hash: str, deadline: float, timeout: float) -> TxReceipt:
         """The receipt from a real node, asked every poll_interval by lean requests (a receipt
         is formatted as web3 formats it once it is there). A node that cannot tell yet (geth
-        while it indexes transactions) is asked again, as web3 does."""
+        while it indexes transactions) is asked again, as web3 does.
+
+        Every DROPPED_CHECK_INTERVAL, and when the time is up, the node is asked whether it can
+        still mine the transaction at all: one it lost, or holds behind a nonce gap, raises
+        TransactionDropped at once instead of being waited for until the timeout."""
+        checked = time.monotonic()
         while True:
             try:
                 raw = self._rpc_lean("eth_getTransactionReceipt", [tx_hash], label="receipt")
@@ -1219,7 +1256,12 @@ class AuthROSChain:
                 raw = None
             if isinstance(raw, dict) and raw.get("blockHash") is not None:
                 return receipt_formatter(raw)
-            if time.monotonic() >= deadline:
+            now = time.monotonic()
+            if now >= deadline or now - checked >= DROPPED_CHECK_INTERVAL:
+                checked = now
+                if never := self._transaction_fate(tx_hash)[1]:
+                    raise TransactionDropped(tx_hash, never)
+            if now >= deadline:
                 raise TransactionTimeout(tx_hash, timeout)
             time.sleep(min(self.poll_interval, max(deadline - time.monotonic(), 0)))
 

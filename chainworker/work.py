@@ -9,7 +9,13 @@ from celery.exceptions import SoftTimeLimitExceeded
 from redis.exceptions import LockError, RedisError
 from redis.lock import Lock
 
-from chainworker.chain import ChainUnavailable, InsufficientFunds, NonceError, TransactionTimeout
+from chainworker.chain import (
+    ChainUnavailable,
+    InsufficientFunds,
+    NonceError,
+    TransactionDropped,
+    TransactionTimeout,
+)
 from core.redis_client import get_redis, redis_key
 
 
@@ -42,6 +48,7 @@ def exclusive(name: str, *, timeout: float = 60.0, wait: float = 30.0) -> Iterat
 TRANSIENT = (
     ChainUnavailable,
     TransactionTimeout,
+    TransactionDropped,
     NonceError,
     InsufficientFunds,
     ChainWorkNotReady,

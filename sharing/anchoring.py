@@ -32,6 +32,7 @@ from chainworker.chain import (
     AuthROSChain,
     ChainUnavailable,
     InsufficientFunds,
+    TransactionDropped,
     TransactionReverted,
     TransactionTimeout,
 )
@@ -215,17 +216,13 @@ def _anchor_round(client: AuthROSChain, owner: Owner, lock: Lock) -> tuple[int, 
             # The node (or Redis) is away: that is not the records' fault, so it does not
             # count towards ANCHOR_MAX_ATTEMPTS; an outage of any length loses nothing. If the
             # send did reach the node, the next send is refused with RecordExists and settled.
-            Record.objects.filter(pk__in=batch_ids, anchor_attempts__gt=0).update(
-                anchor_attempts=F("anchor_attempts") - 1
-            )
+            _attempts_return(batch_ids)
             raise
         except InsufficientFunds as exc:
             # The owner's account cannot pay for gas: an outage that waits, using up no attempt,
             # with its reason shown; the operator tops the account up and the task (or the
             # sweep) sends again.
-            Record.objects.filter(pk__in=batch_ids, anchor_attempts__gt=0).update(
-                anchor_attempts=F("anchor_attempts") - 1
-            )
+            _attempts_return(batch_ids)
             pending = Record.objects.filter(owner_id=owner.pk, status=Record.Status.PENDING)
             gas_wait_start(owner.pk, pending.exclude(pk__in=sent_ids))
             cannot_pay = exc
@@ -251,9 +248,12 @@ def _anchor_round(client: AuthROSChain, owner: Owner, lock: Lock) -> tuple[int, 
             # attempts go back; chain_stall_check pauses every sender and tells the operator.
             if chain_stall_check(since=time.time() - client.receipt_timeout).stalled:
                 unmined = [r.pk for waiting, _tx in in_flight[position:] for r in waiting]
-                Record.objects.filter(
-                    pk__in=unmined, status=Record.Status.PENDING, anchor_attempts__gt=0
-                ).update(anchor_attempts=F("anchor_attempts") - 1)
+                _attempts_return(unmined)
+            raise
+        except TransactionDropped:
+            # The node lost it (restarted without it, or lost its latest blocks): not the
+            # records' fault either; the next run sends them again.
+            _attempts_return([r.pk for waiting, _tx in in_flight[position:] for r in waiting])
             raise
         block = int(receipt["blockNumber"])
         Record.objects.filter(pk__in=[r.pk for r in batch], status=Record.Status.PENDING).update(
@@ -275,6 +275,12 @@ def _anchor_round(client: AuthROSChain, owner: Owner, lock: Lock) -> tuple[int, 
     if cannot_pay is not None:
         raise cannot_pay
     return anchored, len(in_flight)
+
+
+def _attempts_return(record_ids: list[uuid.UUID]) -> None:
+    Record.objects.filter(
+        pk__in=record_ids, status=Record.Status.PENDING, anchor_attempts__gt=0
+    ).update(anchor_attempts=F("anchor_attempts") - 1)
 
 
 def _next_batch(owner: Owner, *, exclude: list[uuid.UUID]) -> list[Record]:

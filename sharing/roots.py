@@ -33,6 +33,7 @@ from chainworker.chain import (
     AuthROSChain,
     ChainUnavailable,
     InsufficientFunds,
+    TransactionDropped,
     TransactionReverted,
     TransactionTimeout,
 )
@@ -105,6 +106,12 @@ def roots_anchor_round(client: AuthROSChain, owner: Owner, lock: Lock) -> tuple[
             if chain_stall_check(since=time.time() - client.receipt_timeout).stalled:
                 # As in records mode: a stalled chain is not these records' fault.
                 _attempts_return([waiting for waiting, _tx in in_flight[position:]])
+            raise
+        except TransactionDropped:
+            # The node lost it (restarted without it, or lost its latest blocks): not the
+            # records' fault either. The next run sends the tree again, counting nonces from
+            # the node.
+            _attempts_return([waiting for waiting, _tx in in_flight[position:]])
             raise
         anchored += _tree_anchored(tree, tx_hash=tx_hash, block=int(receipt["blockNumber"]))
     if refusal is not None:

@@ -182,12 +182,14 @@ def records_mode(settings):
 
 
 @pytest.fixture
-def worker_stack(tmp_path, settings):
+def worker_stack(tmp_path, settings, request):
     """Start real Celery workers and beat on an anvil of their own (tests.stack.WorkerStack):
-    worker_stack(workers=N, block_time=None, env_overrides=None); stopped after the test."""
+    worker_stack(workers=N, block_time=None, env_overrides=None); stopped after the test. A
+    failing test's report ends with the last lines of each process's log."""
     from tests.stack import WorkerStack
 
     stacks = []
+    request.node.worker_stacks = stacks
 
     def make(
         *,
@@ -235,6 +237,23 @@ _NO_DATABASE = (
     "tests/stack/test_stack_ros2.py",
     "tests/stack/test_webserver.py",
 )
+
+
+# How much of each stack process's log a failing test's report shows.
+_FAILURE_LOG_LINES = 60
+
+
+@pytest.hookimpl(wrapper=True)
+def pytest_runtest_makereport(item: pytest.Item, call: pytest.CallInfo) -> pytest.TestReport:
+    """A test that fails with worker stacks running reports the end of their processes' logs:
+    the test's own output rarely says why a worker did not finish in time."""
+    report = yield
+    if report.when == "call" and report.failed:
+        for stack in getattr(item, "worker_stacks", ()):
+            for path in sorted(stack.logs.glob("*.log")):
+                lines = path.read_text(errors="replace").splitlines()[-_FAILURE_LOG_LINES:]
+                report.sections.append((f"end of {path.name}", "\n".join(lines)))
+    return report
 
 
 def pytest_configure(config: pytest.Config) -> None:

@@ -21,6 +21,7 @@ from chainworker.chain import (
     ContractNotDeployed,
     InsufficientFunds,
     NodeRefused,
+    TransactionDropped,
     TransactionReverted,
     TransactionTimeout,
     rpc_session,
@@ -156,6 +157,35 @@ def test_receipt_timeout_when_nothing_is_mined(redis_client, tmp_path):
         assert timed_out.value.tx_hash == tx_hash
         client.w3.provider.make_request("evm_mine", [])
         assert client.wait_for_receipt(tx_hash, timeout=5)["status"] == 1
+
+
+def test_a_transaction_the_node_lost_or_holds_behind_a_nonce_gap_is_not_waited_for(
+    redis_client,
+):
+    """A node that lost a sender's transaction (a restart without its pool, lost blocks) never
+    mines the ones sent after it with the next nonces: the wait for their receipt ends at once,
+    the nonce counter goes back to the node's count, and the next send is mined."""
+    with start_anvil() as node:
+        client, operator = _deployed(node.url, redis_client)
+        owner = _registered(client, operator)
+        client.w3.provider.make_request("evm_setAutomine", [False])
+        lost = client.data_upload(owner, _item(), wait=False)
+        ready_nonce = client.w3.eth.get_transaction_count(owner.address)
+        assert client.transaction_pending(lost)
+        client.w3.provider.make_request("anvil_dropTransaction", [lost])
+        client.w3.provider.make_request("evm_setAutomine", [True])
+        with pytest.raises(TransactionDropped, match="does not hold it"):
+            client.wait_for_receipt(lost)
+        # Our counter still counts the lost one: the next send waits behind the gap.
+        gapped = client.data_upload(owner, _item(), wait=False)
+        assert client.w3.eth.get_transaction(gapped)["nonce"] == ready_nonce + 1
+        assert not client.transaction_pending(gapped)
+        with pytest.raises(TransactionDropped, match="waits behind a gap"):
+            client.wait_for_receipt(gapped)
+        item = _item()
+        receipt = client.wait_for_receipt(client.data_upload(owner, item, wait=False))
+        assert client.w3.eth.get_transaction(receipt["transactionHash"])["nonce"] == ready_nonce
+        assert client.data_query(item.record_id) is not None
 
 
 def test_confirmations_are_awaited(redis_client):

@@ -9,6 +9,8 @@ import re
 import threading
 import time
 import uuid
+from collections.abc import Iterator
+from contextlib import contextmanager
 
 import pytest
 import redis
@@ -121,11 +123,12 @@ def test_worker_killed_in_the_middle_of_a_batch(worker_stack):
     _assert_each_anchored_exactly_once(stack)
 
 
-def test_chain_down_for_twenty_seconds(worker_stack):
-    stack = worker_stack(workers=1)
-    (setup,) = _robots(1)
+@contextmanager
+def uploading(setup: RobotSetup, *, every: float = 0.2) -> Iterator[list[Record]]:
+    """The robot uploads a record every `every` seconds (in a thread, through the upload
+    service) while the block runs; yields the list of what it uploaded, growing."""
     stop_uploading = threading.Event()
-    uploaded = []
+    uploaded: list[Record] = []
 
     def upload() -> None:
         seq = 1
@@ -133,7 +136,7 @@ def test_chain_down_for_twenty_seconds(worker_stack):
             while not stop_uploading.is_set():
                 uploaded.append(record_create(robot=setup.robot, data=setup.seal(seq)))
                 seq += 1
-                time.sleep(0.2)
+                time.sleep(every)
         finally:
             # This thread's own database connection: left open, it keeps the test database
             # from being dropped at the end of the run.
@@ -142,15 +145,22 @@ def test_chain_down_for_twenty_seconds(worker_stack):
     uploader = threading.Thread(target=upload)
     uploader.start()
     try:
+        yield uploaded
+    finally:
+        stop_uploading.set()
+        uploader.join()
+
+
+def test_chain_down_for_twenty_seconds(worker_stack):
+    stack = worker_stack(workers=1)
+    (setup,) = _robots(1)
+    with uploading(setup) as uploaded:
         time.sleep(3)
         stack.stop_anvil()
         time.sleep(20)
         assert Record.objects.filter(status=Record.Status.PENDING).exists()
         stack.restart_anvil()
         time.sleep(3)
-    finally:
-        stop_uploading.set()
-        uploader.join()
     _all_anchored(len(uploaded), timeout=180)
     _assert_each_anchored_exactly_once(stack)
 

@@ -8,6 +8,7 @@ nothing lost and nothing failed. Reconciliation runs every 3 s here (RECONCILE_I
 """
 
 import base64
+import time
 
 import pytest
 import requests
@@ -22,7 +23,7 @@ from sharing.reconcile import RECONCILE_LOCK, chain_resync
 from sharing.services import grant_create, grant_revoke, record_create, record_create_batch
 from smcrypto import sm4
 from tests.anchoring_checks import assert_anchored_exactly_once, records_on_chain
-from tests.chainworker.test_worker_reliability import _robots
+from tests.chainworker.test_worker_reliability import _robots, uploading
 from tests.conftest import RobotSetup
 from tests.stack import WorkerStack, wait_for
 
@@ -190,6 +191,34 @@ def test_anvil_reverted_ten_blocks(fault_stack):
     _wait_settled(stack, 20)
     _assert_end_state(20, {(alice.owner, bob.owner): True})
     assert "the chain lost" in stack.worker_logs()
+
+
+def test_anvil_killed_after_blocks_it_never_wrote_while_a_robot_uploads(fault_stack):
+    """kill -9 of the node: the blocks it mined since its last state write are gone with the
+    roots in them, and the owner's nonce counter is ahead of what the restarted node knows. A
+    root sent then waits behind the nonce gap for ever (the receipt timeout here is an hour):
+    it is seen as never to be mined and sent again from the node's count, and the lost roots
+    are sent again by the reconciliation."""
+    stack = fault_stack(workers=1, env_overrides={"CHAIN_RECEIPT_TIMEOUT": "3600"})
+    (setup,) = _robots(1)
+    with uploading(setup) as uploaded:
+        time.sleep(2)
+        assert stack.anvil.keeper is not None
+        stack.anvil.keeper.write()
+        written = Record.objects.filter(status=Record.Status.ANCHORED).count()
+        wait_for(
+            lambda: Record.objects.filter(status=Record.Status.ANCHORED).count() > written + 2,
+            timeout=60,
+            what="records anchored in blocks the state file lacks",
+        )
+        stack.kill_anvil()
+        stack.restart_anvil()
+        time.sleep(3)
+    lost = Record.objects.filter(status=Record.Status.ANCHORED).count() - written
+    assert lost > 2
+    _wait_settled(stack, len(uploaded))
+    _assert_end_state(len(uploaded), {})
+    assert "will never be mined" in stack.worker_logs()
 
 
 def test_a_full_chain_reset_with_grants_and_a_rotated_key(fault_stack):
