@@ -37,7 +37,7 @@ from chainworker.chain import (
     TransactionTimeout,
 )
 from chainworker.services import chain_client, chain_stall_check, chain_work_check
-from chainworker.work import ChainWorkNotReady
+from chainworker.work import CHAIN_TASK, TRANSIENT, ChainWorkNotReady
 from core.outbox import enqueue
 from core.redis_client import get_redis, redis_key
 from sharing.anchor_wait import (
@@ -55,6 +55,8 @@ security_log = logging.getLogger("authros.security")
 
 # How long records on chain but not yet CHAIN_CONFIRMATIONS deep wait before a new look.
 ANCHOR_RECHECK_DELAY = 2.0
+# Seconds a failed run's flag outlives its longest retry backoff (a busy worker starts late).
+RETRY_FLAG_MARGIN = 30
 
 
 def anchor_schedule(*, owner_id: int, countdown: float | None = None) -> None:
@@ -86,6 +88,18 @@ def _anchor_enqueue(owner_id: int, *, first: bool, countdown: float | None) -> N
         _anchor_unschedule(owner_id)  # not queued: the flag must not keep the sweep from it
 
 
+def _anchor_flag_hold(owner_id: int) -> None:
+    """Keep the "a run is queued" flag set for as long as a retry of the run may take (the
+    longest backoff of CHAIN_TASK and a margin): if the retry never runs (its worker died
+    with it), the flag lapses and the next upload or the beat sweep queues a run."""
+    with suppress(RedisError):
+        get_redis().set(
+            redis_key("anchor-scheduled", owner_id),
+            1,
+            ex=int(CHAIN_TASK["retry_backoff_max"]) + RETRY_FLAG_MARGIN,
+        )
+
+
 def _anchor_unschedule(owner_id: int) -> None:
     """Drop the "a run is queued" flag of `anchor_schedule`."""
     with suppress(RedisError):
@@ -102,15 +116,23 @@ def records_anchor(*, owner_id: int) -> int:
 
     The "a run is queued" flag of `anchor_schedule` stays set while the run works, so uploads
     meanwhile queue nothing (their records are in the next run, which the run queues after
-    dropping the flag, or which their own upload queues once it is dropped).
+    dropping the flag, or which their own upload queues once it is dropped). A run that fails
+    for a transient reason (the node or Redis away, the owner not registered yet) keeps it
+    set until its retry: during an outage the uploads wait for that one retrying run instead
+    of each queueing a run that retries on its own (a robot's hour of uploads, thousands).
 
     Idempotent: a record whose id is already on chain with the same digest and owner counts
     as anchored; with another digest it is marked failed and a security event is logged.
     """
     try:
         anchored, sent = _anchor_run(owner_id)
-    finally:
+    except TRANSIENT:
+        _anchor_flag_hold(owner_id)  # the task retries (CHAIN_TASK): that is the queued run
+        raise
+    except BaseException:
         _anchor_unschedule(owner_id)
+        raise
+    _anchor_unschedule(owner_id)
     if (
         sent is not None
         and Record.objects.filter(owner_id=owner_id, status=Record.Status.PENDING).exists()

@@ -5,8 +5,9 @@ import pytest
 
 from accounts.models import ChainState
 from accounts.selectors import owner_eoa_account
-from chainworker.chain import ChainUnavailable, TransactionReverted
-from chainworker.work import ChainWorkNotReady
+from chainworker.chain import ChainUnavailable, TransactionDropped, TransactionReverted
+from chainworker.work import CHAIN_TASK, ChainWorkNotReady
+from core.redis_client import get_redis, redis_key
 from sharing import anchoring
 from sharing.anchoring import anchor_item, records_anchor
 from sharing.models import Grant, Record
@@ -166,11 +167,52 @@ def test_uploads_while_a_run_works_queue_no_second_run(
     upload(3)
     assert len(scheduled) == 2  # the flag was dropped when the run ended
 
-    def refused(owner_id: int) -> None:
-        raise ChainWorkNotReady("the chain was reset")
+    def broken(owner_id: int) -> None:
+        raise ValueError("a bug")
 
-    monkeypatch.setattr(anchoring, "_wait_for_batch_to_fill", refused)
-    with pytest.raises(ChainWorkNotReady):
+    monkeypatch.setattr(anchoring, "_wait_for_batch_to_fill", broken)
+    with pytest.raises(ValueError, match="a bug"):
         records_anchor(owner_id=setup.owner.pk)
     upload(4)
-    assert len(scheduled) == 3  # a run that failed drops the flag too
+    assert len(scheduled) == 3  # a run that failed for good drops the flag too
+
+
+@pytest.mark.parametrize(
+    "outage",
+    [
+        ChainUnavailable("chain node unreachable"),
+        ChainWorkNotReady("the chain was reset"),
+        TransactionDropped("0x01", "the node does not hold it"),
+    ],
+)
+def test_uploads_while_a_failed_run_waits_for_its_retry_queue_no_run_of_their_own(
+    make_robot, monkeypatch, scheduled, django_capture_on_commit_callbacks, outage
+):
+    """A run that failed for a transient reason is retried by its task: during an outage the
+    uploads wait for that one run (each queueing a retrying run of its own piled up thousands
+    in an hour). The flag lapses after the longest retry backoff and a margin, so a retry lost
+    with its worker leaves the owner to the next upload or the sweep."""
+    setup = make_robot()
+
+    def upload(seq: int) -> None:
+        with django_capture_on_commit_callbacks(execute=True):
+            record_create(robot=setup.robot, data=setup.seal(seq))
+
+    upload(1)
+    assert len(scheduled) == 1
+
+    def away(owner_id: int) -> None:
+        raise outage
+
+    monkeypatch.setattr(anchoring, "_wait_for_batch_to_fill", away)
+    with pytest.raises(type(outage)):
+        records_anchor(owner_id=setup.owner.pk)
+    for seq in range(2, 12):
+        upload(seq)
+    assert len(scheduled) == 1
+    flag = redis_key("anchor-scheduled", setup.owner.pk)
+    lapses = CHAIN_TASK["retry_backoff_max"] + anchoring.RETRY_FLAG_MARGIN
+    assert CHAIN_TASK["retry_backoff_max"] < get_redis().ttl(flag) <= lapses
+    get_redis().delete(flag)  # as when it lapses
+    upload(12)
+    assert len(scheduled) == 2
