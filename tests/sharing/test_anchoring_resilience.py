@@ -1,6 +1,8 @@
 """The anchoring and grant services when the chain misbehaves: outages, lost answers,
 confirmations not reached yet, and refusals that will never change."""
 
+from collections.abc import Callable
+
 import pytest
 
 from accounts.models import ChainState
@@ -148,16 +150,23 @@ def test_a_grant_waits_for_both_owners_to_be_registered(make_owner, deployed):
     assert Grant.objects.get(pk=grant.pk).status == Grant.Status.PENDING
 
 
+def _committed_uploads(setup, capture_on_commit) -> Callable[[int], None]:
+    """upload(seq): the robot's upload of `seq`, with what runs after its commit."""
+
+    def upload(seq: int) -> None:
+        with capture_on_commit(execute=True):
+            record_create(robot=setup.robot, data=setup.seal(seq))
+
+    return upload
+
+
 def test_uploads_while_a_run_works_queue_no_second_run(
     make_robot, monkeypatch, scheduled, django_capture_on_commit_callbacks
 ):
     """The "a run is queued" flag stays set while the run works: uploads meanwhile queue
     nothing (their records go in this run, or the one it queues), and it is dropped after."""
     setup = make_robot()
-
-    def upload(seq: int) -> None:
-        with django_capture_on_commit_callbacks(execute=True):
-            record_create(robot=setup.robot, data=setup.seal(seq))
+    upload = _committed_uploads(setup, django_capture_on_commit_callbacks)
 
     upload(1)
     assert len(scheduled) == 1
@@ -193,10 +202,7 @@ def test_uploads_while_a_failed_run_waits_for_its_retry_queue_no_run_of_their_ow
     in an hour). The flag lapses after the longest retry backoff and a margin, so a retry lost
     with its worker leaves the owner to the next upload or the sweep."""
     setup = make_robot()
-
-    def upload(seq: int) -> None:
-        with django_capture_on_commit_callbacks(execute=True):
-            record_create(robot=setup.robot, data=setup.seal(seq))
+    upload = _committed_uploads(setup, django_capture_on_commit_callbacks)
 
     upload(1)
     assert len(scheduled) == 1
