@@ -110,11 +110,15 @@ def test_with_the_budget_spent_records_wait_and_the_operator_is_alerted(
     assert 'data-testid="pending-reason"' in page.content.decode()
     assert "waiting for gas" in page.content.decode()
 
-    # The operator raises the budget; the sweeps top the account up and anchor what waited.
+    # The operator raises the budget; the sweep tops the account up. The run that met "cannot
+    # pay" waits for its retry, which anchors what waited (the anchoring sweep queues no run of
+    # its own meanwhile: that one is queued).
     settings.SIGNUP_FUNDING_BUDGET_WEI = 50 * 10**18
     assert account_services.chain_work_sweep()["top_ups"] == 1
     with django_capture_on_commit_callbacks(execute=True):
         sharing_services.chain_work_sweep()
+    assert Record.objects.filter(owner=bob.owner, status=Record.Status.PENDING).count() == 5
+    assert anchoring.records_anchor(owner_id=bob.owner.pk) == 5  # the retry
     _assert_anchored_once(deployed, records)
     alert.refresh_from_db()
     assert alert.resolved_at is not None
