@@ -83,9 +83,9 @@ _NONCE_ERROR = re.compile(
 )
 # The node has this very transaction already (an earlier send that timed out did arrive):
 # it is sent, and signing it again with another nonce would send it twice.
+_ALREADY_KNOWN = re.compile(r"already known|known transaction|already imported", re.IGNORECASE)
 # How often a receipt wait asks whether the node can still mine the transaction at all.
 DROPPED_CHECK_INTERVAL = 5.0
-_ALREADY_KNOWN = re.compile(r"already known|known transaction|already imported", re.IGNORECASE)
 
 
 # --- errors ------------------------------------------------------------------------------
@@ -706,7 +706,8 @@ class AuthROSChain:
     def transaction_pending(self, tx_hash: str) -> bool:
         """Whether the node holds the transaction ready to mine and has not mined it yet. One
         it holds behind a gap in its sender's nonces is not: it waits for transactions the
-        node lost, and is mined only if someone sends them."""
+        node lost, and is mined only if someone sends them (the sender's nonce counter is
+        resynced then, see _transaction_fate)."""
         mined, never = self._transaction_fate(tx_hash)
         return not mined and not never
 

@@ -77,10 +77,14 @@ def anchor_schedule_queued(pipe: Pipeline, *, owner_id: int) -> Callable[[object
     )
 
 
+def _anchor_flag_key(owner_id: int) -> str:
+    return redis_key("anchor-scheduled", owner_id)
+
+
 def _anchor_flag_set(client: Redis | Pipeline, owner_id: int, countdown: float | None) -> object:
     """The "a run is queued" flag set unless it is: true when this call set it."""
     flag_ttl = max(30, int(settings.ANCHOR_MAX_WAIT * 4 + (countdown or 0)))
-    return client.set(redis_key("anchor-scheduled", owner_id), 1, nx=True, ex=flag_ttl)
+    return client.set(_anchor_flag_key(owner_id), 1, nx=True, ex=flag_ttl)
 
 
 def _anchor_enqueue(owner_id: int, *, first: bool, countdown: float | None) -> None:
@@ -94,7 +98,7 @@ def _anchor_flag_hold(owner_id: int) -> None:
     with it), the flag lapses and the next upload or the beat sweep queues a run."""
     with suppress(RedisError):
         get_redis().set(
-            redis_key("anchor-scheduled", owner_id),
+            _anchor_flag_key(owner_id),
             1,
             ex=int(CHAIN_TASK["retry_backoff_max"]) + RETRY_FLAG_MARGIN,
         )
@@ -103,7 +107,7 @@ def _anchor_flag_hold(owner_id: int) -> None:
 def _anchor_unschedule(owner_id: int) -> None:
     """Drop the "a run is queued" flag of `anchor_schedule`."""
     with suppress(RedisError):
-        get_redis().delete(redis_key("anchor-scheduled", owner_id))
+        get_redis().delete(_anchor_flag_key(owner_id))
 
 
 def records_anchor(*, owner_id: int) -> int:
