@@ -1,4 +1,4 @@
-"""Making what was written to disk durable."""
+"""Making what was written to disk durable, and how much room is left on it."""
 
 import ctypes
 import os
@@ -14,6 +14,16 @@ def fsync_path(path: str | Path) -> None:
         os.fsync(fd)
     finally:
         os.close(fd)
+
+
+def filesystem_free(path: str | Path) -> int:
+    """Bytes an unprivileged writer may still use on the file system holding `path`, or its
+    nearest parent that exists (a folder made on first use may not be there yet)."""
+    path = Path(path).absolute()
+    while not path.exists() and path != path.parent:
+        path = path.parent
+    stats = os.statvfs(path)
+    return stats.f_bavail * stats.f_frsize
 
 
 def _syncfs() -> object | None:

@@ -392,6 +392,12 @@ CELERY_BEAT_SCHEDULE = {
         "schedule": env.float("RECONCILE_INTERVAL", default=60.0),
         "options": {"expires": env.float("RECONCILE_INTERVAL", default=60.0)},
     },
+    # Alerts the operator while a disk that uploads are written to runs low (sharing/disk.py).
+    "watch-disk-space": {
+        "task": "sharing.tasks.disk_space_watch",
+        "schedule": env.float("STORAGE_CHECK_INTERVAL", default=60.0),
+        "options": {"expires": env.float("STORAGE_CHECK_INTERVAL", default=60.0)},
+    },
     # Exports whose message was lost are queued again; expired ones lose their files.
     "sweep-exports": {
         "task": "sharing.tasks.exports_sweep",
@@ -504,3 +510,8 @@ STORAGES = {
         region=env.str("ENVELOPE_S3_REGION", default=""),
     ),
 }
+# Disks this host writes uploads to (the local envelope storage, SQLite; sharing/disk.py): an
+# upload that would leave less than STORAGE_MIN_FREE_BYTES free is refused (503, the robot
+# spools it; 0 never refuses), and the operator is alerted below STORAGE_LOW_FREE_BYTES.
+STORAGE_MIN_FREE_BYTES = env.int("STORAGE_MIN_FREE_BYTES", default=128 * 1024**2)
+STORAGE_LOW_FREE_BYTES = env.int("STORAGE_LOW_FREE_BYTES", default=2 * 1024**3)

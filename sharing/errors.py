@@ -136,6 +136,13 @@ class StorageUnavailable(SharingError):
     retry_after = 5
 
 
+class StorageFull(StorageUnavailable):
+    """A disk the portal writes uploads to has less room than STORAGE_MIN_FREE_BYTES: nothing
+    is stored, the robot keeps the envelopes in its spool and sends them again later."""
+
+    retry_after = 60
+
+
 class ExportRefused(SharingError):
     """An export's selection that cannot be exported (nothing in it, too much, a robot the
     requester may not see)."""

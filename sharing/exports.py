@@ -29,6 +29,7 @@ from chainworker.chain import ChainError
 from chainworker.services import chain_client
 from core.outbox import enqueue
 from sharing.content import Uninterpretable, document_parse
+from sharing.disk import disk_room_check
 from sharing.errors import (
     ExportExpired,
     ExportNotFound,
@@ -224,6 +225,7 @@ def _run(export: Export) -> None:
     bundle = bundle_serialise(document)
     folder = f"{EXPORT_STORAGE_PREFIX}/{export.pk}"
     files = [(f"{folder}/{mcap_name}", mcap), (f"{folder}/proofs.json", bundle)]
+    disk_room_check(sum(len(data) for _name, data in files))
     storage = envelope_storage()
     for name, _data in files:  # left by a run that stopped before it finished (a redelivery)
         storage.delete(name)

@@ -39,6 +39,7 @@ from core.redis_client import get_redis
 from core.rows import FixedInsert, FixedUpdate
 from sharing.anchoring import anchor_schedule, anchor_schedule_queued
 from sharing.cache import envelope_cache_put_queued
+from sharing.disk import disk_room_check
 from sharing.errors import (
     AlreadyGranted,
     EnvelopeTooLarge,
@@ -126,6 +127,7 @@ def record_create_batch(*, robot: Robot, envelopes: Sequence[bytes]) -> list[Rec
     seqs = [c.header["seq"] for c in checked]
     if seqs != sorted(set(seqs)):
         raise InvalidEnvelope("sequence numbers in one upload must strictly increase")
+    disk_room_check(sum(len(upload.data) for upload in checked))
     # The files first, durable before the transaction starts: the robot's row lock (and
     # SQLite's write lock) is then held for the rows alone, not for a disk sync. Files of an
     # upload refused or failed below are removed again.

@@ -11,7 +11,7 @@ from celery import shared_task
 from accounts.errors import IdentityMismatch
 from chainworker.chain import ChainUnavailable
 from chainworker.work import CHAIN_TASK
-from sharing import anchoring, deletion, exports, reconcile, services, verification
+from sharing import anchoring, deletion, disk, exports, reconcile, services, verification
 
 
 @shared_task(name="sharing.tasks.records_anchor", **CHAIN_TASK)
@@ -95,3 +95,8 @@ def export_run(export_id: str) -> str:
 @shared_task(name="sharing.tasks.exports_sweep", soft_time_limit=600, time_limit=660)
 def exports_sweep() -> dict[str, int]:
     return exports.exports_sweep()
+
+
+@shared_task(name="sharing.tasks.disk_space_watch", soft_time_limit=30, time_limit=60)
+def disk_space_watch() -> dict[str, int]:
+    return disk.disk_space_watch()
