@@ -383,6 +383,39 @@ class Children:
         self.stop_many(list(self._children))
 
 
+# The copy step of logs_rotate, in chunks: a log of any size costs little memory.
+_COPY_CHUNK = 1024 * 1024
+
+
+def logs_rotate(folder: Path, *, max_bytes: int, keep: int) -> list[Path]:
+    """Each `*.log` in `folder` larger than max_bytes is copied to NAME.log.1 (the older copies
+    move up to NAME.log.<keep>, the oldest is dropped) and emptied in place; the logs rotated.
+
+    Copy and empty, not rename: the processes keep their log open and cannot be told to open it
+    again, and they write with O_APPEND, so after the emptying they go on at its start. Lines
+    written between the last copy and the emptying (microseconds) are lost; logrotate's
+    `copytruncate` has the same window."""
+    rotated = []
+    for log in sorted(folder.glob("*.log")):
+        try:
+            if log.stat().st_size <= max_bytes:
+                continue
+            for number in range(keep - 1, 0, -1):
+                older = log.with_name(f"{log.name}.{number}")
+                if older.exists():
+                    older.replace(log.with_name(f"{log.name}.{number + 1}"))
+            with log.open("rb+") as source, log.with_name(f"{log.name}.1").open("wb") as copy:
+                while chunk := source.read(
+                    _COPY_CHUNK
+                ):  # to the end, including what came meanwhile
+                    copy.write(chunk)
+                source.truncate(0)
+        except OSError:
+            continue  # gone meanwhile, or not ours to rotate: the next round tries again
+        rotated.append(log)
+    return rotated
+
+
 def log_tail(path: Path, lines: int = 30) -> str:
     try:
         return "\n".join(path.read_text(errors="replace").splitlines()[-lines:])

@@ -40,6 +40,7 @@ from stack.processes import (
     celery_worker,
     http_answers,
     log_tail,
+    logs_rotate,
     manage,
     redis_answers,
     redis_start,
@@ -54,6 +55,8 @@ BANNER = "AuthROS portal is up."
 STATE_FILE = "stack.json"
 WEB_START_TIMEOUT = 90.0
 ROS_START_TIMEOUT = 30.0
+# Seconds between looks at the logs' sizes (StackConfig.log_max_bytes).
+LOG_ROTATE_INTERVAL = 30.0
 # Seconds the demo robot's pairing may take (it is approved at once).
 PAIR_TIMEOUT = 60
 # Seconds between writes of the chain state (stack/anvil.py StateKeeper): a crash of anvil
@@ -105,6 +108,8 @@ class StackConfig:
     ros2: bool = False  # STACK_ROS2: the robot on ROS 2 (Cyclone DDS, loopback), no roscore
     ros_domain_id: int = 0  # ROS_DOMAIN_ID: the DDS domain of the ROS 2 robot
     debug: bool = False  # DJANGO_DEBUG
+    log_max_bytes: int = 32 * 1024**2  # STACK_LOG_MAX_BYTES: a log past it is rotated; 0 = never
+    log_keep: int = 3  # STACK_LOG_KEEP: rotated copies kept of each log (NAME.log.1 ...)
 
     @classmethod
     def from_environment(cls, environ: dict[str, str] | None = None) -> StackConfig:
@@ -130,6 +135,8 @@ class StackConfig:
             ros2=_env_bool(environ, "STACK_ROS2", False),
             ros_domain_id=int(environ.get("ROS_DOMAIN_ID") or "0"),
             debug=_env_bool(environ, "DJANGO_DEBUG", False),
+            log_max_bytes=int(environ.get("STACK_LOG_MAX_BYTES") or 32 * 1024**2),
+            log_keep=max(int(environ.get("STACK_LOG_KEEP") or "3"), 1),
         )
 
     def resolved(self) -> StackConfig:
@@ -427,8 +434,15 @@ class Stack:
         return "\n".join(lines)
 
     def wait(self) -> int:
-        """Until a process exits (then 1) or a signal interrupts (Interrupted)."""
+        """Until a process exits (then 1) or a signal interrupts (Interrupted); meanwhile the
+        logs are rotated (a service that runs for weeks must not fill its disk with them)."""
+        rotate_at = time.monotonic() + LOG_ROTATE_INTERVAL
         while True:
+            if self.config.log_max_bytes > 0 and time.monotonic() >= rotate_at:
+                rotate_at = time.monotonic() + LOG_ROTATE_INTERVAL
+                logs_rotate(
+                    self.logs, max_bytes=self.config.log_max_bytes, keep=self.config.log_keep
+                )
             if (child := self.children.exited()) is not None:
                 self._say(
                     f"{child.name} exited with {child.process.returncode}; "
