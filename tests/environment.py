@@ -13,3 +13,6 @@ os.environ.setdefault("DATABASE_CONN_MAX_AGE", "0")
 os.environ["CELERY_QUEUE"] = f"authros-test-{os.getpid()}"
 os.environ.pop("CELERY_BROKER_URL", None)
 os.environ.pop("CELERY_RESULT_BACKEND", None)
+# CI machines may have little disk left (a few hundred MB seen): uploads are refused only on
+# the last 16 MiB here; tests/sharing/test_disk_space.py sets the floor around the real room.
+os.environ.setdefault("STORAGE_MIN_FREE_BYTES", str(16 * 1024**2))
