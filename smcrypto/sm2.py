@@ -96,7 +96,9 @@ def decrypt(private_key_hex: str, ciphertext_hex: str) -> bytes:
         if plaintext is not None:
             return plaintext
         reasons.append(reason)
-    raise DecryptionError(f"SM2 decryption failed: {reasons[-1]}")
+    # Of two readings, the one with C1 on the curve says why; the other only that it is not.
+    reason = next((reason for reason in reasons if reason != _C1_OFF_CURVE), reasons[-1])
+    raise DecryptionError(f"SM2 decryption failed: {reason}")
 
 
 def sign(private_key_hex: str, data: bytes) -> str:
@@ -138,12 +140,15 @@ def _encrypt_with_ephemeral(point: str, data: bytes, ephemeral: int) -> str | No
     return c1 + c3.hex() + c2.hex()
 
 
+_C1_OFF_CURVE = "C1 is not a point on the SM2 curve"
+
+
 def _decrypt_raw(secret: int, raw: bytes) -> tuple[bytes | None, str]:
     if len(raw) <= _C2_OFFSET:
         return None, f"ciphertext is {len(raw)} bytes, too short for C1 (64), C3 (32) and data"
     c1, c3, c2 = raw[:_POINT_SIZE], raw[_POINT_SIZE:_C2_OFFSET], raw[_C2_OFFSET:]
     if not _on_curve(c1):
-        return None, "C1 is not a point on the SM2 curve"
+        return None, _C1_OFF_CURVE
     shared = bytes.fromhex(_multiply(secret, c1.hex()))
     mask = _kdf(shared, len(c2))
     if not any(mask):

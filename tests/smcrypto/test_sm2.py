@@ -183,6 +183,16 @@ def test_wrong_private_key_is_decryption_error() -> None:
         sm2.decrypt(other_private, sm2.encrypt(public, b"x"))
 
 
+def test_a_wrong_key_says_so_when_x_starts_with_04() -> None:
+    """Such a ciphertext is read twice (with and without a `04` marker): the refusal is the
+    reading whose C1 is on the curve, not the other one (1 ciphertext in 256; it made a
+    pairing test fail once)."""
+    other_private, _ = sm2.generate_keypair()
+    for ciphertext in (KAT_CIPHERTEXT, "04" + KAT_CIPHERTEXT):
+        with pytest.raises(DecryptionError, match="C3 check failed"):
+            sm2.decrypt(other_private, ciphertext)
+
+
 @pytest.mark.parametrize(
     "ciphertext",
     ["", "0", "zz" * 100, "04", KAT_CIPHERTEXT[:-1], KAT_CIPHERTEXT[:192], " " + KAT_CIPHERTEXT],
