@@ -20,10 +20,15 @@ def filesystem_free(path: str | Path) -> int:
     """Bytes an unprivileged writer may still use on the file system holding `path`, or its
     nearest parent that exists (a folder made on first use may not be there yet)."""
     path = Path(path).absolute()
-    while not path.exists() and path != path.parent:
-        path = path.parent
-    stats = os.statvfs(path)
-    return stats.f_bavail * stats.f_frsize
+    while True:
+        try:
+            stats = os.statvfs(path)
+        except FileNotFoundError:
+            if path == path.parent:
+                raise
+            path = path.parent
+        else:
+            return stats.f_bavail * stats.f_frsize
 
 
 def _syncfs() -> object | None:

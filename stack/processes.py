@@ -10,6 +10,7 @@ from __future__ import annotations
 import contextlib
 import ctypes
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -405,10 +406,8 @@ def logs_rotate(folder: Path, *, max_bytes: int, keep: int) -> list[Path]:
                 if older.exists():
                     older.replace(log.with_name(f"{log.name}.{number + 1}"))
             with log.open("rb+") as source, log.with_name(f"{log.name}.1").open("wb") as copy:
-                while chunk := source.read(
-                    _COPY_CHUNK
-                ):  # to the end, including what came meanwhile
-                    copy.write(chunk)
+                # To the end, including what was written meanwhile.
+                shutil.copyfileobj(source, copy, _COPY_CHUNK)
                 source.truncate(0)
         except OSError:
             continue  # gone meanwhile, or not ours to rotate: the next round tries again
