@@ -46,15 +46,9 @@ from core.api_errors import ErrorSerializer, error_responses
 from sharing.access_log import access_log_redacted
 from sharing.deletion import record_delete
 from sharing.errors import AccessDenied, ExportNotFound, NotAnchoredYet, RecordNotFound
-from sharing.exports import (
-    MAX_SELECTED_ROBOTS,
-    MAX_SELECTED_TOPICS,
-    Selection,
-    export_create,
-    export_download,
-)
+from sharing.exports import export_create, export_download
 from sharing.models import Export, Grant, Record, Verdict
-from sharing.scope import MAX_SCOPE_ROBOTS, MAX_SCOPE_TOPICS, MAX_TOPIC_LENGTH
+from sharing.selection import MAX_SELECTED_ROBOTS, MAX_SELECTED_TOPICS, MAX_TOPIC_LENGTH
 from sharing.selectors import (
     ACCESS_LOG_DIRECTIONS,
     ACCESS_LOG_INCOMING,
@@ -274,13 +268,13 @@ class GrantTermsInputSerializer(serializers.Serializer):
     robots = serializers.ListField(
         child=serializers.UUIDField(),
         required=False,
-        max_length=MAX_SCOPE_ROBOTS,
+        max_length=MAX_SELECTED_ROBOTS,
         help_text="only these robots' records (ids of your robots); default: all robots",
     )
     topics = serializers.ListField(
         child=TextField(max_length=MAX_TOPIC_LENGTH),
         required=False,
-        max_length=MAX_SCOPE_TOPICS,
+        max_length=MAX_SELECTED_TOPICS,
         help_text="only these topics' records; default: all topics",
     )
     since = serializers.DateTimeField(
@@ -397,7 +391,7 @@ class RecordsApi(APIView):
         class Meta:
             ref_name = "RecordFilter"
 
-        topic = TextField(required=False, max_length=255)
+        topic = TextField(required=False, max_length=MAX_TOPIC_LENGTH)
         type = TextField(required=False, max_length=255, help_text="ROS type", source="data_type")
         status = serializers.ChoiceField(
             choices=RECORD_FILTER_STATUSES,
@@ -967,7 +961,7 @@ class AccessLogApi(APIView):
             help_text="the record owner's username (useful with `outgoing`)",
         )
         robot = serializers.UUIDField(required=False, help_text="robot id")
-        topic = TextField(required=False, max_length=255)
+        topic = TextField(required=False, max_length=MAX_TOPIC_LENGTH)
         verdict = serializers.ChoiceField(
             choices=Verdict.Outcome.choices, required=False, help_text="the check's outcome"
         )
@@ -1115,7 +1109,7 @@ class ExportsApi(APIView):
             help_text="robot ids (empty or absent: every robot you may view)",
         )
         topics = serializers.ListField(
-            child=TextField(max_length=255),
+            child=TextField(max_length=MAX_TOPIC_LENGTH),
             required=False,
             max_length=MAX_SELECTED_TOPICS,
             help_text="topics (empty or absent: every topic)",
@@ -1167,13 +1161,13 @@ class ExportsApi(APIView):
         payload = self.InputSerializer(data=request.data)
         payload.is_valid(raise_exception=True)
         data = payload.validated_data
-        selection = Selection(
-            robots=tuple(data.get("robots", [])),
-            topics=tuple(data.get("topics", [])),
+        export = export_create(
+            requester=caller_owner(request),
+            robots=data.get("robots", ()),
+            topics=data.get("topics", ()),
             since=data.get("since"),
             until=data.get("until"),
         )
-        export = export_create(requester=caller_owner(request), selection=selection)
         export.refresh_from_db()
         return Response(ExportOutputSerializer(export).data, status=status.HTTP_202_ACCEPTED)
 

@@ -45,6 +45,7 @@ from core.redis_client import get_redis, redis_key
 from sharing.cache import envelope_cache_evict
 from sharing.errors import NoGrant, NotDeletableYet, NotRecordOwner, RecordNotFound
 from sharing.models import Grant, Record
+from sharing.selection import RecordSelection
 from sharing.selectors import record_get_visible
 from sharing.services import grant_revoke
 from sharing.storage import envelope_storage
@@ -74,7 +75,7 @@ def record_delete(*, owner: Owner, record_id: uuid.UUID | str, actor: AbstractBa
         raise RecordNotFound("no such record, or not shared with you")
     if record.owner_id != owner.pk:
         raise NotRecordOwner("only the record's owner can delete it; you may only read it")
-    if record.deleted_at is not None:
+    if record.is_deleted:
         return record
     if record.status != Record.Status.ANCHORED:
         raise NotDeletableYet(
@@ -132,15 +133,8 @@ def record_selection(
     records = Record.objects.filter(owner=owner, deleted_at__isnull=True)
     if record_ids is not None:
         records = records.filter(pk__in=list(record_ids))
-    if robot:
-        records = records.filter(robot_id=robot)
-    if topic:
-        records = records.filter(topic=topic)
-    if since is not None:
-        records = records.filter(captured_at__gte=since)
-    if until is not None:
-        records = records.filter(captured_at__lt=until)
-    return records
+    selection = RecordSelection.from_filters(robot=robot, topic=topic, since=since, until=until)
+    return selection.apply(records)
 
 
 def _tombstone(records: QuerySet[Record], *, reason: str, actor: AbstractBaseUser | None) -> int:

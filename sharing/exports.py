@@ -14,7 +14,6 @@ import logging
 import tempfile
 import uuid
 from collections.abc import Sequence
-from dataclasses import dataclass
 from datetime import UTC, datetime, timedelta
 
 from django.conf import settings
@@ -39,6 +38,16 @@ from sharing.errors import (
 )
 from sharing.mcap_export import McapBuilder, message_encode
 from sharing.models import Export, Record, Verdict
+from sharing.selection import (
+    MAX_SELECTED_ROBOTS,
+    MAX_SELECTED_TOPICS,
+    TOO_MANY_ROBOTS,
+    TOO_MANY_TOPICS,
+    WINDOW_NOT_ORDERED,
+    RecordSelection,
+    SelectionError,
+    iso_utc,
+)
 from sharing.selectors import export_of, record_list_visible_to, record_proof
 from sharing.storage import envelope_storage, envelopes_save
 from sharing.verification import record_key, records_verify
@@ -50,9 +59,14 @@ logger = logging.getLogger(__name__)
 
 EXPORT_TASK = "sharing.tasks.export_run"
 EXPORT_STORAGE_PREFIX = "exports"
-MAX_SELECTED_TOPICS = 100
-MAX_SELECTED_ROBOTS = 100
 _EPOCH = datetime(1970, 1, 1, tzinfo=UTC)
+# An export's own words for these refusals of its selection; the others keep the selection's.
+_TOO_MANY = f"select at most {MAX_SELECTED_ROBOTS} robots and {MAX_SELECTED_TOPICS} topics"
+_SELECTION_REFUSALS = {
+    TOO_MANY_ROBOTS: _TOO_MANY,
+    TOO_MANY_TOPICS: _TOO_MANY,
+    WINDOW_NOT_ORDERED: "the start of the time range is not before its end",
+}
 
 # Why a record is left out of an export (its entry in `excluded`).
 NOT_ANCHORED = "not_anchored_yet"
@@ -61,36 +75,6 @@ REASONS = {
     Verdict.Outcome.NO_ACCESS: "access_denied",
     Verdict.Outcome.NOT_ANCHORED_YET: NOT_ANCHORED,
 }
-
-
-@dataclass(frozen=True)
-class Selection:
-    """What to export: robots and topics (empty: all), capture times [since, until)."""
-
-    robots: tuple[uuid.UUID, ...] = ()
-    topics: tuple[str, ...] = ()
-    since: datetime | None = None
-    until: datetime | None = None
-
-    def as_json(self) -> dict[str, object]:
-        return {
-            "robots": [str(robot) for robot in self.robots],
-            "topics": list(self.topics),
-            "since": _iso(self.since),
-            "until": _iso(self.until),
-        }
-
-    @classmethod
-    def from_json(cls, value: dict) -> "Selection":
-        def moment(text: str | None) -> datetime | None:
-            return datetime.fromisoformat(text) if text else None
-
-        return cls(
-            robots=tuple(uuid.UUID(robot) for robot in value.get("robots", [])),
-            topics=tuple(value.get("topics", [])),
-            since=moment(value.get("since")),
-            until=moment(value.get("until")),
-        )
 
 
 def export_robots_visible(requester: Owner) -> QuerySet[Robot]:
@@ -104,29 +88,27 @@ def export_topics_visible(requester: Owner) -> list[str]:
     return list(visible.values_list("topic", flat=True).distinct())
 
 
-def export_records(requester: Owner, selection: Selection) -> QuerySet[Record]:
+def export_records(requester: Owner, selection: RecordSelection) -> QuerySet[Record]:
     """The records of the selection the requester may view, in capture order; deleted ones
     are left out (their data is gone), not listed as excluded."""
     records = record_list_visible_to(requester).filter(deleted_at__isnull=True)
-    if selection.robots:
-        records = records.filter(robot_id__in=selection.robots)
-    if selection.topics:
-        records = records.filter(topic__in=selection.topics)
-    if selection.since is not None:
-        records = records.filter(captured_at__gte=selection.since)
-    if selection.until is not None:
-        records = records.filter(captured_at__lt=selection.until)
-    return records.order_by("captured_at", "seq", "id")
+    return selection.apply(records).order_by("captured_at", "seq", "id")
 
 
-def export_create(*, requester: Owner, selection: Selection) -> Export:
-    """Check the selection and queue its export; ExportRefused if it cannot be exported."""
-    if len(selection.robots) > MAX_SELECTED_ROBOTS or len(selection.topics) > MAX_SELECTED_TOPICS:
-        raise ExportRefused(
-            f"select at most {MAX_SELECTED_ROBOTS} robots and {MAX_SELECTED_TOPICS} topics"
-        )
-    if selection.since and selection.until and selection.since >= selection.until:
-        raise ExportRefused("the start of the time range is not before its end")
+def export_create(
+    *,
+    requester: Owner,
+    robots: Sequence[uuid.UUID | str] = (),
+    topics: Sequence[str] = (),
+    since: datetime | None = None,
+    until: datetime | None = None,
+) -> Export:
+    """Check the selection (robots and topics, empty: all; capture times [since, until)) and
+    queue its export; ExportRefused if it cannot be exported."""
+    try:
+        selection = RecordSelection.of(robots=robots, topics=topics, since=since, until=until)
+    except SelectionError as exc:
+        raise ExportRefused(_SELECTION_REFUSALS.get(exc.rule, str(exc))) from None
     visible = set(export_robots_visible(requester).values_list("pk", flat=True))
     unknown = [str(robot) for robot in selection.robots if robot not in visible]
     if unknown:
@@ -172,7 +154,7 @@ def export_run(*, export_id: uuid.UUID | str) -> Export:
 
 
 def _run(export: Export) -> None:
-    selection = Selection.from_json(export.selection)
+    selection = RecordSelection.from_json(export.selection)
     records = list(
         export_records(export.requester, selection).select_related("owner__user", "anchor_root")
     )
@@ -212,7 +194,7 @@ def _run(export: Export) -> None:
     document = {
         "format": BUNDLE_FORMAT,
         "export": str(export.pk),
-        "created_at": _iso(export.created_at),
+        "created_at": iso_utc(export.created_at),
         "requested_by": export.requester.username,
         "selection": export.selection,
         "chain_id": chain_id,
@@ -316,7 +298,7 @@ def _excluded(record: Record, reason: str) -> dict[str, str]:
     return {
         "record": str(record.pk),
         "topic": record.topic,
-        "captured_at": _iso(record.captured_at),
+        "captured_at": iso_utc(record.captured_at),
         "reason": reason,
     }
 
@@ -375,10 +357,3 @@ def export_download(*, requester: Owner, export_id: uuid.UUID | str, part: str) 
 def _micros(moment: datetime) -> int:
     delta = moment - _EPOCH
     return (delta.days * 86_400 + delta.seconds) * 1_000_000 + delta.microseconds
-
-
-def _iso(moment: datetime | None) -> str | None:
-    """ISO 8601 UTC with microseconds and a Z (any year: isoformat pads it to four digits)."""
-    if moment is None:
-        return None
-    return moment.astimezone(UTC).isoformat(timespec="microseconds").replace("+00:00", "Z")

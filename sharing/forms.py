@@ -8,6 +8,7 @@ from django.db.models import QuerySet
 
 from accounts.models import ChainActivity, Owner, Robot
 from sharing.models import Record, Verdict
+from sharing.selection import MAX_TOPIC_LENGTH
 from sharing.selectors import (
     ACCESS_LOG_DIRECTIONS,
     ACCESS_LOG_INCOMING,
@@ -213,7 +214,7 @@ class AccessLogFilterForm(PeriodFilterForm):
     viewer = forms.CharField(label="Viewer", required=False, max_length=150)
     owner = forms.CharField(label="Owner", required=False, max_length=150)
     robot = forms.ChoiceField(required=False)
-    topic = forms.CharField(required=False, max_length=255)
+    topic = forms.CharField(required=False, max_length=MAX_TOPIC_LENGTH)
     verdict = forms.ChoiceField(required=False, choices=[("", "any"), *Verdict.Outcome.choices])
     credential = forms.ChoiceField(
         required=False,

@@ -7,7 +7,8 @@ from django.db import models
 from django.utils import timezone
 
 from accounts.models import Owner, OwnerToken, Robot
-from sharing.scope import GrantScope, expiry_seconds, scope_commitment
+from sharing.scope import expiry_seconds, scope_commitment
+from sharing.selection import RecordSelection
 
 
 class AnchorRoot(models.Model):
@@ -194,8 +195,8 @@ class Grant(models.Model):
         return f"{self.owner} -> {self.grantee} ({self.status})"
 
     @property
-    def scope(self) -> GrantScope:
-        return GrantScope(
+    def scope(self) -> RecordSelection:
+        return RecordSelection(
             robots=tuple(uuid.UUID(robot) for robot in self.scope_robots),
             topics=tuple(self.scope_topics),
             since=self.scope_since,

@@ -1,8 +1,10 @@
 """A grant's scope: which of the owner's records it covers, and its SM3 commitment on chain.
 
-Pure values and functions (no database): the portal enforces a scope in its queries and at
-every view, and the chain holds `scope_commitment(scope)` with the grant (authorityGrantScoped),
-so that the check at view can compare the two. docs/grants.md defines the bytes:
+A scope is a RecordSelection (sharing/selection.py); here is what a grant adds to it (both ends
+of its window from 1970 on, its own words for the limits) and its bytes. Pure functions (no
+database): the portal enforces a scope in its queries and at every view, and the chain holds
+`scope_commitment(scope)` with the grant (authorityGrantScoped), so that the check at view can
+compare the two. docs/grants.md defines the bytes:
 
     "AuthROS/grant-scope/v1"                      22 bytes, ASCII
     robot count R                                 2 bytes
@@ -22,47 +24,31 @@ records (no robots, no topics, no window), whose commitment is 32 zero bytes: wh
 import struct
 import uuid
 from collections.abc import Iterable
-from dataclasses import dataclass
 from datetime import UTC, datetime
 
+from sharing.selection import (
+    MAX_SELECTED_ROBOTS,
+    MAX_SELECTED_TOPICS,
+    TOO_MANY_ROBOTS,
+    TOO_MANY_TOPICS,
+    RecordSelection,
+    SelectionError,
+)
 from smcrypto import sm3
 
 SCOPE_DOMAIN = b"AuthROS/grant-scope/v1"
 ALL_RECORDS_COMMITMENT = b"\x00" * 32
 EPOCH = datetime(1970, 1, 1, tzinfo=UTC)
-# Bounds of a scope, so that its encoding and the queries it makes stay small.
-MAX_SCOPE_ROBOTS = 100
-MAX_SCOPE_TOPICS = 100
-MAX_TOPIC_LENGTH = 255
 MAX_UINT64 = 2**64 - 1
+# A grant's own words for the selection's limits; its other refusals say what the selection's do.
+_GRANT_LIMITS = {
+    TOO_MANY_ROBOTS: f"a grant can name at most {MAX_SELECTED_ROBOTS} robots",
+    TOO_MANY_TOPICS: f"a grant can name at most {MAX_SELECTED_TOPICS} topics",
+}
 
 
 class ScopeError(ValueError):
     """A scope that cannot be granted; the message says why, in words for the owner."""
-
-
-@dataclass(frozen=True)
-class GrantScope:
-    """Robots (ids) and topics a grant covers (empty: all) and its capture-time window."""
-
-    robots: tuple[uuid.UUID, ...] = ()
-    topics: tuple[str, ...] = ()
-    since: datetime | None = None
-    until: datetime | None = None
-
-    @property
-    def is_all(self) -> bool:
-        return not (self.robots or self.topics or self.since or self.until)
-
-    def covers(self, *, robot_id: uuid.UUID | str, topic: str, captured_at: datetime) -> bool:
-        """Whether a record of this robot and topic, captured then, is inside the scope."""
-        if self.robots and uuid.UUID(str(robot_id)) not in self.robots:
-            return False
-        if self.topics and topic not in self.topics:
-            return False
-        if self.since is not None and captured_at < self.since:
-            return False
-        return self.until is None or captured_at < self.until
 
 
 def scope_make(
@@ -71,38 +57,20 @@ def scope_make(
     topics: Iterable[str] = (),
     since: datetime | None = None,
     until: datetime | None = None,
-) -> GrantScope:
-    """The canonical scope of these values (deduplicated, sorted, times in UTC to the
-    microsecond); ScopeError for values no grant may have."""
+) -> RecordSelection:
+    """The canonical scope of these values (RecordSelection.of, whose checks hold), with both
+    ends of its window from 1970 on, as its encoding holds them; ScopeError otherwise."""
     try:
-        robot_ids = sorted({uuid.UUID(str(robot)) for robot in robots}, key=lambda r: r.bytes)
-    except ValueError:
-        raise ScopeError("a robot is named by its id (a UUID)") from None
-    if len(robot_ids) > MAX_SCOPE_ROBOTS:
-        raise ScopeError(f"a grant can name at most {MAX_SCOPE_ROBOTS} robots")
-    topic_set = set()
-    for topic in topics:
-        if not isinstance(topic, str) or not topic.strip():
-            raise ScopeError("a topic cannot be empty")
-        if len(topic) > MAX_TOPIC_LENGTH or "\x00" in topic or not _is_utf8(topic):
-            raise ScopeError(
-                f"a topic is at most {MAX_TOPIC_LENGTH} characters of text, without NUL characters"
-            )
-        topic_set.add(topic.strip())
-    if len(topic_set) > MAX_SCOPE_TOPICS:
-        raise ScopeError(f"a grant can name at most {MAX_SCOPE_TOPICS} topics")
-    since, until = _utc(since, "start"), _utc(until, "end")
-    if since is not None and until is not None and since >= until:
-        raise ScopeError("the start of the time window must be before its end")
-    return GrantScope(
-        robots=tuple(robot_ids),
-        topics=tuple(sorted(topic_set, key=lambda t: t.encode("utf-8"))),
-        since=since,
-        until=until,
-    )
+        scope = RecordSelection.of(robots=robots, topics=topics, since=since, until=until)
+    except SelectionError as exc:
+        raise ScopeError(_GRANT_LIMITS.get(exc.rule, str(exc))) from None
+    for which, moment in (("start", scope.since), ("end", scope.until)):
+        if moment is not None and not 0 <= _micros(moment) <= MAX_UINT64:
+            raise ScopeError(f"the {which} of the time window must be after 1970-01-01")
+    return scope
 
 
-def scope_encode(scope: GrantScope) -> bytes:
+def scope_encode(scope: RecordSelection) -> bytes:
     """The canonical bytes of a scope (module docstring)."""
     parts = [SCOPE_DOMAIN, struct.pack(">H", len(scope.robots))]
     parts += [robot.bytes for robot in sorted(scope.robots, key=lambda r: r.bytes)]
@@ -114,7 +82,7 @@ def scope_encode(scope: GrantScope) -> bytes:
     return b"".join(parts)
 
 
-def scope_commitment(scope: GrantScope) -> bytes:
+def scope_commitment(scope: RecordSelection) -> bytes:
     """What the chain holds for the scope: SM3 of its bytes; zeros for all records."""
     if scope.is_all:
         return ALL_RECORDS_COMMITMENT
@@ -128,29 +96,8 @@ def expiry_seconds(expires_at: datetime | None) -> int:
     return int(expires_at.timestamp())
 
 
-def _is_utf8(text: str) -> bool:
-    """Whether the text encodes as UTF-8 (a lone surrogate from JSON's "\\ud800" does not)."""
-    try:
-        text.encode("utf-8")
-    except UnicodeEncodeError:
-        return False
-    return True
-
-
 def _micros(moment: datetime | None) -> int | None:
     if moment is None:
         return None
     delta = moment - EPOCH
     return (delta.days * 86_400 + delta.seconds) * 1_000_000 + delta.microseconds
-
-
-def _utc(moment: datetime | None, which: str) -> datetime | None:
-    if moment is None:
-        return None
-    if moment.tzinfo is None:
-        raise ScopeError(f"the {which} of the time window needs a time zone")
-    moment = moment.astimezone(UTC)
-    micros = _micros(moment)
-    if micros < 0 or micros > MAX_UINT64:
-        raise ScopeError(f"the {which} of the time window must be after 1970-01-01")
-    return moment

@@ -11,7 +11,7 @@ from django.utils import timezone
 from accounts.models import ChainActivity, Owner, OwnerToken, Robot
 from core.rows import FixedSelect
 from sharing.models import Export, Grant, Record, SecurityEvent, Verdict
-from sharing.scope import GrantScope
+from sharing.selection import RecordSelection
 from smcrypto.merkle import path_split
 
 
@@ -34,20 +34,6 @@ def owners_granting(viewer: Owner) -> QuerySet[Owner]:
     return Owner.objects.filter(pk__in=grant_list_live_received(viewer).values("owner_id"))
 
 
-def scope_records_q(scope: GrantScope) -> Q:
-    """The records a scope covers, as a filter (GrantScope.covers, in the database)."""
-    q = Q()
-    if scope.robots:
-        q &= Q(robot_id__in=list(scope.robots))
-    if scope.topics:
-        q &= Q(topic__in=list(scope.topics))
-    if scope.since is not None:
-        q &= Q(captured_at__gte=scope.since)
-    if scope.until is not None:
-        q &= Q(captured_at__lt=scope.until)
-    return q
-
-
 def record_list_visible_to(viewer: Owner) -> QuerySet[Record]:
     """The viewer's own records and, of owners with a live grant to the viewer, the records
     inside the grant's scope (robots, topics, capture-time window).
@@ -58,7 +44,7 @@ def record_list_visible_to(viewer: Owner) -> QuerySet[Record]:
     for grant in grant_list_live_received(viewer).only(
         "owner_id", "scope_robots", "scope_topics", "scope_since", "scope_until"
     ):
-        visible |= Q(owner_id=grant.owner_id) & scope_records_q(grant.scope)
+        visible |= Q(owner_id=grant.owner_id) & grant.scope.as_q()
     return (
         Record.objects.filter(visible)
         .select_related("owner__user", "robot", "deleted_by")
@@ -110,22 +96,17 @@ def record_list_filtered(
         records = records.filter(deleted_at__isnull=False)
     else:
         records = records.filter(deleted_at__isnull=True)
-    if topic:
-        records = records.filter(topic=topic)
+    records = RecordSelection.from_filters(
+        robot=robot, topic=topic, since=since, until=until
+    ).apply(records)
     if data_type:
         records = records.filter(data_type=data_type)
     if status == RECORD_STATUS_TAMPERED:
         records = records.filter(tampered_at__isnull=False)
     elif status and status != RECORD_STATUS_DELETED:
         records = records.filter(status=status)
-    if since is not None:
-        records = records.filter(captured_at__gte=since)
-    if until is not None:
-        records = records.filter(captured_at__lt=until)
     if owner:
         records = records.filter(owner__user__username=owner)
-    if robot:
-        records = records.filter(robot_id=robot)
     return records
 
 
@@ -278,10 +259,6 @@ def record_refused_by_grant(viewer: Owner, record_id: uuid.UUID) -> bool:
     the viewer read it (outside the grant's scope, or expired): refused (403), not unknown."""
     granting = Grant.objects.filter(grantee=viewer, status=Grant.Status.ACTIVE).values("owner_id")
     return Record.objects.filter(pk=record_id, owner_id__in=granting).exists()
-
-
-def verdict_list_for_record(record: Record) -> QuerySet[Verdict]:
-    return record.verdicts.select_related("viewer__user", "checked_by")
 
 
 def verdict_latest(record: Record, viewer: Owner) -> Verdict | None:

@@ -61,12 +61,12 @@ from sharing.errors import (
 from sharing.models import Grant, Record, SecurityEvent
 from sharing.scope import (
     ALL_RECORDS_COMMITMENT,
-    GrantScope,
     ScopeError,
     expiry_seconds,
     scope_commitment,
     scope_make,
 )
+from sharing.selection import RecordSelection
 from sharing.selectors import grant_list_made_with
 from sharing.storage import envelope_storage, envelopes_save
 from smcrypto import CryptoError, envelope, sm3
@@ -327,7 +327,7 @@ def owner_resolve(identifier: str) -> Owner:
 class GrantTerms:
     """What a grant covers and until when: its scope (all records by default) and expiry."""
 
-    scope: GrantScope = dataclasses.field(default_factory=GrantScope)
+    scope: RecordSelection = dataclasses.field(default_factory=RecordSelection)
     expires_at: datetime | None = None
 
 

@@ -108,7 +108,7 @@ def record_verify(
 
     if not _may_view_identified(record, viewer, client):
         return Verification(verdict(Verdict.Outcome.NO_ACCESS), None)
-    if record.deleted_at is not None:
+    if record.is_deleted:
         return Verification(verdict(Verdict.Outcome.DELETED), None)
     fields, data = _digest_check(record, viewer, client)
     return Verification(verdict(**fields), data)
@@ -141,7 +141,7 @@ def records_verify(
         if record.owner_id not in grants:
             grants[record.owner_id] = _grant_checked(record, viewer, client)
         grant = grants[record.owner_id]
-        if grant is not None and _in_scope(grant, record) and record.deleted_at is not None:
+        if grant is not None and _in_scope(grant, record) and record.is_deleted:
             checked.append(({"outcome": Verdict.Outcome.DELETED}, None))
         elif grant is not None and _in_scope(grant, record):
             if record.owner_id not in identified:
@@ -382,7 +382,7 @@ def record_open(
         record = None
     if record is None:
         raise RecordNotFound("no such record")
-    if record.deleted_at is not None:
+    if record.is_deleted:
         raise _deleted(record)
     if earlier <= 0:
         pending = _send(VERIFY_TASK, str(record.pk), viewer.pk, credential, _token_id(token))

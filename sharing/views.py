@@ -50,7 +50,6 @@ from sharing.errors import (
     VerificationUnavailable,
 )
 from sharing.exports import (
-    Selection,
     export_create,
     export_robots_visible,
     export_topics_visible,
@@ -739,14 +738,14 @@ def exports(request: HttpRequest) -> HttpResponse:
     )
     if request.method == "POST" and form.is_valid():
         data = form.cleaned_data
-        selection = Selection(
-            robots=tuple(uuid.UUID(robot) for robot in data["robots"]),
-            topics=tuple(data["topics"]),
-            since=data.get("since"),
-            until=data.get("until"),
-        )
         try:
-            export = export_create(requester=owner, selection=selection)
+            export = export_create(
+                requester=owner,
+                robots=data["robots"],
+                topics=data["topics"],
+                since=data.get("since"),
+                until=data.get("until"),
+            )
         except ExportRefused as exc:
             form.add_error(None, str(exc))
         else:

@@ -17,7 +17,7 @@ from authros_verify.__main__ import main
 from authros_verify.abi import ABI
 from chainworker import services as chain_services
 from chainworker.chain import ContractArtifact
-from sharing.exports import Selection, export_create
+from sharing.exports import export_create
 from sharing.models import Export
 from sharing.services import record_create_batch
 from sharing.storage import envelope_storage
@@ -42,7 +42,7 @@ def _export(setup, capture, count: int = 2) -> tuple[bytes, bytes]:
     with capture(execute=True):
         record_create_batch(robot=setup.robot, envelopes=envelopes)
     with capture(execute=True):
-        export = export_create(requester=setup.owner, selection=Selection())
+        export = export_create(requester=setup.owner)
     export.refresh_from_db()
     assert export.status == Export.Status.DONE, export.error
     storage = envelope_storage()

@@ -15,8 +15,9 @@ from django.utils import timezone
 from playwright.sync_api import Browser, Page, expect
 
 from authros_verify import ChainReader, verify
-from sharing.exports import Selection, export_run
+from sharing.exports import export_run
 from sharing.models import Export
+from sharing.selection import RecordSelection
 from sharing.services import record_create_batch
 from tests.conftest import TEST_PASSWORD
 
@@ -81,7 +82,7 @@ def test_export_page_with_progress_on_desktop_and_phone(
     # --- phone: an export in progress, its bar moving, then ready ----------------------------
     running = Export.objects.create(
         requester=alice.owner,
-        selection=Selection().as_json(),
+        selection=RecordSelection().as_json(),
         status=Export.Status.RUNNING,
         total=4,
         processed=1,

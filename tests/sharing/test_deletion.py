@@ -58,7 +58,7 @@ def fresh(record: Record) -> Record:
 
 def assert_purged(record: Record, *, reason: str) -> None:
     record = fresh(record)
-    assert record.deleted_at is not None
+    assert record.is_deleted
     assert record.purged_at is not None
     assert record.deletion_reason == reason
     assert not stored(record)
@@ -67,7 +67,7 @@ def assert_purged(record: Record, *, reason: str) -> None:
 
 def assert_live(record: Record) -> None:
     record = fresh(record)
-    assert record.deleted_at is None
+    assert not record.is_deleted
     assert record.purged_at is None
     assert stored(record)
 
@@ -259,7 +259,7 @@ def _crash_between_tombstone_and_purge(alice: RobotSetup, bob, upload, monkeypat
     done = records_delete(owner=alice.owner, actor=alice.owner.user, record_ids=[crashed.pk])
     assert done.deleted == 1
     crashed = fresh(crashed)
-    assert crashed.deleted_at is not None
+    assert crashed.is_deleted
     assert crashed.purged_at is None
     assert stored(crashed)  # still stored, but never shown as live:
     for viewer in (alice.owner, bob):

@@ -14,7 +14,7 @@ from core.storage_url import envelope_storage_config
 from portal.celery import app as celery_app
 from sharing import disk
 from sharing.disk import DISK_LOW_ALERT, disk_space_watch, portal_disks
-from sharing.exports import EXPORT_STORAGE_PREFIX, Selection, export_create, export_run
+from sharing.exports import EXPORT_STORAGE_PREFIX, export_create, export_run
 from sharing.models import Export, Record
 from sharing.services import record_create
 from sharing.storage import envelope_storage
@@ -97,7 +97,7 @@ def test_an_export_is_refused_too_and_leaves_no_files(make_robot, settings):
     setup = make_robot()
     record_create(robot=setup.robot, data=setup.seal(1))
     settings.STORAGE_MIN_FREE_BYTES = _free() + GIB
-    export = export_run(export_id=export_create(requester=setup.owner, selection=Selection()).pk)
+    export = export_run(export_id=export_create(requester=setup.owner).pk)
     assert export.status == Export.Status.FAILED
     assert "nearly full" in export.error
     assert not envelope_storage().exists(f"{EXPORT_STORAGE_PREFIX}/{export.pk}")

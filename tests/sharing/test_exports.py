@@ -20,8 +20,9 @@ from mcap_ros2.decoder import DecoderFactory
 from accounts.models import Robot
 from accounts.services import owner_create, robot_create
 from authros_verify import ChainReader, verify
-from sharing.exports import Selection, export_create, export_run, exports_sweep
+from sharing.exports import export_create, export_run, exports_sweep
 from sharing.models import Export, Record, Verdict
+from sharing.selection import RecordSelection
 from sharing.services import record_create, record_create_batch
 from sharing.storage import envelope_storage
 from smcrypto import sm4
@@ -145,7 +146,7 @@ def alice_records(alice, django_capture_on_commit_callbacks) -> list[Record]:
 
 def run_export(requester, django_capture_on_commit_callbacks, **selection) -> Export:
     with django_capture_on_commit_callbacks(execute=True):
-        export = export_create(requester=requester, selection=Selection(**selection))
+        export = export_create(requester=requester, **selection)
     export.refresh_from_db()
     assert export.status == Export.Status.DONE, export.error
     return export
@@ -296,7 +297,7 @@ def test_a_grantee_exports_only_what_they_may_view(
     # An export whose message was lost (the broker was down) is queued again by the sweep.
     lost = Export.objects.create(
         requester=bob,
-        selection=Selection(topics=("/chatter",)).as_json(),
+        selection=RecordSelection(topics=("/chatter",)).as_json(),
         total=1,
         expires_at=timezone.now() + timedelta(hours=1),
     )

@@ -13,7 +13,7 @@ from core.storage_url import StorageUrlError, envelope_storage_config
 from sharing.cache import _key as cache_key
 from sharing.deletion import retention_apply
 from sharing.errors import StorageUnavailable
-from sharing.exports import Selection, export_create
+from sharing.exports import export_create
 from sharing.models import Record, Verdict
 from sharing.services import record_create_batch
 from sharing.storage import DurableS3Storage, envelope_storage
@@ -78,7 +78,7 @@ def test_an_upload_lands_in_the_bucket_and_verifies_from_it(
 
     # An export's files go to the bucket too, and download from it (docs/export.md).
     with django_capture_on_commit_callbacks(execute=True):
-        export = export_create(requester=setup.owner, selection=Selection())
+        export = export_create(requester=setup.owner)
     export.refresh_from_db()
     assert (export.status, export.exported) == ("done", 1)
     key = f"{PREFIX}/{export.mcap_name}"
