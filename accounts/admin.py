@@ -17,14 +17,10 @@ from django.core.exceptions import PermissionDenied
 from django.db.models import QuerySet
 from django.http import HttpRequest, HttpResponse
 
+from accounts.events import account_event_record
 from accounts.models import AccountEvent, ChainActivity, Owner, OwnerKey, Robot
-from accounts.services import (
-    account_event_record,
-    owner_active_set,
-    owner_approve,
-    owner_refuse,
-    robot_token_revoke,
-)
+from accounts.services.owners import owner_active_set, owner_approve, owner_refuse
+from accounts.services.robots import robot_token_revoke
 
 
 class ReadOnlyAdmin(admin.ModelAdmin):

@@ -22,7 +22,7 @@ from accounts.selectors import (
     public_key_fingerprint,
     robot_key_for,
 )
-from accounts.services import robot_pairing_collect, robot_pairing_request
+from accounts.services.pairing import robot_pairing_collect, robot_pairing_request
 from core.api_errors import error_responses
 
 SM2_CIPHERTEXT_MODE = "C1C3C2"

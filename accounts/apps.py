@@ -17,7 +17,7 @@ class AccountsConfig(AppConfig):
     def ready(self) -> None:
         # Models load only once the registry is ready, hence the imports here.
         from accounts.selectors import chain_backlog
-        from accounts.services import eoa_low_balances
+        from accounts.services.funding import eoa_low_balances
         from chainworker.backlog import backlog_counter_register
         from chainworker.gas import low_balance_lister_register
 
@@ -35,7 +35,7 @@ def service_check(
     admin. Only when asked with the database (it reads rows), and once it is migrated."""
     if not databases or DEFAULT_DB_ALIAS not in databases or not _migrated():
         return []
-    from accounts.services import secrets_verify
+    from accounts.services.portal_secrets import secrets_verify
     from chainworker.chain import ChainError
     from chainworker.services import operator_verify
 

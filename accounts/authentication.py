@@ -30,7 +30,7 @@ from accounts.selectors import (
     owner_token_by_key,
     robot_by_token,
 )
-from accounts.services import owner_token_mark_used
+from accounts.services.api_tokens import owner_token_mark_used
 from core.redis_client import get_redis, redis_key
 
 if TYPE_CHECKING:  # rest_framework.views imports this module through the settings

@@ -1,9 +1,10 @@
 """The identity check (the paper's, against DESIGN.md's commitment): the key commitment on
 chain for an owner is the one of the key the portal holds.
 
-It runs when a registration or a rotation is confirmed (accounts.services), before uploads
-(sharing.services) and before every view, in the worker (sharing.verification). The chain's
-answer is kept in Redis per owner and block, so a burst of requests costs one chain read.
+It runs when a registration or a rotation is confirmed (accounts.services.registration),
+before uploads (sharing.services) and before every view, in the worker (sharing.verification).
+The chain's answer is kept in Redis per owner and block, so a burst of requests costs one chain
+read.
 """
 
 import logging

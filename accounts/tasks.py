@@ -2,31 +2,31 @@
 
 from celery import shared_task
 
-from accounts import services
+from accounts.services import funding, pairing, registration
 from chainworker.work import CHAIN_TASK
 
 
 @shared_task(name="accounts.tasks.owner_register", **CHAIN_TASK)
 def owner_register(owner_id: int) -> str:
-    return services.owner_register_on_chain(owner_id=owner_id).chain_state
+    return registration.owner_register_on_chain(owner_id=owner_id).chain_state
 
 
 @shared_task(name="accounts.tasks.key_rotate", **CHAIN_TASK)
 def key_rotate(owner_key_id: int) -> str:
-    return services.key_rotate_on_chain(owner_key_id=owner_key_id).chain_state
+    return registration.key_rotate_on_chain(owner_key_id=owner_key_id).chain_state
 
 
 @shared_task(name="accounts.tasks.chain_work_sweep", soft_time_limit=60, time_limit=90)
 def chain_work_sweep() -> dict[str, int]:
-    return services.chain_work_sweep()
+    return registration.chain_work_sweep()
 
 
 @shared_task(name="accounts.tasks.owner_top_up", **CHAIN_TASK)
 def owner_top_up(owner_id: int) -> str | None:
-    funding = services.owner_top_up(owner_id=owner_id)
-    return funding.tx_hash if funding else None
+    funding_row = funding.owner_top_up(owner_id=owner_id)
+    return funding_row.tx_hash if funding_row else None
 
 
 @shared_task(name="accounts.tasks.robot_pairings_purge", soft_time_limit=60, time_limit=90)
 def robot_pairings_purge() -> int:
-    return services.robot_pairings_purge()
+    return pairing.robot_pairings_purge()

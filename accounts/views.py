@@ -58,15 +58,11 @@ from accounts.selectors import (
     robot_pairings_answered,
     robot_topics,
 )
-from accounts.services import (
-    key_rotate,
-    owner_create,
-    owner_token_create,
-    robot_create,
-    robot_pairing_answer,
-    robot_retention_set,
-    robot_token_revoke,
-)
+from accounts.services.api_tokens import owner_token_create
+from accounts.services.keys import key_rotate
+from accounts.services.owners import owner_create
+from accounts.services.pairing import robot_pairing_answer
+from accounts.services.robots import robot_create, robot_retention_set, robot_token_revoke
 from accounts.signup_limits import signup_slot_give_back, signup_slot_take
 
 # The session backend that `login()` records for a user who has just registered.

@@ -351,7 +351,7 @@ class Upload:
 def _agents_create(run: UploadRun, stack: BenchStack) -> list[list[Upload]]:
     """K owners registered on chain, then N robots round-robin over them, each with its M
     sealed envelopes, seq 1..M (sealing is not timed)."""
-    from accounts.services import robot_create
+    from accounts.services.robots import robot_create
 
     owners = owners_register(stack, run.owners)
     agents = []

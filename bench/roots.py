@@ -213,7 +213,7 @@ class Client:
 
 
 def _clients_create(robots: list[tuple[Any, bytes]], clients: int) -> list[Client]:
-    from accounts.services import robot_create
+    from accounts.services.robots import robot_create
 
     made = []
     for number in range(clients):
@@ -378,7 +378,7 @@ def _gas(run: RootsRun) -> dict[str, Any]:
 
 
 def _viewer(owner: Any) -> str:
-    from accounts.services import owner_token_create
+    from accounts.services.api_tokens import owner_token_create
 
     _token, key = owner_token_create(
         owner=owner, name="bench views", scopes=["read"], expires_in=timedelta(days=1)
@@ -491,7 +491,7 @@ def _single_upload_cost(stack: BenchStack, robot_key: tuple[Any, bytes]) -> dict
     """The web's CPU for one single-envelope upload (the stack's web processes, measured from
     outside): SINGLE_UPLOADS in a row from a robot of its own, each on a new connection, after
     a few to warm up, the way each of the concurrent agents sends its one."""
-    from accounts.services import robot_create
+    from accounts.services.robots import robot_create
 
     robot, key = robot_key
     new_robot, token = robot_create(owner=robot.owner, name="single-uploads")

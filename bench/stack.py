@@ -462,7 +462,8 @@ def owners_register(stack: BenchStack, owners: int) -> list[tuple[Any, bytes]]:
     """K owners with one robot each, registered on chain by the stack's workers;
     (robot, sm4 key) each."""
     from accounts.models import ChainState, Owner
-    from accounts.services import owner_create, robot_create
+    from accounts.services.owners import owner_create
+    from accounts.services.robots import robot_create
 
     robots = []
     for number in range(owners):

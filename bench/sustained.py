@@ -397,7 +397,8 @@ def _measure(run: SustainedRun) -> dict[str, Any]:
 def _robots_create(run: SustainedRun, stack: BenchStack) -> list[_Robot]:
     """K owners registered on chain, each with an API token to read with, then one robot per
     agent, round-robin over the owners."""
-    from accounts.services import owner_token_create, robot_create
+    from accounts.services.api_tokens import owner_token_create
+    from accounts.services.robots import robot_create
 
     owners = owners_register(stack, run.owners)
     viewer_tokens = [

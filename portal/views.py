@@ -29,7 +29,7 @@ from accounts.selectors import (
     owner_key_current,
     robot_count_active,
 )
-from accounts.services import owner_eoa_gas
+from accounts.services.funding import owner_eoa_gas
 from chainworker.chain import ChainError
 from sharing.models import SecurityEvent
 from sharing.selectors import (

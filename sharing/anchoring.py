@@ -25,7 +25,7 @@ from redis.lock import Lock
 
 from accounts.models import ChainActivity, ChainState, Owner
 from accounts.selectors import owner_eoa_account
-from accounts.services import chain_activity_record
+from accounts.services.activity import chain_activity_record
 from alerts.services import anchoring_failed_alert
 from chainworker.chain import (
     AnchorItem,
@@ -66,6 +66,14 @@ def anchor_schedule(*, owner_id: int, countdown: float | None = None) -> None:
     except RedisError:
         first = True
     _anchor_enqueue(owner_id, first=first, countdown=countdown)
+
+
+def anchor_after_registration(owner_id: int) -> None:
+    """Queue a run for an owner whose registration was just confirmed on chain, so that records
+    uploaded while it waited go now (accounts.services.registration calls it; sharing/apps.py
+    registers it). Past anchor_schedule's flag: a run that found the owner unregistered holds
+    it until its retry."""
+    enqueue("sharing.tasks.records_anchor", owner_id)
 
 
 def anchor_schedule_queued(pipe: Pipeline, *, owner_id: int) -> Callable[[object], None]:

@@ -6,7 +6,10 @@ class SharingConfig(AppConfig):
 
     def ready(self) -> None:
         # Models load only once the registry is ready, hence the imports here.
+        from accounts.services.registration import owner_registered_listener_register
         from chainworker.backlog import backlog_counter_register
+        from sharing.anchoring import anchor_after_registration
         from sharing.selectors import chain_backlog
 
         backlog_counter_register(chain_backlog)
+        owner_registered_listener_register(anchor_after_registration)

@@ -39,7 +39,7 @@ from redis.exceptions import LockError, RedisError
 
 from accounts.events import account_event_record
 from accounts.models import AccountEvent, Owner, Robot
-from accounts.services import owner_close, owner_password_confirm
+from accounts.services.owners import owner_close, owner_password_confirm
 from core.outbox import enqueue
 from core.redis_client import get_redis, redis_key
 from sharing.cache import envelope_cache_evict

@@ -26,7 +26,7 @@ from django.utils import timezone
 from redis.exceptions import LockError, RedisError
 
 from accounts.models import ChainState, Owner
-from accounts.services import owners_chain_reset, owners_reconcile
+from accounts.services.registration import owners_chain_reset, owners_reconcile
 from chainworker.chain import AuthROSChain
 from chainworker.services import (
     IDENTITY_RESET,

@@ -28,7 +28,7 @@ from redis.lock import Lock
 
 from accounts.models import ChainActivity, Owner
 from accounts.selectors import owner_eoa_account
-from accounts.services import chain_activity_record
+from accounts.services.activity import chain_activity_record
 from chainworker.chain import (
     AuthROSChain,
     ChainUnavailable,

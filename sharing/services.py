@@ -28,7 +28,7 @@ from accounts.selectors import (
     owner_key_bytes,
     owner_keys,
 )
-from accounts.services import chain_activity_record
+from accounts.services.activity import chain_activity_record
 from alerts.services import grant_received_alert, grant_revoked_alert
 from chainworker.chain import InsufficientFunds, TransactionReverted, TxResult
 from chainworker.services import chain_client, chain_work_check

@@ -27,7 +27,7 @@ from accounts.decorators import no_store, owner_required, page_throttle
 from accounts.errors import IdentityMismatch, WrongPassword
 from accounts.models import Owner
 from accounts.selectors import owner_by_identifier, owner_token_of, robot_list_of
-from accounts.services import owner_token_revoke
+from accounts.services.api_tokens import owner_token_revoke
 from sharing.access_log import access_log_csv, access_log_page
 from sharing.audit import audit_page_of_owner
 from sharing.content import IMAGE_TYPES, ODOMETRY, content_of, pose_of, trajectory_plot

@@ -15,7 +15,9 @@ from eth_account import Account
 from eth_account.signers.local import LocalAccount
 
 from accounts.models import Owner, OwnerToken, Robot
-from accounts.services import owner_create, owner_token_create, robot_create
+from accounts.services.api_tokens import owner_token_create
+from accounts.services.owners import owner_create
+from accounts.services.robots import robot_create
 from chainworker import services as chain_services
 from chainworker.chain import AuthROSChain, forget_in_process_chain
 from core.redis_client import get_redis

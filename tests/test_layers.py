@@ -1,10 +1,13 @@
 """Imports go down the layers (docs/architecture.md), never up or round in a circle.
 
 Read from the source with `ast`, so the test needs nothing running and fails on the import
-that breaks the rule, wherever in a file it is written.
+that breaks the rule, wherever in a file it is written. A task sent by name through the outbox
+(`enqueue("sharing.tasks.records_anchor", ...)`) is read too: it calls into its app as an
+import would.
 """
 
 import ast
+import re
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -41,6 +44,9 @@ ALLOWED = {
 # Where a function-level import of the project's own modules is the rule, not a dodge:
 # AppConfig.ready runs once models can be imported.
 LOCAL_IMPORTS_ALLOWED = {"apps.py"}
+# core.outbox's functions that send a task by its registered name, "<module>.tasks.<name>".
+SENDS_A_TASK = {"enqueue", "dispatch"}
+TASK_NAME = re.compile(r"\w+(\.\w+)*\.tasks\.\w+")
 
 
 def _source_files(package: str) -> Iterator[Path]:
@@ -76,6 +82,24 @@ def _imports(path: Path) -> Iterator[tuple[str, bool, int]]:
                 yield f"{node.module}.{alias.name}", node.lineno in local_lines, node.lineno
 
 
+def _tasks_sent(path: Path) -> Iterator[tuple[str, int]]:
+    """(module of the task, line) for each task the file sends by a name written out in it."""
+    tree = ast.parse(path.read_text(), filename=str(path))
+    for node in ast.walk(tree):
+        if not isinstance(node, ast.Call) or not node.args:
+            continue
+        # enqueue(...) or outbox.enqueue(...)
+        called = getattr(node.func, "id", None) or getattr(node.func, "attr", None)
+        name = node.args[0]
+        if (
+            called in SENDS_A_TASK
+            and isinstance(name, ast.Constant)
+            and isinstance(name.value, str)
+            and TASK_NAME.fullmatch(name.value)
+        ):
+            yield name.value.rpartition(".")[0], node.lineno
+
+
 def _project_module(name: str, modules: set[str]) -> str | None:
     """The longest project module that `name` (a module or module.attribute) lies in."""
     parts = name.split(".")
@@ -102,16 +126,40 @@ def _graph() -> tuple[dict[str, set[str]], list[str]]:
     return edges, local
 
 
-def test_packages_import_only_the_layers_below_them():
-    edges, _local = _graph()
-    wrong = sorted(
-        f"{module} imports {target}"
-        for module, targets in edges.items()
+def _task_graph() -> dict[str, set[str]]:
+    """Which project modules each module sends tasks of, by name."""
+    files = {_module_name(path): path for package in PACKAGES for path in _source_files(package)}
+    modules = set(files)
+    sent: dict[str, set[str]] = {module: set() for module in modules}
+    for module, path in files.items():
+        for name, _line in _tasks_sent(path):
+            target = _project_module(name, modules)
+            if target is not None:
+                sent[module].add(target)
+    return sent
+
+
+def _across_the_layers(graph: dict[str, set[str]], verb: str) -> list[str]:
+    """The arrows of `graph` from one package to another that ALLOWED does not list."""
+    return sorted(
+        f"{module} {verb} {target}"
+        for module, targets in graph.items()
         for target in targets
         if (package := module.split(".")[0]) != (other := target.split(".")[0])
         and other not in ALLOWED[package]
     )
-    assert wrong == []
+
+
+def test_packages_import_only_the_layers_below_them():
+    edges, _local = _graph()
+    assert _across_the_layers(edges, "imports") == []
+
+
+def test_packages_send_tasks_only_of_the_layers_below_them():
+    """A service sends its own app's tasks and those of the layers below by name, never one of
+    an app above (that app registers with the one below instead). Not part of the circle
+    check: a task imports its service and the service sends it by name, as the outbox means."""
+    assert _across_the_layers(_task_graph(), "sends a task of") == []
 
 
 def test_no_module_imports_the_project_inside_a_function():
@@ -146,6 +194,25 @@ def test_the_check_sees_a_forbidden_import(tmp_path):
     assert list(_imports(source)) == [("os", False, 1), ("sharing.services", True, 4)]
     edges, _local = _graph()
     assert "chainworker.chain" in edges["sharing.anchoring"]
+
+
+def test_the_check_sees_a_task_sent_by_name(tmp_path):
+    """Task names written out in a call to enqueue or dispatch, at any depth; not a name in a
+    variable, nor a string that is no task name."""
+    source = tmp_path / "probe.py"
+    source.write_text(
+        "from core import outbox\n"
+        "def f(name):\n"
+        "    on_commit(lambda: enqueue('sharing.tasks.records_anchor', 1))\n"
+        "    outbox.dispatch('accounts.tasks.key_rotate', 2, countdown=1)\n"
+        "    enqueue(name)\n"
+        "    enqueue('no task')\n"
+    )
+    assert sorted(_tasks_sent(source), key=lambda sent: sent[1]) == [
+        ("sharing.tasks", 3),
+        ("accounts.tasks", 4),
+    ]
+    assert "accounts.tasks" in _task_graph()["sharing.services"]
 
 
 # What the standalone verifier may never load: Django, its ecosystem, or a portal app.

@@ -31,7 +31,7 @@
   }
 
   // The portal refuses a key whose bytes are all printable ASCII or NUL (it looks like text):
-  // one random key in 6.5 million does; draw another then (see accounts/services.py).
+  // one random key in 6.5 million does; draw another then (see accounts/services/keys.py).
   function looksLikeText(bytes) {
     return Array.prototype.every.call(bytes, function (b) {
       return b === 0 || (b >= 0x20 && b <= 0x7e);

@@ -18,7 +18,8 @@ from accounts import keywrap
 from accounts.errors import MasterKeyRefused
 from accounts.models import OwnerKey, SecretFingerprint
 from accounts.selectors import owner_key_bytes, owner_key_current
-from accounts.services import key_rotate, secrets_verify
+from accounts.services.keys import key_rotate
+from accounts.services.portal_secrets import secrets_verify
 from chainworker.models import Deployment
 from chainworker.services import operator_account, operator_verify
 from portal.middleware import service_checks_forget

@@ -14,7 +14,8 @@ from django.urls import reverse
 from accounts.errors import InvalidKeyMaterial
 from accounts.models import Owner, OwnerKey
 from accounts.selectors import owner_key_bytes, owner_key_current
-from accounts.services import _check_sm4_key, key_rotate, owner_create, sm4_key_generate
+from accounts.services.keys import key_rotate, sm4_key_check, sm4_key_generate
+from accounts.services.owners import owner_create
 from smcrypto import key_id, sm4
 from tests.conftest import TEST_PASSWORD
 from tests.pages.conftest import encrypted_key
@@ -68,17 +69,17 @@ def test_key_rotation_refuses_a_key_that_does_not_look_random(pending_owner, key
 
 def test_ten_thousand_random_keys_pass():
     # A seeded generator: the suite stays deterministic. The rules refuse one key in 6.5
-    # million (accounts/services.py), so os.urandom keys pass as well.
+    # million (accounts/services/keys.py), so os.urandom keys pass as well.
     rng = random.Random(20260611)
     for _ in range(10_000):
-        _check_sm4_key(rng.randbytes(16))
+        sm4_key_check(rng.randbytes(16))
 
 
 def test_generated_keys_pass_and_differ():
     keys = {sm4_key_generate() for _ in range(1000)}
     assert len(keys) == 1000
     for key in keys:
-        _check_sm4_key(key)
+        sm4_key_check(key)
 
 
 def test_the_register_page_refuses_a_typed_word_and_creates_nothing(client):
@@ -136,7 +137,7 @@ def test_owner_create_without_a_key_generates_one_and_prints_it_once(deployed):
     assert owner_key_bytes(owner_key_current(owner)) == key
     assert result["key_id"] == key_id(key).hex()
     assert result["chain_state"] == "confirmed"
-    _check_sm4_key(key)
+    sm4_key_check(key)
     # A key the operator gave is not printed back.
     given = sm4.generate_key()
     assert "sm4_key_hex" not in _owner_create("--username", "bob", "--sm4-key-hex", given.hex())
@@ -155,5 +156,5 @@ def test_demo_setup_gives_the_owner_a_generated_key(deployed, tmp_path):
     out = StringIO()
     call_command("demo_setup", "--dir", str(tmp_path), stdout=out)
     owner = Owner.objects.get(user__username=json.loads(out.getvalue())["username"])
-    _check_sm4_key(owner_key_bytes(owner_key_current(owner)))
+    sm4_key_check(owner_key_bytes(owner_key_current(owner)))
     assert not (tmp_path / "sm4.key").exists()  # the robot receives it by pairing

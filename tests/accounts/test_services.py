@@ -23,7 +23,11 @@ from accounts.selectors import (
     robot_by_token,
     robot_topics,
 )
-from accounts.services import key_rotate, owner_create, robot_create, robot_token_revoke
+from accounts.services.keys import key_rotate
+from accounts.services.owners import owner_create
+from accounts.services.registration import owner_register_on_chain
+from accounts.services.robots import robot_create, robot_token_revoke
+from sharing import anchoring
 from smcrypto import key_commitment, key_id, sm4
 from tests.conftest import TEST_PASSWORD
 
@@ -46,13 +50,24 @@ def test_owner_is_registered_on_chain_with_its_key_commitment(make_owner, deploy
 
 
 def test_registration_is_idempotent(make_owner, deployed):
-    from accounts.services import owner_register_on_chain
-
     owner = make_owner()
     Owner.objects.filter(pk=owner.pk).update(chain_state=ChainState.PENDING)
     again = owner_register_on_chain(owner_id=owner.pk)
     assert again.chain_state == ChainState.CONFIRMED
     assert [e.name for e in deployed.events(names=["Registered"])] == ["Registered"]
+
+
+def test_a_confirmed_registration_queues_the_anchoring_of_its_owners_records(
+    make_owner, monkeypatch
+):
+    """Records uploaded while the registration was pending go once it is confirmed: sharing's
+    listener (registered by sharing/apps.py) queues a run for the owner."""
+    owner = make_owner()
+    queued: list[tuple[object, ...]] = []
+    monkeypatch.setattr(anchoring, "enqueue", lambda *args, **kwargs: queued.append(args) or True)
+    Owner.objects.filter(pk=owner.pk).update(chain_state=ChainState.PENDING)
+    owner_register_on_chain(owner_id=owner.pk)
+    assert queued == [("sharing.tasks.records_anchor", owner.pk)]
 
 
 def test_secrets_are_not_stored_in_plaintext(make_owner):

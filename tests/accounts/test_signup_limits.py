@@ -14,13 +14,10 @@ from django.urls import reverse
 from django.utils import timezone
 
 from accounts.models import AccountEvent, Approval, ChainState, EoaFunding, Owner
-from accounts.services import (
-    FUNDING_BUDGET_SPENT,
-    chain_work_sweep,
-    eoa_funding_amount,
-    owner_create,
-    sm4_key_generate,
-)
+from accounts.services.funding import FUNDING_BUDGET_SPENT, eoa_funding_amount
+from accounts.services.keys import sm4_key_generate
+from accounts.services.owners import owner_create
+from accounts.services.registration import chain_work_sweep
 from accounts.tasks import owner_register
 from chainworker import services as chain_services
 from stack.anvil import start_anvil
@@ -130,7 +127,7 @@ def test_over_the_budget_a_registration_waits_without_using_up_attempts(
     first, second = make_owner("ida"), make_owner("jon")
     assert first.chain_state == second.chain_state == ChainState.CONFIRMED
     # On the service's logger itself: the eager Celery run sets the root logger up again.
-    service_logger = logging.getLogger("accounts.services")
+    service_logger = logging.getLogger("accounts.services.funding")
     service_logger.addHandler(caplog.handler)
     try:
         third = make_owner("kim")

@@ -9,7 +9,7 @@ import pytest
 from django.core import mail
 from django.utils import timezone
 
-from accounts.services import owner_create
+from accounts.services.owners import owner_create
 from alerts.errors import WebhookUrlRefused
 from alerts.models import AlertDelivery, AlertKind
 from alerts.services import (

@@ -24,7 +24,7 @@ from hypothesis.errors import Unsatisfiable
 from schemathesis import GenerationMode
 from schemathesis.errors import FailureGroup
 
-from accounts.services import owner_token_create
+from accounts.services.api_tokens import owner_token_create
 from sharing.services import grant_create
 from tests.conftest import RobotSetup
 

@@ -7,7 +7,7 @@ from datetime import timedelta
 import pytest
 from django.utils import timezone
 
-from accounts.services import robot_create
+from accounts.services.robots import robot_create
 from sharing.models import Grant
 from tests.api.conftest import GRANTS
 

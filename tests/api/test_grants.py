@@ -4,7 +4,7 @@ import pytest
 from django.utils.crypto import get_random_string
 
 from accounts.models import ChainState
-from accounts.services import owner_create
+from accounts.services.owners import owner_create
 from sharing.models import Grant
 from smcrypto import sm4
 from tests.api.conftest import GRANTS, session_client

@@ -14,7 +14,8 @@ from django.utils import timezone
 from django.utils.crypto import get_random_string
 
 from accounts.models import AccountEvent, OwnerToken
-from accounts.services import owner_token_revoke, robot_create
+from accounts.services.api_tokens import owner_token_revoke
+from accounts.services.robots import robot_create
 from sharing.models import Grant, Record, Verdict
 from sharing.services import grant_create, record_create_batch
 from tests.conftest import seal_for

@@ -5,7 +5,7 @@ import pytest
 
 from accounts.models import Owner
 from accounts.selectors import owner_by_identifier
-from accounts.services import owner_create
+from accounts.services.owners import owner_create
 from sharing.errors import OwnerNotFound
 from sharing.services import owner_resolve
 from smcrypto import sm4

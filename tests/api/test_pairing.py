@@ -24,13 +24,13 @@ from accounts.selectors import (
     robot_by_token,
     robot_token_hash,
 )
-from accounts.services import (
+from accounts.services.keys import key_rotate
+from accounts.services.pairing import (
     PAIRING_KEEP_EXPIRED,
-    key_rotate,
     robot_pairing_answer,
     robot_pairings_purge,
-    robot_token_revoke,
 )
+from accounts.services.robots import robot_token_revoke
 from sharing.services import KEY_ROTATION_GRACE
 from smcrypto import envelope, sm2, sm4
 from tests.api.conftest import Snapshot, b64, session_client, token_client

@@ -9,7 +9,8 @@ from django.test.utils import CaptureQueriesContext
 from django.utils import timezone
 
 from accounts import authentication
-from accounts.services import key_rotate, robot_create, robot_token_revoke
+from accounts.services.keys import key_rotate
+from accounts.services.robots import robot_create, robot_token_revoke
 from chainworker import services as chain_services
 from core.redis_client import get_redis, redis_key
 from sharing.models import Record, SecurityEvent

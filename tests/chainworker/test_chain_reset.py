@@ -8,7 +8,7 @@ import pytest
 from django.core.management import call_command
 from django.urls import reverse
 
-from accounts.services import owner_top_up
+from accounts.services.funding import owner_top_up
 from chainworker import services as chain_services
 from chainworker.models import Deployment
 from chainworker.work import ChainWorkNotReady

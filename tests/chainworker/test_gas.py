@@ -10,16 +10,18 @@ import pytest
 from django.urls import reverse
 from eth_account import Account
 
-from accounts import services as account_services
 from accounts.models import ChainState, EoaFunding
 from accounts.selectors import owner_eoa_account
-from accounts.services import (
+from accounts.services.funding import (
+    TOPUP_REASON,
     eoa_funding_spent,
-    key_rotate,
-    owner_create,
+    owner_eoa_gas,
     owner_top_up,
-    sm4_key_generate,
+    owners_low_on_gas,
 )
+from accounts.services.keys import key_rotate, sm4_key_generate
+from accounts.services.owners import owner_create
+from accounts.services.registration import chain_work_sweep
 from chainworker import services as chain_services
 from chainworker.chain import AuthROSChain, InsufficientFunds
 from chainworker.models import OperatorAlert
@@ -74,11 +76,11 @@ def test_an_account_emptied_mid_run_is_topped_up_and_every_record_anchored(
         later += _upload(alice, range(start, start + 5), django_capture_on_commit_callbacks)
     _assert_anchored_once(deployed, before + later)
     assert not Record.objects.exclude(status=Record.Status.ANCHORED).exists()
-    top_up = EoaFunding.objects.get(owner=alice.owner, reason=account_services.TOPUP_REASON)
+    top_up = EoaFunding.objects.get(owner=alice.owner, reason=TOPUP_REASON)
     assert top_up.tx_hash
     assert deployed.w3.eth.get_transaction(top_up.tx_hash)["to"] == alice.owner.eoa_address
     assert EoaFunding.objects.filter(owner=alice.owner).count() == 2  # registration, top-up
-    assert not account_services.owner_eoa_gas(owner=alice.owner).low
+    assert not owner_eoa_gas(owner=alice.owner).low
     assert not OperatorAlert.objects.exists()
 
 
@@ -102,7 +104,7 @@ def test_with_the_budget_spent_records_wait_and_the_operator_is_alerted(
     alert = OperatorAlert.objects.get()
     assert alert.kind == OperatorAlert.Kind.FUNDING_BUDGET_SPENT
     assert alert.resolved_at is None
-    assert not EoaFunding.objects.filter(reason=account_services.TOPUP_REASON).exists()
+    assert not EoaFunding.objects.filter(reason=TOPUP_REASON).exists()
     # The owner's record page says why the record waits.
     client.force_login(bob.owner.user)
     page = client.get(f"/records/{records[0].pk}/")
@@ -114,7 +116,7 @@ def test_with_the_budget_spent_records_wait_and_the_operator_is_alerted(
     # pay" waits for its retry, which anchors what waited (the anchoring sweep queues no run of
     # its own meanwhile: that one is queued).
     settings.SIGNUP_FUNDING_BUDGET_WEI = 50 * 10**18
-    assert account_services.chain_work_sweep()["top_ups"] == 1
+    assert chain_work_sweep()["top_ups"] == 1
     with django_capture_on_commit_callbacks(execute=True):
         sharing_services.chain_work_sweep()
     assert Record.objects.filter(owner=bob.owner, status=Record.Status.PENDING).count() == 5
@@ -131,7 +133,7 @@ def test_an_owner_above_the_threshold_is_not_topped_up(make_owner, deployed, set
     settings.CHAIN_EOA_TOPUP_BELOW_GAS = 2_000_000
     owner = make_owner("cid")
     assert owner_top_up(owner_id=owner.pk) is None
-    assert account_services.chain_work_sweep()["top_ups"] == 0
+    assert chain_work_sweep()["top_ups"] == 0
     assert EoaFunding.objects.filter(owner=owner).count() == 1  # registration only
 
 
@@ -153,7 +155,7 @@ def test_the_operator_unable_to_pay_is_an_alert(make_robot, deployed, settings, 
     # top-up it queues fails again meanwhile and is retried, as a worker would.
     celery_app.conf.task_eager_propagates = False
     settings.CHAIN_OPERATOR_LOW_WEI = 10**18
-    account_services.chain_work_sweep()
+    chain_work_sweep()
     kinds = set(OperatorAlert.objects.filter(resolved_at=None).values_list("kind", flat=True))
     assert kinds == {
         OperatorAlert.Kind.OPERATOR_CANNOT_PAY,
@@ -161,7 +163,7 @@ def test_the_operator_unable_to_pay_is_an_alert(make_robot, deployed, settings, 
     }
     deployed.dev_faucet(operator.address, 10 * 10**18)
     assert owner_top_up(owner_id=dan.owner.pk) is not None
-    account_services.chain_work_sweep()
+    chain_work_sweep()
     assert not OperatorAlert.objects.filter(resolved_at=None).exists()
     assert OperatorAlert.objects.count() == 2
 
@@ -232,8 +234,8 @@ def test_a_zero_gas_chain_needs_no_top_up(settings, django_capture_on_commit_cal
                 )
             assert chain_services.chain_client().balance(owner.eoa_address) == 0
             assert owner_top_up(owner_id=owner.pk) is None
-            assert account_services.chain_work_sweep()["top_ups"] == 0
-            assert account_services.owners_low_on_gas() == []
+            assert chain_work_sweep()["top_ups"] == 0
+            assert owners_low_on_gas() == []
             assert not EoaFunding.objects.exists()
             settings.CHAIN_OPERATOR_LOW_WEI = 10**30  # no gas to pay: never "low"
             assert not chain_services.operator_balance_check().low

@@ -16,9 +16,10 @@ import pytest
 import redis
 from django.db import connection
 
-from accounts import services as accounts_services
 from accounts.models import ChainState, Owner
-from accounts.services import owner_create, robot_create
+from accounts.services import keys as account_keys
+from accounts.services.owners import owner_create
+from accounts.services.robots import robot_create
 from chainworker import services as chain_services
 from sharing import anchoring as sharing_anchoring
 from sharing import services as sharing_services
@@ -297,12 +298,12 @@ def test_work_whose_messages_the_broker_lost_is_queued_again_by_the_beat_sweep(
         lost.append(task_name.rpartition(".")[2])
         return False
 
-    for module in (sharing_services, sharing_anchoring, accounts_services):
+    for module in (sharing_services, sharing_anchoring, account_keys):
         monkeypatch.setattr(module, "enqueue", broker_lost)
     for seq in range(1, 6):
         record_create(robot=alice.robot, data=alice.seal(seq))
     grant = grant_create(owner=alice.owner, grantee=bob.owner)
-    new_key = accounts_services.key_rotate(owner=bob.owner, sm4_key=sm4.generate_key())
+    new_key = account_keys.key_rotate(owner=bob.owner, sm4_key=sm4.generate_key())
     assert set(lost) == {"records_anchor", "grant_sync", "key_rotate"}
 
     # Only the beat's sweep (every 2 s, for work pending over 5 s) can queue them now.

@@ -16,7 +16,7 @@ from django.utils import timezone
 
 from accounts.decorators import page_rate_charge
 from accounts.models import RobotPairing
-from accounts.services import PAIRING_KEEP_EXPIRED
+from accounts.services.pairing import PAIRING_KEEP_EXPIRED
 from chainworker.admin import celery_queue_length
 from chainworker.work import ChainWorkNotReady, exclusive
 from core.redis_client import get_redis

@@ -10,7 +10,8 @@ from django.test.utils import CaptureQueriesContext
 
 from accounts.models import OwnerKey, Robot
 from accounts.selectors import owner_keys, robot_by_token, robot_token_hash
-from accounts.services import key_rotate, robot_token_revoke
+from accounts.services.keys import key_rotate
+from accounts.services.robots import robot_token_revoke
 from core.rows import FixedInsert
 from sharing.anchoring import records_anchor
 from sharing.deletion import record_delete

@@ -10,7 +10,7 @@ import pytest
 from django.core import mail
 from playwright.sync_api import Browser, Page, expect
 
-from accounts.services import owner_create
+from accounts.services.owners import owner_create
 from portal.celery import app as celery_app
 from smcrypto import sm4
 from tests.conftest import TEST_PASSWORD

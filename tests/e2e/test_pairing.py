@@ -30,7 +30,7 @@ import yaml
 from playwright.sync_api import Page, expect
 
 from accounts.models import ChainState, Owner, Robot, RobotPairing
-from accounts.services import owner_create
+from accounts.services.owners import owner_create
 from chainworker import services as chain_services
 from ros_agent import sim
 from sharing.models import Record

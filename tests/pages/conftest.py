@@ -12,7 +12,7 @@ from django.test import Client
 
 from accounts.keyexchange import portal_sm2_public_key
 from accounts.models import Owner
-from accounts.services import owner_create
+from accounts.services.owners import owner_create
 from sharing.models import Record
 from sharing.services import record_create
 from smcrypto import sm2, sm4

@@ -11,7 +11,7 @@ from django.utils import timezone
 
 from accounts.models import AccountEvent, OwnerToken
 from accounts.selectors import owner_token_by_key
-from accounts.services import owner_token_revoke
+from accounts.services.api_tokens import owner_token_revoke
 from sharing.models import Grant
 from sharing.services import grant_create
 from tests.conftest import TEST_PASSWORD

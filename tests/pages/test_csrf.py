@@ -9,7 +9,7 @@ from django.test import Client
 from django.urls import reverse
 
 from accounts.selectors import owner_key_current
-from accounts.services import robot_create
+from accounts.services.robots import robot_create
 from smcrypto import sm4
 from tests.conftest import TEST_PASSWORD
 from tests.pages.conftest import encrypted_key

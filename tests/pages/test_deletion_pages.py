@@ -5,7 +5,7 @@ import pytest
 from django.urls import reverse
 
 from accounts.models import AccountEvent, Robot
-from accounts.services import robot_create
+from accounts.services.robots import robot_create
 from tests.conftest import TEST_PASSWORD
 
 pytestmark = pytest.mark.django_db

@@ -13,7 +13,7 @@ import pytest
 from django.urls import reverse
 from django.utils import timezone
 
-from accounts.services import robot_create
+from accounts.services.robots import robot_create
 from sharing.models import Record, Verdict
 from sharing.services import grant_create
 from tests.conftest import RobotSetup, tamper

@@ -10,7 +10,8 @@ from django.utils import timezone
 
 from accounts.events import account_event_record
 from accounts.models import AccountEvent
-from accounts.services import owner_active_set, robot_create
+from accounts.services.owners import owner_active_set
+from accounts.services.robots import robot_create
 from sharing.errors import IntegrityCheckFailed
 from sharing.models import SecurityEvent
 from sharing.verification import record_open

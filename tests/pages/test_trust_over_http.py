@@ -10,7 +10,7 @@ import requests
 from django.contrib.auth import get_user_model
 
 from accounts.models import AccountEvent, Owner
-from accounts.services import sm4_key_generate
+from accounts.services.keys import sm4_key_generate
 from tests.conftest import TEST_PASSWORD
 from tests.pages.conftest import encrypted_key, odometry
 

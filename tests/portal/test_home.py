@@ -13,7 +13,7 @@ from django.contrib.auth import get_user_model
 from django.core.management import call_command
 from django.urls import reverse
 
-from accounts.services import owner_create
+from accounts.services.owners import owner_create
 from chainworker.models import Deployment
 from smcrypto import sm4
 from tests.conftest import TEST_PASSWORD

@@ -25,7 +25,8 @@ import requests
 import yaml
 
 from accounts.models import ChainState, Owner
-from accounts.services import owner_create, robot_create
+from accounts.services.owners import owner_create
+from accounts.services.robots import robot_create
 from chainworker import services as chain_services
 from ros_agent import sim
 from sharing.models import Record

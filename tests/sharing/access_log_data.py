@@ -20,7 +20,9 @@ from datetime import UTC, datetime, timedelta
 from django.contrib.auth import get_user_model
 
 from accounts.models import Owner, OwnerToken, Robot
-from accounts.services import owner_create, owner_token_create, robot_create
+from accounts.services.api_tokens import owner_token_create
+from accounts.services.owners import owner_create
+from accounts.services.robots import robot_create
 from sharing.models import Grant, Record, Verdict
 from smcrypto import sm4
 from tests.conftest import TEST_PASSWORD

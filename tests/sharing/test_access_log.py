@@ -13,7 +13,7 @@ from django.db import connection
 from django.test.utils import CaptureQueriesContext
 from django.urls import reverse
 
-from accounts.services import robot_create
+from accounts.services.robots import robot_create
 from sharing import access_log
 from sharing.access_log import csv_cell
 from sharing.models import Verdict

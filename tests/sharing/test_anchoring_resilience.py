@@ -166,6 +166,7 @@ def test_uploads_while_a_run_works_queue_no_second_run(
     """The "a run is queued" flag stays set while the run works: uploads meanwhile queue
     nothing (their records go in this run, or the one it queues), and it is dropped after."""
     setup = make_robot()
+    scheduled.clear()  # the run queued once the owner was registered
     upload = _committed_uploads(setup, django_capture_on_commit_callbacks)
 
     upload(1)
@@ -202,6 +203,7 @@ def test_uploads_while_a_failed_run_waits_for_its_retry_queue_no_run_of_their_ow
     in an hour). The flag lapses after the longest retry backoff and a margin, so a retry lost
     with its worker leaves the owner to the next upload or the sweep."""
     setup = make_robot()
+    scheduled.clear()  # the run queued once the owner was registered
     upload = _committed_uploads(setup, django_capture_on_commit_callbacks)
 
     upload(1)

@@ -11,7 +11,7 @@ from django.test.utils import CaptureQueriesContext
 from django.urls import reverse
 
 from accounts.models import ChainActivity
-from accounts.services import robot_create
+from accounts.services.robots import robot_create
 from sharing.models import Record
 from tests.conftest import RobotSetup
 

@@ -12,7 +12,8 @@ from django.test.utils import CaptureQueriesContext
 from django.urls import reverse
 
 from accounts.models import ChainActivity
-from accounts.services import chain_activity_record, key_rotate
+from accounts.services.activity import chain_activity_record
+from accounts.services.keys import key_rotate
 from chainworker import services as chain_services
 from sharing.models import Grant, Record
 from sharing.services import record_create_batch

@@ -23,7 +23,7 @@ from django.core.management import call_command
 from django.urls import reverse
 
 from accounts.keywrap import kek_fingerprint, master_key
-from accounts.services import robot_create
+from accounts.services.robots import robot_create
 from chainworker import services as chain_services
 from sharing import backup
 from sharing.models import Grant, Record

@@ -10,7 +10,8 @@ from django.urls import reverse
 
 from accounts.errors import UsernameTaken, WrongPassword
 from accounts.models import AccountEvent, OwnerToken, Robot
-from accounts.services import owner_create, robot_create, robot_retention_set
+from accounts.services.owners import owner_create
+from accounts.services.robots import robot_create, robot_retention_set
 from chainworker.services import chain_client
 from sharing.cache import envelope_cache_get
 from sharing.deletion import (

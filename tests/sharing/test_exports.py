@@ -18,7 +18,8 @@ from mcap.reader import make_reader
 from mcap_ros2.decoder import DecoderFactory
 
 from accounts.models import Robot
-from accounts.services import owner_create, robot_create
+from accounts.services.owners import owner_create
+from accounts.services.robots import robot_create
 from authros_verify import ChainReader, verify
 from sharing.exports import export_create, export_run, exports_sweep
 from sharing.models import Export, Record, Verdict

@@ -12,7 +12,7 @@ from django.core.management import call_command
 
 from accounts.models import ChainState, OwnerKey
 from accounts.selectors import owner_eoa_account
-from accounts.services import key_rotate
+from accounts.services.keys import key_rotate
 from chainworker import services as chain_services
 from chainworker.chain import AnchorItem, bytes32_to_record_id
 from sharing.models import Grant, Record, SecurityEvent, Verdict

@@ -7,7 +7,7 @@ import pytest
 from django.db import DatabaseError
 from django.utils import timezone
 
-from accounts.services import key_rotate
+from accounts.services.keys import key_rotate
 from core import files as files_module
 from sharing import errors
 from sharing import services as services_module

@@ -8,7 +8,7 @@ from datetime import UTC, datetime, timedelta
 import pytest
 from botocore.exceptions import ClientError
 
-from accounts.services import robot_retention_set
+from accounts.services.robots import robot_retention_set
 from core.storage_url import StorageUrlError, envelope_storage_config
 from sharing.cache import _key as cache_key
 from sharing.deletion import retention_apply

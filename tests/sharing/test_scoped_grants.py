@@ -8,7 +8,7 @@ import pytest
 from django.urls import reverse
 from django.utils import timezone
 
-from accounts.services import robot_create
+from accounts.services.robots import robot_create
 from chainworker import services as chain_services
 from chainworker.models import Deployment
 from sharing.models import Grant, Record, Verdict

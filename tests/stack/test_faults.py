@@ -14,7 +14,8 @@ import pytest
 import requests
 
 from accounts.models import ChainState, EoaFunding, Owner
-from accounts.services import TOPUP_REASON, key_rotate
+from accounts.services.funding import TOPUP_REASON
+from accounts.services.keys import key_rotate
 from chainworker import services as chain_services
 from chainworker.chain import ChainError
 from core.redis_client import get_redis, redis_key

@@ -14,7 +14,7 @@ import requests
 from django.conf import settings as django_settings
 from eth_account import Account
 
-from accounts.services import owner_token_create
+from accounts.services.api_tokens import owner_token_create
 from chainworker import services as chain_services
 from core.storage_url import envelope_storage_config
 from sharing.models import Record

@@ -20,7 +20,9 @@ from django.core.management.base import BaseCommand, CommandError, CommandParser
 
 from accounts.models import ChainState
 from accounts.selectors import owner_by_username, robot_by_token
-from accounts.services import owner_create, owner_register_on_chain, sm4_key_generate
+from accounts.services.keys import sm4_key_generate
+from accounts.services.owners import owner_create
+from accounts.services.registration import owner_register_on_chain
 from chainworker.chain import ChainError
 
 ROBOT_FOLDER = "robot"

@@ -29,7 +29,9 @@ from accounts.errors import AccountError, WeakPassword
 from accounts.keyexchange import sm4_key_from_submission
 from accounts.models import Owner
 from accounts.selectors import owner_key_current
-from accounts.services import owner_create, owner_register_on_chain, sm4_key_generate
+from accounts.services.keys import sm4_key_generate
+from accounts.services.owners import owner_create
+from accounts.services.registration import owner_register_on_chain
 from chainworker.chain import ChainError
 from chainworker.services import chain_client
 from chainworker.work import TRANSIENT

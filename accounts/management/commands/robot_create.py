@@ -10,7 +10,7 @@ from django.core.management.base import BaseCommand, CommandError, CommandParser
 
 from accounts.errors import AccountError
 from accounts.selectors import owner_by_identifier
-from accounts.services import robot_create
+from accounts.services.robots import robot_create
 
 
 class Command(BaseCommand):

@@ -13,7 +13,7 @@ from django.core.management.base import BaseCommand, CommandError, CommandParser
 
 from accounts.errors import AccountError
 from accounts.selectors import owner_by_identifier, pairing_code_display, public_key_fingerprint
-from accounts.services import robot_pairing_answer
+from accounts.services.pairing import robot_pairing_answer
 
 
 class Command(BaseCommand):
