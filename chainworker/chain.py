@@ -1,7 +1,7 @@
 """The one web3 client for the AuthROS contract.
 
-`AuthROSChain` connects to a node by URL (``http(s)://`` for a real node, ``eth-tester://NAME``
-for the in-process EVM used by fast tests), deploys or loads the contract, and wraps each
+`AuthROSChain` connects to a node by its JSON-RPC URL (``http(s)://``: geth, anvil, a PoA
+network; the tests run one anvil per session), deploys or loads the contract, and wraps each
 contract function as a typed method. Transactions are signed locally by the sending account;
 nonces come from `RedisNonceManager`, so any number of processes may send. This module does not
 import Django: `chainworker.services.chain_client()` builds the client from settings.
@@ -9,13 +9,10 @@ import Django: `chainworker.services.chain_client()` builds the client from sett
 
 from __future__ import annotations
 
-import ast
 import json
 import logging
 import os
 import re
-import sys
-import threading
 import time
 import uuid
 import weakref
@@ -42,7 +39,6 @@ from web3.exceptions import (
     ContractLogicError,
     ContractPanicError,
     ProviderConnectionError,
-    TimeExhausted,
     TransactionNotFound,
     Web3RPCError,
 )
@@ -51,21 +47,9 @@ from web3.types import TxReceipt
 
 from chainworker.nonces import NonceLockTimeout, NonceStoreUnavailable, RedisNonceManager
 
-
-def _reverts() -> tuple[type[Exception], ...]:
-    """What a refused call raises: web3's errors for real nodes, and eth-tester's for an
-    in-process chain. eth-tester (py-evm, about 0.4 s to import) is loaded only by eth-tester://
-    URLs, so a process that has not loaded it cannot meet its error."""
-    tester = sys.modules.get("eth_tester.exceptions")
-    if tester is None:
-        return (ContractLogicError,)
-    return (ContractLogicError, tester.TransactionFailed)
-
-
 logger = logging.getLogger(__name__)
 
 ARTIFACT_PATH = Path(__file__).resolve().parent.parent / "contracts" / "build" / "AuthROS.json"
-IN_PROCESS_SCHEME = "eth-tester://"
 ZERO_ADDRESS = "0x" + "00" * 20
 ZERO_BYTES32 = b"\x00" * 32
 # Gas estimates are taken against the pending state; a margin absorbs small state changes.
@@ -158,18 +142,6 @@ class NonceError(ChainError):
 
 class InsufficientFunds(ChainError):
     """The sender cannot pay for gas (fund the EOA from the operator)."""
-
-
-def _revert_data_from_eth_tester(exc: Exception) -> bytes | None:
-    """eth-tester reports a custom error as the text "execution reverted: b'...'"."""
-    match = re.fullmatch(r"execution reverted: (b(['\"]).*\2)", str(exc), re.DOTALL)
-    if match is None:
-        return None
-    try:
-        value = ast.literal_eval(match.group(1))
-    except (ValueError, SyntaxError):
-        return None
-    return value if isinstance(value, bytes) else None
 
 
 def _display(value: Any) -> str:
@@ -349,27 +321,9 @@ _PANIC_SELECTOR = bytes.fromhex("4e487b71")
 
 # --- connections ---------------------------------------------------------------------------
 
-_in_process_chains: dict[str, Web3] = {}
-_in_process_lock = threading.Lock()
-
 
 def connect(url: str, *, timeout: float = 10.0) -> Web3:
-    """A Web3 connection for `url`; in-process chains are shared per URL within a process."""
-    if url.startswith(IN_PROCESS_SCHEME):
-        with _in_process_lock:
-            if url not in _in_process_chains:
-                from eth_tester import EthereumTester, PyEVMBackend
-                from web3 import EthereumTesterProvider
-
-                # A genesis of its own, as every real chain has: eth-tester's is the same for
-                # all chains made within one second (it differs only by timestamp), so a reset
-                # chain would pass for the old one by chain id and genesis.
-                genesis = PyEVMBackend.generate_genesis_params(
-                    overrides={"extra_data": keccak(text=url)}
-                )
-                tester = EthereumTester(PyEVMBackend(genesis_parameters=genesis))
-                _in_process_chains[url] = Web3(EthereumTesterProvider(tester))
-            return _in_process_chains[url]
+    """A Web3 connection for the node at `url`."""
     if url.startswith(("http://", "https://")):
         # web3 asks the node for its chain id before every eth_call and transaction; a node's
         # chain id does not change, so it is asked once per connection (a view is one eth_call).
@@ -384,7 +338,7 @@ def connect(url: str, *, timeout: float = 10.0) -> Web3:
         # Proof-of-authority networks (geth clique) carry signer data in extraData.
         w3.middleware_onion.inject(ExtraDataToPOAMiddleware, layer=0)
         return w3
-    raise ValueError(f"unsupported chain URL {url!r}: use http(s)://host:port or eth-tester://name")
+    raise ValueError(f"unsupported chain URL {url!r}: use http(s)://host:port")
 
 
 # Connections kept to the node per process: a web process's threads and a worker's share them.
@@ -421,12 +375,6 @@ def _session_forget_connections(held: weakref.ref[requests.Session]) -> None:
     session = held()
     if session is not None:
         session.close()
-
-
-def forget_in_process_chain(url: str) -> None:
-    """Drop an in-process chain (tests call this to free memory)."""
-    with _in_process_lock:
-        _in_process_chains.pop(url, None)
 
 
 @contextmanager
@@ -495,15 +443,9 @@ class AuthROSChain:
         with _translated_errors():
             return str(self.w3.client_version)
 
-    @property
-    def is_in_process(self) -> bool:
-        return self.url.startswith(IN_PROCESS_SCHEME)
-
     @cached_property
     def chain_key(self) -> str:
-        """Identifies this chain across processes (in-process chains are private to one)."""
-        if self.is_in_process:
-            return f"in-process:{self.url}:{id(self.w3)}"
+        """Identifies this chain across processes: its id and genesis."""
         return f"{self.chain_id}:{self.genesis_hash[:18]}"
 
     @cached_property
@@ -922,13 +864,6 @@ class AuthROSChain:
         """Give `address` at least `value_wei` on a development chain; False on a real one."""
         address = Web3.to_checksum_address(address)
         with _translated_errors():
-            if self.is_in_process:
-                source = self.w3.eth.accounts[0]
-                tx_hash = self.w3.eth.send_transaction(
-                    {"from": source, "to": address, "value": value_wei}
-                )
-                self.w3.eth.wait_for_transaction_receipt(tx_hash)
-                return True
             if self.client_version.lower().startswith("anvil"):
                 target = self.balance(address) + value_wei
                 self.w3.provider.make_request("anvil_setBalance", [address, hex(target)])
@@ -942,7 +877,7 @@ class AuthROSChain:
         with _translated_errors(function):
             try:
                 return fn.call()
-            except _reverts() as exc:
+            except ContractLogicError as exc:
                 raise self._reverted(exc, function) from exc
             except BadFunctionCallOutput as exc:
                 # An empty answer: no code at the address (a reset chain), not a crash.
@@ -952,12 +887,8 @@ class AuthROSChain:
         """`_call` for the reads every view and upload makes (rootOf, grantOf, commitmentOf):
         the calldata encoded here and one eth_call sent by the provider itself, past web3's
         contract and middleware layers, which cost more than the request. A view function: it
-        reverts only on bad input. In-process chains (eth-tester, the tests') take the usual
-        way. Always a tuple of the function's outputs."""
+        reverts only on bad input. Always a tuple of the function's outputs."""
         selector, inputs, outputs = self._function_types[function]
-        if self.is_in_process:  # eth-tester wants web3's filled-in fields
-            answer = self._call(function, *args)
-            return tuple(answer) if len(outputs) > 1 else (answer,)
         data = selector + abi_encode(inputs, args)
         call = {"to": self.address, "data": "0x" + data.hex()}
         result = HexBytes(self._rpc_lean("eth_call", [call, "latest"], label=function) or b"")
@@ -1004,13 +935,10 @@ class AuthROSChain:
     def _transact(
         self, sender: LocalAccount, function: str, *args: Any, wait: bool, gas: int | None = None
     ) -> TxResult | str:
-        if self.is_in_process:  # eth-tester wants web3's filled-in fields
-            call: Any = getattr(self.contract.functions, function)(*args)
-        else:
-            # Encoded here and sent past web3's contract and middleware layers, which cost
-            # more than the node's work (an anchoring run is a few of these).
-            selector, inputs, _outputs = self._function_types[function]
-            call = _Calldata(self.address, selector + abi_encode(inputs, args))
+        # Encoded here and sent past web3's contract and middleware layers, which cost more
+        # than the node's work (an anchoring run is a few of these).
+        selector, inputs, _outputs = self._function_types[function]
+        call = _Calldata(self.address, selector + abi_encode(inputs, args))
         tx_hash = self._send(sender, call, label=function, gas=gas)
         if not wait:
             return tx_hash
@@ -1019,9 +947,6 @@ class AuthROSChain:
     def _reverted(
         self, exc: Exception, function: str | None, tx_hash: str | None = None
     ) -> TransactionReverted:
-        if not isinstance(exc, ContractLogicError):
-            name, args = self.artifact.decode_error(_revert_data_from_eth_tester(exc))
-            return TransactionReverted(name, args, tx_hash=tx_hash, function=function)
         if isinstance(exc, ContractPanicError):
             return TransactionReverted(
                 "Panic", {"detail": str(exc.message)}, tx_hash=tx_hash, function=function
@@ -1096,14 +1021,10 @@ class AuthROSChain:
         raise AssertionError("unreachable")
 
     def _send_raw(self, raw: bytes, *, label: str) -> bytes:
-        if self.is_in_process:
-            return bytes(self.w3.eth.send_raw_transaction(raw))
         answer = self._rpc_lean("eth_sendRawTransaction", ["0x" + raw.hex()], label=label)
         return bytes(HexBytes(answer))
 
     def _pending_nonce(self, address: str) -> int:
-        if self.is_in_process:
-            return int(self.w3.eth.get_transaction_count(address, "pending"))
         count = self._rpc_lean("eth_getTransactionCount", [address, "pending"], label="nonce")
         return int(count, 16)
 
@@ -1134,7 +1055,7 @@ class AuthROSChain:
                 if gas is None:
                     gas = int(fn.estimate_gas({**params, "gasPrice": 0}) * GAS_MARGIN)
                 tx = fn.build_transaction(self._fill_fees({**params, "gas": gas}))
-        except _reverts() as exc:
+        except ContractLogicError as exc:
             raise self._reverted(exc, label) from exc
         except (Web3RPCError, EthValidationError, ValueError) as exc:
             if _INSUFFICIENT_FUNDS.search(str(exc)):
@@ -1226,15 +1147,7 @@ class AuthROSChain:
         timeout = self.receipt_timeout if timeout is None else timeout
         deadline = time.monotonic() + timeout
         with _translated_errors(function):
-            if self.is_in_process:
-                try:
-                    receipt = self.w3.eth.wait_for_transaction_receipt(
-                        HexBytes(tx_hash), timeout=timeout, poll_latency=self.poll_interval
-                    )
-                except TimeExhausted as exc:
-                    raise TransactionTimeout(tx_hash, timeout) from exc
-            else:
-                receipt = self._receipt_poll(tx_hash, deadline, timeout)
+            receipt = self._receipt_poll(tx_hash, deadline, timeout)
             if receipt["status"] != 1:
                 raise self._explain_failure(receipt, tx_hash, function)
             self._await_confirmations(receipt, tx_hash, deadline, timeout)
@@ -1291,7 +1204,7 @@ class AuthROSChain:
         call = {"from": tx["from"], "to": tx["to"], "data": tx["input"], "value": tx["value"]}
         try:
             self.w3.eth.call(call, block_identifier=int(receipt["blockNumber"]) - 1)
-        except _reverts() as exc:
+        except ContractLogicError as exc:
             return self._reverted(exc, function, tx_hash)
         except Web3RPCError:
             pass

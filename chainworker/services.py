@@ -169,7 +169,7 @@ def contract_deploy(*, force: bool = False, replace_outdated: bool = False) -> D
                 deployer=operator.address,
                 compiler_version=client.artifact.compiler_version,
                 source_keccak=client.artifact.source_keccak,
-                rpc_url=settings.CHAIN_RPC_URL if not client.is_in_process else "",
+                rpc_url=settings.CHAIN_RPC_URL,
             )
     logger.info(
         "deployed AuthROS at %s on chain %s (%s)", deployment.address, client.chain_id, reason
@@ -338,10 +338,10 @@ class ChainIdentity:
 
 def chain_is_development(client: AuthROSChain) -> bool:
     """A chain the portal may fund and redeploy on by itself, as operator_ensure_funded decides:
-    CHAIN_DEV_FAUCET on, and the in-process EVM or anvil."""
+    CHAIN_DEV_FAUCET on, and anvil."""
     if not settings.CHAIN_DEV_FAUCET:
         return False
-    return client.is_in_process or client.client_version.lower().startswith("anvil")
+    return client.client_version.lower().startswith("anvil")
 
 
 def chain_identity() -> ChainIdentity:

@@ -160,7 +160,7 @@ WHITENOISE_USE_FINDERS = True
 MEDIA_ROOT = Path(env.str("AUTHROS_MEDIA_ROOT", default=str(VAR_DIR / "media")))
 
 # --- Chain -------------------------------------------------------------------------------
-# http(s)://host:port for a node; eth-tester://NAME for an in-process EVM (tests only).
+# The JSON-RPC endpoint of the chain node: http(s)://host:port.
 CHAIN_RPC_URL = env.str("CHAIN_RPC_URL", default="http://127.0.0.1:8545")
 # Optional pin; otherwise the address recorded by `manage.py chain_deploy` is used.
 CHAIN_CONTRACT_ADDRESS = env.str("CHAIN_CONTRACT_ADDRESS", default="")
@@ -199,7 +199,7 @@ ROBOT_PAIRING_TTL = env.int("ROBOT_PAIRING_TTL", default=900)
 # An envelope sealed under a retired key is accepted when captured before the rotation, give or
 # take this many seconds of robot clock (sharing.services._upload_key).
 KEY_ROTATION_CLOCK_SKEW = env.float("KEY_ROTATION_CLOCK_SKEW", default=300.0)
-# On a development chain (anvil, eth-tester) the operator is topped up automatically.
+# On a development chain (anvil) the operator is topped up automatically.
 CHAIN_DEV_FAUCET = env.bool("CHAIN_DEV_FAUCET", default=True)
 
 # Portal master key (KEK, 32 hex digits = SM4 key) wrapping owner keys; else a 0600 file.

@@ -1,7 +1,13 @@
-"""Fixtures shared by the whole suite: real Redis, an in-process EVM, a real anvil."""
+"""Fixtures shared by the whole suite: real Redis, and one real anvil per test session.
+
+The chain is an anvil node started once per session (once per pytest-xdist worker); every
+test runs on a snapshot of it, reverted afterwards (`isolated_portal`), and talks to it through
+the portal's own client over JSON-RPC, the code path production runs.
+"""
 
 import json
 import logging
+import time
 import uuid
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -10,6 +16,7 @@ from datetime import UTC, datetime, timedelta
 
 import pytest
 import redis
+import requests
 from django.conf import settings as django_settings
 from eth_account import Account
 from eth_account.signers.local import LocalAccount
@@ -18,8 +25,9 @@ from accounts.models import Owner, OwnerToken, Robot
 from accounts.services.api_tokens import owner_token_create
 from accounts.services.owners import owner_create
 from accounts.services.robots import robot_create
+from chainworker import chain as chain_module
 from chainworker import services as chain_services
-from chainworker.chain import AuthROSChain, forget_in_process_chain
+from chainworker.chain import AuthROSChain
 from core.redis_client import get_redis
 from portal.celery import app as celery_app
 from portal.middleware import service_checks_forget
@@ -28,6 +36,7 @@ from sharing.models import Record
 from sharing.storage import envelope_storage
 from smcrypto import envelope, key_commitment, sm4
 from stack.anvil import AnvilProcess, start_anvil
+from tests.tiers import spawning_allowed
 
 TEST_PASSWORD = "correct horse battery staple 42"
 
@@ -42,14 +51,25 @@ def redis_client() -> redis.Redis:
     return client
 
 
+@pytest.fixture(scope="session")
+def session_anvil() -> Iterator[AnvilProcess]:
+    """The session's chain node (automine, anvil's own fees: a 1 gwei base fee)."""
+    with spawning_allowed():
+        node = start_anvil()
+    with node:
+        yield node
+
+
 @pytest.fixture(autouse=True)
-def isolated_portal(settings, tmp_path, redis_client, request) -> Iterator[str]:
-    """Each test gets its own secrets, storage, Redis namespace and in-process chain.
+def isolated_portal(settings, tmp_path, redis_client, request, session_anvil) -> Iterator[str]:
+    """Each test gets its own secrets, storage, Redis namespace and chain state: a snapshot of
+    the session's anvil, reverted after the test (about 1 ms).
 
     Celery runs tasks eagerly (inline) unless the test is marked `worker`: those start real
     worker processes because they are about the queue.
     """
-    url = f"eth-tester://test-{uuid.uuid4().hex}"
+    url = session_anvil.url
+    snapshot = anvil_rpc(url, "evm_snapshot")
     settings.SECRETS_DIR = tmp_path / "secrets"
     settings.MEDIA_ROOT = tmp_path / "media"
     settings.STORAGES = {
@@ -74,7 +94,10 @@ def isolated_portal(settings, tmp_path, redis_client, request) -> Iterator[str]:
     yield url
     service_checks_forget()
     chain_services._clients.clear()
-    forget_in_process_chain(url)
+    # Transactions a test left waiting (behind a nonce gap) would be mined into the next one.
+    anvil_rpc(url, "anvil_dropAllTransactions")
+    if anvil_rpc(url, "evm_revert", snapshot) is not True:
+        raise AssertionError(f"anvil could not revert to the test's snapshot {snapshot}")
     for key in redis_client.scan_iter(f"{settings.REDIS_KEY_PREFIX}:*"):
         redis_client.delete(key)
 
@@ -109,9 +132,14 @@ def operator() -> LocalAccount:
 
 
 @pytest.fixture
-def chain(isolated_portal, redis_client, operator) -> AuthROSChain:
-    """A fresh in-process chain with the AuthROS contract deployed by the operator."""
-    client = AuthROSChain(isolated_portal, redis_client=redis_client, receipt_timeout=30)
+def chain(isolated_portal, redis_client, operator, settings) -> AuthROSChain:
+    """A client of the test's chain with the AuthROS contract deployed by the operator."""
+    client = AuthROSChain(
+        isolated_portal,
+        redis_client=redis_client,
+        receipt_timeout=30,
+        redis_prefix=settings.REDIS_KEY_PREFIX,
+    )
     client.dev_faucet(operator.address, 10**21)
     client.deploy(operator)
     return client
@@ -306,20 +334,76 @@ def logged_by(name: str) -> Iterator[list[logging.LogRecord]]:
         logger.removeHandler(handler)
 
 
+def anvil_rpc(url: str, method: str, *params: object) -> object:
+    """One JSON-RPC call to a test node (snapshots, time, mining); its result."""
+    answer = requests.post(
+        url, json={"jsonrpc": "2.0", "id": 1, "method": method, "params": list(params)}, timeout=30
+    ).json()
+    if "error" in answer:
+        raise AssertionError(f"{method}: anvil refused: {answer['error']}")
+    return answer["result"]
+
+
+def chain_time_travel(url: str, timestamp: int) -> None:
+    """Mine the next block at `timestamp` (seconds), as the node's clock would later."""
+    anvil_rpc(url, "evm_setNextBlockTimestamp", timestamp)
+    anvil_rpc(url, "evm_mine")
+
+
+def blocks_mine(url: str, count: int) -> None:
+    anvil_rpc(url, "anvil_mine", hex(count))
+
+
+@pytest.fixture
+def eager_retries() -> Iterator[None]:
+    """Tasks run inline, and a task's retries too: Celery retries an eager task inline only
+    when its errors are not propagated to the caller (the suite propagates them)."""
+    celery_app.conf.task_eager_propagates = False
+    yield
+    celery_app.conf.task_eager_propagates = True
+
+
+@pytest.fixture
+def blocks_lost(isolated_portal, monkeypatch, eager_retries):
+    """`with blocks_lost(): ...`: the node loses every block mined inside, as one restarted
+    from an older state does. The portal's nonce counters are then ahead of the node: a send
+    meets the gap at its receipt wait (asked every 0.1 s here, not 5 s) and its task retries
+    inline, as a worker would."""
+    monkeypatch.setattr(chain_module, "DROPPED_CHECK_INTERVAL", 0.1)
+
+    @contextmanager
+    def lose() -> Iterator[None]:
+        snapshot = anvil_rpc(isolated_portal, "evm_snapshot")
+        yield
+        assert anvil_rpc(isolated_portal, "evm_revert", snapshot) is True
+
+    return lose
+
+
+def genesis_hash(url: str) -> str:
+    return anvil_rpc(url, "eth_getBlockByNumber", "0x0", False)["hash"]
+
+
 @pytest.fixture
 def fresh_chain(settings):
-    """Point the portal at a new, empty in-process chain (a reset); freed afterwards."""
-    urls = []
+    """Point the portal at a new, empty chain (a reset): a node of its own, stopped afterwards,
+    whose genesis differs from the one it replaces (anvil dates its genesis to the second)."""
+    nodes: list[AnvilProcess] = []
 
     def reset() -> None:
-        url = f"eth-tester://reset-{uuid.uuid4().hex}"
-        urls.append(url)
-        settings.CHAIN_RPC_URL = url
+        replaced = genesis_hash(settings.CHAIN_RPC_URL)
+        while True:
+            node = start_anvil()
+            nodes.append(node)
+            if genesis_hash(node.url) != replaced:
+                break
+            time.sleep(0.5)
+        settings.CHAIN_RPC_URL = node.url
         chain_services._clients.clear()
 
     yield reset
-    for url in urls:
-        forget_in_process_chain(url)
+    for node in nodes:
+        node.stop()
 
 
 def tamper(record: Record) -> None:

@@ -163,7 +163,7 @@ def test_robot_create_refuses_unknown_owners_and_taken_names(make_owner):
     assert Robot.objects.count() == 1
 
 
-@pytest.mark.anvil
+@pytest.mark.process
 def test_the_commands_as_an_operator_runs_them_against_anvil(tmp_path):
     """Fresh processes, a real node, the password piped on standard input."""
     with start_anvil() as node:

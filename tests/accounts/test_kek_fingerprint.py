@@ -259,6 +259,7 @@ OwnerKey.objects.create(owner=owner, key_id="00", key_wrapped=key, commitment="0
 """
 
 
+@pytest.mark.process
 def test_a_fresh_install_migrates_and_checks_clean_then_a_lost_key_stops_the_worker(tmp_path):
     env = _environment(tmp_path)
     migrated = _manage(env, "migrate", "--noinput")
@@ -289,6 +290,7 @@ def test_a_fresh_install_migrates_and_checks_clean_then_a_lost_key_stops_the_wor
     assert not (tmp_path / "secrets" / "master.key").exists()
 
 
+@pytest.mark.process
 def test_a_worker_with_the_right_keys_starts(tmp_path):
     env = _environment(tmp_path)
     assert _manage(env, "migrate", "--noinput").returncode == 0

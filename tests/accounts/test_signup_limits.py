@@ -155,7 +155,7 @@ def test_over_the_budget_a_registration_waits_without_using_up_attempts(
     assert EoaFunding.objects.filter(owner=third, tx_hash=third.fund_tx).exists()
 
 
-@pytest.mark.anvil
+@pytest.mark.process
 def test_a_zero_gas_chain_sends_no_ether(settings, django_capture_on_commit_callbacks):
     with start_anvil(zero_gas=True) as node:  # as `make run` starts it
         settings.CHAIN_RPC_URL = node.url

@@ -17,19 +17,14 @@ from django.utils import timezone
 from accounts.models import Owner
 from alerts.models import AlertKind, AlertPreferences
 from alerts.services import alert_preferences_update
-from portal.celery import app as celery_app
 from tests.pages.conftest import upload  # noqa: F401  (the fixture, for tests/alerts/)
 
 EVERY_KIND = [kind for kind in AlertKind.values if kind != AlertKind.TEST]
 
 
 @pytest.fixture(autouse=True)
-def eager_retries() -> Iterator[None]:
-    """Tasks run inline, and a task's retries too: Celery retries an eager task inline only
-    when its errors are not propagated to the caller (the suite propagates them)."""
-    celery_app.conf.task_eager_propagates = False
-    yield
-    celery_app.conf.task_eager_propagates = True
+def _alert_retries_inline(eager_retries) -> None:
+    """Deliveries retry: every alerts test runs them inline (tests/conftest.py)."""
 
 
 class _Inbox:

@@ -153,7 +153,7 @@ def on_anvil(settings, isolated_portal):
         chain_services._clients.clear()
 
 
-@pytest.mark.anvil
+@pytest.mark.process
 def test_the_command_checks_a_record_mode_export_against_anvil(
     on_anvil, records_mode, make_robot, django_capture_on_commit_callbacks, tmp_path: Path, capsys
 ):

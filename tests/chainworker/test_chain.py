@@ -1,4 +1,4 @@
-"""The chain client against the in-process EVM (eth-tester)."""
+"""The chain client against the session's anvil, over the JSON-RPC path production runs."""
 
 import threading
 import uuid
@@ -8,20 +8,21 @@ from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 import pytest
 from eth_account import Account
 
+from chainworker import chain as chain_module
 from chainworker.chain import (
     AnchorItem,
     AuthROSChain,
     ChainUnavailable,
     ContractNotDeployed,
     InsufficientFunds,
+    NodeRefused,
+    TransactionDropped,
     TransactionReverted,
     bytes32_to_data_type,
     bytes32_to_record_id,
     chain_time_to_datetime,
-    connect,
     data_type_to_bytes32,
     datetime_to_chain_time,
-    forget_in_process_chain,
     record_id_to_bytes32,
 )
 from smcrypto import key_commitment, sm3, sm4
@@ -229,11 +230,17 @@ def test_send_without_waiting_then_wait(chain, registered_owner):
     assert chain.record_count() == 5
 
 
-def test_nonce_counter_ahead_of_node_is_resynced(chain, registered_owner, redis_client):
+def test_nonce_counter_ahead_of_node_is_resynced(
+    chain, registered_owner, redis_client, monkeypatch
+):
+    monkeypatch.setattr(chain_module, "DROPPED_CHECK_INTERVAL", 0.1)
     chain.data_upload(registered_owner, _item())
     key = chain.nonces._key(registered_owner.address)
-    # A fresh counter far ahead of the node: the node refuses it, the client resyncs.
+    # A fresh counter far ahead of the node: the node holds the transaction behind the gap,
+    # the wait says it will never be mined, and the counter is resynced from the node.
     redis_client.set(key, "999:9999999999")
+    with pytest.raises(TransactionDropped):
+        chain.data_upload(registered_owner, _item())
     chain.data_upload(registered_owner, _item())
     assert chain.record_count() == 2
 
@@ -259,17 +266,19 @@ def test_a_send_the_node_already_has_is_not_signed_again(chain, registered_owner
     """The node accepted the transaction but its answer was lost; our retry hears "already
     known". That transaction is sent: signing it again with the next nonce would send it twice.
     """
-    real_send = chain.w3.eth.send_raw_transaction
-    sent: list[bytes] = []
+    real_rpc = chain._rpc_lean
+    sent: list[str] = []
 
-    def accepted_then_already_known(raw):
-        sent.append(bytes(raw))
+    def accepted_then_already_known(method, params, *, label):
+        if method != "eth_sendRawTransaction":
+            return real_rpc(method, params, label=label)
+        sent.append(params[0])
+        answer = real_rpc(method, params, label=label)
         if len(sent) == 1:
-            real_send(raw)
-            raise ValueError("already known")
-        return real_send(raw)
+            raise NodeRefused(label, "already known")
+        return answer
 
-    monkeypatch.setattr(chain.w3.eth, "send_raw_transaction", accepted_then_already_known)
+    monkeypatch.setattr(chain, "_rpc_lean", accepted_then_already_known)
     nonce = chain._pending_nonce(registered_owner.address)
     tx_hash = chain.data_upload(registered_owner, _item(), wait=False)
     assert chain.wait_for_receipt(tx_hash)["status"] == 1
@@ -353,14 +362,14 @@ def test_a_read_at_an_address_without_code_is_contract_not_deployed(chain):
         chain.root_of(Account.create().address, b"\x01" * 32)
 
 
-def test_in_process_chains_made_in_the_same_second_have_genesis_blocks_of_their_own():
-    """A reset in-process chain is told from the old one by its genesis, as a real one is:
-    eth-tester alone gives every chain made within a second the same genesis block."""
-    urls = [f"eth-tester://genesis-{uuid.uuid4().hex}" for _ in range(2)]
-    try:
-        first, second = (connect(url).eth.get_block(0)["hash"] for url in urls)
-        assert first != second
-        assert connect(urls[0]).eth.get_block(0)["hash"] == first  # one chain per name
-    finally:
-        for url in urls:
-            forget_in_process_chain(url)
+def test_a_reset_chain_is_told_from_the_old_one_by_its_genesis(
+    isolated_portal, fresh_chain, settings, redis_client
+):
+    """A reset chain has the same chain id and a genesis of its own, even when made within the
+    second anvil dates its genesis to: the client's chain key (its nonce namespace) changes."""
+    before = AuthROSChain(isolated_portal, redis_client=redis_client)
+    fresh_chain()
+    after = AuthROSChain(settings.CHAIN_RPC_URL, redis_client=redis_client)
+    assert after.chain_id == before.chain_id
+    assert after.genesis_hash != before.genesis_hash
+    assert after.chain_key != before.chain_key

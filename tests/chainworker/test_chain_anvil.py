@@ -29,7 +29,7 @@ from chainworker.chain import (
 from smcrypto import key_commitment, sm3, sm4
 from stack.anvil import start_anvil
 
-pytestmark = pytest.mark.anvil
+pytestmark = pytest.mark.process
 
 SENDER_PROCESSES = 4
 UPLOADS_PER_PROCESS = 15

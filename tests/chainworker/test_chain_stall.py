@@ -24,7 +24,7 @@ from sharing.services import record_create
 from stack.anvil import AnvilProcess, start_anvil
 from tests.anchoring_checks import assert_anchored_exactly_once, records_on_chain
 
-pytestmark = [pytest.mark.django_db, pytest.mark.anvil]
+pytestmark = [pytest.mark.django_db, pytest.mark.process]
 
 STALL_AFTER = 1.5
 

@@ -116,7 +116,7 @@ def test_commands_fail_cleanly_when_the_node_is_down(settings):
         call_command("chain_deploy", stdout=StringIO())
 
 
-@pytest.mark.anvil
+@pytest.mark.process
 def test_command_line_against_anvil(tmp_path):
     """The real CLI, as an operator runs it, against a real node, in fresh processes."""
     with start_anvil() as node:

@@ -221,7 +221,7 @@ def test_one_open_alert_per_kind_and_subject(db):
     assert OperatorAlert.objects.filter(resolved_at=None).count() == 1
 
 
-@pytest.mark.anvil
+@pytest.mark.process
 def test_a_zero_gas_chain_needs_no_top_up(settings, django_capture_on_commit_callbacks, client):
     with start_anvil(zero_gas=True) as node:  # as `make run` starts it
         settings.CHAIN_RPC_URL = node.url

@@ -37,8 +37,7 @@ _ANCHOR_RUN_DONE = r"Task sharing\.tasks\.records_anchor\[[^\]]+\] succeeded"
 
 pytestmark = [
     pytest.mark.worker,
-    pytest.mark.anvil,
-    pytest.mark.slow,
+    pytest.mark.process,
     pytest.mark.django_db(transaction=True),
 ]
 

@@ -1,8 +1,8 @@
-"""AuthROS contract fixtures: plain web3 + eth-tester (py-evm) in process, no Django."""
+"""AuthROS contract fixtures: plain web3 on the session's anvil (its unlocked dev accounts),
+no portal code."""
 
 from __future__ import annotations
 
-import ast
 import json
 import uuid
 from collections.abc import Callable, Iterator
@@ -13,10 +13,9 @@ from typing import Any
 
 import pytest
 from eth_abi import decode as abi_decode
-from eth_tester.exceptions import TransactionFailed
 from eth_typing import ChecksumAddress
 from eth_utils import abi_to_signature, get_abi_input_types, keccak, to_checksum_address
-from web3 import EthereumTesterProvider, Web3
+from web3 import Web3
 from web3.contract import Contract
 from web3.contract.contract import ContractFunction
 from web3.exceptions import ContractLogicError
@@ -42,24 +41,13 @@ def error_decoders(abi: list[dict[str, Any]]) -> dict[bytes, tuple[str, list[str
 def revert_data(exc: BaseException) -> bytes | None:
     """The raw revert data (selector + arguments) carried by a web3 exception, if any.
 
-    Over JSON-RPC (anvil, geth) web3 raises ContractCustomError with the data as hex.
-    EthereumTesterProvider instead raises eth_tester's TransactionFailed and keeps the bytes
-    only as text ("execution reverted: b'...'"), on it or on the exception it replaced.
+    Over JSON-RPC (anvil, geth) web3 raises ContractCustomError with the data as hex, on the
+    exception itself or on the one it replaced.
     """
     seen: BaseException | None = exc
     while seen is not None:
         if isinstance(seen, ContractLogicError) and str(seen.data).startswith("0x"):
             return bytes.fromhex(str(seen.data)[2:])
-        if isinstance(seen, TransactionFailed) and seen.args:
-            reason = seen.args[0]
-            if isinstance(reason, Exception) and reason.args:
-                reason = reason.args[0]
-            if isinstance(reason, bytes):
-                return reason
-            if isinstance(reason, str):
-                literal = reason.removeprefix("execution reverted: ")
-                if literal.startswith(("b'", 'b"')):
-                    return ast.literal_eval(literal)
         seen = seen.__cause__ or seen.__context__
     return None
 
@@ -114,7 +102,7 @@ def send_transaction(
 ) -> TxReceipt:
     """Send a contract call as a transaction from `sender`; return its successful receipt.
 
-    Without `gas`, web3 estimates it first (py-evm: a binary search of many executions).
+    Without `gas`, the node estimates it first.
     """
     transaction: TxParams = {"from": sender} if gas is None else {"from": sender, "gas": gas}
     receipt = w3.eth.wait_for_transaction_receipt(call.transact(transaction))
@@ -123,14 +111,12 @@ def send_transaction(
 
 
 @pytest.fixture(scope="session")
-def deployment(artifact: dict[str, Any]) -> DeployedChain:
-    """One in-process chain per session with the contract and its accounts set up.
-
-    eth-tester mines a block per transaction (about 0.1 s each), so the common state is built
-    once and every test runs on a snapshot of it (see `w3`).
+def deployment(artifact: dict[str, Any], session_anvil) -> DeployedChain:
+    """The contract and its accounts set up once on the session's anvil, before the first
+    test that asks for them takes its snapshot: every test starts from this common state.
     Accounts: 0 admin, 1-3 registered (alice, bob, carol), 4 enrolled only, 5-9 unknown.
     """
-    w3 = Web3(EthereumTesterProvider())
+    w3 = Web3(Web3.HTTPProvider(session_anvil.url))
     admin = w3.eth.accounts[0]
     factory = w3.eth.contract(abi=artifact["abi"], bytecode=artifact["bytecode"])
     receipt = w3.eth.wait_for_transaction_receipt(factory.constructor().transact({"from": admin}))
@@ -143,11 +129,9 @@ def deployment(artifact: dict[str, Any]) -> DeployedChain:
 
 
 @pytest.fixture
-def w3(deployment: DeployedChain) -> Iterator[Web3]:
-    """The session chain, rolled back to the common state after the test."""
-    snapshot = deployment.w3.testing.snapshot()
-    yield deployment.w3
-    deployment.w3.testing.revert(snapshot)
+def w3(deployment: DeployedChain) -> Web3:
+    """The session chain, rolled back to the common state after the test (isolated_portal)."""
+    return deployment.w3
 
 
 @pytest.fixture
@@ -220,7 +204,7 @@ def reverts(artifact: dict[str, Any]) -> RevertExpectation:
 
     @contextmanager
     def _reverts(name: str, *args: Any) -> Iterator[None]:
-        with pytest.raises((ContractLogicError, TransactionFailed)) as info:
+        with pytest.raises(ContractLogicError) as info:
             yield
         assert decode_revert(artifact["abi"], info.value) == (name, args)
 

@@ -7,7 +7,7 @@ from web3.exceptions import ContractCustomError
 
 from stack.anvil import start_anvil
 
-pytestmark = pytest.mark.anvil
+pytestmark = pytest.mark.process
 
 ANVIL_CHAIN_ID = 31337
 

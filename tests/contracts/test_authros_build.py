@@ -61,6 +61,7 @@ def start_build_check(cwd):
     )
 
 
+@pytest.mark.process
 @needs_node
 def test_build_check_accepts_the_committed_artifact_and_refuses_a_stale_one(tmp_path):
     (tmp_path / "contracts" / "build").mkdir(parents=True)

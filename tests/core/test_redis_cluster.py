@@ -26,7 +26,7 @@ from stack.anvil import free_port
 from stack.processes import PYTHON, REPO_ROOT
 from stack.redis_cluster import RedisCluster, start_redis_cluster
 
-pytestmark = pytest.mark.nodb
+pytestmark = [pytest.mark.process, pytest.mark.nodb]
 
 
 @pytest.fixture(scope="module")

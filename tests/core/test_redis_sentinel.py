@@ -27,6 +27,8 @@ from stack.processes import Children, celery_worker
 from stack.redis_sentinel import RedisSentinels, start_redis_sentinels
 from tests.stack import database_url
 
+pytestmark = pytest.mark.process
+
 DB = 3
 TASK_TIMEOUT = 120
 

@@ -33,8 +33,7 @@ from tests.conftest import TEST_PASSWORD
 
 pytestmark = [
     pytest.mark.worker,
-    pytest.mark.anvil,
-    pytest.mark.slow,
+    pytest.mark.process,
     pytest.mark.django_db(transaction=True),
 ]
 

@@ -21,7 +21,7 @@ from sharing.selection import RecordSelection
 from sharing.services import record_create_batch
 from tests.conftest import TEST_PASSWORD
 
-pytestmark = [pytest.mark.slow, pytest.mark.django_db(transaction=True)]
+pytestmark = [pytest.mark.browser, pytest.mark.django_db(transaction=True)]
 
 DESKTOP = {"width": 1280, "height": 900}
 PHONE = {"width": 390, "height": 844}

@@ -4,7 +4,7 @@ there; pages that name none (the admin console's) get it at /favicon.ico."""
 import pytest
 from playwright.sync_api import Browser
 
-pytestmark = [pytest.mark.slow, pytest.mark.django_db(transaction=True)]
+pytestmark = [pytest.mark.browser, pytest.mark.django_db(transaction=True)]
 
 
 def test_pages_load_their_icon_and_ask_for_nothing_missing(live_server, browser: Browser):

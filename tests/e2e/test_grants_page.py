@@ -16,7 +16,7 @@ from sharing.scope import scope_commitment
 from tests.conftest import TEST_PASSWORD
 from tests.pages.conftest import upload  # noqa: F401  (the fixture)
 
-pytestmark = [pytest.mark.slow, pytest.mark.django_db(transaction=True)]
+pytestmark = [pytest.mark.browser, pytest.mark.django_db(transaction=True)]
 
 DESKTOP = {"width": 1280, "height": 900}
 PHONE = {"width": 390, "height": 844}

@@ -17,7 +17,7 @@ from accounts.models import Owner
 from accounts.selectors import owner_by_username, owner_key_bytes, owner_key_current
 from tests.conftest import TEST_PASSWORD
 
-pytestmark = [pytest.mark.slow, pytest.mark.django_db(transaction=True)]
+pytestmark = [pytest.mark.browser, pytest.mark.django_db(transaction=True)]
 
 
 def fill_in(page: Page, base_url: str, username: str) -> None:

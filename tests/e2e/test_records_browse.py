@@ -19,7 +19,7 @@ from sharing.services import record_create
 from tests.conftest import RobotSetup
 from tests.pages.conftest import image, odometry
 
-pytestmark = [pytest.mark.slow, pytest.mark.django_db(transaction=True)]
+pytestmark = [pytest.mark.browser, pytest.mark.django_db(transaction=True)]
 
 NOON = datetime(2026, 3, 1, 12, 0, tzinfo=UTC)
 # A long topic, as camera drivers name theirs: it must wrap, not widen the table or the page.

@@ -38,6 +38,7 @@ def test_vendored_copy_is_the_pinned_package():
     assert licence.read_bytes() == (PACKAGE / "LICENCE_MIT").read_bytes()
 
 
+@pytest.mark.process
 @pytest.mark.skipif(shutil.which("node") is None, reason="needs node")
 def test_key_encrypted_by_the_vendored_script_opens_in_the_portal(settings, tmp_path):
     settings.SECRETS_DIR = tmp_path

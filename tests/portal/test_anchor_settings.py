@@ -6,7 +6,7 @@ import pytest
 
 from tests.fresh_python import fresh_python_run
 
-pytestmark = pytest.mark.nodb
+pytestmark = [pytest.mark.process, pytest.mark.nodb]
 
 
 def _settings_with(**environment: str) -> subprocess.CompletedProcess[str]:

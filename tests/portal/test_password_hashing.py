@@ -8,7 +8,7 @@ from django.contrib.auth.hashers import PBKDF2PasswordHasher
 
 from tests.fresh_python import fresh_python
 
-pytestmark = pytest.mark.nodb
+pytestmark = [pytest.mark.process, pytest.mark.nodb]
 
 
 def test_the_portal_hashes_passwords_with_pbkdf2_at_djangos_iterations():

@@ -6,7 +6,7 @@ import pytest
 
 from tests.fresh_python import fresh_python, fresh_python_run
 
-pytestmark = pytest.mark.nodb
+pytestmark = [pytest.mark.process, pytest.mark.nodb]
 
 
 def test_a_worker_imports_every_view_at_boot_and_keeps_its_database_connections():

@@ -350,6 +350,7 @@ def test_bad_recordings_are_reported_and_the_rest_imported(robot_setup, tmp_path
     assert Record.objects.filter(robot=setup.robot).count() == len(expected)
 
 
+@pytest.mark.process
 def test_the_command_line_refuses_while_the_robots_agent_holds_the_spool(robot_setup, tmp_path):
     _, config = robot_setup
     ts2 = ros2_store()
@@ -399,6 +400,7 @@ def test_with_the_portal_away_the_import_keeps_the_envelopes_for_the_next_run(
     _check_stored(setup.robot, [(s, False) for s in samples])
 
 
+@pytest.mark.process
 def test_randomly_damaged_recordings_never_end_in_a_traceback(tmp_path):
     """Bytes flipped, cut or repeated anywhere in each kind of recording: every file is
     imported in part, refused, or imported whole, with a message; the command never fails."""

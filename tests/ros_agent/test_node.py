@@ -75,6 +75,7 @@ def _queued_files(spool: Path) -> list[Path]:
     return sorted((spool / "queue").glob("*.env"))
 
 
+@pytest.mark.process
 def test_agent_refuses_a_key_file_that_others_can_read(tmp_path, owner_key, portal):
     key_file = write_key_file(tmp_path / "alice.sm4", owner_key, 0o644)
     config = _agent_yaml(tmp_path, portal, key_file, [("/chatter", "std_msgs/String")])

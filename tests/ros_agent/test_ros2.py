@@ -42,7 +42,11 @@ from tests.ros_agent.recordings import (
     ros2_type,
 )
 
-pytestmark = [pytest.mark.django_db(transaction=True), pytest.mark.timeout(300)]
+pytestmark = [
+    pytest.mark.process,
+    pytest.mark.django_db(transaction=True),
+    pytest.mark.timeout(300),
+]
 
 PER_TOPIC = 3
 

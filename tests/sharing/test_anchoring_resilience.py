@@ -14,6 +14,7 @@ from sharing import anchoring
 from sharing.anchoring import anchor_item, records_anchor
 from sharing.models import Grant, Record
 from sharing.services import grant_create, grant_revoke, grant_sync_on_chain, record_create
+from tests.conftest import blocks_mine
 
 pytestmark = [pytest.mark.django_db, pytest.mark.usefixtures("records_mode")]
 
@@ -100,7 +101,7 @@ def test_records_found_on_chain_wait_for_their_confirmations(make_robot, deploye
     assert _uploads(deployed) == 2  # not sent again either
     assert scheduled == [(setup.owner.pk, anchoring.ANCHOR_RECHECK_DELAY)]  # look again later
 
-    deployed.w3.testing.mine(2)
+    blocks_mine(deployed.url, 2)
     records_anchor(owner_id=setup.owner.pk)
     assert set(Record.objects.values_list("status", flat=True)) == {Record.Status.ANCHORED}
     assert _uploads(deployed) == 2

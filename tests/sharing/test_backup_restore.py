@@ -113,7 +113,7 @@ def _mode(path: Path) -> int:
     return stat.S_IMODE(path.stat().st_mode)
 
 
-@pytest.mark.anvil
+@pytest.mark.process
 def test_a_backup_restored_into_a_fresh_folder_verifies_every_record(
     on_anvil, portal_data, tmp_path
 ):

@@ -1,8 +1,8 @@
 """Reconciliation: a chain that lost blocks, or was reset, is brought back to what the database
 says, by the periodic job (sharing.reconcile.chain_reconcile) or `manage.py chain_resync`.
 
-"Lost blocks" are eth-tester snapshots reverted; a "reset" points CHAIN_RPC_URL at a fresh
-in-process chain.
+"Lost blocks" are the test node's snapshots reverted (`blocks_lost`); a "reset" points
+CHAIN_RPC_URL at a new node (`fresh_chain`).
 """
 
 from collections import Counter
@@ -40,13 +40,13 @@ def _uploaded_ids(client) -> Counter:
 
 
 def test_a_record_the_chain_lost_is_anchored_again_and_verifies(
-    make_robot, upload, deployed, reconcile
+    make_robot, upload, deployed, reconcile, blocks_lost
 ):
     setup = make_robot("alice")
-    before = deployed.w3.testing.snapshot()
-    record = upload(setup, 1)
-    assert record.status == Record.Status.ANCHORED
-    deployed.w3.testing.revert(before)  # the node lost the block with the record
+    with blocks_lost():
+        record = upload(setup, 1)
+        assert record.status == Record.Status.ANCHORED
+    # The node lost the block with the record.
     lost = record_verify(record_id=record.id, viewer_id=setup.owner.pk)
     assert lost.verdict.outcome == Verdict.Outcome.NOT_ANCHORED_YET
 
@@ -63,11 +63,12 @@ def test_a_record_the_chain_lost_is_anchored_again_and_verifies(
     assert _uploaded_ids(client) == {record.id: 1}
 
 
-def test_another_digest_on_chain_is_a_security_event(make_robot, upload, deployed, reconcile):
+def test_another_digest_on_chain_is_a_security_event(
+    make_robot, upload, deployed, reconcile, blocks_lost
+):
     setup = make_robot("alice")
-    before = deployed.w3.testing.snapshot()
-    record = upload(setup, 1)
-    deployed.w3.testing.revert(before)
+    with blocks_lost():
+        record = upload(setup, 1)
     # Someone with the owner's EOA put another digest under the record's id.
     deployed.resync_nonce(setup.owner.eoa_address)
     forged = AnchorItem(record.id, b"\x11" * 32, record.captured_at, record.data_type)
@@ -83,13 +84,15 @@ def test_another_digest_on_chain_is_a_security_event(make_robot, upload, deploye
     assert event.detail["chain"] == "11" * 32
 
 
-def test_grants_the_chain_lost_are_sent_again(make_owner, deployed, reconcile, on_commit):
+def test_grants_the_chain_lost_are_sent_again(
+    make_owner, deployed, reconcile, on_commit, blocks_lost
+):
     alice, bob, carol = make_owner("alice"), make_owner("bob"), make_owner("carol")
     on_commit(lambda: grant_create(owner=alice, grantee=carol))
-    before = deployed.w3.testing.snapshot()
-    granted = on_commit(lambda: grant_create(owner=alice, grantee=bob))
-    revoked = on_commit(lambda: grant_revoke(owner=alice, grantee=carol))
-    deployed.w3.testing.revert(before)  # bob's grant and carol's revocation are gone
+    with blocks_lost():
+        granted = on_commit(lambda: grant_create(owner=alice, grantee=bob))
+        revoked = on_commit(lambda: grant_revoke(owner=alice, grantee=carol))
+    # Bob's grant and carol's revocation are gone.
     assert not deployed.has_access(alice.eoa_address, bob.eoa_address)
     assert deployed.has_access(alice.eoa_address, carol.eoa_address)
 
@@ -105,15 +108,15 @@ def test_grants_the_chain_lost_are_sent_again(make_owner, deployed, reconcile, o
 
 
 def test_a_lost_registration_and_rotation_are_sent_again(
-    make_owner, deployed, reconcile, on_commit
+    make_owner, deployed, reconcile, on_commit, blocks_lost
 ):
     alice = make_owner("alice")
-    before = deployed.w3.testing.snapshot()
-    bob = make_owner("bob")
-    new_key = on_commit(lambda: key_rotate(owner=alice, sm4_key=sm4.generate_key()))
-    new_key.refresh_from_db()
-    assert new_key.chain_state == ChainState.CONFIRMED
-    deployed.w3.testing.revert(before)  # bob's registration and alice's rotation are gone
+    with blocks_lost():
+        bob = make_owner("bob")
+        new_key = on_commit(lambda: key_rotate(owner=alice, sm4_key=sm4.generate_key()))
+        new_key.refresh_from_db()
+        assert new_key.chain_state == ChainState.CONFIRMED
+    # Bob's registration and alice's rotation are gone.
 
     counts = reconcile()
 

@@ -215,9 +215,9 @@ def test_a_view_folds_the_proof_and_asks_the_chain_once(anchored, deployed, monk
     setup, record = anchored
     record_verify(record_id=record.id, viewer_id=setup.owner.pk)  # warms head and identity
     calls = []
-    real_call, real_head = deployed._call, deployed.latest_block
+    real_call, real_head = deployed._call_lean, deployed.latest_block
     monkeypatch.setattr(
-        deployed, "_call", lambda name, *a: calls.append(name) or real_call(name, *a)
+        deployed, "_call_lean", lambda name, *a: calls.append(name) or real_call(name, *a)
     )
     monkeypatch.setattr(deployed, "latest_block", lambda: calls.append("head") or real_head())
     verification = record_verify(record_id=record.id, viewer_id=setup.owner.pk)
@@ -333,7 +333,7 @@ def _root_events(client) -> Counter:
 
 
 def test_roots_the_chain_lost_are_sent_again_as_they_were(
-    make_robot, deployed, settings, reconcile
+    make_robot, deployed, settings, reconcile, blocks_lost
 ):
     """The node lost the blocks with the last two of three roots: the reconciliation sends
     the same roots again, after the same previous roots, and every record verifies."""
@@ -341,11 +341,10 @@ def test_roots_the_chain_lost_are_sent_again_as_they_were(
     setup = make_robot()
     _pending(setup, 3)
     assert records_anchor(owner_id=setup.owner.pk) == 3
-    before = deployed.w3.testing.snapshot()
-    _pending(setup, 6, first=4)
-    assert records_anchor(owner_id=setup.owner.pk) == 6
-    trees = _assert_anchored_once(deployed, setup.owner)
-    deployed.w3.testing.revert(before)
+    with blocks_lost():
+        _pending(setup, 6, first=4)
+        assert records_anchor(owner_id=setup.owner.pk) == 6
+        trees = _assert_anchored_once(deployed, setup.owner)
 
     counts = reconcile()
 

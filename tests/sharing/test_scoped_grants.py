@@ -22,7 +22,7 @@ from sharing.selectors import (
 from sharing.services import grant_create, grant_revoke, grant_terms_change, grant_terms_make
 from sharing.verification import record_verify
 from tests.api.conftest import RECORDS, session_client
-from tests.conftest import RobotSetup
+from tests.conftest import RobotSetup, chain_time_travel
 
 pytestmark = pytest.mark.django_db
 
@@ -138,9 +138,7 @@ def test_scope_is_on_chain_and_enforced_everywhere(scoped, deployed, client):
     Grant.objects.filter(pk=grant.pk).update(expires_at=grant.expires_at)
 
     # Expired on chain (its clock passed the expiry) while the row says active, unexpired.
-    tester = deployed.w3.provider.ethereum_tester
-    tester.time_travel(grant.expiry + 1)
-    tester.mine_blocks(1)
+    chain_time_travel(deployed.url, grant.expiry + 1)
     grant.refresh_from_db()
     assert grant.status == Grant.Status.ACTIVE
     assert not grant.is_expired

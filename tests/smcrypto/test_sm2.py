@@ -310,6 +310,7 @@ console.log(JSON.stringify({
     shutil.which("node") is None or not (REPO / "node_modules" / "sm-crypto").is_dir(),
     reason="needs node and the pinned npm sm-crypto (npm ci)",
 )
+@pytest.mark.process
 def test_interoperates_with_browser_sm_crypto() -> None:
     private, public = sm2.generate_keypair()
     message = bytes(range(256)) * 2

@@ -21,7 +21,7 @@ from stack.anvil import KEPT_STATES, AnvilProcess, StateKeeper, start_anvil
 from stack.run import ANVIL_STATE_INTERVAL, ANVIL_TRANSACTION_BLOCKS
 from tests.chainworker.test_chain_anvil import _item, _registered
 
-pytestmark = pytest.mark.anvil
+pytestmark = pytest.mark.process
 
 
 def _deployed(node: AnvilProcess, redis_client: redis.Redis) -> tuple[AuthROSChain, Account]:

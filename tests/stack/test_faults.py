@@ -30,8 +30,7 @@ from tests.stack import WorkerStack, wait_for
 
 pytestmark = [
     pytest.mark.worker,
-    pytest.mark.anvil,
-    pytest.mark.slow,
+    pytest.mark.process,
     pytest.mark.django_db(transaction=True),
 ]
 

@@ -30,8 +30,7 @@ pytestmark = [
         reason="hosts share one PostgreSQL: this runs in the suite's PostgreSQL pass",
     ),
     pytest.mark.worker,
-    pytest.mark.anvil,
-    pytest.mark.slow,
+    pytest.mark.process,
     pytest.mark.django_db(transaction=True),
 ]
 

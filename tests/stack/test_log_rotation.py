@@ -7,6 +7,8 @@ import sys
 import time
 from pathlib import Path
 
+import pytest
+
 from stack import run as run_module
 from stack.processes import Children, logs_rotate
 from stack.run import Stack, StackConfig
@@ -25,6 +27,7 @@ def _lines(path: Path) -> list[str]:
     return path.read_text().splitlines()
 
 
+@pytest.mark.process
 def test_a_log_past_its_size_is_copied_and_emptied_while_its_process_goes_on_writing(tmp_path):
     log = tmp_path / "web.log"
     with log.open("ab") as output:
@@ -82,6 +85,7 @@ def test_the_settings_come_from_the_environment(tmp_path):
     assert (default.log_max_bytes, default.log_keep) == (32 * 1024**2, 3)
 
 
+@pytest.mark.process
 def test_the_running_stack_rotates_its_logs(tmp_path, monkeypatch):
     """Stack.wait, which make run sits in until a process exits or Ctrl-C, looks at the logs
     every LOG_ROTATE_INTERVAL seconds; with STACK_LOG_MAX_BYTES 0 it never rotates."""

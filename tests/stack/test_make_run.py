@@ -26,8 +26,7 @@ from stack.run import BANNER, STATE_FILE
 from tests.stack import REPO_ROOT, wait_for
 
 pytestmark = [
-    pytest.mark.slow,
-    pytest.mark.anvil,
+    pytest.mark.process,
     pytest.mark.worker,
     pytest.mark.nodb,  # it has a database of its own, in its work folder
     pytest.mark.timeout(300),

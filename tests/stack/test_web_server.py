@@ -16,8 +16,7 @@ from tests.stack import wait_for
 
 pytestmark = [
     pytest.mark.worker,
-    pytest.mark.anvil,
-    pytest.mark.slow,
+    pytest.mark.process,
     pytest.mark.django_db(transaction=True),
 ]
 

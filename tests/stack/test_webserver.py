@@ -29,6 +29,8 @@ LOAD_SECONDS = 3
 SLOW_APP = f"""
 import time
 
+pytestmark = pytest.mark.process
+
 time.sleep({LOAD_SECONDS})
 
 
