@@ -46,6 +46,7 @@ from web3.middleware import ExtraDataToPOAMiddleware
 from web3.types import TxReceipt
 
 from chainworker.nonces import NonceLockTimeout, NonceStoreUnavailable, RedisNonceManager
+from smcrypto.sm3 import sm3_digest
 
 logger = logging.getLogger(__name__)
 
@@ -57,6 +58,8 @@ GAS_MARGIN = 1.2
 # Gas for anchorRoot sent without an estimate (a root following one in flight): a sender's
 # first root takes about 70,000, the next ones about 55,000, whatever the tree's size.
 ANCHOR_ROOT_GAS = 120_000
+# A robot's SM2 public key as robotKeyAdd takes it: x||y, without the 04 marker.
+ROBOT_PUBLIC_KEY_LENGTH = 64
 _INSUFFICIENT_FUNDS = re.compile(
     r"insufficient funds|cannot afford|not have enough balance", re.IGNORECASE
 )
@@ -245,6 +248,26 @@ class OnChainGrant:
     live: bool
     scope: bytes
     expiry: int
+
+
+@dataclass(frozen=True)
+class RobotKeyOnChain:
+    """A robot's signing key as the contract holds it (robotKeyOf): the EOA that added it
+    (None: never added), the block it was added in and the block it was revoked in (None:
+    live)."""
+
+    owner: str | None
+    added_block: int
+    revoked_block: int | None
+
+    def live_at(self, block: int) -> bool:
+        """Whether the key counts for what was anchored in `block`: added at or before it and
+        not revoked by then (DESIGN.md "A record is genuine")."""
+        return (
+            self.owner is not None
+            and self.added_block <= block
+            and (self.revoked_block is None or block < self.revoked_block)
+        )
 
 
 @dataclass(frozen=True)
@@ -606,6 +629,23 @@ class AuthROSChain:
             owner, "authorityRevoke", Web3.to_checksum_address(grantee), wait=wait
         )
 
+    def robot_key_add(
+        self, sender: LocalAccount, key_hash: bytes, public_key: bytes, *, wait: bool = True
+    ) -> TxResult | str:
+        """Register a robot's SM2 public key `x||y` (64 bytes) under `key_hash`, its SM3.
+        The contract cannot afford SM3 and would keep a wrong hash forever (a hash is added
+        once), so the pair is checked here: ValueError when it does not match."""
+        if len(public_key) != ROBOT_PUBLIC_KEY_LENGTH:
+            raise ValueError("a robot public key is x||y: 64 bytes, without the 04 marker")
+        if sm3_digest(bytes(public_key)) != _bytes32(key_hash):
+            raise ValueError("key_hash is not SM3 of public_key")
+        return self._transact(sender, "robotKeyAdd", bytes(key_hash), bytes(public_key), wait=wait)
+
+    def robot_key_revoke(
+        self, sender: LocalAccount, key_hash: bytes, *, wait: bool = True
+    ) -> TxResult | str:
+        return self._transact(sender, "robotKeyRevoke", _bytes32(key_hash), wait=wait)
+
     def transfer(
         self, sender: LocalAccount, to: str, value_wei: int, *, wait: bool = True
     ) -> TxResult | str:
@@ -643,6 +683,16 @@ class AuthROSChain:
             size=int(size),
             time=chain_time_to_datetime(when),
             block_number=int(block),
+        )
+
+    def robot_key_of(self, key_hash: bytes) -> RobotKeyOnChain:
+        """A robot key by its hash (the check of every signed record: lean); owner None when
+        no EOA ever added it."""
+        owner, added, revoked = self._call_lean("robotKeyOf", _bytes32(key_hash))
+        return RobotKeyOnChain(
+            owner=None if int(owner, 16) == 0 else Web3.to_checksum_address(owner),
+            added_block=int(added),
+            revoked_block=int(revoked) or None,
         )
 
     def transaction_pending(self, tx_hash: str) -> bool:

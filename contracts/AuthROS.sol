@@ -2,8 +2,9 @@
 pragma solidity ^0.8.24;
 
 /// @title AuthROS: authority and integrity anchor for encrypted ROS data
-/// @notice Holds key commitments, record digests and owner-to-owner grants.
-/// Keys and ciphertexts never come here: only commitments and SM3 digests.
+/// @notice Holds key commitments, record digests, owner-to-owner grants and the public keys
+/// robots sign their records with. SM4 keys and ciphertexts never come here: only commitments
+/// and SM3 digests.
 contract AuthROS {
     /// @dev Slot 0 packs owner (20 bytes) with time (8 bytes); owner == 0 means "no record".
     struct Record {
@@ -27,6 +28,18 @@ contract AuthROS {
         bytes32 scope;
         uint64 expiry;
     }
+
+    /// @dev A robot's signing key (DESIGN.md "Provenance"), keyed by SM3 of its public key
+    /// `x||y`: the EOA that added it and the blocks of its addition and revocation (0 = live).
+    /// owner == 0 means "never added"; an entry is never deleted, so a key hash is added once.
+    struct RobotKey {
+        address owner;
+        uint64 addedBlock;
+        uint64 revokedBlock;
+    }
+
+    /// @dev Length of a robot's SM2 public key as robotKeyAdd takes it: `x||y`, no 04.
+    uint256 private constant ROBOT_PUBLIC_KEY_LENGTH = 64;
 
     /// @notice Largest batch accepted by dataUploadBatch (keeps a full batch well under 30M gas).
     uint256 public constant MAX_BATCH = 256;
@@ -52,6 +65,7 @@ contract AuthROS {
     mapping(address sender => mapping(bytes32 root => Root)) private _roots;
     /// @dev The terms of a grant: its scope commitment (0 = all records) and expiry (0 = none).
     mapping(address owner => mapping(address grantee => GrantTerms)) private _terms;
+    mapping(bytes32 keyHash => RobotKey) private _robotKeys;
 
     event Enrolled(address indexed eoa);
     event Registered(address indexed eoa, bytes32 commitment);
@@ -68,6 +82,10 @@ contract AuthROS {
     event AuthorityScoped(
         address indexed owner, address indexed grantee, bytes32 scope, uint64 expiry
     );
+    /// @notice A robot's public key (`x||y`) was registered by its owner's EOA; with
+    /// RobotKeyRevoked, every key an owner ever registered can be listed from logs alone.
+    event RobotKeyAdded(address indexed owner, bytes32 indexed keyHash, bytes publicKey);
+    event RobotKeyRevoked(address indexed owner, bytes32 indexed keyHash);
 
     error NotAdmin(address caller);
     error ZeroAddress();
@@ -93,6 +111,12 @@ contract AuthROS {
     error EmptyTree();
     error RootExists(bytes32 root);
     error WrongPrevRoot(bytes32 expected, bytes32 given);
+    error EmptyKeyHash();
+    error WrongPublicKeyLength(uint256 length, uint256 expected);
+    error RobotKeyExists(bytes32 keyHash);
+    error RobotKeyUnknown(bytes32 keyHash);
+    error NotRobotKeyOwner(bytes32 keyHash, address caller);
+    error RobotKeyAlreadyRevoked(bytes32 keyHash);
 
     modifier onlyRegistered() {
         if (commitmentOf[msg.sender] == 0) revert NotRegistered(msg.sender);
@@ -227,6 +251,33 @@ contract AuthROS {
         emit AuthorityRevoked(msg.sender, grantee);
     }
 
+    /// @notice Register the public key (`x||y`, 64 bytes) a robot of the caller signs its
+    /// records with, under `keyHash` = SM3(publicKey). SM3 costs too much gas to compute here,
+    /// so the hash is not checked against the key: a verifier hashes the key it is given.
+    /// A hash is added once, ever: a revoked key cannot come back, nor be taken by another.
+    function robotKeyAdd(bytes32 keyHash, bytes calldata publicKey) external onlyRegistered {
+        if (keyHash == 0) revert EmptyKeyHash();
+        if (publicKey.length != ROBOT_PUBLIC_KEY_LENGTH) {
+            revert WrongPublicKeyLength(publicKey.length, ROBOT_PUBLIC_KEY_LENGTH);
+        }
+        RobotKey storage key = _robotKeys[keyHash];
+        if (key.owner != address(0)) revert RobotKeyExists(keyHash);
+        key.owner = msg.sender;
+        key.addedBlock = uint64(block.number);
+        emit RobotKeyAdded(msg.sender, keyHash, publicKey);
+    }
+
+    /// @notice Revoke a robot key the caller added: records anchored from this block on no
+    /// longer count as signed by it.
+    function robotKeyRevoke(bytes32 keyHash) external {
+        RobotKey storage key = _robotKeys[keyHash];
+        if (key.owner == address(0)) revert RobotKeyUnknown(keyHash);
+        if (key.owner != msg.sender) revert NotRobotKeyOwner(keyHash, msg.sender);
+        if (key.revokedBlock != 0) revert RobotKeyAlreadyRevoked(keyHash);
+        key.revokedBlock = uint64(block.number);
+        emit RobotKeyRevoked(msg.sender, keyHash);
+    }
+
     /// @notice The anchored record, or all zeros if the id is not anchored (yet).
     function dataQuery(bytes32 id)
         external
@@ -271,6 +322,17 @@ contract AuthROS {
     {
         Root storage r = _roots[sender][root];
         return (r.size, r.time, r.blockNumber);
+    }
+
+    /// @notice A robot key: the EOA that added it (zero if none did), the block it was added
+    /// in, and the block it was revoked in (0 while live).
+    function robotKeyOf(bytes32 keyHash)
+        external
+        view
+        returns (address owner, uint64 addedBlock, uint64 revokedBlock)
+    {
+        RobotKey storage key = _robotKeys[keyHash];
+        return (key.owner, key.addedBlock, key.revokedBlock);
     }
 
     /// @notice True iff the EOA has registered a key commitment.

@@ -36,6 +36,9 @@ FUNCTIONS = {
     "lastRootOf(address)",
     "recordCount()",
     "register(bytes32)",
+    "robotKeyAdd(bytes32,bytes)",
+    "robotKeyOf(bytes32)",
+    "robotKeyRevoke(bytes32)",
     "rootOf(address,bytes32)",
     "rotateKey(bytes32)",
 }
@@ -47,6 +50,8 @@ EVENTS = {
     "Enrolled(address)",
     "KeyRotated(address,bytes32,bytes32)",
     "Registered(address,bytes32)",
+    "RobotKeyAdded(address,bytes32,bytes)",
+    "RobotKeyRevoked(address,bytes32)",
     "RootAnchored(address,bytes32,uint64,bytes32,uint64)",
 }
 
@@ -115,4 +120,5 @@ def test_abi_is_the_fixed_interface(artifact):
             signatures[entry["type"]].add(abi_to_signature(entry))
     assert signatures["function"] == FUNCTIONS
     assert signatures["event"] == EVENTS
-    assert len(signatures["error"]) == 24  # + ExpiryInPast, SameTerms (scoped grants)
+    # + ExpiryInPast, SameTerms (scoped grants); + six refusals of robot keys.
+    assert len(signatures["error"]) == 30
