@@ -1,5 +1,6 @@
-# AuthROS portal. `make run` starts the stack, `make test` runs the whole suite.
-.PHONY: run test bench soak install lint format contracts lock clean
+# AuthROS portal. `make run` starts the stack, `make test` runs the whole suite, `make test-fast`
+# its fast tier (tests/tiers.py) in a few minutes.
+.PHONY: run test test-fast bench soak install lint format contracts lock clean
 
 install:
 	bash scripts/bootstrap.sh
@@ -9,6 +10,9 @@ run:
 
 test:
 	bash scripts/test.sh
+
+test-fast:
+	bash scripts/test.sh --fast
 
 bench: install
 	.venv/bin/python -m bench

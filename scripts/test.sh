@@ -1,9 +1,19 @@
 #!/usr/bin/env bash
-# `make test`: install what is missing, lint, then the whole suite on SQLite and, side by side,
-# the tests that use the database on PostgreSQL (PG_TEST_URL, else a server at 127.0.0.1:5432,
-# else a throwaway cluster of its own).
+# `make test`: install what is missing, lint, then the whole suite in its tiers (tests/tiers.py),
+# each run in parallel by pytest-xdist:
+#   1. the unit tier on SQLite (with the benchmark tooling's tests);
+#   2. on PostgreSQL (PG_TEST_URL, else a server at 127.0.0.1:5432, else a throwaway cluster of
+#      its own): the unit tests that use the database again, and the process, browser and slow
+#      tests, once.
+# `make test-fast` (`scripts/test.sh --fast`): the fast tier on SQLite only, for the inner loop.
+# Further arguments go to pytest. TEST_WORKERS sets the xdist workers of the unit tiers
+# (default: one per core), TEST_PROCESS_WORKERS those of the PostgreSQL pass (default 3: its
+# tests mostly wait on the processes they start).
 set -euo pipefail
 cd "$(dirname "$0")/.."
+
+fast=0
+if [ "${1:-}" = --fast ]; then fast=1; shift; fi
 
 bash scripts/bootstrap.sh
 # What the suite started, stopped again when it is done, whatever its outcome.
@@ -23,13 +33,26 @@ say() { printf '\n\033[1;32m== %s\033[0m\n' "$*"; }
 
 run_pytest() {
   local rc=0
-  .venv/bin/pytest --durations=25 "$@" || rc=$?
+  .venv/bin/pytest --durations=25 -p no:cacheprovider "$@" || rc=$?
   if [ "$rc" = 5 ]; then
     echo "ERROR: pytest collected no tests; refusing to report success" >&2
     exit 1
   fi
   return "$rc"
 }
+
+workers=${TEST_WORKERS:-auto}
+process_workers=${TEST_PROCESS_WORKERS:-3}
+sqlite_url="sqlite:///$PWD/var/db.sqlite3"
+mkdir -p var
+
+if [ "$fast" = 1 ]; then
+  say "ruff check"
+  .venv/bin/ruff check .
+  say "fast tier on SQLite ($workers workers)"
+  DATABASE_URL="$sqlite_url" run_pytest -n "$workers" --tier=fast "$@"
+  exit
+fi
 
 say "ruff check and ruff format --check"
 .venv/bin/ruff check .
@@ -59,24 +82,14 @@ else
   PG_TEST_URL=$(bash scripts/postgres.sh start "$pg_dir")
 fi
 
-# Only the tests that touch the database run again: crypto, contract and agent-only tests do
-# not depend on it. The two passes run side by side (much of the suite waits on workers, nodes
-# and browsers rather than on a core); this one's output follows the SQLite pass's.
-pg_log=var/test-postgresql.log
-mkdir -p var
-say "tests that use the database, on PostgreSQL ($PG_TEST_URL), in the background: $pg_log"
-(DATABASE_URL="$PG_TEST_URL" run_pytest "$@" -m "not nodb" -p no:cacheprovider) >"$pg_log" 2>&1 &
-pg_pid=$!
-# Stopped with the rest if the SQLite pass is interrupted (a background job ignores Ctrl-C).
-cleanups=("pkill -TERM -P $pg_pid" "${cleanups[@]}")
-
-say "test suite on SQLite"
+say "unit tier on SQLite ($workers workers)"
 sqlite_rc=0
-DATABASE_URL="sqlite:///$PWD/var/db.sqlite3" run_pytest "$@" || sqlite_rc=$?
+DATABASE_URL="$sqlite_url" run_pytest -n "$workers" --tier=unit "$@" || sqlite_rc=$?
 
+say "on PostgreSQL ($PG_TEST_URL, $process_workers workers): the unit tests that use the database, and the process, browser and slow tests"
 pg_rc=0
-wait "$pg_pid" || pg_rc=$?
-say "tests that use the database, on PostgreSQL ($PG_TEST_URL): exit $pg_rc"
-cat "$pg_log"
+DATABASE_URL="$PG_TEST_URL" run_pytest -n "$process_workers" --tier=unit-db --tier=once "$@" \
+  || pg_rc=$?
+
 say "SQLite pass: exit $sqlite_rc; PostgreSQL pass: exit $pg_rc"
 [ "$sqlite_rc" = 0 ] && [ "$pg_rc" = 0 ]

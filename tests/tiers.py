@@ -11,7 +11,8 @@ A test is marked by what it needs beyond this process, Redis and the session's a
 - ``bench``: tests of the benchmark tooling (tests/bench/).
 - ``nodb``: never touches the database (tests/conftest.py's list).
 
-`--tier` picks a part of the suite (scripts/test.sh); without it pytest runs every test:
+`--tier` picks a part of the suite (scripts/test.sh), given again for several; without it pytest
+runs every test:
 
 - ``fast``: none of process, browser, slow and bench (`make test-fast`, in parallel).
 - ``unit``: none of process, browser and slow (`make test`'s SQLite pass, bench included).
@@ -73,9 +74,10 @@ def spawning_allowed() -> Iterator[None]:
 def pytest_addoption(parser: pytest.Parser) -> None:
     parser.addoption(
         "--tier",
+        action="append",
         choices=sorted(TIERS),
-        default=None,
-        help="run one tier of the suite (tests/tiers.py); all tests without it",
+        default=[],
+        help="run a tier of the suite, or several given again (tests/tiers.py); all without it",
     )
 
 
@@ -98,14 +100,15 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
             item.add_marker(pytest.mark.process)
         if str(item.path).removeprefix(root).startswith("tests/bench/"):
             item.add_marker(pytest.mark.bench)
-    tier = config.getoption("tier")
-    if tier is None:
+    # The long runs first: started last, one of them would hold a worker after the others end.
+    items.sort(key=lambda item: item.get_closest_marker("slow") is None)
+    tiers = [TIERS[name] for name in config.getoption("tier")]
+    if not tiers:
         return
-    keep = TIERS[tier]
     selected, deselected = [], []
     for item in items:
         marks = {mark.name for mark in item.iter_markers()}
-        (selected if keep(marks) else deselected).append(item)
+        (selected if any(keep(marks) for keep in tiers) else deselected).append(item)
     if deselected:
         config.hook.pytest_deselected(items=deselected)
         items[:] = selected

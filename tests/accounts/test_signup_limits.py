@@ -107,7 +107,7 @@ def test_a_new_eoa_gets_the_gas_it_needs_and_the_transfer_is_recorded(
     make_owner, deployed, settings
 ):
     settings.CHAIN_EOA_FUNDING_GAS = 2_000_000
-    assert deployed.fee_per_gas() > 0  # eth-tester has a base fee
+    assert deployed.fee_per_gas() > 0  # anvil has a base fee (1 gwei)
     owner = make_owner("hal")
     funding = EoaFunding.objects.get(owner=owner)
     assert funding.tx_hash == owner.fund_tx

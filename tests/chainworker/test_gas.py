@@ -1,4 +1,4 @@
-"""Gas that never stops the service: on a chain with gas prices (eth-tester charges a base fee)
+"""Gas that never stops the service: on a chain with gas prices (anvil charges a base fee)
 the operator tops up an owner's EOA from the funding budget, "cannot pay" waits without using
 up attempts, a spent budget raises an operator alert, and the dashboard and the admin warn
 before an account runs dry. Nothing is sent on a zero-gas chain.

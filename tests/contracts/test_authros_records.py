@@ -178,7 +178,7 @@ def test_max_batch_fits_in_a_30m_gas_block(authros, alice, record, send, emitted
     max_batch = authros.functions.MAX_BATCH().call()
     records = [record(n) for n in range(max_batch)]
 
-    # Explicit gas: py-evm's estimate would execute the 256-item batch ~25 times (seconds).
+    # Explicit gas: the batch at the block gas limit, not an estimate with its margin.
     receipt = send(authros.functions.dataUploadBatch(*batch_args(records)), alice, BLOCK_GAS_LIMIT)
 
     assert receipt["gasUsed"] < BLOCK_GAS_LIMIT

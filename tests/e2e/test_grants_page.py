@@ -2,8 +2,8 @@
 to a robot, a topic and a capture-time window, with an expiry; errors in words; the
 confirmation before a revocation, cancelled and then confirmed.
 
-The portal runs in pytest-django's live server with chain work run inline (eager) on the
-in-process chain: this test is about the page, not the worker.
+The portal runs in pytest-django's live server with chain work run inline (eager) on
+the session's anvil: this test is about the page, not the worker.
 """
 
 from datetime import UTC, datetime, timedelta

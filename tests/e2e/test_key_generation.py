@@ -2,8 +2,8 @@
 (crypto.getRandomValues), so an owner registers without typing one; it is offered as a key
 file, two registrations get two different keys, and a typed key that is a word is refused.
 
-The portal runs in pytest-django's live server with chain work run inline (eager) on the
-in-process chain: these tests are about the page, not the worker.
+The portal runs in pytest-django's live server with chain work run inline (eager) on
+the session's anvil: these tests are about the page, not the worker.
 """
 
 import re

@@ -4,7 +4,7 @@ numbers lead through the list, the odometry plot over a chosen range has its axe
 gallery shows the checked images of a range.
 
 The portal runs in pytest-django's live server with chain work and integrity checks run
-inline (eager) on the in-process chain: these tests are about the pages, not the worker.
+inline (eager) on the session's anvil: these tests are about the pages, not the worker.
 """
 
 from datetime import UTC, datetime, timedelta

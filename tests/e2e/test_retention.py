@@ -2,8 +2,8 @@
 set on the robots page, a record deleted after its confirmation page (then shown "deleted",
 410), a selection deleted after its preview, and a robot unpaired only after its confirmation.
 
-No worker stack: the portal runs in the live server thread with Celery eager and the chain in
-process (eth-tester), so records are anchored and checked inline.
+No worker stack: the portal runs in the live server thread with Celery eager on the session's
+anvil, so records are anchored and checked inline.
 """
 
 from pathlib import Path

@@ -24,10 +24,10 @@ def test_a_worker_imports_every_view_at_boot_and_keeps_its_database_connections(
     assert booted["health"] is True
 
 
-def test_a_worker_loads_neither_the_in_process_chain_nor_opencv():
-    """eth-tester (py-evm) is for eth-tester:// chains, OpenCV for the images of an MCAP export
-    in the worker: together about 1 s of CPU and 26 MiB in every web and worker process that
-    loaded them at boot."""
+def test_a_worker_loads_neither_a_test_chain_nor_opencv():
+    """eth-tester (py-evm) is a test chain the runtime never uses, OpenCV is for the images of
+    an MCAP export in the worker: together about 1 s of CPU and 26 MiB in every web and worker
+    process that loaded them at boot."""
     program = (
         "import sys, json, portal.wsgi\n"
         "print(json.dumps(sorted(m for m in ('eth_tester', 'eth', 'cv2') if m in sys.modules)))"

@@ -1,6 +1,6 @@
 """`python -m ros_agent import`: recordings written here with rosbags' writers (ROS 1 .bag,
 ROS 2 .db3 and .mcap) go through the real import, the real spool and uploader, to the real
-portal (live server, in-process chain); every message is then opened in the portal as its
+portal (live server, the session's anvil); every message is then opened in the portal as its
 owner (integrity check, decryption) and compared with what was recorded, capture time
 included. Imported again, nothing is uploaded twice. Damaged files, unknown types and topics
 the config does not name are reported, the rest imported, and no traceback reaches the user.

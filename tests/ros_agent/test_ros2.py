@@ -1,6 +1,6 @@
 """The agent on ROS 2: a real Cyclone DDS publisher (as rmw_cyclonedds publishes: rt/ topics,
 pkg::msg::dds_::Type_ types) to the agent (`python -m ros_agent --ros2`, its own process) to
-the real portal (live server, in-process chain); every record is opened in the portal as its
+the real portal (live server, the session's anvil); every record is opened in the portal as its
 owner and compared with the values that were published. DDS stays on this machine: the
 project's loopback-only CYCLONEDDS_URI, set before any participant exists, and a DDS domain
 of this run's own.

@@ -4,9 +4,9 @@ folder (a new SQLite file, new secrets and media folders) on the same chain, bri
 portal on which every record verifies against the chain, and refuses a damaged backup or a
 database that holds rows.
 
-The chain is a real anvil: the in-process eth-tester chain cannot be shared with the restore's
-processes, and the restored portal must find the records, the owners' key commitments and the
-grant on the chain the backup was taken on."""
+The chain is an anvil of the test's own (the session's is reverted under it after each test),
+shared with the restore's processes: the restored portal must find the records, the owners' key
+commitments and the grant on the chain the backup was taken on."""
 
 import json
 import os

@@ -1,6 +1,6 @@
 """Exports: the verified records of a selection as MCAP, opened here with the `mcap` library
 and the `mcap-ros2-support` decoders (independent of the portal's code), and the proof
-bundle checked by authros_verify against the same in-process EVM the portal anchored on.
+bundle checked by authros_verify against the same anvil the portal anchored on.
 """
 
 import base64
