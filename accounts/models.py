@@ -144,6 +144,14 @@ class Robot(models.Model):
     paired_at = models.DateTimeField(null=True, blank=True)
     created_at = models.DateTimeField(auto_now_add=True)
     revoked_at = models.DateTimeField(null=True, blank=True)
+    # A paired robot signs every envelope with its SM2 key (DESIGN.md "Provenance"): the key's
+    # hash (SM3 of x||y, hex), registered on chain by the owner's EOA (robotKeyAdd) when the
+    # pairing is approved, and revoked there (robotKeyRevoke) when the robot is unpaired. Blank
+    # for robots added by hand: their records are unsigned.
+    key_hash = models.CharField(max_length=64, blank=True, db_index=True)
+    key_chain_state = models.CharField(max_length=16, choices=ChainState.choices, blank=True)
+    key_added_block = models.BigIntegerField(null=True, blank=True)
+    key_revoke_state = models.CharField(max_length=16, choices=ChainState.choices, blank=True)
 
     class Meta:
         ordering = ["owner", "name"]

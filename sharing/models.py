@@ -73,6 +73,9 @@ class Record(models.Model):
     captured_at = models.DateTimeField()
     key_id = models.CharField(max_length=16)
     digest = models.CharField(max_length=64, help_text="hex SM3 of the envelope")
+    # The robot key that signed the envelope (its `signer` header: SM3 of the robot's SM2 public
+    # key, hex), checked at upload; blank for an unsigned record (a robot added by hand).
+    signer = models.CharField(max_length=64, blank=True)
     size = models.PositiveIntegerField()
     storage_name = models.CharField(max_length=255)
     status = models.CharField(max_length=16, choices=Status.choices, default=Status.PENDING)
@@ -243,6 +246,9 @@ class Verdict(models.Model):
         NO_ACCESS = "no_access", "no access"
         # The record was deleted (its ciphertext removed) while the check ran.
         DELETED = "deleted", "deleted"
+        # Its envelope is the anchored one, but the robot key it names is not its owner's
+        # registered key on chain at its anchoring (or was revoked before it): not genuine.
+        SIGNATURE_REFUSED = "signature_refused", "signature not valid"
 
     class Credential(models.TextChoices):
         UNKNOWN = "", "not recorded"
@@ -305,6 +311,10 @@ class SecurityEvent(models.Model):
         CHAIN_DIGEST_MISMATCH = "chain_digest_mismatch", "chain holds another digest for the id"
         FORGED_UPLOAD = "forged_upload", "upload refused as forged"
         SEQUENCE_CONFLICT = "sequence_conflict", "a robot's sequence number used for other data"
+        # DESIGN.md "Provenance": a paired robot's upload must be signed by its own live key.
+        UNSIGNED_UPLOAD = "unsigned_upload", "a paired robot's upload without a signature"
+        FOREIGN_SIGNER = "foreign_signer", "upload signed by a key that is not the robot's"
+        BAD_SIGNATURE = "bad_signature", "upload whose signature does not match its content"
 
     kind = models.CharField(max_length=32, choices=Kind.choices)
     record = models.ForeignKey(Record, on_delete=models.SET_NULL, null=True, blank=True)
