@@ -18,7 +18,6 @@ import pytest
 import redis
 import requests
 from django.conf import settings as django_settings
-from eth_account import Account
 from eth_account.signers.local import LocalAccount
 
 from accounts.models import Owner, OwnerToken, Robot
@@ -34,8 +33,9 @@ from portal.middleware import service_checks_forget
 from sharing.cache import _key as cache_key
 from sharing.models import Record
 from sharing.storage import envelope_storage
-from smcrypto import envelope, key_commitment, sm4
+from smcrypto import envelope, sm4
 from stack.anvil import AnvilProcess, start_anvil
+from tests.chain_setup import make_registered_owner
 from tests.tiers import spawning_allowed
 
 TEST_PASSWORD = "correct horse battery staple 42"
@@ -145,17 +145,6 @@ def chain(isolated_portal, redis_client, operator, settings) -> AuthROSChain:
     return client
 
 
-def make_registered_owner(
-    client: AuthROSChain, admin: LocalAccount, *, key: bytes | None = None
-) -> LocalAccount:
-    """A new EOA, funded, enrolled by the admin and registered with a key commitment."""
-    account = Account.create()
-    client.transfer(admin, account.address, 10**18)
-    client.enroll(admin, account.address)
-    client.register(account, key_commitment(account.address, key or sm4.generate_key()))
-    return account
-
-
 @pytest.fixture
 def registered_owner(chain, operator) -> LocalAccount:
     return make_registered_owner(chain, operator)
@@ -216,7 +205,7 @@ def worker_stack(tmp_path, settings, request):
     """Start real Celery workers and beat on an anvil of their own (tests.stack.WorkerStack):
     worker_stack(workers=N, block_time=None, env_overrides=None); stopped after the test. A
     failing test's report ends with the last lines of each process's log."""
-    from tests.stack import WorkerStack
+    from tests.harness import WorkerStack
 
     stacks = []
     request.node.worker_stacks = stacks

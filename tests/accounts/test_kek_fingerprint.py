@@ -26,7 +26,7 @@ from portal.middleware import service_checks_forget
 from smcrypto import sm4
 from stack.anvil import free_port
 from tests.conftest import TEST_PASSWORD, logged_by
-from tests.stack import wait_for
+from tests.harness import wait_for
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 RECORDS = "/api/v1/records/"

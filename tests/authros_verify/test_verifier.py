@@ -22,7 +22,7 @@ from sharing.models import Export
 from sharing.services import record_create_batch
 from sharing.storage import envelope_storage
 from stack.anvil import start_anvil
-from tests.stack import REPO_ROOT
+from tests.harness import REPO_ROOT
 
 pytestmark = pytest.mark.django_db
 

@@ -5,7 +5,6 @@ import logging
 import multiprocessing
 import threading
 import uuid
-from datetime import UTC, datetime
 
 import pytest
 import redis
@@ -15,7 +14,6 @@ from web3 import Web3
 
 from chainworker.chain import (
     ANCHOR_ROOT_GAS,
-    AnchorItem,
     AuthROSChain,
     ChainUnavailable,
     ContractNotDeployed,
@@ -26,22 +24,14 @@ from chainworker.chain import (
     TransactionTimeout,
     rpc_session,
 )
-from smcrypto import key_commitment, sm3, sm4
+from smcrypto import key_commitment, sm4
 from stack.anvil import start_anvil
+from tests.chain_setup import anchor_item, make_registered_owner
 
 pytestmark = pytest.mark.process
 
 SENDER_PROCESSES = 4
 UPLOADS_PER_PROCESS = 15
-
-
-def _item() -> AnchorItem:
-    return AnchorItem(
-        record_id=uuid.uuid4(),
-        digest=sm3.sm3_digest(uuid.uuid4().bytes),
-        time=datetime.now(tz=UTC),
-        data_type="std_msgs/String",
-    )
 
 
 def _deployed(url: str, redis_client: redis.Redis) -> tuple[AuthROSChain, Account]:
@@ -50,14 +40,6 @@ def _deployed(url: str, redis_client: redis.Redis) -> tuple[AuthROSChain, Accoun
     assert client.dev_faucet(operator.address, 10**21)
     client.deploy(operator)
     return client, operator
-
-
-def _registered(client: AuthROSChain, operator: Account) -> Account:
-    owner = Account.create()
-    client.transfer(operator, owner.address, 10**18)
-    client.enroll(operator, owner.address)
-    client.register(owner, key_commitment(owner.address, sm4.generate_key()))
-    return owner
 
 
 def _upload_from_another_process(url, redis_url, address, owner_key, count, queue) -> None:
@@ -71,7 +53,7 @@ def _upload_from_another_process(url, redis_url, address, owner_key, count, queu
     logging.getLogger("chainworker.chain").addHandler(refusals)
     try:
         for _ in range(count):
-            item = _item()
+            item = anchor_item()
             sent.append((str(item.record_id), client.data_upload(owner, item, wait=False)))
         for _, tx_hash in sent:
             client.wait_for_receipt(tx_hash)
@@ -95,9 +77,9 @@ class _NonceRefusals(logging.Handler):
 
 def test_full_contract_flow_over_http(anvil, redis_client):
     client, operator = _deployed(anvil.url, redis_client)
-    owner = _registered(client, operator)
-    viewer = _registered(client, operator)
-    item = _item()
+    owner = make_registered_owner(client, operator)
+    viewer = make_registered_owner(client, operator)
+    item = anchor_item()
     result = client.data_upload(owner, item)
     assert result.events[0].name == "DataUploaded"
     assert client.data_query(item.record_id).digest == item.digest
@@ -111,7 +93,7 @@ def test_full_contract_flow_over_http(anvil, redis_client):
 
 def test_concurrent_senders_in_several_processes_share_nonces(anvil, redis_client, settings):
     client, operator = _deployed(anvil.url, redis_client)
-    owner = _registered(client, operator)
+    owner = make_registered_owner(client, operator)
     context = multiprocessing.get_context("spawn")
     queue = context.Queue()
     workers = [
@@ -149,9 +131,9 @@ def test_concurrent_senders_in_several_processes_share_nonces(anvil, redis_clien
 def test_receipt_timeout_when_nothing_is_mined(redis_client, tmp_path):
     with start_anvil() as node:
         client, operator = _deployed(node.url, redis_client)
-        owner = _registered(client, operator)
+        owner = make_registered_owner(client, operator)
         client.w3.provider.make_request("evm_setAutomine", [False])
-        tx_hash = client.data_upload(owner, _item(), wait=False)
+        tx_hash = client.data_upload(owner, anchor_item(), wait=False)
         with pytest.raises(TransactionTimeout) as timed_out:
             client.wait_for_receipt(tx_hash, timeout=1)
         assert timed_out.value.tx_hash == tx_hash
@@ -167,9 +149,9 @@ def test_a_transaction_the_node_lost_or_holds_behind_a_nonce_gap_is_not_waited_f
     the nonce counter goes back to the node's count, and the next send is mined."""
     with start_anvil() as node:
         client, operator = _deployed(node.url, redis_client)
-        owner = _registered(client, operator)
+        owner = make_registered_owner(client, operator)
         client.w3.provider.make_request("evm_setAutomine", [False])
-        lost = client.data_upload(owner, _item(), wait=False)
+        lost = client.data_upload(owner, anchor_item(), wait=False)
         ready_nonce = client.w3.eth.get_transaction_count(owner.address)
         assert client.transaction_pending(lost)
         client.w3.provider.make_request("anvil_dropTransaction", [lost])
@@ -177,12 +159,12 @@ def test_a_transaction_the_node_lost_or_holds_behind_a_nonce_gap_is_not_waited_f
         with pytest.raises(TransactionDropped, match="does not hold it"):
             client.wait_for_receipt(lost)
         # Our counter still counts the lost one: the next send waits behind the gap.
-        gapped = client.data_upload(owner, _item(), wait=False)
+        gapped = client.data_upload(owner, anchor_item(), wait=False)
         assert client.w3.eth.get_transaction(gapped)["nonce"] == ready_nonce + 1
         assert not client.transaction_pending(gapped)
         with pytest.raises(TransactionDropped, match="waits behind a gap"):
             client.wait_for_receipt(gapped)
-        item = _item()
+        item = anchor_item()
         receipt = client.wait_for_receipt(client.data_upload(owner, item, wait=False))
         assert client.w3.eth.get_transaction(receipt["transactionHash"])["nonce"] == ready_nonce
         assert client.data_query(item.record_id) is not None
@@ -191,9 +173,9 @@ def test_a_transaction_the_node_lost_or_holds_behind_a_nonce_gap_is_not_waited_f
 def test_confirmations_are_awaited(redis_client):
     with start_anvil(block_time=0.5) as node:
         client, operator = _deployed(node.url, redis_client)
-        owner = _registered(client, operator)
+        owner = make_registered_owner(client, operator)
         client.confirmations = 2
-        result = client.data_upload(owner, _item())
+        result = client.data_upload(owner, anchor_item())
         assert client.latest_block() >= result.block_number + 2
 
 
@@ -211,8 +193,8 @@ def test_a_read_is_one_request_to_the_node(anvil, redis_client, monkeypatch):
     """web3 asks for the chain id before an eth_call; it is asked once per connection, so a
     view's rootOf or dataQuery is one HTTP request."""
     client, operator = _deployed(anvil.url, redis_client)
-    owner = _registered(client, operator)
-    item = _item()
+    owner = make_registered_owner(client, operator)
+    item = anchor_item()
     client.data_upload(owner, item)
     client.anchor_root(owner, b"\x02" * 32, 5)
     client.data_query(item.record_id)  # the connection has asked its chain id by now
@@ -255,7 +237,7 @@ def test_the_nodes_session_reads_the_environment_once_and_is_shared_by_threads(
     assert rpc_session(anvil.url).proxies == {}  # NO_PROXY names it
 
     client, operator = _deployed(anvil.url, redis_client)
-    owner = _registered(client, operator)
+    owner = make_registered_owner(client, operator)
     environment_read = []
     real_proxies = requests.utils.get_environ_proxies
     monkeypatch.setattr(
@@ -297,7 +279,7 @@ def test_a_process_forked_after_a_call_opens_its_own_connections(anvil, redis_cl
     """Celery's pool processes fork from a parent that checked the chain: a connection they
     shared would hand each of them the other's answers."""
     client, operator = _deployed(anvil.url, redis_client)
-    owner = _registered(client, operator)
+    owner = make_registered_owner(client, operator)
     client.anchor_root(owner, b"\x07" * 32, 3)
     session = client.w3.provider._request_session_manager._explicit_session
     assert client.last_root_of(owner.address) == b"\x07" * 32
@@ -332,7 +314,7 @@ def test_a_send_is_one_batch_the_nonce_the_transaction_and_its_receipt(
     and its receipt, each one request past web3's formatters, the receipt formatted as web3
     formats it."""
     client, operator = _deployed(anvil.url, redis_client)
-    owner = _registered(client, operator)
+    owner = make_registered_owner(client, operator)
     methods = []
     session_post = requests.Session.post
 
@@ -361,7 +343,7 @@ def test_a_refused_send_says_why(anvil, redis_client):
     """The node's refusals of a lean send: the contract's custom error with its arguments,
     and an account that cannot pay for gas (this anvil charges for gas)."""
     client, operator = _deployed(anvil.url, redis_client)
-    owner = _registered(client, operator)
+    owner = make_registered_owner(client, operator)
     first = client.anchor_root(owner, b"\x01" * 32, 1)
     assert first.events[0].args["prevRoot"] == bytes(32)
     with pytest.raises(TransactionReverted) as wrong:
@@ -384,7 +366,7 @@ def test_a_receipt_the_node_cannot_tell_yet_is_asked_again(anvil, redis_client, 
     """A node that refuses a receipt for now (geth while it indexes transactions) is asked
     again at the next poll rather than failing the send."""
     client, operator = _deployed(anvil.url, redis_client)
-    owner = _registered(client, operator)
+    owner = make_registered_owner(client, operator)
     tx_hash = client.anchor_root(owner, b"\x06" * 32, 3, wait=False)
     refusals = []
     lean = client._rpc_lean

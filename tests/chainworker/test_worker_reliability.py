@@ -1,25 +1,18 @@
 """Real Celery workers, Redis and anvil: everything is anchored exactly once, whatever fails.
 
-These tests start worker and beat processes (tests/stack/) that share the test database,
+These tests start worker and beat processes (tests/harness.py) that share the test database,
 a Redis database of their own and an anvil node, then break things: kill -9 a worker in the
 middle of a batch, stop the chain for 20 s, flush Redis, change stored ciphertext.
 """
 
 import re
-import threading
 import time
-import uuid
-from collections.abc import Iterator
-from contextlib import contextmanager
 
 import pytest
 import redis
-from django.db import connection
 
-from accounts.models import ChainState, Owner
+from accounts.models import ChainState
 from accounts.services import keys as account_keys
-from accounts.services.owners import owner_create
-from accounts.services.robots import robot_create
 from chainworker import services as chain_services
 from sharing import anchoring as sharing_anchoring
 from sharing import services as sharing_services
@@ -30,8 +23,8 @@ from sharing.storage import envelope_storage
 from sharing.tasks import record_verify
 from smcrypto import sm4
 from tests.anchoring_checks import assert_anchored_exactly_once, records_on_chain
-from tests.conftest import TEST_PASSWORD, RobotSetup
-from tests.stack import WorkerStack, wait_for
+from tests.harness import WorkerStack, wait_for
+from tests.worker_robots import registered_robots, uploading
 
 _ANCHOR_RUN_DONE = r"Task sharing\.tasks\.records_anchor\[[^\]]+\] succeeded"
 
@@ -40,26 +33,6 @@ pytestmark = [
     pytest.mark.process,
     pytest.mark.django_db(transaction=True),
 ]
-
-
-def _robots(count: int) -> list[RobotSetup]:
-    setups = []
-    for _ in range(count):
-        key = sm4.generate_key()
-        owner = owner_create(
-            username=f"owner-{uuid.uuid4().hex[:8]}", password=TEST_PASSWORD, sm4_key=key
-        )
-        robot, token = robot_create(owner=owner, name="robot")
-        setups.append(RobotSetup(owner, key, robot, token))
-    ids = [s.owner.pk for s in setups]
-    wait_for(
-        lambda: Owner.objects.filter(pk__in=ids, chain_state=ChainState.CONFIRMED).count() == count,
-        timeout=120,
-        what=f"{count} owners registered on chain by the workers",
-    )
-    for setup in setups:
-        setup.owner.refresh_from_db()
-    return setups
 
 
 def _all_anchored(count: int, *, timeout: float) -> None:
@@ -83,7 +56,7 @@ def _assert_each_anchored_exactly_once(stack: WorkerStack) -> None:
 
 def test_thousand_uploads_from_ten_owners_with_two_workers(worker_stack):
     stack = worker_stack(workers=2)
-    setups = _robots(10)
+    setups = registered_robots(10)
     next_seq = dict.fromkeys(range(10), 1)
     for round_number in range(10):
         for index, setup in enumerate(setups):
@@ -106,7 +79,7 @@ def test_thousand_uploads_from_ten_owners_with_two_workers(worker_stack):
 
 def test_worker_killed_in_the_middle_of_a_batch(worker_stack):
     stack = worker_stack(workers=1, block_time=2)
-    (setup,) = _robots(1)
+    (setup,) = registered_robots(1)
     record_create_batch(robot=setup.robot, envelopes=[setup.seal(s) for s in range(1, 51)])
     # The batch is sent and the worker waits for its block: kill it there.
     wait_for(
@@ -123,37 +96,9 @@ def test_worker_killed_in_the_middle_of_a_batch(worker_stack):
     _assert_each_anchored_exactly_once(stack)
 
 
-@contextmanager
-def uploading(setup: RobotSetup, *, every: float = 0.2) -> Iterator[list[Record]]:
-    """The robot uploads a record every `every` seconds (in a thread, through the upload
-    service) while the block runs; yields the list of what it uploaded, growing."""
-    stop_uploading = threading.Event()
-    uploaded: list[Record] = []
-
-    def upload() -> None:
-        seq = 1
-        try:
-            while not stop_uploading.is_set():
-                uploaded.append(record_create(robot=setup.robot, data=setup.seal(seq)))
-                seq += 1
-                time.sleep(every)
-        finally:
-            # This thread's own database connection: left open, it keeps the test database
-            # from being dropped at the end of the run.
-            connection.close()
-
-    uploader = threading.Thread(target=upload)
-    uploader.start()
-    try:
-        yield uploaded
-    finally:
-        stop_uploading.set()
-        uploader.join()
-
-
 def test_chain_down_for_twenty_seconds(worker_stack):
     stack = worker_stack(workers=1)
-    (setup,) = _robots(1)
+    (setup,) = registered_robots(1)
     with uploading(setup) as uploaded:
         time.sleep(3)
         stack.stop_anvil()
@@ -171,7 +116,7 @@ def test_chain_down_for_twenty_seconds(worker_stack):
 
 def test_redis_flushed_during_uploads(worker_stack):
     stack = worker_stack(workers=2)
-    setups = _robots(2)
+    setups = registered_robots(2)
     for seq in range(1, 101):
         for setup in setups:
             record_create(robot=setup.robot, data=setup.seal(seq))
@@ -183,7 +128,7 @@ def test_redis_flushed_during_uploads(worker_stack):
 
 def test_tampered_cache_and_durable_copy_are_refused(worker_stack):
     stack = worker_stack(workers=1)
-    (setup,) = _robots(1)
+    (setup,) = registered_robots(1)
     first = record_create(robot=setup.robot, data=setup.seal(1))
     second = record_create(robot=setup.robot, data=setup.seal(2))
     _all_anchored(2, timeout=60)
@@ -213,7 +158,7 @@ def test_views_are_checked_on_their_own_queue_with_no_chain_worker_left(worker_s
     """A worker on the verify queue alone answers views; chain work never reaches it."""
     stack = worker_stack(workers=1)
     stack.start_worker("verifier", queues=[f"{stack.queue}-verify"])
-    (setup,) = _robots(1)
+    (setup,) = registered_robots(1)
     record = record_create(robot=setup.robot, data=setup.seal(1))
     _all_anchored(1, timeout=60)
     stack.kill_worker("w0")  # the only worker for chain work
@@ -231,7 +176,7 @@ def test_views_are_checked_on_their_own_queue_with_no_chain_worker_left(worker_s
 
 def test_revoked_viewer_is_refused_at_the_next_view(worker_stack):
     worker_stack(workers=1)
-    alice, bob = _robots(2)
+    alice, bob = registered_robots(2)
     record = record_create(robot=alice.robot, data=alice.seal(1))
     _all_anchored(1, timeout=60)
     grant = grant_create(owner=alice.owner, grantee=bob.owner)
@@ -262,7 +207,7 @@ def test_owners_take_turns_and_transactions_share_blocks(worker_stack):
         block_time=1,
         env_overrides={"ANCHOR_BATCH_MAX": "5", "ANCHOR_ROOT_MAX": "5", "ANCHOR_INFLIGHT": "4"},
     )
-    busy, quiet = _robots(2)
+    busy, quiet = registered_robots(2)
     record_create_batch(robot=busy.robot, envelopes=[busy.seal(s) for s in range(1, 101)])
     late = record_create(robot=quiet.robot, data=quiet.seal(1))
     _all_anchored(101, timeout=180)
@@ -283,7 +228,7 @@ def test_work_whose_messages_the_broker_lost_is_queued_again_by_the_beat_sweep(
     worker_stack, monkeypatch
 ):
     stack = worker_stack(workers=1)
-    alice, bob = _robots(2)
+    alice, bob = registered_robots(2)
     # A registration ends by queueing an anchoring run for its owner; let those runs finish,
     # or one still running would itself queue the anchoring the broker is about to "lose".
     wait_for(

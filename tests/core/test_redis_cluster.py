@@ -24,7 +24,7 @@ from core.redis_url import RedisUrlError, celery_redis
 from sharing import cache
 from stack.anvil import free_port
 from stack.processes import PYTHON, REPO_ROOT
-from stack.redis_cluster import RedisCluster, start_redis_cluster
+from tests.launchers.redis_cluster import RedisCluster, start_redis_cluster
 
 pytestmark = [pytest.mark.process, pytest.mark.nodb]
 

@@ -1,8 +1,9 @@
-"""Fixtures of the browser tests: Debian's Chromium driven by Playwright, and the worker stack.
+"""Fixtures of the browser tests: Debian's Chromium driven by Playwright, the worker stack,
+and numbered screenshots of the steps.
 
 The portal runs in pytest-django's live server (a thread of the test process, sharing its
 settings and test database; it serves /static/ through django.contrib.staticfiles). Real
-Celery workers, beat and anvil come from tests/stack/: the record page runs its integrity
+Celery workers, beat and anvil come from tests/harness.py: the record page runs its integrity
 check through the worker.
 """
 
@@ -11,10 +12,10 @@ from pathlib import Path
 
 import pytest
 from django.db import connections
-from playwright.sync_api import Browser, sync_playwright
+from playwright.sync_api import Browser, Page, sync_playwright
 
 from chainworker import services as chain_services
-from tests.stack import REPO_ROOT, WorkerStack
+from tests.harness import REPO_ROOT, WorkerStack
 
 CHROMIUM = "/usr/bin/chromium"
 # Nothing may leave the machine: no component updates, sync, QUIC probes or field trials.
@@ -71,3 +72,15 @@ def artifacts() -> Path:
     for old in ARTIFACTS.glob("*.png"):
         old.unlink()
     return ARTIFACTS
+
+
+class Screenshots:
+    """Numbered full-page screenshots, in the order the steps happen."""
+
+    def __init__(self, directory: Path) -> None:
+        self.directory = directory
+        self.count = 0
+
+    def __call__(self, page: Page, name: str) -> None:
+        self.count += 1
+        page.screenshot(path=self.directory / f"{self.count:02d}-{name}.png", full_page=True)

@@ -14,8 +14,7 @@ from accounts.services.owners import owner_create
 from portal.celery import app as celery_app
 from smcrypto import sm4
 from tests.conftest import TEST_PASSWORD
-from tests.e2e.conftest import ARTIFACTS
-from tests.e2e.test_browser import Screenshots
+from tests.e2e.conftest import ARTIFACTS, Screenshots
 
 pytestmark = pytest.mark.django_db(transaction=True)
 

@@ -30,6 +30,7 @@ from sharing.models import Record
 from sharing.storage import envelope_storage
 from smcrypto import envelope
 from tests.conftest import TEST_PASSWORD
+from tests.e2e.conftest import Screenshots
 
 pytestmark = [
     pytest.mark.worker,
@@ -44,18 +45,6 @@ IMAGE_TOPIC = "/robot/complicatedImage"
 IMAGE_TYPE = "sensor_msgs/Image"
 IMAGE_WIDTH, IMAGE_HEIGHT = 64, 48
 CHAIN_TIMEOUT_MS = 90_000
-
-
-class Screenshots:
-    """Numbered full-page screenshots, in the order the steps happen."""
-
-    def __init__(self, directory: Path) -> None:
-        self.directory = directory
-        self.count = 0
-
-    def __call__(self, page: Page, name: str) -> None:
-        self.count += 1
-        page.screenshot(path=self.directory / f"{self.count:02d}-{name}.png", full_page=True)
 
 
 def reload_until(page: Page, ready: Callable[[], bool], *, what: str, timeout: float = 90) -> None:

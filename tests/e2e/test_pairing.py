@@ -38,11 +38,11 @@ from sharing.verification import record_open
 from smcrypto import sm2, sm4
 from tests.anchoring_checks import assert_anchored_exactly_once
 from tests.conftest import TEST_PASSWORD
-from tests.e2e.test_browser import Screenshots
+from tests.e2e.conftest import Screenshots
+from tests.harness import WorkerStack, wait_for
 from tests.ros_agent import conftest as ros_fixtures
+from tests.ros_agent.agent_output import agent_final_stats, spool_queued
 from tests.ros_agent.conftest import python_module, running, stop_process, wait_until
-from tests.ros_agent.test_portal_integration import _final_stats, _queued
-from tests.stack import WorkerStack, wait_for
 
 pytestmark = [
     pytest.mark.worker,
@@ -189,7 +189,9 @@ def test_pair_in_the_browser_then_rotate_while_offline_and_lose_nothing(
 
             # --- 3. offline; the owner rotates the key meanwhile ---------------------------
             stack.stop_web()
-            wait_until(lambda: _queued(spool) >= 20, 60, "the agent spooling while offline")
+            wait_until(
+                lambda: len(spool_queued(spool)) >= 20, 60, "the agent spooling while offline"
+            )
             page.goto(f"{base}/account/key/")
             expect(page.locator("#key-rotate-submit")).to_be_enabled()
             page.fill("#id_password", TEST_PASSWORD)
@@ -198,10 +200,10 @@ def test_pair_in_the_browser_then_rotate_while_offline_and_lose_nothing(
             shot(page, "key-rotated")
             new_key = owner.keys.get(is_current=True)
             assert new_key.key_id != old_key_id
-            rotated_with = _queued(spool)
+            rotated_with = len(spool_queued(spool))
             time.sleep(float(CLOCK_SKEW) + 0.5)
             wait_until(
-                lambda: _queued(spool) >= rotated_with + 30,
+                lambda: len(spool_queued(spool)) >= rotated_with + 30,
                 60,
                 "the agent spooling under the old key after the rotation",
             )
@@ -209,12 +211,14 @@ def test_pair_in_the_browser_then_rotate_while_offline_and_lose_nothing(
             # --- 4. back online: everything arrives -----------------------------------------
             back_online = datetime.now(UTC)
             stack.start_web()
-            wait_until(lambda: _queued(spool) == 0, 120, "the spool draining after the rotation")
+            wait_until(
+                lambda: not spool_queued(spool), 120, "the spool draining after the rotation"
+            )
         assert stop_process(agent, signal.SIGINT) == 0
 
     log = agent_log.read_text()
     assert "re-sealed" in log, log[-3000:]
-    stats = _final_stats(agent_log)
+    stats = agent_final_stats(agent_log)
     assert (stats["failed"], stats["dropped"], stats["queued"]) == (0, 0, 0), stats
     assert not [p for p in (spool / "rejected").iterdir() if p.suffix == ".env"]
     records = list(Record.objects.filter(robot=robot).order_by("seq"))

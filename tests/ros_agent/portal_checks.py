@@ -9,9 +9,9 @@ import yaml
 
 from sharing.models import Record
 from sharing.verification import record_open_many
+from tests.harness import wait_for
 from tests.ros_agent.conftest import write_key_file
 from tests.ros_agent.recordings import TOPICS
-from tests.stack import wait_for
 
 _EPOCH = datetime(1970, 1, 1, tzinfo=UTC)
 

@@ -4,7 +4,6 @@ subprocesses, and the in-test records endpoint checking and opening every envelo
 import base64
 import itertools
 import math
-import re
 import signal
 import subprocess
 import xmlrpc.client
@@ -16,6 +15,7 @@ import pytest
 import yaml
 
 from ros_agent import sim
+from tests.ros_agent.agent_output import agent_final_stats, agent_stats, spool_queued
 from tests.ros_agent.conftest import (
     OWNER,
     REPO_ROOT,
@@ -33,17 +33,6 @@ from tests.ros_agent.conftest import (
 from tests.ros_agent.records_server import RecordsServer
 
 pytestmark = pytest.mark.timeout(90)
-
-_FINAL_STATS = re.compile(
-    r"sent=(?P<sent>\d+) spooled=(?P<spooled>\d+) failed=(?P<failed>\d+) "
-    r"dropped=(?P<dropped>\d+) queued=(?P<queued>\d+)"
-)
-
-
-def _final_stats(log: Path) -> dict[str, int]:
-    matches = list(_FINAL_STATS.finditer(log.read_text()))
-    assert matches, f"no counters logged by the agent:\n{log.read_text()}"
-    return {name: int(value) for name, value in matches[-1].groupdict().items()}
 
 
 def _subscribed(master: RosMaster, topic: str) -> bool:
@@ -69,10 +58,6 @@ def _agent_yaml(
     path = folder / "agent.yaml"
     path.write_text(yaml.safe_dump(settings))
     return path
-
-
-def _queued_files(spool: Path) -> list[Path]:
-    return sorted((spool / "queue").glob("*.env"))
 
 
 @pytest.mark.process
@@ -148,10 +133,10 @@ def test_rostopic_pub_reaches_the_portal_across_an_outage_and_an_agent_crash(
 
     with running(publisher, env=env, log=logs / "rostopic.log"):
         with running(agent, env=env, log=logs / "agent1.log") as first:
-            wait_until(lambda: len(_queued_files(spool)) >= 8, 30, "the agent spooling offline")
+            wait_until(lambda: len(spool_queued(spool)) >= 8, 30, "the agent spooling offline")
             first.send_signal(signal.SIGKILL)  # a crash: no flush, no clean shutdown
             first.wait(10)
-        left_by_crash = [int(path.stem) for path in _queued_files(spool)]
+        left_by_crash = [int(path.stem) for path in spool_queued(spool)]
 
         portal.start()
         with running(agent, env=env, log=logs / "agent2.log", stop_signal=signal.SIGTERM) as second:
@@ -160,8 +145,8 @@ def test_rostopic_pub_reaches_the_portal_across_an_outage_and_an_agent_crash(
             )
             assert stop_process(second, signal.SIGTERM) == 0
 
-    stats = _final_stats(logs / "agent2.log")
-    assert len(_FINAL_STATS.findall((logs / "agent2.log").read_text())) >= 2  # periodic, and final
+    stats = agent_final_stats(logs / "agent2.log")
+    assert len(agent_stats(logs / "agent2.log")) >= 2  # periodic, and final
     assert stats["failed"] == stats["dropped"] == stats["queued"] == 0
     assert stats["sent"] == len(left_by_crash) + stats["spooled"] == len(portal.records)
     seqs = portal.seqs
@@ -197,7 +182,7 @@ def test_the_simulated_robot_reaches_the_portal_with_the_odometry_and_images_it_
             assert robot.wait(30) == 0
         assert stop_process(agent, signal.SIGINT) == 0  # Ctrl-C flushes what is left
 
-    stats = _final_stats(agent_log)
+    stats = agent_final_stats(agent_log)
     assert stats["sent"] == stats["spooled"] == len(portal.records)
     assert stats["queued"] == stats["failed"] == 0
     assert portal.seqs == sorted(set(portal.seqs))

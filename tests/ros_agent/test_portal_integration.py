@@ -11,7 +11,6 @@ refused and nothing of theirs is stored.
 import base64
 import contextlib
 import json
-import re
 import signal
 import uuid
 import xmlrpc.client
@@ -34,6 +33,8 @@ from sharing.verification import record_open
 from smcrypto import sm4
 from tests.anchoring_checks import assert_anchored_exactly_once
 from tests.conftest import TEST_PASSWORD, RobotSetup
+from tests.harness import WorkerStack, wait_for
+from tests.ros_agent.agent_output import agent_final_stats, spool_queued
 from tests.ros_agent.conftest import (
     OWNER,
     RosMaster,
@@ -45,7 +46,6 @@ from tests.ros_agent.conftest import (
     wait_until,
 )
 from tests.ros_agent.portal_checks import robot_config
-from tests.stack import WorkerStack, wait_for
 
 pytestmark = [
     pytest.mark.worker,
@@ -55,10 +55,6 @@ pytestmark = [
 ]
 
 CHATTER = "/chatter"
-_FINAL_STATS = re.compile(
-    r"sent=(?P<sent>\d+) spooled=(?P<spooled>\d+) failed=(?P<failed>\d+) "
-    r"dropped=(?P<dropped>\d+) queued=(?P<queued>\d+)"
-)
 
 
 @pytest.fixture
@@ -104,19 +100,9 @@ def _subscribed(master: RosMaster, *topics: str) -> bool:
     return set(topics) <= ours
 
 
-def _queued(spool: Path) -> int:
-    return len(list((spool / "queue").glob("*.env")))
-
-
 def _stored(topic: str | None = None) -> int:
     records = Record.objects.all()
     return (records.filter(topic=topic) if topic else records).count()
-
-
-def _final_stats(log: Path) -> dict[str, int]:
-    matches = list(_FINAL_STATS.finditer(log.read_text()))
-    assert matches, f"no counters logged by the agent:\n{log.read_text()[-3000:]}"
-    return {name: int(value) for name, value in matches[-1].groupdict().items()}
 
 
 def test_the_agent_delivers_to_the_real_portal_exactly_once_across_an_outage(
@@ -141,19 +127,25 @@ def test_the_agent_delivers_to_the_real_portal_exactly_once_across_an_outage(
             ) as robot:
                 assert robot.wait(60) == 0
             wait_until(lambda: _stored(CHATTER) >= 5, 30, "chatter reaching the portal")
-            wait_until(lambda: _queued(spool) == 0, 30, "the simulator's data reaching the portal")
+            wait_until(
+                lambda: not spool_queued(spool),
+                30,
+                "the simulator's data reaching the portal",
+            )
 
             stack.stop_web()  # the portal goes down; the robot keeps publishing
             before_outage = _stored()
-            wait_until(lambda: _queued(spool) >= 25, 30, "the agent spooling while offline")
+            wait_until(
+                lambda: len(spool_queued(spool)) >= 25, 30, "the agent spooling while offline"
+            )
             assert _stored() == before_outage
             stack.start_web()
-            wait_until(lambda: _queued(spool) == 0, 60, "the spool draining to the portal")
+            wait_until(lambda: not spool_queued(spool), 60, "the spool draining to the portal")
             wait_until(lambda: _stored() >= before_outage + 25, 30, "delivery after the outage")
         assert stop_process(agent, signal.SIGINT) == 0  # Ctrl-C flushes what is left
 
     assert "could not deliver" in agent_log.read_text()  # it did notice the outage
-    stats = _final_stats(agent_log)
+    stats = agent_final_stats(agent_log)
     assert (stats["failed"], stats["dropped"], stats["queued"]) == (0, 0, 0), stats
     records = list(Record.objects.order_by("seq"))
     seqs = [record.seq for record in records]
@@ -260,7 +252,7 @@ def test_forged_nodes_on_the_robots_topic_are_refused_and_nothing_of_theirs_is_s
         answers = _answers(tmp_path / f"{mode}.jsonl")
         assert {(a["status"], a["error"]) for a in answers} == {expected}, (mode, answers)
     # What is stored is exactly what the robot's own agent sent: the forgers added nothing.
-    stats = _final_stats(agent_log)
+    stats = agent_final_stats(agent_log)
     assert (stats["failed"], stats["dropped"], stats["queued"]) == (0, 0, 0), stats
     records = list(Record.objects.order_by("seq"))
     assert len(records) == stats["sent"]

@@ -19,7 +19,7 @@ from web3.exceptions import Web3RPCError
 from chainworker.chain import AuthROSChain
 from stack.anvil import KEPT_STATES, AnvilProcess, StateKeeper, start_anvil
 from stack.run import ANVIL_STATE_INTERVAL, ANVIL_TRANSACTION_BLOCKS
-from tests.chainworker.test_chain_anvil import _item, _registered
+from tests.chain_setup import anchor_item, make_registered_owner
 
 pytestmark = pytest.mark.process
 
@@ -73,8 +73,8 @@ def test_a_kill_9_keeps_everything_written_before_the_last_second(tmp_path, redi
     )
     try:
         client, operator = _deployed(node, redis_client)
-        owner = _registered(client, operator)
-        items = [_item() for _ in range(3)]
+        owner = make_registered_owner(client, operator)
+        items = [anchor_item() for _ in range(3)]
         client.data_upload_batch(owner, items)
         block = client.latest_block()
         kept = {n: client.w3.eth.get_block(n)["hash"] for n in range(block + 1)}
@@ -112,7 +112,8 @@ def test_a_state_file_cut_short_falls_back_to_the_previous_copy(tmp_path, redis_
         client, operator = _deployed(node, redis_client)
         deployed_at = client.latest_block()
         _wait_until_written(state, deployed_at)
-        _registered(client, operator)  # more blocks: the copy above becomes the previous one
+        # More blocks: the copy above becomes the previous one.
+        make_registered_owner(client, operator)
         _wait_until_written(state, client.latest_block())
     finally:
         _kill_9(node)

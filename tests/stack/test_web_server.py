@@ -11,8 +11,8 @@ import pytest
 import requests
 
 from sharing.models import Record
-from tests.chainworker.test_worker_reliability import _robots
-from tests.stack import wait_for
+from tests.harness import wait_for
+from tests.worker_robots import registered_robots
 
 pytestmark = [
     pytest.mark.worker,
@@ -38,7 +38,7 @@ def _upload_one(stack, setup, envelope: bytes) -> requests.Response:
 
 def test_web_processes_over_their_memory_limit_are_replaced_while_uploads_go_on(worker_stack):
     stack = worker_stack(workers=1)
-    setups = _robots(UPLOADERS)
+    setups = registered_robots(UPLOADERS)
     # A limit of 1 MiB, sampled every second: every process is over it at every sample, so
     # the processes are replaced one after another for as long as the uploads run. The robots
     # upload as fast as they are answered: no rate limit here.
@@ -105,7 +105,7 @@ def test_a_web_process_that_dies_is_started_again(worker_stack):
     """A web process killed outright (an OOM kill, a crash in a C library) is replaced; the
     portal answers on through the others meanwhile and on the new one after."""
     stack = worker_stack(workers=1)
-    setup = _robots(1)[0]
+    setup = registered_robots(1)[0]
     stack.start_web(workers=2)  # returns once both processes listen
     victim = min(stack.web_listening())
     psutil.Process(victim).kill()

@@ -21,7 +21,7 @@ import requests
 from stack.anvil import free_port
 from stack.processes import PYTHON, REPO_ROOT
 from stack.webserver import listening
-from tests.stack import wait_for
+from tests.harness import wait_for
 
 # Seconds each process of the test's app takes to load, without a listening socket: a process
 # being replaced that stopped before its successor loaded would leave none for that long.

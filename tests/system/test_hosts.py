@@ -21,8 +21,8 @@ from sharing.models import Record
 from smcrypto import envelope
 from stack.seaweedfs import start_seaweedfs
 from tests.anchoring_checks import assert_anchored_exactly_once
-from tests.chainworker.test_worker_reliability import _robots
-from tests.stack import WorkerStack, wait_for
+from tests.harness import WorkerStack, wait_for
+from tests.worker_robots import registered_robots
 
 pytestmark = [
     pytest.mark.skipif(
@@ -103,7 +103,7 @@ def test_two_web_hosts_and_two_worker_hosts_share_only_the_services(tmp_path, se
         web_a = stack.start_web(name="web-a", env=hosts["web-a"])
         web_b = stack.start_web(name="web-b", env=hosts["web-b"])
 
-        setups = _robots(2)
+        setups = registered_robots(2)
         for batch in range(BATCHES):
             for setup in setups:
                 _upload(web_a, setup, first=batch * PER_BATCH + 1)

@@ -24,9 +24,9 @@ from sharing.reconcile import RECONCILE_LOCK, chain_resync
 from sharing.services import grant_create, grant_revoke, record_create, record_create_batch
 from smcrypto import sm4
 from tests.anchoring_checks import assert_anchored_exactly_once, records_on_chain
-from tests.chainworker.test_worker_reliability import _robots, uploading
 from tests.conftest import RobotSetup
-from tests.stack import WorkerStack, wait_for
+from tests.harness import WorkerStack, wait_for
+from tests.worker_robots import registered_robots, uploading
 
 pytestmark = [
     pytest.mark.worker,
@@ -151,7 +151,7 @@ def test_anvil_killed_and_restarted_empty_during_a_thousand_uploads(fault_stack)
     go on through the portal (granian)."""
     stack = fault_stack(workers=2)
     stack.start_web()
-    setups = _robots(4)
+    setups = registered_robots(4)
     grants = _grants_set(*setups)
     _upload_http(stack, setups, rounds=range(5), per_batch=25)  # 500 records
     stack.reset_anvil()
@@ -166,7 +166,7 @@ def test_anvil_reverted_ten_blocks(fault_stack):
     """The node lost its last 10 blocks (anvil_rollback): the records and the grant the
     database says are on chain in them are sent again by the reconciliation."""
     stack = fault_stack(workers=1)
-    alice, bob = _robots(2)
+    alice, bob = registered_robots(2)
     for seq in range(1, 21):
         record = record_create(robot=alice.robot, data=alice.seal(seq))
         wait_for(
@@ -203,7 +203,7 @@ def test_anvil_killed_after_blocks_it_never_wrote_while_a_robot_uploads(fault_st
     stack = fault_stack(
         workers=1, env_overrides={"CHAIN_RECEIPT_TIMEOUT": "3600", "RECONCILE_INTERVAL": "30"}
     )
-    (setup,) = _robots(1)
+    (setup,) = registered_robots(1)
     with uploading(setup) as uploaded:
         time.sleep(2)
         assert stack.anvil.keeper is not None
@@ -230,7 +230,7 @@ def test_a_full_chain_reset_with_grants_and_a_rotated_key(fault_stack):
     """A new empty anvil where the old one was, once everything had settled: active and
     revoked grants, a rotated key and the records are all as before on the new chain."""
     stack = fault_stack(workers=1)
-    setups = _robots(4)
+    setups = registered_robots(4)
     grants = _grants_set(*setups)
     new_key = key_rotate(owner=setups[1].owner, sm4_key=sm4.generate_key())
     _upload(setups, rounds=range(2), per_batch=10)
@@ -249,7 +249,7 @@ def test_worker_killed_during_reconciliation(fault_stack, settings):
     """The chain lost 600 records (reverted to a snapshot taken before them); the only worker
     is killed while it reconciles; a new worker finishes the repair, nothing anchored twice."""
     stack = fault_stack(workers=1, env_overrides={"RECONCILE_CHUNK": "2000"})
-    alice, bob = _robots(2)
+    alice, bob = registered_robots(2)
     snapshot = stack.anvil_rpc("evm_snapshot")
     _upload([alice, bob], rounds=range(3), per_batch=100)
     _wait_settled(stack, 600)
@@ -267,7 +267,7 @@ def test_redis_flushed_during_a_resync(fault_stack):
     """`manage.py chain_resync` queues everything again; Redis then loses the queue, the locks,
     the nonce counters: the sweeps queue the work again and it all ends on chain once."""
     stack = fault_stack(workers=2)
-    setups = _robots(4)
+    setups = registered_robots(4)
     grants = _grants_set(*setups)
     _upload(setups, rounds=range(3), per_batch=20)
     _wait_settled(stack, 240)
@@ -291,7 +291,7 @@ def test_an_owner_account_emptied_mid_run_on_a_chain_with_gas_prices(fault_stack
     """anvil's own fees (1 gwei base fee): alice's account is emptied mid-run; the operator
     tops it up, and every record is anchored, none failed, none left waiting for gas."""
     stack = fault_stack(workers=1)
-    alice, bob = _robots(2)
+    alice, bob = registered_robots(2)
     client = chain_services.chain_client()
     assert client.fee_per_gas() > 0
     _upload([alice, bob], rounds=range(5), per_batch=20)

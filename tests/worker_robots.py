@@ -1,0 +1,69 @@
+"""Robots for tests with real workers (tests/harness.py): robots whose owners the workers have
+registered on chain, and a robot that keeps uploading while a test breaks something."""
+
+import threading
+import time
+import uuid
+from collections.abc import Iterator
+from contextlib import contextmanager
+
+from django.db import connection
+
+from accounts.models import ChainState, Owner
+from accounts.services.owners import owner_create
+from accounts.services.robots import robot_create
+from sharing.models import Record
+from sharing.services import record_create
+from smcrypto import sm4
+from tests.conftest import TEST_PASSWORD, RobotSetup
+from tests.harness import wait_for
+
+
+def registered_robots(count: int) -> list[RobotSetup]:
+    """`count` owners with a robot each, once the workers have registered every owner on
+    chain."""
+    setups = []
+    for _ in range(count):
+        key = sm4.generate_key()
+        owner = owner_create(
+            username=f"owner-{uuid.uuid4().hex[:8]}", password=TEST_PASSWORD, sm4_key=key
+        )
+        robot, token = robot_create(owner=owner, name="robot")
+        setups.append(RobotSetup(owner, key, robot, token))
+    ids = [s.owner.pk for s in setups]
+    wait_for(
+        lambda: Owner.objects.filter(pk__in=ids, chain_state=ChainState.CONFIRMED).count() == count,
+        timeout=120,
+        what=f"{count} owners registered on chain by the workers",
+    )
+    for setup in setups:
+        setup.owner.refresh_from_db()
+    return setups
+
+
+@contextmanager
+def uploading(setup: RobotSetup, *, every: float = 0.2) -> Iterator[list[Record]]:
+    """The robot uploads a record every `every` seconds (in a thread, through the upload
+    service) while the block runs; yields the list of what it uploaded, growing."""
+    stop_uploading = threading.Event()
+    uploaded: list[Record] = []
+
+    def upload() -> None:
+        seq = 1
+        try:
+            while not stop_uploading.is_set():
+                uploaded.append(record_create(robot=setup.robot, data=setup.seal(seq)))
+                seq += 1
+                time.sleep(every)
+        finally:
+            # This thread's own database connection: left open, it keeps the test database
+            # from being dropped at the end of the run.
+            connection.close()
+
+    uploader = threading.Thread(target=upload)
+    uploader.start()
+    try:
+        yield uploaded
+    finally:
+        stop_uploading.set()
+        uploader.join()
