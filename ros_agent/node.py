@@ -23,11 +23,8 @@ import rospy
 
 from ros_agent import LOGGER_NAME
 from ros_agent.config import AgentConfig, ConfigError, config_from_ros_params, load_config
-from ros_agent.counters import AgentCounters
-from ros_agent.pipeline import CLEAR_TEXT_WARNING, key_parts, token_in_clear
-from ros_agent.spool import Spool, SpoolError
-from ros_agent.uploader import PortalClient, Uploader
-from ros_agent.wrapping import Recorder
+from ros_agent.pipeline import CLEAR_TEXT_WARNING, pipeline_build, token_in_clear
+from ros_agent.spool import SpoolError
 
 NODE_NAME = "authros_agent"
 LOGGER = LOGGER_NAME.removeprefix("rosout.")  # rospy.loginfo(..., logger_name=LOGGER)
@@ -40,39 +37,14 @@ class AgentError(RuntimeError):
 
 
 class Agent:
-    """One robot's agent: subscribers -> Recorder -> Spool -> Uploader -> portal."""
+    """One robot's agent: subscribers -> Recorder -> Spool -> Uploader -> portal (the parts
+    ros_agent.pipeline builds for every agent)."""
 
     def __init__(self, config: AgentConfig) -> None:
         self.config = config
-        self.counters = AgentCounters()
-        self.spool = Spool(config.spool_dir, max_bytes=config.spool_max_bytes)
-        client = PortalClient(
-            records_url=config.records_url,
-            robot_key_url=config.robot_key_url,
-            token=config.token,
-            tls_verify=config.tls_verify,
-            timeout=config.request_timeout,
-        )
-        self.keyring, key_updater = key_parts(config, client)
-        self.uploader = Uploader(
-            spool=self.spool,
-            client=client,
-            keyring=self.keyring if key_updater else None,
-            key_updater=key_updater,
-            counters=self.counters,
-            batch_size=config.batch_size,
-            batch_max_bytes=config.batch_max_bytes,
-            flush_interval=config.flush_interval,
-            backoff_max=config.backoff_max,
-        )
-        self.recorder = Recorder(
-            spool=self.spool,
-            keyring=self.keyring,
-            owner=config.owner,
-            robot=config.robot,
-            counters=self.counters,
-            on_spooled=self.uploader.notify,
-        )
+        self.pipeline = pipeline_build(config)
+        self.counters, self.spool = self.pipeline.counters, self.pipeline.spool
+        self.uploader, self.recorder = self.pipeline.uploader, self.pipeline.recorder
         self._subscribers: list[rospy.Subscriber] = []
         self._timer: rospy.Timer | None = None
 
@@ -106,11 +78,7 @@ class Agent:
 
     def stats(self) -> dict[str, int]:
         """The counters, plus what waits in the spool."""
-        return {
-            **self.counters.snapshot(),
-            "queued": len(self.spool),
-            "spool_bytes": self.spool.used_bytes,
-        }
+        return self.pipeline.stats()
 
     def stop(self) -> None:
         rospy.loginfo("stopping: sending what is queued", logger_name=LOGGER)

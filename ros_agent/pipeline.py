@@ -1,7 +1,7 @@
 """The agent's path from a message to the portal, built once from the config: Recorder (seal
-into the spool), Spool (on disk), Uploader (to the portal). The ROS 2 agent (ros_agent.ros2)
-and the import of recordings (ros_agent.bags) use it as it is; the rospy node builds the same
-three parts in node.Agent."""
+into the spool, signed when the robot is paired), Spool (on disk), Uploader (to the portal).
+The rospy node (ros_agent.node), the ROS 2 agent (ros_agent.ros2) and the import of
+recordings (ros_agent.bags) all use it as it is."""
 
 import ipaddress
 from dataclasses import dataclass
@@ -11,6 +11,7 @@ from ros_agent.config import AgentConfig
 from ros_agent.counters import AgentCounters
 from ros_agent.keyring import Keyring
 from ros_agent.pairing import KeyUpdater
+from ros_agent.sealing import robot_signing_key
 from ros_agent.spool import Spool
 from ros_agent.uploader import PortalClient, Uploader
 from ros_agent.wrapping import Recorder
@@ -47,6 +48,7 @@ def pipeline_build(
         timeout=config.request_timeout,
     )
     keyring, key_updater = key_parts(config, client)
+    signing_key = robot_signing_key(config)
     uploader = Uploader(
         spool=spool,
         client=client,
@@ -57,10 +59,12 @@ def pipeline_build(
         batch_max_bytes=config.batch_max_bytes,
         flush_interval=config.flush_interval if flush_interval is None else flush_interval,
         backoff_max=config.backoff_max if backoff_max is None else backoff_max,
+        signing_key=signing_key,
     )
     recorder = Recorder(
         spool=spool,
         keyring=keyring,
+        signing_key=signing_key,
         owner=config.owner,
         robot=config.robot,
         counters=counters,

@@ -47,6 +47,7 @@ import requests
 from ros_agent import LOGGER_NAME
 from ros_agent.counters import AgentCounters, worth_logging
 from ros_agent.keyring import Keyring
+from ros_agent.sealing import RobotSigningKey, seal_record
 from ros_agent.spool import Spool, SpoolItem
 from smcrypto import CryptoError, envelope
 
@@ -165,13 +166,16 @@ class Uploader:
         backoff_base: float = BACKOFF_BASE,
         keyring: Keyring | None = None,
         key_updater: Callable[[], bool | None] | None = None,
+        signing_key: RobotSigningKey | None = None,
     ) -> None:
         """`key_updater` (a paired robot's) fetches the owner's current key into `keyring`:
-        True when it got one, False when the portal refused, None without an answer."""
+        True when it got one, False when the portal refused, None without an answer. What it
+        re-seals under a new key is signed again with `signing_key` (the robot's)."""
         if (keyring is None) != (key_updater is None):
             raise ValueError("a key updater needs the keyring it updates")
         self._keyring = keyring
         self._key_updater = key_updater
+        self._signing_key = signing_key
         self._key_asked_for: str | None = None
         self._spool = spool
         self._client = client
@@ -363,7 +367,7 @@ class Uploader:
             except CryptoError as exc:
                 logger.error("cannot re-seal seq %d: %s", item.seq, exc)
                 continue
-            self._spool.replace(item.seq, envelope.seal(key, header, plaintext))
+            self._spool.replace(item.seq, seal_record(key, header, plaintext, self._signing_key))
             resealed += 1
         if not resealed:
             return None

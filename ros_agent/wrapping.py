@@ -5,7 +5,7 @@ Plaintext (compact UTF-8 JSON):
      "Topic": topic}
 Envelope header: owner, robot, topic, type, seq (from the spool's counter), time (the same
 capture time as "Time": the message's header stamp, or the time it was received when it has
-no stamp).
+no stamp), and for a paired robot `signer` and `sig` (ros_agent.sealing).
 """
 
 import json
@@ -19,8 +19,8 @@ from ros_agent import LOGGER_NAME
 from ros_agent.counters import AgentCounters, worth_logging
 from ros_agent.extractors import ExtractionError, JsonDict, extract, iso_utc, stamp_datetime
 from ros_agent.keyring import Keyring
+from ros_agent.sealing import RobotSigningKey, seal_record
 from ros_agent.spool import Spool
-from smcrypto import envelope
 
 logger = logging.getLogger(f"{LOGGER_NAME}.wrapping")
 
@@ -72,14 +72,17 @@ class Recorder:
         counters: AgentCounters,
         key: bytes | None = None,
         keyring: Keyring | None = None,
+        signing_key: RobotSigningKey | None = None,
         on_spooled: Callable[[], None] = lambda: None,
     ) -> None:
         """Seals under `keyring`'s current key at each message (a paired robot's keyring
-        changes when the owner rotates), or under the one `key`."""
+        changes when the owner rotates), or under the one `key`; signed with `signing_key`
+        (a paired robot's), unsigned without."""
         if (key is None) == (keyring is None):
             raise ValueError("give the key or the keyring")
         self._spool = spool
         self._keyring = keyring or Keyring.of_one(key)
+        self._signing_key = signing_key
         self._owner = owner
         self._robot = robot
         self._counters = counters
@@ -128,7 +131,9 @@ class Recorder:
             try:
                 _, key = self._keyring.current()
                 seq = self._spool.append(
-                    lambda seq: envelope.seal(key, envelope_header(seq=seq, **header), plaintext)
+                    lambda seq: seal_record(
+                        key, envelope_header(seq=seq, **header), plaintext, self._signing_key
+                    )
                 )
             except OSError as exc:
                 logger.error("cannot write to the spool %s: %s", self._spool.directory, exc)

@@ -3,6 +3,10 @@
 Layout, integers big-endian: magic `AR` | version 0x01 | algorithm 0x01 (SM4-GCM) |
 key id (8) | nonce (12) | header length H (4) | header (H, canonical UTF-8 JSON) |
 ciphertext || tag (16). The AAD is every byte before the ciphertext.
+
+A robot's signature travels in the header (DESIGN.md "Provenance"): `signer` (64 lowercase
+hex) and `sig` (128 lowercase hex), both or neither, authenticated like every header field.
+Their shape is checked here; the signature itself by smcrypto.provenance.
 """
 
 import hmac
@@ -31,11 +35,14 @@ MIN_ENVELOPE_SIZE = PREFIX_SIZE + TAG_SIZE
 MAX_HEADER_LENGTH = 64 * 1024
 MAX_HEADER_DEPTH = 32
 HEADER_FIELDS = ("owner", "robot", "seq", "time", "topic", "type")
+# the robot's signature: field name -> its length in lowercase hex digits
+SIGNATURE_FIELDS = {"signer": 64, "sig": 128}
 MAX_SEQ = 2**63 - 1
 KEY_COMMITMENT_DOMAIN = b"AuthROS/key-commitment/v1"
 
 _TEXT_FIELDS = ("owner", "robot", "topic", "type")
 _ADDRESS = re.compile(r"0[xX][0-9a-fA-F]{40}")
+_LOWER_HEX = re.compile(r"[0-9a-f]*")
 _UTC = timedelta(0)
 _JSON_ESCAPE = re.compile(rb"\\.", re.DOTALL)
 _JSON_STRING = re.compile(rb'"[^"]*"')
@@ -53,6 +60,16 @@ class EnvelopeInfo:
     header: dict[str, Any]
     header_bytes: bytes
     ciphertext_length: int  # without the 16-byte tag, so equal to the plaintext length
+
+    @property
+    def signer(self) -> str | None:
+        """The robot key hash that signed the record (64 hex), None for an unsigned one."""
+        return self.header.get("signer")
+
+    @property
+    def sig(self) -> str | None:
+        """The robot's signature r||s (128 hex), None for an unsigned record."""
+        return self.header.get("sig")
 
 
 def seal(
@@ -156,7 +173,17 @@ def _address_bytes(eoa_address: str | bytes) -> bytes:
     raise InvalidKey("EOA address must be '0x' followed by 40 hex digits, or 20 raw bytes")
 
 
-def _canonical_json(header: Mapping[str, Any]) -> bytes:
+def is_lower_hex(value: Any, length: int) -> bool:
+    """Whether value is a string of exactly `length` lowercase hex digits."""
+    return (
+        isinstance(value, str) and len(value) == length and _LOWER_HEX.fullmatch(value) is not None
+    )
+
+
+def canonical_json(header: Mapping[str, Any]) -> bytes:
+    """The header's bytes as the envelope carries them: UTF-8 JSON, keys sorted, separators
+    `,` `:`, no `\\u` escapes (DESIGN.md "Wire formats"). TypeError or ValueError if it is
+    not plain JSON."""
     text = json.dumps(
         header, sort_keys=True, separators=(",", ":"), ensure_ascii=False, allow_nan=False
     )
@@ -172,7 +199,7 @@ def _encode_header(header: Mapping[str, Any]) -> bytes:
     if _nesting_exceeds(header, MAX_HEADER_DEPTH):
         raise MalformedEnvelope(f"header is nested deeper than {MAX_HEADER_DEPTH} levels")
     try:
-        header_bytes = _canonical_json(header)
+        header_bytes = canonical_json(header)
     except (TypeError, ValueError, RecursionError) as exc:
         raise MalformedEnvelope(f"header is not representable as JSON: {exc}") from None
     if len(header_bytes) > MAX_HEADER_LENGTH:
@@ -197,7 +224,7 @@ def _decode_header(header_bytes: bytes) -> dict[str, Any]:
     if not isinstance(header, dict):
         raise MalformedEnvelope("envelope header must be a JSON object")
     try:
-        canonical = _canonical_json(header)
+        canonical = canonical_json(header)
     except (ValueError, RecursionError):
         raise MalformedEnvelope("envelope header is not representable as canonical JSON") from None
     if canonical != header_bytes:
@@ -250,6 +277,21 @@ def _check_header_fields(header: dict[str, Any]) -> None:
     if type(seq) is not int or not 0 <= seq <= MAX_SEQ:
         raise MalformedEnvelope(f"envelope header field 'seq' must be an integer 0..{MAX_SEQ}")
     _check_time(header["time"])
+    _check_signature_fields(header)
+
+
+def _check_signature_fields(header: dict[str, Any]) -> None:
+    present = [name for name in SIGNATURE_FIELDS if name in header]
+    if present and len(present) != len(SIGNATURE_FIELDS):
+        raise MalformedEnvelope(
+            f"envelope header fields 'signer' and 'sig' come together, not {present[0]!r} alone"
+        )
+    for name in present:
+        if not is_lower_hex(header[name], SIGNATURE_FIELDS[name]):
+            raise MalformedEnvelope(
+                f"envelope header field {name!r} must be "
+                f"{SIGNATURE_FIELDS[name]} lowercase hex digits"
+            )
 
 
 def _check_time(value: Any) -> None:

@@ -31,3 +31,35 @@ class AuthenticationFailed(CryptoError):
 
 class DecryptionError(CryptoError):
     """SM2 or SM4-CBC decryption failed (wrong key, corrupted data or bad padding)."""
+
+
+class SignatureInvalid(CryptoError):
+    """A record's robot signature does not hold (DESIGN.md "Provenance"); `reason` names the
+    check that failed, one of the subclasses' reasons."""
+
+    reason = "invalid"
+
+
+class SignatureMissing(SignatureInvalid):
+    """The header has no `signer` or no `sig`: the record is unsigned."""
+
+    reason = "missing"
+
+
+class SignatureMalformed(SignatureInvalid):
+    """`signer` or `sig` is not lowercase hex of its length, the public key is not an SM2
+    point, or the header is not plain JSON."""
+
+    reason = "malformed"
+
+
+class SignerMismatch(SignatureInvalid):
+    """`signer` is not the key hash of the public key given."""
+
+    reason = "signer_mismatch"
+
+
+class BadSignature(SignatureInvalid):
+    """The signature does not verify over the header and plaintext with the key given."""
+
+    reason = "bad_signature"

@@ -1,8 +1,11 @@
-"""Fixtures for the agent: its owner's key, an in-test records endpoint, a real ROS master.
+"""Fixtures for the agent: its owner's key, a paired robot's files, an in-test records
+endpoint, a real ROS master, a DDS domain of its own on this machine.
 
 rospy allows one init_node per process, so every node under test (agent, simulator,
 `rostopic pub`) runs in a subprocess against a `rosmaster --core` on a free port, with
-ROS_HOME and ROS_LOG_DIR in the test's temporary folder.
+ROS_HOME and ROS_LOG_DIR in the test's temporary folder. DDS stays on this machine: the
+project's loopback-only CYCLONEDDS_URI, set before any participant exists, and a DDS domain
+of this run's own.
 """
 
 import contextlib
@@ -10,6 +13,7 @@ import json
 import os
 import re
 import signal
+import socket
 import subprocess
 import sys
 import time
@@ -21,9 +25,10 @@ from pathlib import Path
 import genpy
 import pytest
 
-from ros_agent import sim
+from ros_agent import dds, sim
 from ros_agent.extractors import extract
-from smcrypto import sm4
+from ros_agent.keyring import key_id_hex, write_keys_file
+from smcrypto import sm2, sm4
 from stack.anvil import free_port
 from tests.ros_agent.records_server import RecordsServer
 
@@ -57,6 +62,19 @@ def write_key_file(path: Path, key: bytes, mode: int = 0o600) -> Path:
     path.write_text(key.hex() + "\n")
     path.chmod(mode)
     return path
+
+
+def write_paired_robot_files(folder: Path, owner_key: bytes, *, mode: int = 0o600) -> str:
+    """What pairing leaves on a robot: `robot.sm2` (its SM2 private key, returned) and
+    `owner-keys.json` (the owner's key; `mode` for the file-mode checks)."""
+    private_key, _public = sm2.generate_keypair()
+    (folder / "robot.sm2").write_text(private_key + "\n")
+    (folder / "robot.sm2").chmod(0o600)
+    write_keys_file(
+        folder / "owner-keys.json", {key_id_hex(owner_key): owner_key}, key_id_hex(owner_key)
+    )
+    (folder / "owner-keys.json").chmod(mode)
+    return private_key
 
 
 def chatter_record(text: str, time: str) -> dict:
@@ -167,3 +185,51 @@ def _master_answers(uri: str) -> bool:
     except OSError:
         return False
     return code == 1
+
+
+def _dds_domain_is_free(domain: int) -> bool:
+    """No participant of another run on this machine holds the domain's first unicast port."""
+    port = 7400 + 250 * domain + 10
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
+        try:
+            probe.bind(("127.0.0.1", port))
+        except OSError:
+            return False
+    return True
+
+
+_used_dds_domains: set[int] = set()
+
+
+def free_dds_domain() -> int:
+    """A DDS domain id (1..232) no other test of this run used and no other run holds."""
+    start = os.getpid() % 200
+    for offset in range(232):
+        domain = 1 + (start + offset) % 232
+        if domain not in _used_dds_domains and _dds_domain_is_free(domain):
+            _used_dds_domains.add(domain)
+            return domain
+    raise AssertionError("no free DDS domain on this machine")
+
+
+@pytest.fixture(scope="module")
+def loopback_dds(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Path]:
+    """The project's loopback-only Cyclone DDS config, in this process's environment before
+    any participant is made (Cyclone reads it when the first one is)."""
+    path = dds.write_loopback_config(tmp_path_factory.mktemp("dds") / "cyclonedds.xml")
+    previous = os.environ.get(dds.CYCLONEDDS_URI)
+    os.environ.update(dds.loopback_environment(path))
+    yield path
+    if previous is None:
+        os.environ.pop(dds.CYCLONEDDS_URI, None)
+    else:
+        os.environ[dds.CYCLONEDDS_URI] = previous
+
+
+@pytest.fixture
+def ros2_env(loopback_dds: Path) -> tuple[int, dict[str, str]]:
+    """A free DDS domain and the environment of processes that use it on loopback only."""
+    domain = free_dds_domain()
+    env = {**os.environ, **dds.loopback_environment(loopback_dds, domain_id=domain)}
+    env["PYTHONUNBUFFERED"] = "1"
+    return domain, env

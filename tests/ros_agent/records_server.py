@@ -8,6 +8,10 @@ if these very envelopes are stored already, sequence_conflict if not). A
 batch is stored all or nothing; 201 answers one `{"id", "digest", "status"}` per envelope.
 Errors are `{"error": code, "detail": text}`.
 
+For a paired robot (`robot_public_key` set) every envelope must also carry this robot's valid
+signature (DESIGN.md "Provenance"), else 400 `invalid_signature`, as the portal refuses
+unsigned or wrongly signed uploads of a paired robot.
+
 Faults on demand: `stop()` closes the port (connection refused) and `start()` opens it again
 on the same port; `fail_next(status)` answers the next requests with an error; `lose_next()`
 stores the next upload and then drops the connection without answering, as if the portal had
@@ -26,7 +30,7 @@ from dataclasses import dataclass, field
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from typing import Any
 
-from smcrypto import CryptoError, envelope
+from smcrypto import CryptoError, SignatureInvalid, envelope, provenance
 from smcrypto.errors import WrongKey
 from stack.anvil import free_port
 
@@ -68,6 +72,7 @@ class RecordsServer:
     owner: str
     robot: str
     max_body_bytes: int = 4 * 1024 * 1024
+    robot_public_key: str | None = None  # a paired robot's: its signature is required
     port: int = field(default_factory=free_port)
     records: list[StoredRecord] = field(default_factory=list)
     uploads: list[UploadLog] = field(default_factory=list)
@@ -157,7 +162,7 @@ class RecordsServer:
                 403, "header_mismatch", "the envelope's owner and robot must be this robot's"
             )
         try:
-            return envelope.open(self.key, data)
+            header, plaintext = envelope.open(self.key, data)
         except WrongKey:
             raise PortalRefusal(
                 403, "unknown_key", "the envelope is not sealed under the owner's current key"
@@ -166,6 +171,12 @@ class RecordsServer:
             raise PortalRefusal(
                 403, "forged_envelope", "the envelope does not open under the owner's key"
             ) from None
+        if self.robot_public_key is not None:
+            try:
+                provenance.signature_check(self.robot_public_key, header, plaintext)
+            except SignatureInvalid as exc:
+                raise PortalRefusal(400, "invalid_signature", f"{exc.reason}: {exc}") from None
+        return header, plaintext
 
     def _take_fault(self) -> _Fault | None:
         with self._lock:

@@ -26,9 +26,15 @@ from ros_agent.config import (
     load_config,
     parse_topics,
 )
-from ros_agent.keyring import Keyring, key_id_hex, write_keys_file
-from smcrypto import sm2, sm4
-from tests.ros_agent.conftest import OWNER, ROBOT, TOKEN, write_key_file
+from ros_agent.keyring import Keyring, key_id_hex
+from smcrypto import sm4
+from tests.ros_agent.conftest import (
+    OWNER,
+    ROBOT,
+    TOKEN,
+    write_key_file,
+    write_paired_robot_files,
+)
 
 
 def _settings(**overrides) -> dict:
@@ -322,19 +328,8 @@ def test_the_portal_refuses_the_topics_the_agent_refuses(tmp_path, key_file, ind
 # --- a paired robot's settings (issue 14) --------------------------------------------------
 
 
-def _paired_files(folder: Path, owner_key: bytes, *, mode: int = 0o600) -> str:
-    private_key, _public = sm2.generate_keypair()
-    (folder / "robot.sm2").write_text(private_key + "\n")
-    (folder / "robot.sm2").chmod(0o600)
-    write_keys_file(
-        folder / "owner-keys.json", {key_id_hex(owner_key): owner_key}, key_id_hex(owner_key)
-    )
-    (folder / "owner-keys.json").chmod(mode)
-    return private_key
-
-
 def test_a_paired_robots_config_names_its_sm2_key_and_its_keys(tmp_path, owner_key):
-    private_key = _paired_files(tmp_path, owner_key)
+    private_key = write_paired_robot_files(tmp_path, owner_key)
     settings = _settings(key_file=None, sm2_key_file="robot.sm2", keys_file="owner-keys.json")
     config = load_config(_write(tmp_path, settings))
     assert config.paired
@@ -347,7 +342,7 @@ def test_a_paired_robots_config_names_its_sm2_key_and_its_keys(tmp_path, owner_k
 
 
 def test_a_new_key_is_kept_on_disk_beside_the_old_ones(tmp_path, owner_key):
-    _paired_files(tmp_path, owner_key)
+    write_paired_robot_files(tmp_path, owner_key)
     keyring = Keyring.load(tmp_path / "owner-keys.json")
     new_key = sm4.generate_key()
     assert keyring.add(new_key) is True
@@ -369,13 +364,13 @@ def test_a_new_key_is_kept_on_disk_beside_the_old_ones(tmp_path, owner_key):
 )
 def test_key_settings_are_one_key_file_or_a_pairing(tmp_path, owner_key, overrides, message):
     write_key_file(tmp_path / "alice.sm4", owner_key)
-    _paired_files(tmp_path, owner_key)
+    write_paired_robot_files(tmp_path, owner_key)
     with pytest.raises(ConfigError, match=re.escape(message)):
         load_config(_write(tmp_path, _settings(**overrides)))
 
 
 def test_a_keys_file_others_may_read_is_refused(tmp_path, owner_key):
-    _paired_files(tmp_path, owner_key, mode=0o644)
+    write_paired_robot_files(tmp_path, owner_key, mode=0o644)
     settings = _settings(key_file=None, sm2_key_file="robot.sm2", keys_file="owner-keys.json")
     with pytest.raises(ConfigError, match="chmod 600"):
         load_config(_write(tmp_path, settings))

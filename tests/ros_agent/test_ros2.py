@@ -10,7 +10,6 @@ import base64
 import os
 import re
 import signal
-import socket
 import subprocess
 import sys
 from datetime import UTC, datetime
@@ -49,53 +48,6 @@ pytestmark = [
 ]
 
 PER_TOPIC = 3
-
-
-def _domain_is_free(domain: int) -> bool:
-    """No participant of another run on this machine holds the domain's first unicast port."""
-    port = 7400 + 250 * domain + 10
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
-        try:
-            probe.bind(("127.0.0.1", port))
-        except OSError:
-            return False
-    return True
-
-
-_used_domains: set[int] = set()
-
-
-def free_dds_domain() -> int:
-    """A DDS domain id (1..232) no other test of this run used and no other run holds."""
-    start = os.getpid() % 200
-    for offset in range(232):
-        domain = 1 + (start + offset) % 232
-        if domain not in _used_domains and _domain_is_free(domain):
-            _used_domains.add(domain)
-            return domain
-    raise AssertionError("no free DDS domain on this machine")
-
-
-@pytest.fixture(scope="module")
-def loopback_dds(tmp_path_factory):
-    """The project's loopback-only Cyclone DDS config, in this process's environment before
-    any participant is made (Cyclone reads it when the first one is)."""
-    path = dds.write_loopback_config(tmp_path_factory.mktemp("dds") / "cyclonedds.xml")
-    previous = os.environ.get(dds.CYCLONEDDS_URI)
-    os.environ.update(dds.loopback_environment(path))
-    yield path
-    if previous is None:
-        os.environ.pop(dds.CYCLONEDDS_URI, None)
-    else:
-        os.environ[dds.CYCLONEDDS_URI] = previous
-
-
-@pytest.fixture
-def ros2_env(loopback_dds):
-    domain = free_dds_domain()
-    env = {**os.environ, **dds.loopback_environment(loopback_dds, domain_id=domain)}
-    env["PYTHONUNBUFFERED"] = "1"
-    return domain, env
 
 
 def test_the_loopback_config_keeps_dds_on_this_machine(tmp_path):

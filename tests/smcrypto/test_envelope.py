@@ -75,7 +75,9 @@ utc_times = st.datetimes(timezones=st.just(UTC)).map(
 
 @st.composite
 def headers(draw: st.DrawFn) -> dict[str, Any]:
-    extra_names = st.text(max_size=10).filter(lambda name: name not in envelope.HEADER_FIELDS)
+    extra_names = st.text(max_size=10).filter(
+        lambda name: name not in envelope.HEADER_FIELDS and name not in envelope.SIGNATURE_FIELDS
+    )
     header = draw(st.dictionaries(extra_names, json_values, max_size=3))
     header.update(
         owner=draw(non_empty_text),

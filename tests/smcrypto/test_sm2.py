@@ -1,4 +1,5 @@
-"""SM2: GM/T 0003.5 examples, agreement with gmssl and sm-crypto, gmssl's key-stripping bug."""
+"""SM2: GM/T 0003.5 examples, agreement with gmssl and sm-crypto both ways (our backend is
+Tongsuo, gmssl the pure-Python reference), gmssl's key-stripping bug, ASN.1 edge cases."""
 
 import json
 import random
@@ -12,6 +13,7 @@ from gmssl.sm2 import CryptSM2, default_ecc_table
 
 from smcrypto import sm2
 from smcrypto.errors import CryptoError, DecryptionError, InvalidKey
+from smcrypto.sm3 import sm3_digest
 
 REPO = Path(__file__).resolve().parents[2]
 P = int(default_ecc_table["p"], 16)
@@ -44,6 +46,18 @@ def _gmssl(private_key: str, public_key_hex: str) -> CryptSM2:
     crypt = CryptSM2(private_key=private_key, public_key="", mode=1)
     crypt.public_key = public_key_hex[-128:]
     return crypt
+
+
+def _textbook_encrypt(public_key_hex: str, message: bytes, ephemeral: int) -> str:
+    """GB/T 32918.4 encryption with a chosen ephemeral k, on gmssl's point arithmetic."""
+    curve = _gmssl("", public_key_hex)
+    c1 = curve._kg(ephemeral, default_ecc_table["g"])
+    shared = bytes.fromhex(curve._kg(ephemeral, public_key_hex[-128:]))
+    stream = b"".join(
+        sm3_digest(shared + i.to_bytes(4, "big")) for i in range(1, 3 + len(message) // 32)
+    )
+    c2 = bytes(a ^ b for a, b in zip(message, stream, strict=False))
+    return c1 + sm3_digest(shared[:32] + message + shared[32:]).hex() + c2.hex()
 
 
 def _affine_add(a: tuple[int, int], b: tuple[int, int]) -> tuple[int, int]:
@@ -85,13 +99,20 @@ def test_kat_signature_verifies() -> None:
 
 
 def test_kat_signature_from_the_fixed_nonce() -> None:
-    signer = sm2._GmsslSM2(private_key=KAT_PRIVATE, public_key_xy=KAT_PUBLIC[2:])
+    """The reference reproduces the standard's signature (Tongsuo takes no chosen nonce)."""
+    signer = _gmssl(KAT_PRIVATE, KAT_PUBLIC)
     assert signer.sign_with_sm3(b"message digest", KAT_K) == KAT_SIGNATURE
 
 
 def test_kat_encryption_from_the_fixed_nonce() -> None:
-    ciphertext = sm2._encrypt_with_ephemeral(KAT_PUBLIC[2:], b"encryption standard", int(KAT_K, 16))
+    """The layout our decryption reads is the standard's: C1 (x||y) || C3 || C2."""
+    ciphertext = _textbook_encrypt(KAT_PUBLIC, b"encryption standard", int(KAT_K, 16))
     assert ciphertext == KAT_CIPHERTEXT
+
+
+def test_the_curve_is_the_references() -> None:
+    for name, value in (("p", sm2._P), ("a", sm2._A), ("b", sm2._B), ("n", sm2._N)):
+        assert int(default_ecc_table[name], 16) == value
 
 
 def test_kat_decryption_with_and_without_04_prefix() -> None:
@@ -160,6 +181,40 @@ def test_gmssl_verifies_ours_and_we_verify_gmssl() -> None:
         assert _gmssl(private, public).verify_with_sm3(sm2.sign(private, message), message)
         theirs = _gmssl(private, public).sign_with_sm3(message)
         assert sm2.verify(public, message, theirs)
+
+
+def test_ciphertexts_whose_c1_has_short_coordinates() -> None:
+    """x or y below 2**248 is a shorter ASN.1 INTEGER for Tongsuo; one-byte messages too."""
+    private, public = sm2.generate_keypair()
+    point, ephemeral = _affine_double(G), 2
+    short = {"x": None, "y": None}
+    while None in short.values():
+        point, ephemeral = _affine_add(point, G), ephemeral + 1
+        for name, value in (("x", point[0]), ("y", point[1])):
+            if short[name] is None and value < 2**248:
+                short[name] = ephemeral
+    for ephemeral in short.values():
+        for message in (b"\x00", b"ab", bytes(range(200))):
+            ciphertext = _textbook_encrypt(public, message, ephemeral)
+            assert sm2.decrypt(private, ciphertext) == message
+            assert sm2.decrypt(private, "04" + ciphertext) == message
+
+
+@pytest.mark.parametrize("coordinate", [0, 1, 0x7F, 0x80, 2**248 - 1, 2**255, P - 1])
+@pytest.mark.parametrize("length", [1, 127, 128, 255, 256, 70000])
+def test_the_asn1_ciphertext_round_trips(coordinate: int, length: int) -> None:
+    c3, c2 = bytes(range(32)), bytes(length)
+    der = sm2._ciphertext_to_der(coordinate, P - 1 - coordinate, c3, c2)
+    assert sm2._ciphertext_from_der(der) == (coordinate, P - 1 - coordinate, c3, c2)
+
+
+def test_one_byte_messages_round_trip_and_gmssl_reads_them() -> None:
+    private, public = sm2.generate_keypair()
+    for value in range(0, 256, 5):
+        ciphertext = sm2.encrypt(public, bytes([value]))
+        assert len(ciphertext) == 2 * (64 + 32 + 1)
+        assert sm2.decrypt(private, ciphertext) == bytes([value])
+        assert _gmssl(private, public).decrypt(bytes.fromhex(ciphertext)) == bytes([value])
 
 
 def test_tampered_ciphertext_is_decryption_error_where_gmssl_returns_garbage() -> None:
