@@ -1,17 +1,17 @@
 """What anchoring runs (one record per slot, or Merkle roots) share while they wait: their
-hold on an owner's lock, receipts awaited in steps that keep that hold alive, and an owner's
-account that cannot pay for gas."""
+hold on an owner's lock, receipts awaited in steps that keep that hold alive, an owner's
+account that cannot pay for gas, and records whose robot's key is not on chain yet."""
 
 import logging
 import time
 
 from django.conf import settings
-from django.db.models import QuerySet
+from django.db.models import Q, QuerySet
 from redis.exceptions import LockError, RedisError
 from redis.lock import Lock
 from web3.types import TxReceipt
 
-from accounts.models import Owner
+from accounts.models import ChainState, Owner
 from alerts.services import anchoring_failed_alert
 from chainworker.chain import AuthROSChain, TransactionTimeout
 from chainworker.work import WAITING_FOR_GAS
@@ -19,6 +19,12 @@ from core.outbox import enqueue
 from sharing.models import Record
 
 logger = logging.getLogger("sharing.anchoring")
+
+# Records signed by a robot key not confirmed on chain yet: anchored once it is (its
+# confirmation queues the owner's run), since robotKeyOf must show the key added at or before
+# their anchoring block (DESIGN.md "A record is genuine"). They use up no attempt meanwhile;
+# unsigned records (a robot added by hand) never wait.
+AWAITING_ROBOT_KEY = ~Q(signer="") & ~Q(robot__key_chain_state=ChainState.CONFIRMED)
 
 
 def lock_renew(lock: Lock) -> bool:

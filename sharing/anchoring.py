@@ -23,9 +23,10 @@ from redis.client import Pipeline
 from redis.exceptions import LockError, RedisError
 from redis.lock import Lock
 
-from accounts.models import ChainActivity, ChainState, Owner
+from accounts.models import ChainActivity, ChainState, Owner, Robot
 from accounts.selectors import owner_eoa_account
 from accounts.services.activity import chain_activity_record
+from accounts.services.robot_keys import robot_key_revocations_release
 from alerts.services import anchoring_failed_alert
 from chainworker.chain import (
     AnchorItem,
@@ -41,6 +42,7 @@ from chainworker.work import CHAIN_TASK, TRANSIENT, ChainWorkNotReady
 from core.outbox import enqueue
 from core.redis_client import get_redis, redis_key
 from sharing.anchor_wait import (
+    AWAITING_ROBOT_KEY,
     gas_wait_end,
     gas_wait_start,
     lock_renew,
@@ -48,7 +50,7 @@ from sharing.anchor_wait import (
     records_fail_exhausted,
 )
 from sharing.models import Record, SecurityEvent
-from sharing.roots import roots_anchor_round
+from sharing.roots import roots_anchor_round, roots_await_robot_key
 
 logger = logging.getLogger(__name__)
 security_log = logging.getLogger("authros.security")
@@ -68,12 +70,21 @@ def anchor_schedule(*, owner_id: int, countdown: float | None = None) -> None:
     _anchor_enqueue(owner_id, first=first, countdown=countdown)
 
 
-def anchor_after_registration(owner_id: int) -> None:
-    """Queue a run for an owner whose registration was just confirmed on chain, so that records
-    uploaded while it waited go now (accounts.services.registration calls it; sharing/apps.py
-    registers it). Past anchor_schedule's flag: a run that found the owner unregistered holds
-    it until its retry."""
+def anchor_after_chain_ready(owner_id: int) -> None:
+    """Queue a run for an owner whose registration, or one of whose robots' keys, was just
+    confirmed on chain, so that records that waited for it go now
+    (accounts.services.registration.owner_chain_ready calls it; sharing/apps.py registers it).
+    Past anchor_schedule's flag: a run that found the owner unregistered holds it until its
+    retry."""
     enqueue("sharing.tasks.records_anchor", owner_id)
+
+
+def robot_records_await_anchoring(robot: Robot) -> bool:
+    """Whether records the robot's key signed are not anchored yet: its revocation on chain
+    waits for them (accounts.services.robot_keys asks; sharing/apps.py registers it)."""
+    return Record.objects.filter(
+        robot=robot, signer=robot.key_hash, status=Record.Status.PENDING
+    ).exists()
 
 
 def anchor_schedule_queued(pipe: Pipeline, *, owner_id: int) -> Callable[[object], None]:
@@ -133,6 +144,10 @@ def records_anchor(*, owner_id: int) -> int:
     set until its retry: during an outage the uploads wait for that one retrying run instead
     of each queueing a run that retries on its own (a robot's hour of uploads, thousands).
 
+    Records signed by a robot key not on chain yet are left pending (AWAITING_ROBOT_KEY): the
+    key's confirmation queues the run that sends them. Once records are anchored, the
+    revocations of robot keys that waited for them are queued.
+
     Idempotent: a record whose id is already on chain with the same digest and owner counts
     as anchored; with another digest it is marked failed and a security event is logged.
     """
@@ -145,14 +160,22 @@ def records_anchor(*, owner_id: int) -> int:
         _anchor_unschedule(owner_id)
         raise
     _anchor_unschedule(owner_id)
-    if (
-        sent is not None
-        and Record.objects.filter(owner_id=owner_id, status=Record.Status.PENDING).exists()
-    ):
+    if anchored:
+        robot_key_revocations_release(owner_id=owner_id)
+    if sent is not None and _records_left(owner_id):
         # Nothing sent: what is left is on chain awaiting confirmations, so look again after
         # about a block rather than at once.
         anchor_schedule(owner_id=owner_id, countdown=None if sent else ANCHOR_RECHECK_DELAY)
     return anchored
+
+
+def _records_left(owner_id: int) -> bool:
+    """Whether the owner has pending records a next run can send: not those waiting for their
+    robot's key, nor (root mode) those behind a tree waiting for one."""
+    if settings.ANCHOR_MODE == "root" and roots_await_robot_key(owner_id):
+        return False
+    pending = Record.objects.filter(owner_id=owner_id, status=Record.Status.PENDING)
+    return pending.exclude(AWAITING_ROBOT_KEY).exists()
 
 
 def _anchor_run(owner_id: int) -> tuple[int, int | None]:
@@ -201,7 +224,9 @@ def _wait_for_batch_to_fill(owner_id: int) -> None:
     closes the batch at once: after a robot's batch or a burst the records go on chain
     ANCHOR_QUIET after the last one, not ANCHOR_MAX_WAIT after the first; under a steady
     stream a run still takes what ANCHOR_MAX_WAIT gathered (ANCHOR_QUIET 0: always that)."""
-    pending = Record.objects.filter(owner_id=owner_id, status=Record.Status.PENDING)
+    pending = Record.objects.filter(owner_id=owner_id, status=Record.Status.PENDING).exclude(
+        AWAITING_ROBOT_KEY
+    )
     full = settings.ANCHOR_ROOT_MAX if settings.ANCHOR_MODE == "root" else settings.ANCHOR_BATCH_MAX
     quiet = settings.ANCHOR_QUIET
     # However the hosts' clocks disagree with the records' times, a run waits at most this.
@@ -318,7 +343,9 @@ def _attempts_return(record_ids: list[uuid.UUID]) -> None:
 
 
 def _next_batch(owner: Owner, *, exclude: list[uuid.UUID]) -> list[Record]:
-    pending = Record.objects.filter(owner_id=owner.pk, status=Record.Status.PENDING)
+    pending = Record.objects.filter(owner_id=owner.pk, status=Record.Status.PENDING).exclude(
+        AWAITING_ROBOT_KEY
+    )
     records_fail_exhausted(owner, pending)
     pending = pending.exclude(pk__in=exclude)
     return list(pending.order_by("created_at", "seq")[: settings.ANCHOR_BATCH_MAX])

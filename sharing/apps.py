@@ -6,10 +6,12 @@ class SharingConfig(AppConfig):
 
     def ready(self) -> None:
         # Models load only once the registry is ready, hence the imports here.
-        from accounts.services.registration import owner_registered_listener_register
+        from accounts.services.registration import owner_chain_ready_listener_register
+        from accounts.services.robot_keys import robot_key_revoke_wait_register
         from chainworker.backlog import backlog_counter_register
-        from sharing.anchoring import anchor_after_registration
+        from sharing.anchoring import anchor_after_chain_ready, robot_records_await_anchoring
         from sharing.selectors import chain_backlog
 
         backlog_counter_register(chain_backlog)
-        owner_registered_listener_register(anchor_after_registration)
+        owner_chain_ready_listener_register(anchor_after_chain_ready)
+        robot_key_revoke_wait_register(robot_records_await_anchoring)

@@ -13,6 +13,10 @@ root), so of two trees sent after the same root at most one can land. A tree sen
 and not on chain is sent again, the same root after the same previous root, while it still
 can land; once the sender's last root on chain has moved past its previous root it never can,
 and its records go into a new tree.
+
+Records signed by a robot key not on chain yet go into no tree (AWAITING_ROBOT_KEY); a tree
+to send again that holds some (after a chain reset) waits for the key, and the trees after it
+with it, so that it is sent again as it was.
 """
 
 import logging
@@ -39,6 +43,7 @@ from chainworker.chain import (
 )
 from chainworker.services import chain_stall_check
 from sharing.anchor_wait import (
+    AWAITING_ROBOT_KEY,
     gas_wait_end,
     gas_wait_start,
     lock_renew,
@@ -63,7 +68,7 @@ def roots_anchor_round(client: AuthROSChain, owner: Owner, lock: Lock) -> tuple[
             break
         resent = bool(again)
         tree = again.pop(0) if again else _tree_next(owner, account.address, tip)
-        if tree is None:
+        if tree is None or (resent and _awaits_robot_key(tree)):
             break
         try:
             # Only the first root of a run follows a root on chain: the others follow one still
@@ -198,12 +203,32 @@ def _strays_settle(client: AuthROSChain, owner: Owner) -> None:
             AnchorRoot.objects.filter(pk=tree.pk).update(status=AnchorRoot.Status.SENT)
 
 
+def roots_await_robot_key(owner_id: int) -> bool:
+    """Whether a tree of the owner's to send again waits for a robot key (and the owner's later
+    trees with it): the key's confirmation queues the run that sends it."""
+    return (
+        Record.objects.filter(
+            owner_id=owner_id,
+            status=Record.Status.PENDING,
+            anchor_root__status=AnchorRoot.Status.SENT,
+        )
+        .filter(AWAITING_ROBOT_KEY)
+        .exists()
+    )
+
+
+def _awaits_robot_key(tree: AnchorRoot) -> bool:
+    pending = Record.objects.filter(anchor_root=tree, status=Record.Status.PENDING)
+    return pending.filter(AWAITING_ROBOT_KEY).exists()
+
+
 def _tree_next(owner: Owner, sender: str, prev_root: str) -> AnchorRoot | None:
-    """The next tree of the owner's pending records not in a tree yet, written before it is
-    sent; None if there are none. Records out of attempts are failed first."""
+    """The next tree of the owner's pending records not in a tree yet and not waiting for
+    their robot's key, written before it is sent; None if there are none. Records out of
+    attempts are failed first."""
     pending = Record.objects.filter(
         owner_id=owner.pk, status=Record.Status.PENDING, anchor_root__isnull=True
-    )
+    ).exclude(AWAITING_ROBOT_KEY)
     records_fail_exhausted(owner, pending)
     records = list(
         pending.order_by("created_at", "seq").only("id", "digest")[: settings.ANCHOR_ROOT_MAX]

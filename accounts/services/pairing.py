@@ -28,7 +28,7 @@ from accounts.errors import (
     PairingSecretMismatch,
 )
 from accounts.events import account_event_record
-from accounts.models import AccountEvent, Owner, Robot, RobotPairing
+from accounts.models import AccountEvent, ChainState, Owner, Robot, RobotPairing
 from accounts.selectors import (
     owner_key_bytes,
     owner_key_current,
@@ -36,7 +36,8 @@ from accounts.selectors import (
     robot_token_hash,
 )
 from accounts.services.robots import robot_create
-from smcrypto import InvalidKey, sm2
+from core.outbox import enqueue
+from smcrypto import InvalidKey, provenance, sm2
 
 security_log = logging.getLogger("authros.security")
 
@@ -132,7 +133,14 @@ def robot_pairing_answer(
             )
             return pairing
         robot, token = robot_create(owner=owner, name=name or pairing.name)
-        Robot.objects.filter(pk=robot.pk).update(public_key=pairing.public_key, paired_at=now)
+        # The robot signs with this key: its owner's EOA registers it on chain (robot_keys.py).
+        Robot.objects.filter(pk=robot.pk).update(
+            public_key=pairing.public_key,
+            paired_at=now,
+            key_hash=provenance.key_hash(pairing.public_key),
+            key_chain_state=ChainState.PENDING,
+        )
+        transaction.on_commit(lambda: enqueue("accounts.tasks.robot_key_register", str(robot.pk)))
         pairing.robot = robot
         pairing.token_sm2 = sm2.encrypt(pairing.public_key, token.encode("ascii"))
         pairing.state = RobotPairing.State.APPROVED

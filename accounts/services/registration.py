@@ -1,11 +1,12 @@
 """Owners' identity on chain, run by the worker: registration (fund, enroll, register the
 first key's commitment) and key rotations, in the order the keys were made.
 
-The tasks in accounts/tasks.py call these; chain_work_sweep queues again what waits too long,
-and owners_reconcile and owners_chain_reset (run by sharing.reconcile) put back what the chain
-lost. Once an owner is registered, the work that waited for it in the apps above accounts
-(sharing's anchoring) is started through the listeners they register here, so that accounts
-imports none of them.
+The tasks in accounts/tasks.py call these; chain_work_sweep queues again what waits too long
+(robots' keys of robot_keys.py too), and owners_reconcile and owners_chain_reset (run by
+sharing.reconcile) put back what the chain lost, robots' keys included. Once an owner is
+registered, or one of its robots' keys is, the work that waited for it in the apps above
+accounts (sharing's anchoring) is started through the listeners they register here, so that
+accounts imports none of them.
 """
 
 import logging
@@ -18,7 +19,7 @@ from django.utils import timezone
 
 from accounts.errors import IdentityMismatch
 from accounts.identity import owner_identity_check
-from accounts.models import Approval, ChainActivity, ChainState, Owner, OwnerKey
+from accounts.models import Approval, ChainActivity, ChainState, Owner, OwnerKey, Robot
 from accounts.selectors import owner_eoa_account
 from accounts.services.activity import chain_activity_record
 from accounts.services.funding import eoa_fund, eoa_funding_amount, gas_sweep
@@ -34,18 +35,25 @@ from core.outbox import enqueue
 
 logger = logging.getLogger(__name__)
 
-# Told the id of each owner whose registration is confirmed on chain (owner_register_on_chain).
-OwnerRegisteredListener = Callable[[int], None]
+# Told the id of an owner once something its chain work waited for is confirmed on chain: its
+# registration (owner_register_on_chain) or one of its robots' keys (robot_keys.py).
+OwnerChainReadyListener = Callable[[int], None]
 
-_registered_listeners: list[OwnerRegisteredListener] = []
+_chain_ready_listeners: list[OwnerChainReadyListener] = []
 
 
-def owner_registered_listener_register(listener: OwnerRegisteredListener) -> None:
-    """Have `listener(owner_id)` called once an owner's registration is confirmed on chain: an
-    app above accounts registers it when Django starts (its AppConfig.ready), as apps do with
-    chainworker/backlog.py, to start the work that waited for the registration."""
-    if listener not in _registered_listeners:
-        _registered_listeners.append(listener)
+def owner_chain_ready_listener_register(listener: OwnerChainReadyListener) -> None:
+    """Have `listener(owner_id)` called once an owner's registration, or one of its robots'
+    keys, is confirmed on chain: an app above accounts registers it when Django starts (its
+    AppConfig.ready), as apps do with chainworker/backlog.py, to start the work that waited."""
+    if listener not in _chain_ready_listeners:
+        _chain_ready_listeners.append(listener)
+
+
+def owner_chain_ready(owner_id: int) -> None:
+    """Tell the registered listeners that work waiting for the owner on chain may go now."""
+    for listener in _chain_ready_listeners:
+        listener(owner_id)
 
 
 def owner_register_on_chain(*, owner_id: int) -> Owner:
@@ -100,11 +108,13 @@ def owner_register_on_chain(*, owner_id: int) -> Owner:
         owner.refresh_from_db()
     # Read back what is on chain now: the commitment of the key the portal holds.
     owner_identity_check(owner=owner, fresh=True)
-    # Keys rotated (and records uploaded) while registration was pending can go now.
+    # Keys rotated, robots paired (and records uploaded) while registration was pending can go.
     for key in owner.keys.filter(chain_state=ChainState.PENDING):
         enqueue("accounts.tasks.key_rotate", key.pk)
-    for listener in _registered_listeners:
-        listener(owner.pk)
+    robots = Robot.objects.filter(owner=owner, key_chain_state=ChainState.PENDING)
+    for robot_id in robots.values_list("pk", flat=True):
+        enqueue("accounts.tasks.robot_key_register", str(robot_id))
+    owner_chain_ready(owner.pk)
     return owner
 
 
@@ -145,9 +155,10 @@ def key_rotate_on_chain(*, owner_key_id: int) -> OwnerKey:
 
 
 def chain_work_sweep() -> dict[str, int]:
-    """Queue again registrations and key rotations pending for longer than ANCHOR_STALE_AFTER
-    (a lost message, a dead worker, a registration waiting for the funding budget); their
-    tasks are idempotent. Sign-ups awaiting or refused an operator's approval stay put."""
+    """Queue again registrations, key rotations, and robots' keys and their revocations
+    pending for longer than ANCHOR_STALE_AFTER (a lost message, a dead worker, a registration
+    waiting for the funding budget); their tasks are idempotent. Sign-ups awaiting or refused
+    an operator's approval stay put."""
     cutoff = timezone.now() - timedelta(seconds=settings.ANCHOR_STALE_AFTER)
     registrations = list(
         Owner.objects.filter(
@@ -165,7 +176,32 @@ def chain_work_sweep() -> dict[str, int]:
     )
     for key_pk in keys:
         enqueue("accounts.tasks.key_rotate", key_pk)
-    return {"registrations": len(registrations), "keys": len(keys), "top_ups": gas_sweep()}
+    robot_keys = list(
+        Robot.objects.filter(
+            key_chain_state=ChainState.PENDING,
+            paired_at__lt=cutoff,
+            owner__chain_state=ChainState.CONFIRMED,
+        ).values_list("pk", flat=True)
+    )
+    for robot_id in robot_keys:
+        enqueue("accounts.tasks.robot_key_register", str(robot_id))
+    # A revocation also waits for the records its key signed (robot_key_revoke_on_chain).
+    revocations = list(
+        Robot.objects.filter(
+            key_revoke_state=ChainState.PENDING,
+            key_chain_state=ChainState.CONFIRMED,
+            revoked_at__lt=cutoff,
+        ).values_list("pk", flat=True)
+    )
+    for robot_id in revocations:
+        enqueue("accounts.tasks.robot_key_revoke", str(robot_id))
+    return {
+        "registrations": len(registrations),
+        "keys": len(keys),
+        "robot_keys": len(robot_keys),
+        "robot_key_revocations": len(revocations),
+        "top_ups": gas_sweep(),
+    }
 
 
 def owners_reconcile(*, owners: Sequence[Owner]) -> dict[str, int]:
@@ -176,7 +212,8 @@ def owners_reconcile(*, owners: Sequence[Owner]) -> dict[str, int]:
     are rotated in order). When the commitment on chain is an older key's than the newest
     confirmed one (rotations lost), the keys after it go back to pending and key_rotate is
     queued for each. Any other commitment on chain is the identity check's business: it is
-    called, and records the mismatch.
+    called, and records the mismatch. Their robots' keys are read back too
+    (_robot_keys_reconcile).
     """
     client = chain_client()
     counts = {"owners_checked": 0, "registrations_lost": 0, "rotations_lost": 0, "mismatches": 0}
@@ -203,13 +240,73 @@ def owners_reconcile(*, owners: Sequence[Owner]) -> dict[str, int]:
             owner_identity_check(owner=owner, fresh=True)
         except IdentityMismatch:
             counts["mismatches"] += 1
+    counts.update(_robot_keys_reconcile(client, owners))
     return counts
+
+
+def _robot_keys_reconcile(client: AuthROSChain, owners: Sequence[Owner]) -> dict[str, int]:
+    """The confirmed robot keys of these owners read back with robotKeyOf: a key the chain does
+    not know goes back to pending (its confirmed revocation with it) and robot_key_register is
+    queued (it queues the revocation once the key is back); a confirmed revocation the chain
+    does not show goes back to pending and robot_key_revoke is queued."""
+    robots = list(
+        Robot.objects.filter(
+            owner__in=[owner for owner in owners if owner.chain_state == ChainState.CONFIRMED],
+            key_chain_state=ChainState.CONFIRMED,
+        ).select_related("owner")
+    )
+    lost_keys: list[Robot] = []
+    lost_revocations: list[Robot] = []
+    for robot in robots:
+        on_chain = client.robot_key_of(bytes.fromhex(robot.key_hash))
+        if on_chain.owner is None:
+            lost_keys.append(robot)
+        elif robot.key_revoke_state == ChainState.CONFIRMED and on_chain.revoked_block is None:
+            lost_revocations.append(robot)
+    with transaction.atomic():
+        for robot in lost_keys:
+            fields: dict[str, object] = {
+                "key_chain_state": ChainState.PENDING,
+                "key_added_block": None,
+            }
+            if robot.key_revoke_state == ChainState.CONFIRMED:
+                fields["key_revoke_state"] = ChainState.PENDING
+            # Only rows still as we read them: one confirmed again meanwhile is left alone.
+            if Robot.objects.filter(pk=robot.pk, key_chain_state=ChainState.CONFIRMED).update(
+                **fields
+            ):
+                transaction.on_commit(
+                    lambda r=str(robot.pk): enqueue("accounts.tasks.robot_key_register", r)
+                )
+        for robot in lost_revocations:
+            if Robot.objects.filter(pk=robot.pk, key_revoke_state=ChainState.CONFIRMED).update(
+                key_revoke_state=ChainState.PENDING
+            ):
+                transaction.on_commit(
+                    lambda r=str(robot.pk): enqueue("accounts.tasks.robot_key_revoke", r)
+                )
+    # A chain that lost blocks lost the owners' transactions too: count from the node.
+    for eoa in sorted({robot.owner.eoa_address for robot in [*lost_keys, *lost_revocations]}):
+        client.resync_nonce(eoa)
+    if lost_keys or lost_revocations:
+        logger.warning(
+            "the chain lost %d robot key(s) and %d revocation(s): sending them again",
+            len(lost_keys),
+            len(lost_revocations),
+        )
+    return {
+        "robot_keys_checked": len(robots),
+        "robot_keys_lost": len(lost_keys),
+        "robot_key_revocations_lost": len(lost_revocations),
+    }
 
 
 def owners_chain_reset() -> list[int]:
     """After a chain reset: every approved owner goes back to pending registration with all its
     keys (fund, enroll, register, then the later keys rotated in order), owner_register queued
-    on commit for each. Returns their ids."""
+    on commit for each. Their robots' confirmed keys and revocations go back to pending too:
+    each registration queues its robots' keys, and each key its revocation (robot_keys.py).
+    Returns their ids."""
     owners = Owner.objects.filter(approval=Approval.APPROVED).order_by("pk")
     ids = list(owners.values_list("pk", flat=True))
     with transaction.atomic():
@@ -223,6 +320,13 @@ def owners_chain_reset() -> list[int]:
         )
         OwnerKey.objects.filter(owner_id__in=ids).update(
             chain_state=ChainState.PENDING, tx_hash="", block_number=None
+        )
+        robots = Robot.objects.filter(owner_id__in=ids)
+        robots.filter(key_chain_state=ChainState.CONFIRMED).update(
+            key_chain_state=ChainState.PENDING, key_added_block=None
+        )
+        robots.filter(key_revoke_state=ChainState.CONFIRMED).update(
+            key_revoke_state=ChainState.PENDING
         )
         for owner_id in ids:
             transaction.on_commit(lambda o=owner_id: enqueue("accounts.tasks.owner_register", o))

@@ -15,11 +15,13 @@ from accounts.models import (
     DEFAULT_TOPICS,
     RETENTION_MAX_DAYS,
     AccountEvent,
+    ChainState,
     Owner,
     Robot,
     validate_robot_topics,
 )
 from accounts.selectors import robot_token_hash
+from accounts.services.robot_keys import robot_key_revocations_release
 
 ROBOT_TOKEN_BYTES = 32
 
@@ -55,7 +57,8 @@ def robot_create(
 
 def robot_token_revoke(*, robot: Robot, actor: AbstractBaseUser | None = None) -> Robot:
     """The robot's token stops working at once; its records stay. The owner's security page
-    shows who revoked it (`actor`: the owner or an operator)."""
+    shows who revoked it (`actor`: the owner or an operator). A paired robot's key is revoked
+    on chain, once its key is there and the records it signed are anchored (robot_keys.py)."""
     with transaction.atomic():
         revoked = Robot.objects.filter(pk=robot.pk, is_active=True).update(
             is_active=False, revoked_at=timezone.now()
@@ -67,6 +70,13 @@ def robot_token_revoke(*, robot: Robot, actor: AbstractBaseUser | None = None) -
                 actor=actor,
                 detail={"robot": robot.name, "robot_id": str(robot.pk)},
             )
+            keyed = Robot.objects.filter(
+                pk=robot.pk, key_chain_state__in=[ChainState.PENDING, ChainState.CONFIRMED]
+            )
+            if keyed.update(key_revoke_state=ChainState.PENDING):
+                transaction.on_commit(
+                    lambda: robot_key_revocations_release(owner_id=robot.owner_id)
+                )
     robot.refresh_from_db()
     return robot
 

@@ -15,6 +15,8 @@ from sharing import tasks as sharing_tasks
     [
         accounts_tasks.owner_register,
         accounts_tasks.key_rotate,
+        accounts_tasks.robot_key_register,
+        accounts_tasks.robot_key_revoke,
         sharing_tasks.grant_sync,
         sharing_tasks.records_anchor,
     ],
