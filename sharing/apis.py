@@ -9,6 +9,7 @@ or an owner API token with the `read` or `share` scope).
 
 import base64
 import binascii
+import contextlib
 import uuid
 from typing import Any
 
@@ -44,6 +45,7 @@ from accounts.selectors import KEY_ID_HEADER, owner_key_current_id
 from chainworker.services import chain_client
 from core.api_errors import ErrorSerializer, error_responses
 from sharing.access_log import access_log_redacted
+from sharing.cache import envelope_fetch
 from sharing.deletion import record_delete
 from sharing.errors import AccessDenied, ExportNotFound, NotAnchoredYet, RecordNotFound
 from sharing.exports import export_create, export_download
@@ -76,7 +78,7 @@ from sharing.services import (
     record_create_batch,
 )
 from sharing.storage import envelope_storage
-from sharing.verification import record_open, record_reseal_for
+from sharing.verification import record_open, record_reseal_for, record_signature
 
 # Envelopes in one upload at most; the body size limit (413) bounds the bytes.
 MAX_ENVELOPES_PER_UPLOAD = 1000
@@ -176,6 +178,12 @@ class RecordOutputSerializer(serializers.Serializer):
     size = serializers.IntegerField(help_text="envelope bytes")
     digest = serializers.CharField(help_text="SM3 of the envelope as hex, as anchored on chain")
     key_id = serializers.CharField(help_text="the owner key it is sealed under, hex")
+    signer = NullIfBlankCharField(
+        help_text=(
+            "the robot key that signed it (SM3 of its SM2 public key, hex), checked at upload "
+            "and at every view; null for an unsigned record (a robot added by hand)"
+        )
+    )
     status = serializers.ChoiceField(
         choices=Record.Status.choices, help_text="anchoring: pending, anchored or failed"
     )
@@ -697,6 +705,20 @@ class ProofAnchorSerializer(serializers.Serializer):
     block = serializers.IntegerField(allow_null=True)
 
 
+class ProofSignatureSerializer(serializers.Serializer):
+    class Meta:
+        ref_name = "ProofSignature"
+
+    signer = serializers.CharField(help_text="SM3 of the robot's public key x||y, hex")
+    public_key = serializers.CharField(help_text="the robot's SM2 public key, 04||x||y hex")
+    sig = serializers.CharField(help_text="the SM2 signature r||s, hex (DESIGN.md Provenance)")
+    key_owner = serializers.CharField(
+        allow_null=True, help_text="robotKeyOf(signer).owner: the EOA that registered the key"
+    )
+    key_added_block = serializers.IntegerField(allow_null=True)
+    key_revoked_block = serializers.IntegerField(allow_null=True, help_text="null: live")
+
+
 class RecordProofApi(APIView):
     """`GET /api/v1/records/{id}/proof/`: the record's anchoring proof."""
 
@@ -718,6 +740,13 @@ class RecordProofApi(APIView):
         )
         root = serializers.CharField(help_text="the anchored root (record mode: the digest)")
         anchor = ProofAnchorSerializer()
+        envelope = serializers.CharField(
+            allow_null=True,
+            help_text="the anchored envelope as stored, base64; null once the record is deleted",
+        )
+        signature = ProofSignatureSerializer(
+            allow_null=True, help_text="the robot's signature; null for an unsigned record"
+        )
 
     @extend_schema(
         operation_id="records_proof",
@@ -726,8 +755,12 @@ class RecordProofApi(APIView):
             "Root mode: SM3 the envelope, make the leaf SM3(0x00 || owner || record id || "
             "digest), fold the path (RFC 9162 2.1.3.2) to the root, and call "
             "rootOf(sender, root) on the contract: its size must be tree_size. Record mode: "
-            "dataQuery(record id) holds the digest. For the owner or a grantee (a session, or "
-            "an owner API token with the `read` scope)."
+            "dataQuery(record id) holds the digest. `envelope` is the stored envelope and "
+            "`signature` the robot's: SM3 of public_key must be signer, the SM2 signature over "
+            "the record's plaintext must hold (DESIGN.md Provenance), and robotKeyOf(signer) "
+            "must name the owner, added at or before the anchoring block and not revoked by "
+            "then. For the owner or a grantee (a session, or an owner API token with the `read` "
+            "scope)."
         ),
         auth=OWNER_ONLY,
         parameters=[_RECORD_ID],
@@ -757,6 +790,14 @@ class RecordProofApi(APIView):
             raise NotAnchoredYet("the record is not anchored yet; try again shortly")
         client = chain_client()
         proof = record_proof(record, chain_id=client.chain_id, contract=client.address)
+        proof["envelope"] = proof["signature"] = None
+        # A deleted record's envelope is gone (its proof stays); one removed behind the
+        # portal's back too: the check at the next view says so.
+        with contextlib.suppress(FileNotFoundError):
+            if not record.is_deleted:
+                data, _source = envelope_fetch(record)
+                proof["envelope"] = base64.b64encode(data).decode("ascii")
+                proof["signature"] = record_signature(record, data, client)
         return Response(self.OutputSerializer(proof).data)
 
 

@@ -44,6 +44,14 @@ class ForgedEnvelope(SharingError):
     http_status = 403
 
 
+class SignatureRefused(SharingError):
+    """An upload whose robot signature is missing, names a key that is not the robot's, or does
+    not match its content (DESIGN.md "Provenance"): nothing of it is stored."""
+
+    code = "signature_refused"
+    http_status = 403
+
+
 class ReplayedSequence(SharingError):
     """These very envelopes are stored already (a retransmission whose 201 was lost)."""
 

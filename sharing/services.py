@@ -55,6 +55,7 @@ from sharing.errors import (
     RevocationPending,
     SelfGrant,
     SequenceConflict,
+    SignatureRefused,
     StorageUnavailable,
     UnknownKey,
 )
@@ -69,7 +70,7 @@ from sharing.scope import (
 from sharing.selection import RecordSelection
 from sharing.selectors import grant_list_made_with
 from sharing.storage import envelope_storage, envelopes_save
-from smcrypto import CryptoError, envelope, sm3
+from smcrypto import CryptoError, envelope, provenance, sm3
 
 logger = logging.getLogger(__name__)
 security_log = logging.getLogger("authros.security")
@@ -91,6 +92,7 @@ class _CheckedUpload:
     key: OwnerKey
     captured_at: datetime
     digest: str  # SM3 of data, hex
+    signer: str  # the robot key that signed it (hex), or "" (a robot added by hand)
 
 
 def record_create(*, robot: Robot, data: bytes) -> Record:
@@ -153,6 +155,7 @@ def record_create_batch(*, robot: Robot, envelopes: Sequence[bytes]) -> list[Rec
                     captured_at=upload.captured_at,
                     key_id=upload.key.key_id,
                     digest=upload.digest,
+                    signer=upload.signer,
                     size=len(upload.data),
                     storage_name=name,
                 )
@@ -293,7 +296,7 @@ def _check_upload(robot: Robot, data: bytes, keys: _UploadKeys) -> _CheckedUploa
         raise UnknownKey("the envelope is not sealed under the owner's current key")
     key, key_bytes = usable
     try:
-        envelope.open(key_bytes, data)
+        _sealed_header, plaintext = envelope.open(key_bytes, data)
     except CryptoError:
         SecurityEvent.objects.create(
             kind=SecurityEvent.Kind.FORGED_UPLOAD,
@@ -305,8 +308,40 @@ def _check_upload(robot: Robot, data: bytes, keys: _UploadKeys) -> _CheckedUploa
     if captured_at < EPOCH:
         # The chain stores capture times as unsigned microseconds since 1970.
         raise InvalidEnvelope("the capture time must be 1970-01-01T00:00:00Z or later")
+    signer = _signature_check(robot, header, plaintext)
     data = bytes(data)
-    return _CheckedUpload(uuid.uuid4(), data, header, key, captured_at, sm3.sm3_hex(data))
+    return _CheckedUpload(uuid.uuid4(), data, header, key, captured_at, sm3.sm3_hex(data), signer)
+
+
+def _signature_check(robot: Robot, header: dict, plaintext: bytes) -> str:
+    """The robot key that signed the envelope (DESIGN.md "Provenance"), "" for a robot added by
+    hand that signs nothing. A paired robot's envelope must carry `signer` and `sig`, name the
+    robot's own key, and its signature must hold over the plaintext; a robot added by hand has
+    no key, so an envelope of its naming one is refused too. Each refusal is a SecurityEvent."""
+    signed = "signer" in header or "sig" in header
+    if not robot.key_hash and not signed:
+        return ""
+    if not signed:
+        _signature_refused(robot, header, SecurityEvent.Kind.UNSIGNED_UPLOAD)
+        raise SignatureRefused(
+            "the envelope carries no robot signature (signer, sig): a paired robot signs every "
+            "envelope with its pairing key"
+        )
+    if not robot.key_hash or header.get("signer") != robot.key_hash:
+        _signature_refused(robot, header, SecurityEvent.Kind.FOREIGN_SIGNER)
+        raise SignatureRefused("the envelope is signed by a key that is not this robot's")
+    if not provenance.verify_header(robot.public_key, header, plaintext):
+        _signature_refused(robot, header, SecurityEvent.Kind.BAD_SIGNATURE)
+        raise SignatureRefused("the envelope's robot signature does not match its content")
+    return robot.key_hash
+
+
+def _signature_refused(robot: Robot, header: dict, kind: str) -> None:
+    detail = {"robot": str(robot.id), "seq": header["seq"], "topic": header["topic"]}
+    if isinstance(header.get("signer"), str):
+        detail["signer"] = header["signer"][:64]
+    SecurityEvent.objects.create(kind=kind, owner=robot.owner, detail=detail)
+    security_log.warning("upload refused (%s): robot %s seq %s", kind, robot.id, header["seq"])
 
 
 # --- grants ----------------------------------------------------------------------------------

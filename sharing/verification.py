@@ -49,7 +49,7 @@ from sharing.selectors import (
     record_topic_history,
     verdict_by_id,
 )
-from smcrypto import envelope, sm3
+from smcrypto import envelope, provenance, sm3
 from smcrypto.merkle import leaf_hash, proof_holds
 
 logger = logging.getLogger(__name__)
@@ -183,6 +183,68 @@ def _verdict_block(head: int, record: Record) -> int:
 
 
 def _digest_check(
+    record: Record, viewer: Owner, client: AuthROSChain
+) -> tuple[dict[str, object], bytes | None]:
+    """The stored envelope's SM3 digest against the chain's, then its robot signature: the
+    verdict's fields, and the bytes checked when both hold."""
+    fields, data = _anchored_check(record, viewer, client)
+    if data is None or _provenance_holds(record, data, client):
+        return fields, data
+    security_log.error(
+        "record %s is anchored but its robot signature does not hold (signer %r)",
+        record.pk,
+        record.signer,
+    )
+    return {**fields, "outcome": Verdict.Outcome.SIGNATURE_REFUSED}, None
+
+
+def _provenance_holds(record: Record, data: bytes, client: AuthROSChain) -> bool:
+    """DESIGN.md "Provenance": the anchored envelope names the signer the record was stored
+    with; a signed record's key is its owner's on chain (robotKeyOf), added at or before the
+    record's anchoring block and not revoked by then, hashes to `signer`, and its signature
+    holds over the decrypted content. An unsigned record (a robot added by hand) holds as
+    unsigned: pages and answers say so, never "genuine"."""
+    header = envelope.read_header(data).header
+    signer = header.get("signer", "")
+    if signer != record.signer:
+        return False
+    if not signer:
+        return True
+    on_chain = client.robot_key_of(bytes.fromhex(signer))
+    public_key = record.robot.public_key
+    return (
+        on_chain.owner is not None
+        and on_chain.owner.lower() == record.owner.eoa_address.lower()
+        and record.block_number is not None
+        and on_chain.live_at(record.block_number)
+        and bool(public_key)
+        and provenance.key_hash(public_key) == signer
+        and provenance.verify_header(public_key, header, envelope.open(record_key(record), data)[1])
+    )
+
+
+def record_signature(record: Record, data: bytes, client: AuthROSChain) -> dict[str, Any] | None:
+    """What a record's proof says of its robot signature (DESIGN.md "Provenance"): the signer
+    and signature the stored envelope names, the robot's public key, and the key's owner and
+    blocks as the chain holds them; None for an unsigned record. Facts for the caller to check,
+    not a verdict."""
+    header = envelope.read_header(data).header
+    signer = header.get("signer")
+    if not signer:
+        return None
+    on_chain = client.robot_key_of(bytes.fromhex(signer))
+    public_key = record.robot.public_key
+    return {
+        "signer": signer,
+        "public_key": public_key if public_key.startswith("04") else "04" + public_key,
+        "sig": header.get("sig", ""),
+        "key_owner": on_chain.owner,
+        "key_added_block": on_chain.added_block if on_chain.owner else None,
+        "key_revoked_block": on_chain.revoked_block,
+    }
+
+
+def _anchored_check(
     record: Record, viewer: Owner, client: AuthROSChain
 ) -> tuple[dict[str, object], bytes | None]:
     """The stored envelope's SM3 digest against the chain's: the verdict's fields, and the
@@ -486,6 +548,13 @@ def _decrypted(
     if verdict.outcome == Verdict.Outcome.TAMPERED:
         raise IntegrityCheckFailed(
             "the stored data differs from the digest on chain", record=record, verdict=verdict
+        )
+    if verdict.outcome == Verdict.Outcome.SIGNATURE_REFUSED:
+        raise IntegrityCheckFailed(
+            "the record is anchored, but its robot signature does not hold: it is not shown "
+            "as genuine",
+            record=record,
+            verdict=verdict,
         )
     if verdict.outcome == Verdict.Outcome.NOT_ANCHORED_YET or data is None:
         raise NotAnchoredYet(

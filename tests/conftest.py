@@ -23,6 +23,7 @@ from eth_account.signers.local import LocalAccount
 from accounts.models import Owner, OwnerToken, Robot
 from accounts.services.api_tokens import owner_token_create
 from accounts.services.owners import owner_create
+from accounts.services.pairing import robot_pairing_answer, robot_pairing_request
 from accounts.services.robots import robot_create
 from chainworker import chain as chain_module
 from chainworker import services as chain_services
@@ -33,7 +34,7 @@ from portal.middleware import service_checks_forget
 from sharing.cache import _key as cache_key
 from sharing.models import Record
 from sharing.storage import envelope_storage
-from smcrypto import envelope, sm4
+from smcrypto import envelope, provenance, sm2, sm4
 from stack.anvil import AnvilProcess, start_anvil
 from tests.chain_setup import make_registered_owner
 from tests.tiers import spawning_allowed
@@ -168,8 +169,10 @@ def seal_for(
     owner: str | None = None,
     robot_id: str | None = None,
     time: str | None = None,
+    signing_key: tuple[str, str] | None = None,
 ) -> bytes:
-    """An envelope as the robot's agent would seal it."""
+    """An envelope as the robot's agent would seal it, signed with `signing_key` (the robot's
+    SM2 private and public key, hex) when given, as a paired robot signs."""
     header = {
         "owner": owner or robot.owner.username,
         "robot": robot_id or str(robot.id),
@@ -179,6 +182,8 @@ def seal_for(
         "time": time or datetime.now(tz=UTC).isoformat().replace("+00:00", "Z"),
     }
     body = plaintext if plaintext is not None else json.dumps({"K": {"seq": seq}}).encode()
+    if signing_key is not None:
+        header = provenance.sign_header(*signing_key, header, body)
     return envelope.seal(key, header, body)
 
 
@@ -188,8 +193,11 @@ class RobotSetup:
     key: bytes
     robot: Robot
     token: str
+    # A paired robot's SM2 key pair (private, public hex): its envelopes are signed.
+    signing_key: tuple[str, str] | None = None
 
     def seal(self, seq: int, **kwargs: object) -> bytes:
+        kwargs.setdefault("signing_key", self.signing_key)
         return seal_for(self.robot, self.key, seq=seq, **kwargs)
 
 
@@ -202,7 +210,7 @@ def records_mode(settings):
 
 @pytest.fixture
 def worker_stack(tmp_path, settings, request):
-    """Start real Celery workers and beat on an anvil of their own (tests.stack.WorkerStack):
+    """Start real Celery workers and beat on an anvil of their own (tests.harness.WorkerStack):
     worker_stack(workers=N, block_time=None, env_overrides=None); stopped after the test. A
     failing test's report ends with the last lines of each process's log."""
     from tests.harness import WorkerStack
@@ -223,6 +231,30 @@ def worker_stack(tmp_path, settings, request):
     yield make
     for stack in stacks:
         stack.stop()
+
+
+@pytest.fixture
+def make_paired_robot(make_owner, django_capture_on_commit_callbacks):
+    """An owner (registered on chain) with one robot paired as the agent pairs (its SM2 key
+    pair made here, the request approved by the owner, its key registered on chain inline);
+    its envelopes are signed."""
+
+    def make(username: str | None = None) -> RobotSetup:
+        key = sm4.generate_key()
+        owner = make_owner(username, key=key)
+        private_key, public_key = sm2.generate_keypair()
+        pairing, _secret = robot_pairing_request(
+            name=f"robot-{uuid.uuid4().hex[:6]}", public_key=public_key
+        )
+        with django_capture_on_commit_callbacks(execute=True):
+            pairing = robot_pairing_answer(
+                owner=owner, code=pairing.code, approve=True, actor=owner.user
+            )
+        token = sm2.decrypt(private_key, pairing.token_sm2).decode("ascii")
+        robot = Robot.objects.get(pk=pairing.robot_id)
+        return RobotSetup(owner, key, robot, token, signing_key=(private_key, public_key))
+
+    return make
 
 
 @pytest.fixture

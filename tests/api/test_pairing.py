@@ -32,7 +32,7 @@ from accounts.services.pairing import (
 )
 from accounts.services.robots import robot_token_revoke
 from sharing.services import KEY_ROTATION_GRACE
-from smcrypto import envelope, sm2, sm4
+from smcrypto import envelope, provenance, sm2, sm4
 from tests.api.conftest import Snapshot, b64, session_client, token_client
 
 PAIRINGS = "/api/v1/robot-pairings/"
@@ -68,6 +68,11 @@ class Robotside:
 
     def decrypt(self, ciphertext: str) -> bytes:
         return sm2.decrypt(self.private_key, ciphertext)
+
+    def seal(self, key: bytes, header: dict, body: bytes) -> bytes:
+        """An envelope signed with the robot's pairing key, as its agent seals one."""
+        signed = provenance.sign_header(self.private_key, self.public_key, header, body)
+        return envelope.seal(key, signed, body)
 
 
 @pytest.fixture
@@ -129,7 +134,7 @@ def test_a_paired_robot_gets_its_token_and_its_owners_key_once_encrypted_to_it(o
         "time": datetime.now(UTC).isoformat().replace("+00:00", "Z"),
     }
     upload = token_client(token).post(
-        RECORDS, {"envelope": b64(envelope.seal(key, header, b"{}"))}, format="json"
+        RECORDS, {"envelope": b64(robot_side.seal(key, header, b"{}"))}, format="json"
     )
     assert upload.status_code == 201, upload.json()
     assert upload["AuthROS-Key-Id"] == body["key_id"]

@@ -94,6 +94,7 @@ def test_one_record_in_the_list_says_everything_about_it(robot, robot_api, fleet
         "size": len(fleet[3]),
         "digest": sm3.sm3_hex(fleet[3]),
         "key_id": envelope.key_id(robot.key).hex(),
+        "signer": None,  # a robot added by hand signs nothing
         "status": "anchored",
         "tx_hash": record.tx_hash,
         "block_number": record.block_number,

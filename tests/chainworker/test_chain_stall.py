@@ -49,7 +49,7 @@ def node(settings, isolated_portal, node_options) -> Iterator[AnvilProcess]:
 
 @pytest.fixture
 def deployed(db, node):
-    """The contract deployed on the anvil node (overrides the suite's in-process chain)."""
+    """The contract deployed on the anvil node (a node of its own, not the session's)."""
     chain_services.contract_deploy()
     return chain_services.chain_client()
 

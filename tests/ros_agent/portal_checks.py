@@ -1,4 +1,4 @@
-"""A robot against the real portal (live server, in-process chain): its config, and reading
+"""A robot against the real portal (live server, the session's anvil): its config, and reading
 back what it stored, integrity-checked and decrypted as its owner."""
 
 import json
