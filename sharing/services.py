@@ -330,6 +330,13 @@ def _signature_check(robot: Robot, header: dict, plaintext: bytes) -> str:
     if not robot.key_hash or header.get("signer") != robot.key_hash:
         _signature_refused(robot, header, SecurityEvent.Kind.FOREIGN_SIGNER)
         raise SignatureRefused("the envelope is signed by a key that is not this robot's")
+    if robot.key_chain_state == ChainState.FAILED:
+        # Its records could never be anchored as genuine (another account registered the key
+        # first, or it was revoked before): refused rather than kept waiting for good.
+        raise SignatureRefused(
+            "this robot's key could not be registered on chain for its owner: pair the robot "
+            "again (a new key)"
+        )
     if not provenance.verify_header(robot.public_key, header, plaintext):
         _signature_refused(robot, header, SecurityEvent.Kind.BAD_SIGNATURE)
         raise SignatureRefused("the envelope's robot signature does not match its content")

@@ -185,3 +185,15 @@ def test_records_anchored_after_the_key_was_revoked_on_chain_are_not_genuine(
     assert after.status == Record.Status.ANCHORED
     assert _outcome(before, setup.owner) == Verdict.Outcome.VERIFIED  # signed while live
     assert _outcome(after, setup.owner) == Verdict.Outcome.SIGNATURE_REFUSED
+
+
+def test_a_robot_whose_key_could_not_be_registered_is_refused(make_paired_robot, upload):
+    """Another account registered the robot's public key first (it is public): the robot's
+    records could never be genuine, so its uploads are refused until it is paired again."""
+    setup = make_paired_robot("alice")
+    type(setup.robot).objects.filter(pk=setup.robot.pk).update(key_chain_state=ChainState.FAILED)
+    before = Snapshot()
+    response = upload(token_client(setup.token), setup.seal(1))
+    assert (response.status_code, response.json()["error"]) == (403, "signature_refused")
+    assert "pair the robot again" in response.json()["detail"]
+    assert before.unchanged()
