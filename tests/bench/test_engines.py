@@ -18,6 +18,9 @@ from bench import common, concurrency, report, rest, stack, sustained
 from bench.stack import BenchStack, StackOptions
 from stack.seaweedfs import SeaweedError
 
+# The engines are compared on real processes (anvil, PostgreSQL, SeaweedFS).
+pytestmark = pytest.mark.process
+
 
 def _options(engines: str = "sqlite-disk") -> StackOptions:
     return StackOptions(

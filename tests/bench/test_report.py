@@ -773,6 +773,7 @@ def test_the_roots_section_names_the_pause_that_closed_its_batches(tmp_path):
     ) in text
 
 
+@pytest.mark.process
 def test_make_runs_flush_interval_is_the_one_the_report_names():
     """The report names make run's ANCHOR_MAX_WAIT: the settings' default, unset variable."""
     program = "import portal.settings as s; print(s.ANCHOR_MAX_WAIT)"

@@ -16,6 +16,7 @@ from pathlib import Path
 
 import granian.server.common
 import psutil
+import pytest
 import requests
 
 from stack.anvil import free_port
@@ -23,13 +24,13 @@ from stack.processes import PYTHON, REPO_ROOT
 from stack.webserver import listening
 from tests.harness import wait_for
 
+pytestmark = pytest.mark.process
+
 # Seconds each process of the test's app takes to load, without a listening socket: a process
 # being replaced that stopped before its successor loaded would leave none for that long.
 LOAD_SECONDS = 3
 SLOW_APP = f"""
 import time
-
-pytestmark = pytest.mark.process
 
 time.sleep({LOAD_SECONDS})
 
