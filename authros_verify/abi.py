@@ -52,7 +52,45 @@ DATA_UPLOADED = {
     "name": "DataUploaded",
     "type": "event",
 }
-ABI = [ROOT_OF, DATA_QUERY, ROOT_ANCHORED, DATA_UPLOADED]
+ROBOT_KEY_OF = {
+    "inputs": [{"internalType": "bytes32", "name": "keyHash", "type": "bytes32"}],
+    "name": "robotKeyOf",
+    "outputs": [
+        {"internalType": "address", "name": "owner", "type": "address"},
+        {"internalType": "uint64", "name": "addedBlock", "type": "uint64"},
+        {"internalType": "uint64", "name": "revokedBlock", "type": "uint64"},
+    ],
+    "stateMutability": "view",
+    "type": "function",
+}
+ROBOT_KEY_ADDED = {
+    "anonymous": False,
+    "inputs": [
+        {"indexed": True, "internalType": "address", "name": "owner", "type": "address"},
+        {"indexed": True, "internalType": "bytes32", "name": "keyHash", "type": "bytes32"},
+        {"indexed": False, "internalType": "bytes", "name": "publicKey", "type": "bytes"},
+    ],
+    "name": "RobotKeyAdded",
+    "type": "event",
+}
+ROBOT_KEY_REVOKED = {
+    "anonymous": False,
+    "inputs": [
+        {"indexed": True, "internalType": "address", "name": "owner", "type": "address"},
+        {"indexed": True, "internalType": "bytes32", "name": "keyHash", "type": "bytes32"},
+    ],
+    "name": "RobotKeyRevoked",
+    "type": "event",
+}
+ABI = [
+    ROOT_OF,
+    DATA_QUERY,
+    ROBOT_KEY_OF,
+    ROOT_ANCHORED,
+    DATA_UPLOADED,
+    ROBOT_KEY_ADDED,
+    ROBOT_KEY_REVOKED,
+]
 
 
 def event_topic(event: dict) -> bytes:

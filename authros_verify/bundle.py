@@ -17,7 +17,9 @@ from typing import Any
 
 from smcrypto.sm3 import sm3_hex
 
-BUNDLE_FORMAT = "authros-export-proofs/v1"
+# v2: each record also carries its robot's signature and the plaintext it signed (v1: not).
+BUNDLE_FORMAT = "authros-export-proofs/v2"
+BUNDLE_FORMAT_V1 = "authros-export-proofs/v1"
 # Lines before the first record's: the top-level fields, then `"records":[`.
 RECORDS_FIRST_LINE = 3
 

@@ -8,7 +8,14 @@ from eth_abi import decode as abi_decode
 from web3 import Web3
 from web3.exceptions import TransactionNotFound, Web3Exception
 
-from authros_verify.abi import ABI, DATA_UPLOADED, ROOT_ANCHORED, event_topic
+from authros_verify.abi import (
+    ABI,
+    DATA_UPLOADED,
+    ROBOT_KEY_ADDED,
+    ROBOT_KEY_REVOKED,
+    ROOT_ANCHORED,
+    event_topic,
+)
 
 
 class ChainUnreachable(Exception):
@@ -26,6 +33,37 @@ class AnchoredRoot:
 class AnchoredRecord:
     owner: str
     digest: bytes
+
+
+@dataclass(frozen=True)
+class RobotKey:
+    """A robot's signing key as the contract holds it (robotKeyOf): the EOA that added it
+    (None: never added), the block it was added in, the block it was revoked in (None: live)."""
+
+    owner: str | None
+    added_block: int
+    revoked_block: int | None
+
+    def live_at(self, block: int) -> bool:
+        """Whether the key counts for what was anchored in `block` (DESIGN.md "A record is
+        genuine"): added at or before it, and not revoked by then."""
+        return (
+            self.owner is not None
+            and self.added_block <= block
+            and (self.revoked_block is None or block < self.revoked_block)
+        )
+
+
+@dataclass(frozen=True)
+class RobotKeyEvent:
+    """One RobotKeyAdded (with the public key x||y it registered) or RobotKeyRevoked log."""
+
+    kind: str  # "added" or "revoked"
+    key_hash: bytes
+    public_key: bytes | None
+    block: int
+    log_index: int
+    tx: str
 
 
 @dataclass(frozen=True)
@@ -62,6 +100,10 @@ def _address_topic(address: str) -> bytes:
     return bytes(12) + bytes.fromhex(address.removeprefix("0x"))
 
 
+def _topic_hex(address: str) -> str:
+    return "0x" + _address_topic(address).hex()
+
+
 class ChainReader:
     """Reads of one chain; `w3` is any Web3 (an HTTP node, or an in-process one in tests)."""
 
@@ -94,6 +136,54 @@ class ChainReader:
             return AnchoredRecord(str(owner), bytes(digest))
 
         return self._once(("dataQuery", contract, record_id), ask)
+
+    def robot_key_of(self, contract: str, key_hash: bytes) -> RobotKey:
+        def ask() -> RobotKey:
+            owner, added, revoked = self._contract(contract).functions.robotKeyOf(key_hash).call()
+            return RobotKey(
+                None if int(owner, 16) == 0 else str(owner), int(added), int(revoked) or None
+            )
+
+        return self._once(("robotKeyOf", contract, key_hash), ask)
+
+    def robot_key_events(
+        self, contract: str, owner: str, *, from_block: int = 0
+    ) -> list[RobotKeyEvent]:
+        """Every RobotKeyAdded and RobotKeyRevoked the contract logged for `owner` (its
+        first indexed topic), in chain order: one log query, no contract state."""
+        added, revoked = event_topic(ROBOT_KEY_ADDED), event_topic(ROBOT_KEY_REVOKED)
+
+        def ask() -> list[RobotKeyEvent]:
+            logs = self.w3.eth.get_logs(
+                {
+                    "address": contract,
+                    "fromBlock": from_block,
+                    "toBlock": "latest",
+                    "topics": [["0x" + added.hex(), "0x" + revoked.hex()], _topic_hex(owner)],
+                }
+            )
+            events = []
+            for log in logs:
+                topics = [bytes(topic) for topic in log["topics"]]
+                if len(topics) != 3 or topics[0] not in (added, revoked):
+                    continue
+                public_key = None
+                if topics[0] == added:
+                    (public_key,) = abi_decode(["bytes"], bytes(log["data"]))
+                tx = log["transactionHash"]
+                events.append(
+                    RobotKeyEvent(
+                        kind="added" if topics[0] == added else "revoked",
+                        key_hash=topics[2],
+                        public_key=None if public_key is None else bytes(public_key),
+                        block=int(log["blockNumber"]),
+                        log_index=int(log["logIndex"]),
+                        tx=tx if isinstance(tx, str) else "0x" + bytes(tx).hex(),
+                    )
+                )
+            return sorted(events, key=lambda event: (event.block, event.log_index))
+
+        return self._once(("robotKeyEvents", contract, owner, from_block), ask)
 
     def receipt(self, tx: str) -> Receipt | None:
         def ask() -> Receipt | None:

@@ -1,37 +1,42 @@
 """The check of a proof bundle: every record's envelope, proof and anchor against the chain,
-and every record's MCAP message against the file; the bundle's own form and digest.
+its robot's signature over its plaintext, and its MCAP message against the file and against
+the message its signed plaintext makes; the bundle's own form and digest.
 
 A record fails if anything about it does not hold; the bundle fails if any record does, or
-if something outside the records (its form, digest, chain, contract, MCAP file) does not.
+if something outside the records (its form, digest, chain, contract, MCAP file) does not. A
+record that holds is genuine when its robot signed it, else unsigned (docs/export.md).
 """
 
-import base64
-import binascii
 import json
 import re
-import uuid
 from dataclasses import dataclass, field
-from datetime import UTC, datetime
 from typing import Any
 
-from eth_utils import to_checksum_address
-
+from authros_verify.anchor import anchor_check
 from authros_verify.bundle import (
     BUNDLE_FORMAT,
+    BUNDLE_FORMAT_V1,
     bundle_digest,
     bundle_serialise,
     record_line_index,
 )
 from authros_verify.chain import ChainReader
 from authros_verify.mcapfile import McapUnreadable, mcap_messages
-from smcrypto.envelope import read_header
+from authros_verify.messages import (
+    EncodedMessage,
+    message_encode,
+    message_log_time,
+    ros2_type_name,
+    schema_of,
+)
+from authros_verify.signature import is_signed, robot_key_check, signature_check
+from authros_verify.values import Invalid, address, base64_bytes, hash32, micros, whole
+from smcrypto.envelope import EnvelopeInfo, read_header
 from smcrypto.errors import CryptoError
-from smcrypto.merkle import leaf_hash, proof_holds
 from smcrypto.sm3 import sm3_hex
 
-_HASH = re.compile(r"0x[0-9a-f]{64}")
-_EPOCH = datetime(1970, 1, 1, tzinfo=UTC)
-RECORD_FIELDS = {
+# The fields of a record's entry in a v1 bundle (exports made before records were signed).
+RECORD_FIELDS_V1 = {
     "record",
     "owner",
     "digest",
@@ -49,7 +54,10 @@ RECORD_FIELDS = {
     "envelope",
     "mcap",
 }
-ANCHOR_FIELDS = {"chain_id", "contract", "sender", "tx", "block"}
+# v2 adds the robot's signature (null: unsigned) and the plaintext it signed (null: unsigned).
+RECORD_FIELDS = RECORD_FIELDS_V1 | {"signature", "plaintext"}
+RECORD_FIELDS_OF = {BUNDLE_FORMAT: RECORD_FIELDS, BUNDLE_FORMAT_V1: RECORD_FIELDS_V1}
+SIGNATURE_FIELDS = {"signer", "sig", "public_key"}
 MCAP_FIELDS = {
     "topic",
     "sequence",
@@ -74,19 +82,22 @@ BUNDLE_FIELDS = {
 }
 
 
-class Invalid(ValueError):
-    """One thing about the bundle or a record that does not hold."""
-
-
 @dataclass
 class RecordResult:
     index: int
     record: str  # the record id as the bundle states it
     problems: list[str] = field(default_factory=list)
+    # True: its robot's signature holds (genuine); False: its envelope is unsigned; None: not
+    # known (it failed first, or a v1 bundle, which carries no signatures).
+    signed: bool | None = None
 
     @property
     def ok(self) -> bool:
         return not self.problems
+
+    @property
+    def genuine(self) -> bool:
+        return self.ok and self.signed is True
 
 
 @dataclass
@@ -101,6 +112,15 @@ class Report:
     @property
     def ok(self) -> bool:
         return not self.problems and bool(self.records) and not self.failed
+
+    @property
+    def genuine(self) -> list[RecordResult]:
+        return [result for result in self.records if result.genuine]
+
+    @property
+    def not_genuine(self) -> list[RecordResult]:
+        """Records that hold but whose content no robot signature vouches for."""
+        return [result for result in self.records if result.ok and not result.genuine]
 
 
 def verify(
@@ -142,10 +162,11 @@ def verify(
     _check_form(report, bundle, document)
     head = _check_head(report, document, chain, contract, chain_id)
     messages = _mcap_messages(report, document, mcap)
+    fields = RECORD_FIELDS_OF.get(document.get("format"), RECORD_FIELDS)
     sequences: set[int] = set()
     for result, entry in zip(report.records, entries, strict=True):
         try:
-            _check_record(entry, head, chain, messages, sequences)
+            result.signed = _check_record(entry, head, chain, messages, sequences, fields)
         except Invalid as exc:
             result.problems.append(str(exc))
         except (KeyError, TypeError, ValueError, AttributeError) as exc:
@@ -177,8 +198,10 @@ def _check_form(report: Report, bundle: bytes, document: dict) -> None:
             )
     if set(document) != BUNDLE_FIELDS:
         report.problems.append(f"the bundle's fields are not {sorted(BUNDLE_FIELDS)}")
-    if document.get("format") != BUNDLE_FORMAT:
-        report.problems.append(f"the bundle's format is not {BUNDLE_FORMAT}")
+    if document.get("format") not in RECORD_FIELDS_OF:
+        report.problems.append(
+            f"the bundle's format is not {BUNDLE_FORMAT} (or {BUNDLE_FORMAT_V1})"
+        )
     if document.get("bundle_sm3") != bundle_digest(document):
         report.problems.append("the bundle's digest (bundle_sm3) does not match its content")
 
@@ -194,8 +217,8 @@ def _check_head(
 ) -> _Head:
     stated_id, stated_contract = document.get("chain_id"), document.get("contract")
     try:
-        _integer(stated_id, "chain_id")
-        _address(stated_contract, "contract")
+        whole(stated_id, "chain_id")
+        address(stated_contract, "contract")
     except Invalid as exc:
         report.problems.append(str(exc))
         return _Head(-1, "")
@@ -241,43 +264,41 @@ def _mcap_messages(report: Report, document: dict, mcap: bytes | None) -> dict |
 
 
 def _check_record(
-    entry: Any, head: _Head, chain: ChainReader, messages: dict | None, sequences: set[int]
-) -> None:
-    if not isinstance(entry, dict) or set(entry) != RECORD_FIELDS:
-        raise Invalid(f"its fields are not {sorted(RECORD_FIELDS)}")
-    record_id = _uuid(entry["record"], "record")
-    owner = _address(entry["owner"], "owner")
-    digest = _hash(entry["digest"], "digest")
-    envelope = _base64(entry["envelope"], "envelope")
+    entry: Any,
+    head: _Head,
+    chain: ChainReader,
+    messages: dict | None,
+    sequences: set[int],
+    fields: set[str],
+) -> bool | None:
+    """Check one record's entry; whether its robot signed it (None: a v1 bundle's)."""
+    if not isinstance(entry, dict) or set(entry) != fields:
+        raise Invalid(f"its fields are not {sorted(fields)}")
+    hash32(entry["digest"], "digest")
+    envelope = base64_bytes(entry["envelope"], "envelope")
     if "0x" + sm3_hex(envelope) != entry["digest"]:
         raise Invalid("its envelope does not hash (SM3) to its digest")
-    _check_header(entry, envelope)
-    anchor = entry["anchor"]
-    if not isinstance(anchor, dict) or set(anchor) != ANCHOR_FIELDS:
-        raise Invalid(f"its anchor's fields are not {sorted(ANCHOR_FIELDS)}")
-    if anchor["chain_id"] != head.chain_id or anchor["contract"] != head.contract:
-        raise Invalid("its anchor names another chain or contract than the bundle")
-    sender = _address(anchor["sender"], "anchor.sender")
-    tx = _hash(anchor["tx"], "anchor.tx")
-    block = _integer(anchor["block"], "anchor.block")
-    if sender != owner:
-        raise Invalid("it was anchored by another account than its owner's")
-    if entry["mode"] == "root":
-        _check_root(entry, head, chain, owner, record_id, digest, tx, block)
-    elif entry["mode"] == "record":
-        _check_slot(entry, head, chain, owner, record_id, digest, tx, block)
-    else:
-        raise Invalid("its mode is neither root nor record")
-    _check_message(entry, messages, sequences)
+    sealed = _sealed(envelope)
+    _check_header(entry, sealed.header)
+    anchored = anchor_check(entry, chain=chain, chain_id=head.chain_id, contract=head.contract)
+    rebuilt, signed = None, None
+    if "signature" in fields:
+        rebuilt = _check_signature(entry, sealed, chain, head, anchored.owner, anchored.block)
+        signed = rebuilt is not None
+    _check_message(entry, messages, sequences, rebuilt)
+    return signed
 
 
-def _check_header(entry: dict, envelope: bytes) -> None:
-    """The record's robot, topic, type, seq and time are those its envelope's header (which
-    its digest covers) states."""
+def _sealed(envelope: bytes) -> EnvelopeInfo:
     try:
-        header = read_header(envelope).header
+        return read_header(envelope)
     except CryptoError as exc:
         raise Invalid(f"its envelope does not parse: {exc}") from None
+
+
+def _check_header(entry: dict, header: dict) -> None:
+    """The record's robot, topic, type, seq and time are those its envelope's header (which
+    its digest covers) states."""
     stated = {name: entry[name] for name in ("robot", "topic", "type", "seq")}
     stated["time"] = entry["captured_at"]
     sealed = {name: header.get(name) for name in ("robot", "topic", "type", "seq", "time")}
@@ -286,84 +307,64 @@ def _check_header(entry: dict, envelope: bytes) -> None:
         raise Invalid(f"its {', '.join(changed) or 'seq'} differ from its envelope's header")
 
 
-def _check_root(
-    entry: dict,
-    head: _Head,
-    chain: ChainReader,
-    owner: str,
-    record_id: uuid.UUID,
-    digest: bytes,
-    tx: bytes,
-    block: int,
+def _check_signature(
+    entry: dict, sealed: EnvelopeInfo, chain: ChainReader, head: _Head, owner: str, block: int
+) -> EncodedMessage | None:
+    """A signed envelope's robot signature over the plaintext the entry carries, its key on
+    chain, and the message that plaintext makes (None: the envelope is unsigned)."""
+    header, signature, plaintext = sealed.header, entry["signature"], entry["plaintext"]
+    if not is_signed(header):
+        if signature is not None or plaintext is not None:
+            raise Invalid("its envelope is unsigned, yet it states a signature or a plaintext")
+        return None
+    if signature is None or plaintext is None:
+        raise Invalid("its envelope is signed by a robot, but its signature or plaintext is null")
+    if not isinstance(signature, dict) or set(signature) != SIGNATURE_FIELDS:
+        raise Invalid(f"its signature's fields are not {sorted(SIGNATURE_FIELDS)}")
+    content = base64_bytes(plaintext, "plaintext")
+    if len(content) != sealed.ciphertext_length:
+        raise Invalid("its plaintext is not as long as its envelope's ciphertext")
+    signature_check(header=header, plaintext=content, **signature)
+    robot_key_check(
+        chain, contract=head.contract, signer=signature["signer"], owner=owner, block=block
+    )
+    return message_encode(data_type=header["type"], plaintext=content)
+
+
+def _check_message(
+    entry: dict, messages: dict | None, sequences: set[int], rebuilt: EncodedMessage | None
 ) -> None:
-    index = _integer(entry["leaf_index"], "leaf_index")
-    size = _integer(entry["tree_size"], "tree_size")
-    root = _hash(entry["root"], "root")
-    if not isinstance(entry["path"], list):
-        raise Invalid("its path is not a list")
-    path = [_hash(step, "path") for step in entry["path"]]
-    if not proof_holds(leaf_hash(owner, record_id, digest), index, size, path, root):
-        raise Invalid("its inclusion proof does not fold to its root")
-    anchored = chain.root_of(head.contract, owner, root)
-    if anchored.size == 0:
-        raise Invalid("its root is not anchored on chain by its owner")
-    if anchored.size != size or anchored.block != block:
-        raise Invalid(
-            f"the chain holds its root with size {anchored.size} in block {anchored.block}, "
-            f"not size {size} in block {block}"
-        )
-    receipt = chain.receipt(entry["anchor"]["tx"])
-    if receipt is None or receipt.status != 1 or receipt.block != block:
-        raise Invalid("its transaction is not a successful one in its block")
-    if receipt.root_anchored(head.contract, owner, root) != size:
-        raise Invalid("its transaction's receipt holds no RootAnchored event for its root")
-
-
-def _check_slot(
-    entry: dict,
-    head: _Head,
-    chain: ChainReader,
-    owner: str,
-    record_id: uuid.UUID,
-    digest: bytes,
-    tx: bytes,
-    block: int,
-) -> None:
-    """Record mode: dataQuery(id) holds the digest, and the transaction uploaded it."""
-    if (entry["path"], entry["leaf_index"], entry["tree_size"]) != ([], 0, 1) or entry[
-        "root"
-    ] != entry["digest"]:
-        raise Invalid("its record-mode proof is not (no path, leaf 0 of 1, root = digest)")
-    slot_id = record_id.bytes + bytes(16)
-    anchored = chain.data_query(head.contract, slot_id)
-    if anchored.owner.lower() != owner.lower() or anchored.digest != digest:
-        raise Invalid("the chain holds another owner or digest for its id (dataQuery)")
-    receipt = chain.receipt(entry["anchor"]["tx"])
-    if receipt is None or receipt.status != 1 or receipt.block != block:
-        raise Invalid("its transaction is not a successful one in its block")
-    if receipt.data_uploaded(head.contract, slot_id, owner) != digest:
-        raise Invalid("its transaction's receipt holds no DataUploaded event for it")
-
-
-def _check_message(entry: dict, messages: dict | None, sequences: set[int]) -> None:
-    """Its MCAP binding is well formed, timed at its capture, and (with the file) matches the
-    message's bytes, topic and encodings."""
+    """Its MCAP binding is well formed, timed at its capture, is the message its signed
+    plaintext makes (when signed), and (with the file) matches the message's bytes, topic,
+    encodings and schema."""
     binding = entry["mcap"]
     if not isinstance(binding, dict) or set(binding) != MCAP_FIELDS:
         raise Invalid(f"its mcap fields are not {sorted(MCAP_FIELDS)}")
-    sequence = _integer(binding["sequence"], "mcap.sequence")
+    sequence = whole(binding["sequence"], "mcap.sequence")
     if sequence in sequences:
         raise Invalid(f"another record has MCAP sequence {sequence}")
     sequences.add(sequence)
-    log_time = _integer(binding["log_time"], "mcap.log_time")
-    if binding["publish_time"] != log_time or log_time // 1000 != _micros(entry["captured_at"]):
+    log_time = whole(binding["log_time"], "mcap.log_time")
+    captured_ns = micros(entry["captured_at"]) * 1000
+    if binding["publish_time"] != log_time or log_time // 1000 != captured_ns // 1000:
         raise Invalid("its MCAP times are not its capture time")
     if binding["topic"] != entry["topic"]:
         raise Invalid("its MCAP topic is not its topic")
-    expected = {"cdr": _ros2_name(entry["type"]), "json": entry["type"]}
+    data_type = entry["type"] if isinstance(entry["type"], str) else ""
+    expected = {"cdr": ros2_type_name(data_type), "json": data_type}
     if expected.get(binding["message_encoding"]) != binding["schema"]:
         raise Invalid("its MCAP encoding and schema do not fit its type")
-    _hash(binding["sm3"], "mcap.sm3")
+    hash32(binding["sm3"], "mcap.sm3")
+    if rebuilt is not None:
+        made = (
+            rebuilt.message_encoding,
+            rebuilt.schema_name,
+            "0x" + sm3_hex(rebuilt.data),
+            message_log_time(rebuilt, captured_ns),
+        )
+        stated = (binding["message_encoding"], binding["schema"], binding["sm3"], log_time)
+        if made != stated:
+            raise Invalid("its MCAP message is not the one the plaintext its robot signed makes")
     if messages is None:
         return
     message = messages.get(sequence)
@@ -376,72 +377,9 @@ def _check_message(entry: dict, messages: dict | None, sequences: set[int]) -> N
         raise Invalid("its message's channel or time in the MCAP file differ")
     if message.publish_time != log_time:
         raise Invalid("its message's publish time in the MCAP file differs")
-
-
-# --- strict values: one spelling each, so that every changed byte changes a value -----------
-
-
-def _hash(value: Any, what: str) -> bytes:
-    if not isinstance(value, str) or not _HASH.fullmatch(value):
-        raise Invalid(f"its {what} is not 0x and 64 lowercase hex digits")
-    return bytes.fromhex(value[2:])
-
-
-def _address(value: Any, what: str) -> str:
-    try:
-        if isinstance(value, str) and to_checksum_address(value) == value:
-            return value
-    except ValueError:
-        pass
-    raise Invalid(f"its {what} is not a checksummed address")
-
-
-def _uuid(value: Any, what: str) -> uuid.UUID:
-    try:
-        parsed = uuid.UUID(value)
-    except (TypeError, ValueError, AttributeError):
-        parsed = None
-    if parsed is None or str(parsed) != value:
-        raise Invalid(f"its {what} is not a record id")
-    return parsed
-
-
-def _integer(value: Any, what: str) -> int:
-    if isinstance(value, bool) or not isinstance(value, int) or value < 0:
-        raise Invalid(f"its {what} is not a whole number")
-    return value
-
-
-def _base64(value: Any, what: str) -> bytes:
-    try:
-        raw = base64.b64decode(value, validate=True)
-    except (TypeError, ValueError, binascii.Error):
-        raise Invalid(f"its {what} is not base64") from None
-    if base64.b64encode(raw).decode("ascii") != value:
-        raise Invalid(f"its {what} is not in canonical base64")
-    return raw
-
-
-def _micros(value: Any) -> int:
-    if not isinstance(value, str):
-        raise Invalid("its captured_at is not a time")
-    try:
-        moment = datetime.fromisoformat(value)
-    except ValueError:
-        raise Invalid("its captured_at is not a time") from None
-    if moment.tzinfo is None:
-        raise Invalid("its captured_at has no time zone")
-    delta = moment - _EPOCH
-    return (delta.days * 86_400 + delta.seconds) * 1_000_000 + delta.microseconds
-
-
-def _ros2_name(data_type: Any) -> str:
-    if not isinstance(data_type, str):
-        return ""
-    if data_type.count("/") >= 2:
-        return data_type
-    package, _, name = data_type.partition("/")
-    return f"{package}/msg/{name}"
+    schema = schema_of(schema_name=message.schema, message_encoding=message.message_encoding)
+    if schema != (message.schema_encoding, message.schema_data):
+        raise Invalid("its message's schema in the MCAP file is not its type's definition")
 
 
 def _has_sequence(entry: Any) -> bool:

@@ -17,6 +17,8 @@ class McapUnreadable(ValueError):
 class Message:
     topic: str
     schema: str
+    schema_encoding: str
+    schema_data: bytes
     message_encoding: str
     sequence: int
     log_time: int
@@ -25,26 +27,33 @@ class Message:
 
 
 def mcap_messages(data: bytes) -> list[Message]:
-    """Every message of the file, in file order, with its channel's topic and encodings."""
+    """Every message of the file, in file order, with its channel's topic and encoding and
+    its schema's name, encoding and definition."""
     if not (data.startswith(MAGIC) and data.endswith(MAGIC)):
         raise McapUnreadable("it does not start and end with the MCAP magic")
-    schemas: dict[int, str] = {}
+    schemas: dict[int, tuple[str, str, bytes]] = {}
     channels: dict[int, tuple[str, int, str]] = {}
     raw: list[tuple[int, int, int, int, bytes]] = []
     try:
         _walk(data[len(MAGIC) : -len(MAGIC)], schemas, channels, raw)
-        return [
-            Message(
-                topic=channels[channel][0],
-                schema=schemas[channels[channel][1]],
-                message_encoding=channels[channel][2],
-                sequence=sequence,
-                log_time=log_time,
-                publish_time=publish_time,
-                data=body,
+        messages = []
+        for channel, sequence, log_time, publish_time, body in raw:
+            topic, schema_id, message_encoding = channels[channel]
+            schema, schema_encoding, schema_data = schemas[schema_id]
+            messages.append(
+                Message(
+                    topic=topic,
+                    schema=schema,
+                    schema_encoding=schema_encoding,
+                    schema_data=schema_data,
+                    message_encoding=message_encoding,
+                    sequence=sequence,
+                    log_time=log_time,
+                    publish_time=publish_time,
+                    data=body,
+                )
             )
-            for channel, sequence, log_time, publish_time, body in raw
-        ]
+        return messages
     except (struct.error, KeyError, UnicodeDecodeError, IndexError) as exc:
         raise McapUnreadable(f"its records do not parse ({type(exc).__name__})") from None
 
@@ -59,8 +68,9 @@ def _walk(data: bytes, schemas: dict, channels: dict, raw: list) -> None:
             raise McapUnreadable("a record runs past the end of the file")
         offset += length
         if opcode == _SCHEMA:
-            schema_id, name, _ = _u16_string(content, 0)
-            schemas.setdefault(schema_id, name)
+            schema = _schema(content)
+            if schemas.setdefault(schema[0], schema[1:]) != schema[1:]:
+                raise McapUnreadable(f"schema {schema[0]} is defined twice, differently")
         elif opcode == _CHANNEL:
             channel_id, schema_id = struct.unpack_from("<HH", content, 0)
             topic, at = _string(content, 4)
@@ -90,7 +100,13 @@ def _string(content: bytes, offset: int) -> tuple[str, int]:
     return text.decode("utf-8"), offset + 4 + length
 
 
-def _u16_string(content: bytes, offset: int) -> tuple[int, str, int]:
-    (schema_id,) = struct.unpack_from("<H", content, offset)
-    name, at = _string(content, offset + 2)
-    return schema_id, name, at
+def _schema(content: bytes) -> tuple[int, str, str, bytes]:
+    """A Schema record: id, name, encoding and data (the definition readers decode by)."""
+    (schema_id,) = struct.unpack_from("<H", content, 0)
+    name, at = _string(content, 2)
+    encoding, at = _string(content, at)
+    (length,) = struct.unpack_from("<I", content, at)
+    data = content[at + 4 : at + 4 + length]
+    if len(data) != length:
+        raise McapUnreadable("a schema runs past its record")
+    return schema_id, name, encoding, data

@@ -3,10 +3,15 @@
 `export_create` checks the selection (what the requester may view: their own records and
 those of owners granting them) and queues `export_run` on commit. The worker checks the
 records in batches with the view's own integrity check (`records_verify`: access on chain,
-the stored envelope's SM3 against the chain, a Verdict each), leaves out and lists every
-record that fails, rebuilds the ROS messages of the others (sharing/mcap_export.py), and
-stores the MCAP file and the bundle in the envelope storage (local disk or S3), for the
-requester only, until the export expires. docs/export.md describes the bundle.
+the stored envelope's SM3 against the chain, a signed record's robot signature and key, a
+Verdict each), leaves out and lists every record that fails, rebuilds the ROS messages of the
+others (authros_verify/messages.py, written by sharing/mcap_export.py), and stores the MCAP
+file and the bundle in the envelope storage (local disk or S3), for the requester only, until
+the export expires.
+
+Each signed record's entry carries its robot's signature, public key and the plaintext it
+signed, so that the verifier checks without the portal that each message is the one the robot
+signed (a tamperer would need the robot's private key). docs/export.md describes the bundle.
 """
 
 import base64
@@ -24,10 +29,10 @@ from django.utils import timezone
 from accounts.errors import IdentityMismatch
 from accounts.models import Owner, OwnerKey, Robot
 from authros_verify.bundle import BUNDLE_FORMAT, bundle_digest, bundle_serialise
+from authros_verify.messages import message_encode, message_log_time
 from chainworker.chain import ChainError
 from chainworker.services import chain_client
 from core.outbox import enqueue
-from sharing.content import Uninterpretable, document_parse
 from sharing.disk import disk_room_check
 from sharing.errors import (
     ExportExpired,
@@ -36,7 +41,7 @@ from sharing.errors import (
     ExportRefused,
     SharingError,
 )
-from sharing.mcap_export import McapBuilder, message_encode
+from sharing.mcap_export import McapBuilder
 from sharing.models import Export, Record, Verdict
 from sharing.selection import (
     MAX_SELECTED_ROBOTS,
@@ -52,6 +57,7 @@ from sharing.selectors import export_of, record_list_visible_to, record_proof
 from sharing.storage import envelope_storage, envelopes_save
 from sharing.verification import record_key, records_verify
 from smcrypto import envelope as envelopes
+from smcrypto import provenance, sm2
 from smcrypto.errors import CryptoError
 from smcrypto.sm3 import sm3_hex
 
@@ -70,11 +76,17 @@ _SELECTION_REFUSALS = {
 
 # Why a record is left out of an export (its entry in `excluded`).
 NOT_ANCHORED = "not_anchored_yet"
+SIGNATURE_REFUSED = "signature_refused"
 REASONS = {
     Verdict.Outcome.TAMPERED: "integrity_check_failed",
     Verdict.Outcome.NO_ACCESS: "access_denied",
     Verdict.Outcome.NOT_ANCHORED_YET: NOT_ANCHORED,
+    Verdict.Outcome.SIGNATURE_REFUSED: SIGNATURE_REFUSED,
 }
+
+
+class _SignerUnknown(Exception):
+    """The robot's public key on record is not the key that signed the record."""
 
 
 def export_robots_visible(requester: Owner) -> QuerySet[Robot]:
@@ -156,7 +168,9 @@ def export_run(*, export_id: uuid.UUID | str) -> Export:
 def _run(export: Export) -> None:
     selection = RecordSelection.from_json(export.selection)
     records = list(
-        export_records(export.requester, selection).select_related("owner__user", "anchor_root")
+        export_records(export.requester, selection).select_related(
+            "owner__user", "anchor_root", "robot"
+        )
     )
     Export.objects.filter(pk=export.pk).update(
         status=Export.Status.RUNNING, total=len(records), processed=0, exported=0
@@ -177,6 +191,10 @@ def _run(export: Export) -> None:
                     continue
                 try:
                     entry = _exported(record, checked, keys, builder, len(entries) + 1)
+                except _SignerUnknown as exc:
+                    logger.warning("export %s: record %s left out: %s", export.pk, record.pk, exc)
+                    excluded.append(_excluded(record, SIGNATURE_REFUSED))
+                    continue
                 except (SharingError, OwnerKey.DoesNotExist, CryptoError) as exc:
                     logger.warning("export %s: record %s not opened: %s", export.pk, record.pk, exc)
                     excluded.append(_excluded(record, "cannot_open"))
@@ -265,15 +283,9 @@ def _exported(
 ) -> dict[str, object]:
     """Write the record's message into the MCAP file; its bundle entry but the proof."""
     header, plaintext = envelopes.open(keys.of(record), data)
-    try:
-        document = document_parse(plaintext)
-    except Uninterpretable:
-        document = None
-    message = message_encode(data_type=record.data_type, document=document, plaintext=plaintext)
-    captured_ns = _micros(record.captured_at) * 1000
-    # The message's own stamp when it is the capture time (the header keeps microseconds).
-    stamp = message.stamp_ns
-    log_time = stamp if stamp is not None and stamp // 1000 == captured_ns // 1000 else captured_ns
+    message = message_encode(data_type=header["type"], plaintext=plaintext)
+    log_time = message_log_time(message, _micros(record.captured_at) * 1000)
+    signature = _signature(record, header)
     builder.add(topic=record.topic, message=message, log_time=log_time, sequence=sequence)
     return {
         "robot": str(record.robot_id),
@@ -282,6 +294,9 @@ def _exported(
         "seq": record.seq,
         "captured_at": header["time"],
         "envelope": base64.b64encode(data).decode("ascii"),
+        "signature": signature,
+        # What the robot signed, so that anyone checks the signature and rebuilds the message.
+        "plaintext": None if signature is None else base64.b64encode(plaintext).decode("ascii"),
         "mcap": {
             "topic": record.topic,
             "sequence": sequence,
@@ -291,6 +306,22 @@ def _exported(
             "schema": message.schema_name,
             "sm3": "0x" + sm3_hex(message.data),
         },
+    }
+
+
+def _signature(record: Record, header: dict) -> dict[str, str] | None:
+    """The robot's signature as the envelope's header carries it, with the robot's public key
+    (04||x||y); None for an unsigned record (a robot added by hand)."""
+    signer = header.get("signer")
+    if not signer:
+        return None
+    public_key = record.robot.public_key
+    if not public_key or provenance.key_hash(public_key) != signer:
+        raise _SignerUnknown(f"the robot's public key is not the signer {signer}")
+    return {
+        "signer": signer,
+        "sig": header["sig"],
+        "public_key": sm2.public_key_normalize(public_key),
     }
 
 

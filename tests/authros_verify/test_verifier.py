@@ -17,11 +17,8 @@ from authros_verify.__main__ import main
 from authros_verify.abi import ABI
 from chainworker import services as chain_services
 from chainworker.chain import ContractArtifact
-from sharing.exports import export_create
-from sharing.models import Export
-from sharing.services import record_create_batch
-from sharing.storage import envelope_storage
 from stack.anvil import start_anvil
+from tests.authros_verify.conftest import export_of
 from tests.harness import REPO_ROOT
 
 pytestmark = pytest.mark.django_db
@@ -39,15 +36,7 @@ def _export(setup, capture, count: int = 2) -> tuple[bytes, bytes]:
         )
         for seq in range(1, count + 1)
     ]
-    with capture(execute=True):
-        record_create_batch(robot=setup.robot, envelopes=envelopes)
-    with capture(execute=True):
-        export = export_create(requester=setup.owner)
-    export.refresh_from_db()
-    assert export.status == Export.Status.DONE, export.error
-    storage = envelope_storage()
-    with storage.open(export.bundle_name, "rb") as bundle, storage.open(export.mcap_name) as mcap:
-        return bundle.read(), mcap.read()
+    return export_of(setup, capture, envelopes)
 
 
 def _flipped(data: bytes, position: int, mask: int = 0x01) -> bytes:

@@ -26,7 +26,7 @@ from sharing.models import Export, Record, Verdict
 from sharing.selection import RecordSelection
 from sharing.services import record_create, record_create_batch
 from sharing.storage import envelope_storage
-from smcrypto import sm4
+from smcrypto import sm2, sm4
 from tests.api.conftest import session_client
 from tests.conftest import TEST_PASSWORD, seal_for, tamper
 
@@ -342,3 +342,35 @@ def test_a_bad_selection_is_a_400_or_a_form_error_and_changes_nothing(carol_robo
     assert page.status_code == 400
     assert "no record you may view" in page.content.decode()
     assert not Export.objects.exists()
+
+
+def test_a_paired_robots_export_carries_its_signatures_and_leaves_out_refused_ones(
+    make_paired_robot, deployed, django_capture_on_commit_callbacks
+):
+    setup = make_paired_robot("erin")
+    plaintexts = [
+        fig4("erin", "std_msgs/String", "/chatter", at(s), {"data": f"{s}"}) for s in (1, 2)
+    ]
+    envelopes = [
+        setup.seal(
+            seq, topic="/chatter", data_type="std_msgs/String", time=iso(at(seq)), plaintext=body
+        )
+        for seq, body in zip((1, 2), plaintexts, strict=True)
+    ]
+    with django_capture_on_commit_callbacks(execute=True):
+        record_create_batch(robot=setup.robot, envelopes=envelopes)
+    export = run_export(setup.owner, django_capture_on_commit_callbacks)
+    mcap, bundle = files_of(export)
+    entries = json.loads(bundle)["records"]
+    assert [base64.b64decode(entry["plaintext"]) for entry in entries] == plaintexts
+    assert {entry["signature"]["signer"] for entry in entries} == {setup.robot.key_hash}
+    report = verify(bundle, chain=ChainReader(deployed.w3), mcap=mcap, contract=deployed.address)
+    assert report.ok, (report.problems, [r.problems for r in report.failed])
+    assert len(report.genuine) == 2
+
+    # The robot's key on record is no longer the signer's (a changed database): its records'
+    # signatures no longer hold at the check, and they are left out, with why.
+    Robot.objects.filter(pk=setup.robot.pk).update(public_key=sm2.generate_keypair()[1])
+    export = run_export(setup.owner, django_capture_on_commit_callbacks, topics=["/chatter"])
+    assert export.exported == 0
+    assert [item["reason"] for item in export.excluded] == ["signature_refused"] * 2
