@@ -197,7 +197,11 @@ def _open_or_refuse(
         # Nothing of a record the viewer may not read is shown, not even its metadata.
         return Refusal(Verdict.Outcome.NO_ACCESS, 403, str(exc))
     except IntegrityCheckFailed as exc:
-        return Refusal(Verdict.Outcome.TAMPERED, 409, str(exc), exc.record, exc.verdict)
+        unsigned = (
+            exc.verdict is not None and exc.verdict.outcome == Verdict.Outcome.SIGNATURE_REFUSED
+        )
+        outcome = Verdict.Outcome.SIGNATURE_REFUSED if unsigned else Verdict.Outcome.TAMPERED
+        return Refusal(outcome, 409, str(exc), exc.record, exc.verdict)
     except NotAnchoredYet as exc:
         record = exc.record
         if record is not None and record.status == Record.Status.FAILED:

@@ -64,7 +64,7 @@ def test_a_paired_robots_key_is_its_owners_on_chain(make_paired_robot, deployed)
 
 
 def test_signed_records_verify_for_owner_and_grantee_with_a_proof_anyone_can_check(
-    make_paired_robot, make_owner, upload, owner_api, django_capture_on_commit_callbacks
+    make_paired_robot, make_owner, upload, owner_api, django_capture_on_commit_callbacks, client
 ):
     setup = make_paired_robot("alice")
     response = upload(token_client(setup.token), setup.seal(1))
@@ -79,6 +79,10 @@ def test_signed_records_verify_for_owner_and_grantee_with_a_proof_anyone_can_che
         assert _outcome(record, viewer) == Verdict.Outcome.VERIFIED
     opened = record_open(record_id=record.id, viewer=bob)
     assert opened.header["signer"] == setup.robot.key_hash  # the re-sealed copy keeps it
+    client.force_login(bob.user)
+    page = client.get(f"/records/{record.id}/").content.decode()
+    assert 'data-testid="verified-signature">robot key' in page
+    assert setup.robot.key_hash in page
 
     proof = owner_api(bob).get(f"{RECORDS}{record.id}/proof/").json()
     signature = proof["signature"]
@@ -157,7 +161,7 @@ def test_a_robot_added_by_hand_uploads_unsigned_records_never_shown_as_signed(
     ids=["other-content", "another-key"],
 )
 def test_a_record_forged_with_the_owners_key_and_account_fails_every_check(
-    make_paired_robot, monkeypatch, django_capture_on_commit_callbacks, forge
+    make_paired_robot, monkeypatch, django_capture_on_commit_callbacks, forge, client
 ):
     """Whoever holds the KEK and the database can seal under the owner's key and anchor from
     the owner's account, skipping the upload's check: without the robot's private key the
@@ -171,6 +175,13 @@ def test_a_record_forged_with_the_owners_key_and_account_fails_every_check(
     assert _outcome(record, setup.owner) == Verdict.Outcome.SIGNATURE_REFUSED
     with pytest.raises(IntegrityCheckFailed, match="signature"):
         record_open(record_id=record.id, viewer=setup.owner)
+    client.force_login(setup.owner.user)
+    page = client.get(f"/records/{record.id}/")
+    html = page.content.decode()
+    assert page.status_code == 409
+    assert 'data-verdict="signature_refused"' in html
+    assert "Signature not valid" in html
+    assert '"seq": 1' not in html  # nothing of its content
 
 
 def test_records_anchored_after_the_key_was_revoked_on_chain_are_not_genuine(
