@@ -21,9 +21,18 @@ from eth_account import Account
 from accounts import keywrap
 from accounts.errors import InvalidUsername, UsernameTaken, WeakPassword, WrongPassword
 from accounts.events import account_event_record
-from accounts.models import AccountEvent, Approval, Owner, OwnerToken, Robot, RobotPairing
+from accounts.models import (
+    AccountEvent,
+    Approval,
+    ChainState,
+    Owner,
+    OwnerToken,
+    Robot,
+    RobotPairing,
+)
 from accounts.selectors import eoa_purpose
 from accounts.services.keys import owner_key_add, sm4_key_check
+from accounts.services.robot_keys import robot_key_revocations_release
 from core.outbox import enqueue
 
 security_log = logging.getLogger("authros.security")
@@ -153,9 +162,14 @@ def owner_close(*, owner: Owner, actor: AbstractBaseUser) -> Owner:
         tokens = OwnerToken.objects.filter(owner=owner, revoked_at__isnull=True).update(
             revoked_at=now
         )
-        robots = Robot.objects.filter(owner=owner, is_active=True).update(
-            is_active=False, revoked_at=now
-        )
+        active_robots = Robot.objects.filter(owner=owner, is_active=True)
+        # Their keys are revoked on chain too (robot_keys.py), as unpairing each would.
+        keyed = active_robots.filter(
+            key_chain_state__in=[ChainState.PENDING, ChainState.CONFIRMED], key_revoke_state=""
+        ).update(key_revoke_state=ChainState.PENDING)
+        robots = active_robots.update(is_active=False, revoked_at=now)
+        if keyed:
+            transaction.on_commit(lambda: robot_key_revocations_release(owner_id=owner.pk))
         RobotPairing.objects.filter(
             owner=owner, state__in=[RobotPairing.State.PENDING, RobotPairing.State.APPROVED]
         ).update(state=RobotPairing.State.REFUSED, token_sm2="", answered_at=now)

@@ -16,6 +16,7 @@ from django.core.management import call_command
 
 from accounts.models import ChainState, Owner, Robot
 from accounts.selectors import owner_eoa_account
+from accounts.services.owners import owner_close
 from accounts.services.pairing import robot_pairing_answer, robot_pairing_request
 from accounts.services.registration import chain_work_sweep, owner_register_on_chain
 from accounts.services.robot_keys import robot_key_register_on_chain, robot_key_revoke_on_chain
@@ -134,6 +135,14 @@ def test_unpairing_revokes_the_key_on_chain(make_owner, pair, on_commit):
     _assert_on_chain(robot, revoked=True)
     on_chain = chain_services.chain_client().robot_key_of(_key(robot))
     assert on_chain.revoked_block > on_chain.added_block
+
+
+def test_closing_the_account_revokes_its_robots_keys_on_chain(make_owner, pair, on_commit):
+    owner = make_owner("alice")
+    robots = [pair(owner), pair(owner)]
+    on_commit(lambda: owner_close(owner=owner, actor=owner.user))
+    for robot in robots:
+        _assert_on_chain(robot, revoked=True)
 
 
 def test_a_key_waits_for_its_owners_registration(make_owner, pair):
