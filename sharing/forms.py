@@ -1,5 +1,6 @@
 """Forms of the sharing pages: record and audit filters, and grants."""
 
+from datetime import UTC, datetime
 from typing import Any
 
 from django import forms
@@ -26,8 +27,24 @@ class DateTimeLocalInput(forms.DateTimeInput):
         super().__init__(format="%Y-%m-%dT%H:%M")
 
 
+class _PeriodField(forms.DateTimeField):
+    """A time a page filters by: one whose UTC falls outside the years 1-9999 (year 1 at +14:00,
+    year 9999 at -14:00) is a form error, not an overflow in the query."""
+
+    def to_python(self, value: Any) -> datetime | None:
+        moment = super().to_python(value)
+        if moment is not None and moment.tzinfo is not None:
+            try:
+                moment.astimezone(UTC)
+            except OverflowError:
+                raise ValidationError(
+                    "Enter a time between the years 1 and 9999 in UTC.", code="invalid"
+                ) from None
+        return moment
+
+
 def _period_field(label: str) -> forms.DateTimeField:
-    return forms.DateTimeField(
+    return _PeriodField(
         label=label,
         required=False,
         widget=DateTimeLocalInput(),

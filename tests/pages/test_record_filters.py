@@ -132,3 +132,32 @@ def test_the_api_refuses_an_unknown_status(client, records):
     answer = session_client(records["odom0"].owner).get(RECORDS, {"status": "lost"})
     assert answer.status_code == 400
     assert answer.json()["error"] == "invalid_request"
+
+
+@pytest.mark.parametrize(
+    "moment",
+    ["0001-01-01T00:00:00+14:00", "9999-12-31T23:59:59-14:00"],
+    ids=["year-1-east", "year-9999-west"],
+)
+def test_a_time_outside_the_years_utc_can_hold_is_a_form_error_on_every_page(
+    client, records, moment
+):
+    """A time whose UTC falls before year 1 or after 9999 overflowed in the query (500) on
+    every page with a period filter; it is the form's error, as the API's 400."""
+    record = next(iter(records.values()))
+    client.force_login(record.owner.user)
+    pages = [
+        reverse("records"),
+        reverse("shared"),
+        reverse("audit"),
+        reverse("access-log"),
+        reverse("access-log-csv"),
+        reverse("records-delete"),
+        reverse("record-trajectory-range", args=[record.id]),
+    ]
+    for page in pages:
+        for name in ("since", "until"):
+            answer = client.get(page, {name: moment})
+            assert answer.status_code in (200, 400, 404), (page, name, answer.status_code)
+            if answer.streaming:  # the CSV streams: read it to its end
+                b"".join(answer.streaming_content)
