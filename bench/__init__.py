@@ -37,6 +37,7 @@ BENCHMARKS = (
     "pipeline",
     "report",
     "roots",
+    "signing",
     "sustained",
 )
 T = TypeVar("T")

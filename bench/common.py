@@ -1,6 +1,6 @@
 """What every benchmark does the same way: run its configurations one after another, each in a
 fresh interpreter; divide by the batch-size-1 baseline; print a table; write JSON, CSV and PNG;
-seal a record as a robot's agent does.
+seal a record as a robot's agent does (ros_agent.sealing: signed for a paired robot).
 """
 
 import argparse
@@ -18,7 +18,8 @@ import redis
 
 from bench import run_in_child
 from core.redis_url import redis_target
-from smcrypto import envelope
+from ros_agent import sealing
+from ros_agent.sealing import RobotSigningKey
 
 PLAINTEXT_BYTES = 1024
 # Redis databases a benchmark never flushes: the development one and the test suite's.
@@ -147,9 +148,15 @@ def write_results(
 
 
 def seal_record(
-    robot: Any, key: bytes, *, seq: int, plaintext_bytes: int = PLAINTEXT_BYTES
+    robot: Any,
+    key: bytes,
+    *,
+    seq: int,
+    plaintext_bytes: int = PLAINTEXT_BYTES,
+    signing_key: RobotSigningKey | None = None,
 ) -> bytes:
-    """Fig. 4's JSON record padded to plaintext_bytes, sealed as the robot's agent seals it."""
+    """Fig. 4's JSON record padded to plaintext_bytes, sealed as the robot's agent seals it:
+    signed with `signing_key` (a paired robot's), unsigned without (a robot added by hand)."""
     now = datetime.now(tz=UTC).isoformat().replace("+00:00", "Z")
     header = {
         "owner": robot.owner.username,
@@ -163,4 +170,4 @@ def seal_record(
     record.update(Type=header["type"], Topic=header["topic"])
     filler = max(plaintext_bytes - len(json.dumps(record).encode()), 0)
     record["K"]["pad"] = secrets.token_hex(filler // 2 + 1)[:filler]
-    return envelope.seal(key, header, json.dumps(record).encode())
+    return sealing.seal_record(key, header, json.dumps(record).encode(), signing_key)

@@ -1,9 +1,10 @@
 """bench/REPORT.md from whatever results exist in bench/results/, beside the paper's figures.
 
-Reads crypto.json, pipeline.json, concurrency.json, message_size.json, block_interval.json and
-sustained.json, roots.json and soak.json (any may be missing) and writes one Markdown report: per
-experiment, what the paper says (quoted, with its figure numbers), the machine and date of our
-run, and our measurements. Nothing here is a result: every number comes from the JSON files.
+Reads crypto.json, pipeline.json, concurrency.json, message_size.json, block_interval.json,
+sustained.json, roots.json, signing.json and soak.json (any may be missing) and writes one
+Markdown report: per experiment, what the paper says (quoted, with its figure numbers), the
+machine and date of our run, and our measurements. Nothing here is a result: every number
+comes from the JSON files.
 
 The concurrency and sustained sections show each configuration on SQLite + disk (`make run`'s
 engines) and, where the run measured it (`--engines`, default both), on PostgreSQL + SeaweedFS
@@ -44,6 +45,7 @@ def main(argv: list[str]) -> int:
         _section_pipeline,
         _section_sustained,
         _section_roots,
+        _section_signing,
         _section_soak,
     ]
     parts = [
@@ -721,6 +723,190 @@ def _section_roots(results: Path) -> str | None:
     if notes:
         lines.insert(-1, "Notes:\n\n" + "\n".join(f"- {note}" for note in notes) + "\n")
     return "\n".join(lines)
+
+
+# Each figure of signing.json: (figure, key, digits, issue 13's goal key or None).
+SIGNING_FIGURES = (
+    ("agent, nav_msgs/Odometry, envelopes/s", "agent_odometry_per_s", 0, None),
+    ("agent, 320x240 sensor_msgs/Image, envelopes/s", "agent_image_per_s", 1, None),
+    ("ingest, 1 KB envelopes/s (100 per POST)", "ingest_per_s", 0, "ingest_per_s"),
+    ("web CPU per envelope ingested, ms", "ingest_web_cpu_ms_per_envelope", 3, None),
+    ("verified view p50, idle, ms", "view_idle_p50_ms", 1, "view_idle_p50_ms"),
+    ("verified view p95, idle, ms", "view_idle_p95_ms", 1, None),
+    ("verified view p50, at 100 records/s, ms", "view_load_p50_ms", 1, None),
+    ("verified view p95, at 100 records/s, ms", "view_load_p95_ms", 1, "view_load_p95_ms"),
+    ("the worker's check alone, p50, ms", "worker_check_p50_ms", 2, None),
+)
+SIGNING_HIGHER = ("ingest_per_s",)
+
+
+def _section_signing(results: Path) -> str | None:
+    """Robot signatures against none (issue 34): the agent's, the ingest's and the view's
+    figures for both, the ratio, and issue 13's ingest and view goals judged for each."""
+    report = _load(results, "signing")
+    if report is None:
+        return None
+    rows = {row["signing"]: row for row in report["results"]}
+    unsigned, signed = rows.get("unsigned", {}), rows.get("signed", {})
+    goals, met = report["goals"], report.get("goals_met", {})
+    verdicts = {True: "met", False: "**not met**", None: "not measured"}
+
+    def goal(key: str | None) -> str:
+        if key is None:
+            return "-"
+        return f"{'>=' if key in SIGNING_HIGHER else '<='} {goals[key]:g}"
+
+    def verdict(variant: str, key: str | None) -> str:
+        return "-" if key is None else verdicts[met.get(variant, {}).get(key)]
+
+    table = _table(
+        [dict(zip(("figure", "key", "digits", "goal"), f, strict=True)) for f in SIGNING_FIGURES],
+        (
+            ("figure", lambda f: f["figure"]),
+            ("unsigned", lambda f: _num(unsigned.get(f["key"]), f["digits"])),
+            ("signed", lambda f: _num(signed.get(f["key"]), f["digits"])),
+            ("signed / unsigned", lambda f: _ratio(signed.get(f"{f['key']}_ratio_vs_unsigned"))),
+            ("issue 13 goal", lambda f: goal(f["goal"])),
+            ("unsigned: goal", lambda f: verdict("unsigned", f["goal"])),
+            ("signed: goal", lambda f: verdict("signed", f["goal"])),
+        ),
+    )
+    settings = report["settings"]
+    quick = " Quick (smoke) run." if settings.get("quick") else ""
+    rounds = settings["rounds"]
+    missed = [
+        figure
+        for figure, _key, _digits, goal_key in SIGNING_FIGURES
+        if goal_key is not None and met.get("signed", {}).get(goal_key) is not True
+    ]
+    judged = (
+        "With signatures, issue 13's ingest and view goals all still hold in this run."
+        if not missed
+        else "With signatures, issue 13's goals **not met** (or not measured) in this run: "
+        + "; ".join(missed)
+        + "."
+    )
+    lines = [
+        "## Robot signatures against none (issue 34; no paper figure)\n",
+        f"**Our run:** {_machine(report)}{quick}"
+        + (
+            f" Load average at the end {report['load_average_at_end']}."
+            if report.get("load_average_at_end")
+            else ""
+        )
+        + "\n",
+        "One run, unsigned (robots added by hand) as the baseline beside signed (paired robots, "
+        "each key registered on chain by its owner's EOA before the first upload). "
+        "**Agent:** the agent's Recorder (extract, Fig. 4 record, seal, sign when paired, "
+        "append durably to its spool) records one message after another for "
+        f"{settings['agent_seconds']:g} s per kind, variant and round, in this process before "
+        "the stack starts. **Portal:** one fresh `make run` stack "
+        f"(ANCHOR_MODE={settings['anchor_mode']}, {settings['chain']}; the portal served by "
+        f"`{settings['web_command']}`{_max_wait_note(settings)}). Ingest as the roots benchmark "
+        f"measures it: {settings['clients']} clients per variant POST "
+        f"{settings['batch_per_post']} sealed {settings['plaintext_bytes'] // 1024} KB envelopes "
+        f"at a time for up to {settings['ingest_seconds']:g} s as fast as they are answered, "
+        "then every record is awaited on chain. Views: "
+        f"{settings['idle_views']} `GET /api/v1/records/{{id}}/content/` of each variant's "
+        "anchored records, the two alternating one after another (the worker checks each at "
+        "every view: for a signed record also `robotKeyOf` and the SM2 signature), then, for "
+        f"each variant, {settings['load_seconds']:g} s of views of its records while one of its "
+        "robots uploads 100 records/s. Every phase ran in "
+        f"{rounds} round{'s' if rounds != 1 else ''}, the order of the variants alternating; "
+        "agent and ingest figures are the median round's, view percentiles are over every "
+        "view. The worker's check alone is `record_verify` in the benchmark's process. Ratios "
+        "are signed over unsigned of this run.\n",
+        table,
+        f"{judged}\n",
+        _signing_counts(unsigned, signed),
+        _signing_costs(unsigned, signed, report),
+        _signing_machine(unsigned, signed),
+    ]
+    notes = report.get("notes", [])
+    if notes:
+        lines.append("Notes:\n\n" + "\n".join(f"- {note}" for note in notes) + "\n")
+    lines.append("![Robot signatures](results/signing.png)\n")
+    return "\n".join(line for line in lines if line)
+
+
+def _signing_counts(unsigned: dict[str, Any], signed: dict[str, Any]) -> str:
+    """What each variant sent and what became of it, every round's figure, each envelope's size."""
+
+    def rounds(values: list[float | None] | None, digits: int) -> str:
+        return ", ".join(_num(value, digits) for value in values or [])
+
+    parts = []
+    for name, row in (("Unsigned", unsigned), ("Signed", signed)):
+        if not row:
+            continue
+        parts.append(
+            f"{name}: {row.get('ingested')} envelopes of {row.get('envelope_bytes')} bytes "
+            f"taken ({row.get('ingest_anchored')} anchored, {row.get('ingest_failed')} failed, "
+            f"{row.get('ingest_pending_at_timeout')} left pending; refused "
+            f"{len(row.get('ingest_refused') or [])}); ingest per round "
+            f"{rounds(row.get('ingest_per_s_rounds'), 0)} envelopes/s"
+            + (
+                f" over {rounds(row['ingest_seconds_rounds'], 1)} s"
+                if row.get("ingest_seconds_rounds")
+                else ""
+            )
+            + "; agent per round odometry "
+            f"{rounds(row.get('agent_odometry_per_s_rounds'), 0)}/s, images "
+            f"{rounds(row.get('agent_image_per_s_rounds'), 1)}/s; "
+            f"{row.get('view_idle_count')} idle and {row.get('view_load_count')} loaded views, "
+            f"{(row.get('view_idle_errors') or 0) + (row.get('view_load_errors') or 0)} not "
+            f"answered 200; {row.get('worker_checks')} worker checks, verdicts "
+            f"{', '.join(row.get('worker_check_outcomes') or []) or '-'}."
+        )
+    return " ".join(parts) + "\n" if parts else ""
+
+
+def _signing_costs(unsigned: dict[str, Any], signed: dict[str, Any], report: dict[str, Any]) -> str:
+    """Where a signature's time goes: SM2 on one core beside the extra time per envelope the
+    agent and the web spent, and per check the worker spent."""
+    sm2 = report.get("sm2", {})
+    parts = []
+    if sm2:
+        parts.append(
+            f"SM2 on one core (smcrypto.provenance, one 1 KB record): sign "
+            f"{_num(sm2.get('sm2_sign_header_ms'), 3)} ms, verify "
+            f"{_num(sm2.get('sm2_verify_header_ms'), 3)} ms."
+        )
+    extra = []
+    for kind, label in (("odometry", "an odometry envelope"), ("image", "an image envelope")):
+        ours, theirs = signed.get(f"agent_{kind}_per_s"), unsigned.get(f"agent_{kind}_per_s")
+        if ours and theirs:
+            extra.append(f"{_num(1000 / ours - 1000 / theirs, 3)} ms more for {label} in the agent")
+    web = tuple(row.get("ingest_web_cpu_ms_per_envelope") for row in (signed, unsigned))
+    if None not in web:
+        extra.append(f"{_num(web[0] - web[1], 3)} ms more of the web's CPU per envelope ingested")
+    check = (signed.get("worker_check_p50_ms"), unsigned.get("worker_check_p50_ms"))
+    if None not in check:
+        extra.append(f"{_num(check[0] - check[1], 2)} ms more for the worker's check (p50)")
+    if extra:
+        parts.append("Signed against unsigned: " + "; ".join(extra) + ".")
+    return " ".join(parts) + "\n" if parts else ""
+
+
+def _signing_machine(unsigned: dict[str, Any], signed: dict[str, Any]) -> str:
+    """How busy the machine was with others' work during the phases."""
+    shares = [
+        share
+        for row in (unsigned, signed)
+        for share in (
+            *(row.get("ingest_others_share_rounds") or []),
+            *(row.get("load_others_share_rounds") or []),
+            row.get("idle_others_share"),
+        )
+        if share is not None
+    ]
+    if not shares:
+        return ""
+    return (
+        "CPU outside the stack and the benchmark during the ingest and view phases (Redis's "
+        f"server included): {_pct(min(shares))} to {_pct(max(shares))} of the machine's "
+        "cores.\n"
+    )
 
 
 def _section_soak(results: Path) -> str | None:

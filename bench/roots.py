@@ -71,6 +71,7 @@ from bench.rest import (
 )
 from bench.rest import measure as concurrent_measure
 from bench.stack import POLL_INTERVAL, BenchStack, StackOptions, owners_register, run_finished
+from ros_agent.sealing import RobotSigningKey
 
 NAME = "roots"
 MODES = ("records", "root")
@@ -174,11 +175,11 @@ def measure(run: RootsRun) -> dict[str, Any]:
     try:
         stack.start()
         robots = owners_register(stack, run.owners)
-        clients = _clients_create(robots, run.clients)
+        clients = clients_create(robots, run.clients)
         row: dict[str, Any] = {"anchor_mode": run.anchor_mode}
         row |= _ingest(stack, run, clients)
         row |= _gas(run)
-        viewer = _viewer(robots[0][0].owner)
+        viewer = viewer_token(robots[0][0].owner)
         row |= _views(stack.web_url, viewer, _anchored_ids(robots[0][0].owner, run.views), "idle")
         row |= _under_load(stack, run, clients[0], viewer, robots[0][0].owner)
         row |= _limits(robots[0])
@@ -192,10 +193,14 @@ def measure(run: RootsRun) -> dict[str, Any]:
 
 @dataclass
 class Client:
+    """One uploading robot: its owner's key, its token and, for a paired robot, its signing
+    key (its envelopes are then signed, as its agent signs them)."""
+
     robot: Any
     key: bytes
     token: str
     next_seq: int = 1
+    signing_key: RobotSigningKey | None = None
 
     def bodies(self, count: int, per_post: int) -> list[dict[str, list[str]]]:
         """`count` POST bodies of `per_post` envelopes each, sealed now (not timed)."""
@@ -204,7 +209,11 @@ class Client:
             envelopes = []
             for _ in range(per_post):
                 data = seal_record(
-                    self.robot, self.key, seq=self.next_seq, plaintext_bytes=PLAINTEXT_BYTES
+                    self.robot,
+                    self.key,
+                    seq=self.next_seq,
+                    plaintext_bytes=PLAINTEXT_BYTES,
+                    signing_key=self.signing_key,
                 )
                 envelopes.append(base64.b64encode(data).decode())
                 self.next_seq += 1
@@ -212,7 +221,8 @@ class Client:
         return bodies
 
 
-def _clients_create(robots: list[tuple[Any, bytes]], clients: int) -> list[Client]:
+def clients_create(robots: list[tuple[Any, bytes]], clients: int) -> list[Client]:
+    """`clients` robots added by hand (unsigned), round-robin over the owners of `robots`."""
     from accounts.services.robots import robot_create
 
     made = []
@@ -227,8 +237,10 @@ def _ingest(stack: BenchStack, run: RootsRun, clients: list[Client]) -> dict[str
     """Two phases, each until every record is anchored: the clients as fast as they are
     answered (the ingest figure), then paced at SUSTAINED_RATE records/s (the anchoring
     figures: throughput and latency under that offered load)."""
-    burst = _upload_phase(stack, run, clients, seconds=run.ingest_seconds, rate=None)
-    sustained = _upload_phase(stack, run, clients, seconds=run.sustained_seconds, rate=run.rate)
+    burst = upload_phase(stack, clients, seconds=run.ingest_seconds, rate=None, timeout=run.timeout)
+    sustained = upload_phase(
+        stack, clients, seconds=run.sustained_seconds, rate=run.rate, timeout=run.timeout
+    )
     return {
         "ingested": burst["uploaded"],
         "ingest_seconds": burst["seconds"],
@@ -250,19 +262,19 @@ def _ingest(stack: BenchStack, run: RootsRun, clients: list[Client]) -> dict[str
     }
 
 
-def _upload_phase(
+def upload_phase(
     stack: BenchStack,
-    run: RootsRun,
     clients: list[Client],
     *,
     seconds: float,
     rate: float | None,
+    timeout: float,
     per_post: int = BATCH,
     posted: threading.Event | None = None,
 ) -> dict[str, Any]:
     """The clients POST sealed batches of `per_post` for `seconds`, each as fast as it is
-    answered or, with `rate`, together at `rate` envelopes/s; then every record is awaited.
-    `posted` is set once the last POST was answered."""
+    answered or, with `rate`, together at `rate` envelopes/s; then every record is awaited
+    (for at most `timeout` seconds). `posted` is set once the last POST was answered."""
     from django.utils import timezone
 
     from sharing.models import Record
@@ -309,7 +321,7 @@ def _upload_phase(
     finally:
         if posted is not None:
             posted.set()
-    deadline = time.monotonic() + run.timeout
+    deadline = time.monotonic() + timeout
     while Record.objects.filter(status=Record.Status.PENDING).exists():
         stack.check_alive()
         if time.monotonic() > deadline:
@@ -377,7 +389,8 @@ def _gas(run: RootsRun) -> dict[str, Any]:
     }
 
 
-def _viewer(owner: Any) -> str:
+def viewer_token(owner: Any) -> str:
+    """A read-scoped API token of the owner's, for the verified views."""
     from accounts.services.api_tokens import owner_token_create
 
     _token, key = owner_token_create(
@@ -395,22 +408,14 @@ def _anchored_ids(owner: Any, limit: int) -> list[str]:
     return [str(pk) for pk in ids.order_by("?")[:limit]]
 
 
-def _views(
-    url: str, token: str, ids: list[str], name: str, *, until: threading.Event | None = None
-) -> dict[str, Any]:
-    """Verified views one after another, in ms: each of `ids` once or, with `until`, round
-    and round them until it is set."""
-    session = requests.Session()
-    session.headers["Authorization"] = f"Token {token}"
-    times, errors = [], 0
-    for number in itertools.count():
-        if until.is_set() if until is not None else number == len(ids):
-            break
-        sent = time.perf_counter()
-        answer = session.get(f"{url}/api/v1/records/{ids[number % len(ids)]}/content/", timeout=60)
-        times.append((time.perf_counter() - sent) * 1000)
-        errors += answer.status_code != 200
-    session.close()
+def _views(url: str, token: str, ids: list[str], name: str) -> dict[str, Any]:
+    """Each of `ids` viewed once, one after another (view_times): p50, p95 and mean in ms."""
+    times, failed = view_times(url, token, ids)
+    return view_figures(times, len(failed), name)
+
+
+def view_figures(times: list[float], errors: int, name: str) -> dict[str, Any]:
+    """What a row says of views (view_times) named `name`: count, p50, p95, mean, errors."""
     stats = summarize(times)
     return {
         f"view_{name}_count": len(times),
@@ -421,22 +426,70 @@ def _views(
     }
 
 
+def view_times(
+    url: str, token: str, ids: list[str], *, until: threading.Event | None = None
+) -> tuple[list[float], list[str]]:
+    """Verified views one after another, `GET /api/v1/records/{id}/content/` with the owner's
+    token: each of `ids` once or, with `until`, round and round them until it is set. The
+    milliseconds of each, in the order viewed, and the ids of the views not answered 200."""
+    session = requests.Session()
+    session.headers["Authorization"] = f"Token {token}"
+    times, failed = [], []
+    for number in itertools.count():
+        if until.is_set() if until is not None else number == len(ids):
+            break
+        viewed = ids[number % len(ids)]
+        sent = time.perf_counter()
+        answer = session.get(f"{url}/api/v1/records/{viewed}/content/", timeout=60)
+        times.append((time.perf_counter() - sent) * 1000)
+        if answer.status_code != 200:
+            failed.append(viewed)
+    session.close()
+    return times, failed
+
+
 def _under_load(
     stack: BenchStack, run: RootsRun, client: Client, token: str, owner: Any
 ) -> dict[str, Any]:
-    """Views one after another while `client` uploads 100 records/s (10 per POST every
-    0.1 s) for run.load_seconds; and the anchoring latency of those uploads."""
+    """Views of the owner's records while `client` uploads 100 records/s (views_under_load);
+    and the anchoring latency of those uploads."""
+    times, failed, phase = views_under_load(
+        stack,
+        client,
+        token,
+        _anchored_ids(owner, 2000),
+        seconds=run.load_seconds,
+        timeout=run.timeout,
+    )
+    return view_figures(times, len(failed), "load") | {
+        "load_uploaded": phase.get("uploaded"),
+        "load_latency_p95_s": phase.get("latency_p95_s"),
+    }
+
+
+def views_under_load(
+    stack: BenchStack,
+    client: Client,
+    token: str,
+    ids: list[str],
+    *,
+    seconds: float,
+    timeout: float,
+) -> tuple[list[float], list[str], dict[str, Any]]:
+    """Views of `ids` round and round, one after another (view_times), while `client` uploads
+    100 records/s (10 per POST every 0.1 s) for `seconds`: the views' milliseconds, the ids of
+    those not answered 200, and the upload phase's figures (upload_phase)."""
     posted = threading.Event()
     phase: dict[str, Any] = {}
 
     def upload() -> None:
         phase.update(
-            _upload_phase(
+            upload_phase(
                 stack,
-                run,
                 [client],
-                seconds=run.load_seconds,
+                seconds=seconds,
                 rate=100.0,
+                timeout=timeout,
                 per_post=10,
                 posted=posted,
             )
@@ -444,12 +497,9 @@ def _under_load(
 
     uploader = threading.Thread(target=upload)
     uploader.start()
-    views = _views(stack.web_url, token, _anchored_ids(owner, 2000), "load", until=posted)
+    times, failed = view_times(stack.web_url, token, ids, until=posted)
     uploader.join()
-    return views | {
-        "load_uploaded": phase.get("uploaded"),
-        "load_latency_p95_s": phase.get("latency_p95_s"),
-    }
+    return times, failed, phase
 
 
 def _limits(robot_key: tuple[Any, bytes]) -> dict[str, Any]:

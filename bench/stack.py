@@ -36,6 +36,7 @@ import sys
 import tempfile
 import time
 from collections import Counter
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import IO, Any, LiteralString, Protocol
@@ -364,6 +365,18 @@ class BenchStack:
             used[role] = total
         return used
 
+    def wait_for(
+        self, done: Callable[[], bool], what: str, timeout: float = REGISTRATION_TIMEOUT
+    ) -> None:
+        """Ask `done` every POLL_INTERVAL until it says yes; RuntimeError("<what> after ...",
+        with the logs' last lines) once `timeout` seconds passed, or as soon as the stack exited."""
+        deadline = time.monotonic() + timeout
+        while not done():
+            self.check_alive()
+            if time.monotonic() > deadline:
+                raise RuntimeError(f"{what} after {timeout:.0f}s:\n{self.log_tail()}")
+            time.sleep(POLL_INTERVAL)
+
     def check_alive(self) -> None:
         """RuntimeError if the stack exited (it does when any of its processes does)."""
         if self.process is not None and self.process.poll() is not None:
@@ -473,16 +486,12 @@ def owners_register(stack: BenchStack, owners: int) -> list[tuple[Any, bytes]]:
         )
         robot, _token = robot_create(owner=owner, name="bench-robot")
         robots.append((robot, key))
-    deadline = time.monotonic() + REGISTRATION_TIMEOUT
     with progress_bar(owners, "owners registered", unit="owner") as progress:
-        while True:
+
+        def registered() -> bool:
             confirmed = Owner.objects.filter(chain_state=ChainState.CONFIRMED).count()
             progress.update(confirmed - progress.n)
-            if confirmed == owners:
-                return robots
-            stack.check_alive()
-            if time.monotonic() > deadline:
-                raise RuntimeError(
-                    f"owners not registered after {REGISTRATION_TIMEOUT:.0f}s:\n{stack.log_tail()}"
-                )
-            time.sleep(POLL_INTERVAL)
+            return confirmed == owners
+
+        stack.wait_for(registered, "owners not registered")
+    return robots
