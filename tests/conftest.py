@@ -234,25 +234,55 @@ def worker_stack(tmp_path, settings, request):
 
 
 @pytest.fixture
-def make_paired_robot(make_owner, django_capture_on_commit_callbacks):
-    """An owner (registered on chain) with one robot paired as the agent pairs (its SM2 key
-    pair made here, the request approved by the owner, its key registered on chain inline);
-    its envelopes are signed."""
+def on_commit(django_capture_on_commit_callbacks):
+    """Run `action`; the work it queues on commit (chain work included) runs inline."""
 
-    def make(username: str | None = None) -> RobotSetup:
-        key = sm4.generate_key()
-        owner = make_owner(username, key=key)
+    def run(action):
+        with django_capture_on_commit_callbacks(execute=True):
+            return action()
+
+    return run
+
+
+@dataclass(frozen=True)
+class PairedRobot:
+    robot: Robot
+    token: str
+    signing_key: tuple[str, str]  # its SM2 key pair (private, public hex)
+
+
+@pytest.fixture
+def pair_robot(django_capture_on_commit_callbacks):
+    """Pair a robot of `owner` as the agent pairs: its SM2 key pair made here, its request
+    approved by the owner, its key registered on chain inline. `delivered=False`: the message
+    queueing the key's registration is lost."""
+
+    def pair(owner: Owner, *, delivered: bool = True) -> PairedRobot:
         private_key, public_key = sm2.generate_keypair()
         pairing, _secret = robot_pairing_request(
             name=f"robot-{uuid.uuid4().hex[:6]}", public_key=public_key
         )
-        with django_capture_on_commit_callbacks(execute=True):
+        with django_capture_on_commit_callbacks(execute=delivered):
             pairing = robot_pairing_answer(
                 owner=owner, code=pairing.code, approve=True, actor=owner.user
             )
         token = sm2.decrypt(private_key, pairing.token_sm2).decode("ascii")
         robot = Robot.objects.get(pk=pairing.robot_id)
-        return RobotSetup(owner, key, robot, token, signing_key=(private_key, public_key))
+        return PairedRobot(robot, token, (private_key, public_key))
+
+    return pair
+
+
+@pytest.fixture
+def make_paired_robot(make_owner, pair_robot):
+    """An owner (registered on chain) with one robot paired as the agent pairs
+    (`pair_robot`); its envelopes are signed."""
+
+    def make(username: str | None = None) -> RobotSetup:
+        key = sm4.generate_key()
+        owner = make_owner(username, key=key)
+        paired = pair_robot(owner)
+        return RobotSetup(owner, key, paired.robot, paired.token, paired.signing_key)
 
     return make
 

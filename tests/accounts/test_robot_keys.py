@@ -8,7 +8,6 @@ Tasks run inline (Celery eager). "Lost blocks" are the test node's snapshots rev
 """
 
 import hashlib
-import uuid
 from datetime import UTC, datetime
 
 import pytest
@@ -17,7 +16,6 @@ from django.core.management import call_command
 from accounts.models import ChainState, Owner, Robot
 from accounts.selectors import owner_eoa_account
 from accounts.services.owners import owner_close
-from accounts.services.pairing import robot_pairing_answer, robot_pairing_request
 from accounts.services.registration import chain_work_sweep, owner_register_on_chain
 from accounts.services.robot_keys import robot_key_register_on_chain, robot_key_revoke_on_chain
 from accounts.services.robots import robot_create, robot_token_revoke
@@ -26,41 +24,9 @@ from chainworker.work import ChainWorkNotReady
 from sharing.anchoring import records_anchor
 from sharing.models import Record
 from sharing.reconcile import chain_reconcile
-from smcrypto import sm2
 from smcrypto.sm3 import sm3_hex
 
 pytestmark = pytest.mark.django_db
-
-
-@pytest.fixture
-def on_commit(django_capture_on_commit_callbacks):
-    """Run `action`; the chain work it queues on commit runs inline."""
-
-    def run(action):
-        with django_capture_on_commit_callbacks(execute=True):
-            return action()
-
-    return run
-
-
-@pytest.fixture
-def pair(django_capture_on_commit_callbacks):
-    """Pair a robot by its own SM2 key (its request approved by the owner, as in
-    tests/api/test_pairing.py). `delivered=False`: the message queueing its key's registration
-    is lost."""
-
-    def make(owner: Owner, *, delivered: bool = True) -> Robot:
-        _private_key, public_key = sm2.generate_keypair()
-        request, _secret = robot_pairing_request(
-            name=f"arm-{uuid.uuid4().hex[:6]}", public_key=public_key
-        )
-        with django_capture_on_commit_callbacks(execute=delivered):
-            pairing = robot_pairing_answer(
-                owner=owner, code=request.code, approve=True, actor=owner.user
-            )
-        return Robot.objects.get(pk=pairing.robot_id)
-
-    return make
 
 
 def _key(robot: Robot) -> bytes:
@@ -106,9 +72,9 @@ def _assert_on_chain(robot: Robot, *, revoked: bool = False) -> None:
 # --- adding and revoking -----------------------------------------------------------------
 
 
-def test_approving_a_pairing_registers_the_robots_key_from_the_owners_eoa(make_owner, pair):
+def test_approving_a_pairing_registers_the_robots_key_from_the_owners_eoa(make_owner, pair_robot):
     owner = make_owner("alice")
-    robot = pair(owner)
+    robot = pair_robot(owner).robot
     assert robot.key_hash == sm3_hex(_public_key_xy(robot))
     _assert_on_chain(robot)
     client = chain_services.chain_client()
@@ -128,27 +94,27 @@ def test_a_robot_added_by_hand_has_no_key_on_chain(make_owner, on_commit):
     assert chain_services.chain_client().events(names=["RobotKeyAdded", "RobotKeyRevoked"]) == []
 
 
-def test_unpairing_revokes_the_key_on_chain(make_owner, pair, on_commit):
+def test_unpairing_revokes_the_key_on_chain(make_owner, pair_robot, on_commit):
     owner = make_owner("alice")
-    robot = pair(owner)
+    robot = pair_robot(owner).robot
     on_commit(lambda: robot_token_revoke(robot=robot, actor=owner.user))
     _assert_on_chain(robot, revoked=True)
     on_chain = chain_services.chain_client().robot_key_of(_key(robot))
     assert on_chain.revoked_block > on_chain.added_block
 
 
-def test_closing_the_account_revokes_its_robots_keys_on_chain(make_owner, pair, on_commit):
+def test_closing_the_account_revokes_its_robots_keys_on_chain(make_owner, pair_robot, on_commit):
     owner = make_owner("alice")
-    robots = [pair(owner), pair(owner)]
+    robots = [pair_robot(owner).robot, pair_robot(owner).robot]
     on_commit(lambda: owner_close(owner=owner, actor=owner.user))
     for robot in robots:
         _assert_on_chain(robot, revoked=True)
 
 
-def test_a_key_waits_for_its_owners_registration(make_owner, pair):
+def test_a_key_waits_for_its_owners_registration(make_owner, pair_robot):
     owner = make_owner("alice")
     Owner.objects.filter(pk=owner.pk).update(chain_state=ChainState.PENDING)
-    robot = pair(owner, delivered=False)
+    robot = pair_robot(owner, delivered=False).robot
     assert robot.key_chain_state == ChainState.PENDING
     with pytest.raises(ChainWorkNotReady, match="not registered on chain yet"):
         robot_key_register_on_chain(robot_id=robot.pk)
@@ -158,11 +124,11 @@ def test_a_key_waits_for_its_owners_registration(make_owner, pair):
     _assert_on_chain(robot)
 
 
-def test_a_key_on_chain_already_as_this_owners_counts_as_added(make_owner, pair):
+def test_a_key_on_chain_already_as_this_owners_counts_as_added(make_owner, pair_robot):
     """A run whose answer was lost: robotKeyAdd is refused with RobotKeyExists, and robotKeyOf
     shows the owner's live key."""
     owner = make_owner("alice")
-    robot = pair(owner, delivered=False)
+    robot = pair_robot(owner, delivered=False).robot
     client = chain_services.chain_client()
     added = client.robot_key_add(owner_eoa_account(owner), _key(robot), _public_key_xy(robot))
     robot_key_register_on_chain(robot_id=robot.pk)
@@ -170,9 +136,9 @@ def test_a_key_on_chain_already_as_this_owners_counts_as_added(make_owner, pair)
     assert robot.key_added_block == added.block_number
 
 
-def test_a_key_another_owner_added_fails(make_owner, pair):
+def test_a_key_another_owner_added_fails(make_owner, pair_robot):
     owner, mallory = make_owner("alice"), make_owner("mallory")
-    robot = pair(owner, delivered=False)
+    robot = pair_robot(owner, delivered=False).robot
     client = chain_services.chain_client()
     client.robot_key_add(owner_eoa_account(mallory), _key(robot), _public_key_xy(robot))
     robot = robot_key_register_on_chain(robot_id=robot.pk)
@@ -180,10 +146,10 @@ def test_a_key_another_owner_added_fails(make_owner, pair):
     assert client.robot_key_of(_key(robot)).owner == mallory.eoa_address
 
 
-def test_a_key_revoked_before_fails_for_a_robot_paired_again_with_it(make_owner, pair):
+def test_a_key_revoked_before_fails_for_a_robot_paired_again_with_it(make_owner, pair_robot):
     """The chain adds a key once: a robot paired with a key revoked on chain cannot sign."""
     owner = make_owner("alice")
-    robot = pair(owner, delivered=False)
+    robot = pair_robot(owner, delivered=False).robot
     client = chain_services.chain_client()
     account = owner_eoa_account(owner)
     client.robot_key_add(account, _key(robot), _public_key_xy(robot))
@@ -192,20 +158,22 @@ def test_a_key_revoked_before_fails_for_a_robot_paired_again_with_it(make_owner,
     assert robot.key_chain_state == ChainState.FAILED
 
 
-def test_a_key_waits_while_the_chain_lost_its_owners_registration(make_owner, pair, blocks_lost):
+def test_a_key_waits_while_the_chain_lost_its_owners_registration(
+    make_owner, pair_robot, blocks_lost
+):
     with blocks_lost():
         owner = make_owner("alice")
     assert owner.chain_state == ChainState.CONFIRMED  # what the portal believes
-    robot = pair(owner, delivered=False)
+    robot = pair_robot(owner, delivered=False).robot
     with pytest.raises(ChainWorkNotReady, match="not registered on this chain"):
         robot_key_register_on_chain(robot_id=robot.pk)
     robot.refresh_from_db()
     assert robot.key_chain_state == ChainState.PENDING
 
 
-def test_a_revocation_waits_for_the_key(make_owner, pair, on_commit):
+def test_a_revocation_waits_for_the_key(make_owner, pair_robot, on_commit):
     owner = make_owner("alice")
-    robot = pair(owner, delivered=False)
+    robot = pair_robot(owner, delivered=False).robot
     on_commit(lambda: robot_token_revoke(robot=robot, actor=owner.user))
     robot.refresh_from_db()
     assert (robot.key_chain_state, robot.key_revoke_state) == ("pending", "pending")
@@ -217,9 +185,9 @@ def test_a_revocation_waits_for_the_key(make_owner, pair, on_commit):
     _assert_on_chain(robot, revoked=True)
 
 
-def test_a_key_revoked_on_chain_already_counts_as_revoked(make_owner, pair, on_commit):
+def test_a_key_revoked_on_chain_already_counts_as_revoked(make_owner, pair_robot, on_commit):
     owner = make_owner("alice")
-    robot = pair(owner)
+    robot = pair_robot(owner).robot
     chain_services.chain_client().robot_key_revoke(owner_eoa_account(owner), _key(robot))
     on_commit(lambda: robot_token_revoke(robot=robot, actor=owner.user))
     _assert_on_chain(robot, revoked=True)
@@ -227,23 +195,23 @@ def test_a_key_revoked_on_chain_already_counts_as_revoked(make_owner, pair, on_c
 
 
 def test_a_key_the_chain_lost_is_added_again_before_its_revocation(
-    make_owner, pair, on_commit, blocks_lost
+    make_owner, pair_robot, on_commit, blocks_lost
 ):
     """robotKeyRevoke refused with RobotKeyUnknown: the key goes back to pending and is added
     again, which queues the revocation."""
     owner = make_owner("alice")
     with blocks_lost():
-        robot = pair(owner)
+        robot = pair_robot(owner).robot
         _assert_on_chain(robot)
     on_commit(lambda: robot_token_revoke(robot=robot, actor=owner.user))
     _assert_on_chain(robot, revoked=True)
 
 
-def test_a_key_another_eoa_added_cannot_be_revoked(make_owner, pair, on_commit):
+def test_a_key_another_eoa_added_cannot_be_revoked(make_owner, pair_robot, on_commit):
     """The portal holds the key as confirmed while the chain names another owner (a database
     restored over another chain's state): NotRobotKeyOwner fails the revocation."""
     owner, mallory = make_owner("alice"), make_owner("mallory")
-    robot = pair(owner, delivered=False)
+    robot = pair_robot(owner, delivered=False).robot
     client = chain_services.chain_client()
     client.robot_key_add(owner_eoa_account(mallory), _key(robot), _public_key_xy(robot))
     Robot.objects.filter(pk=robot.pk).update(key_chain_state=ChainState.CONFIRMED)
@@ -258,11 +226,11 @@ def test_a_key_another_eoa_added_cannot_be_revoked(make_owner, pair, on_commit):
 
 @pytest.mark.parametrize("mode", ["records", "root"])
 def test_records_signed_by_a_key_not_on_chain_wait_and_go_once_it_is(
-    make_owner, pair, on_commit, settings, mode
+    make_owner, pair_robot, on_commit, settings, mode
 ):
     settings.ANCHOR_MODE = mode
     owner = make_owner("alice")
-    robot = pair(owner, delivered=False)
+    robot = pair_robot(owner, delivered=False).robot
     by_hand, _token = robot_create(owner=owner, name="by-hand")
     signed, unsigned = _record(robot, 1), _record(by_hand, 1, signed=False)
 
@@ -283,11 +251,11 @@ def test_records_signed_by_a_key_not_on_chain_wait_and_go_once_it_is(
     assert chain_services.chain_client().robot_key_of(_key(robot)).live_at(signed.block_number)
 
 
-def test_a_revocation_waits_for_the_records_its_key_signed(make_owner, pair, on_commit):
+def test_a_revocation_waits_for_the_records_its_key_signed(make_owner, pair_robot, on_commit):
     """A key revoked at or before a record's anchoring block would leave the record not
     genuine: the revocation goes once the records are anchored."""
     owner = make_owner("alice")
-    robot = pair(owner)
+    robot = pair_robot(owner).robot
     record = _record(robot, 1)
     on_commit(lambda: robot_token_revoke(robot=robot, actor=owner.user))
     robot.refresh_from_db()
@@ -308,14 +276,14 @@ def test_a_revocation_waits_for_the_records_its_key_signed(make_owner, pair, on_
 
 
 def test_the_sweep_queues_again_keys_and_revocations_whose_message_was_lost(
-    make_owner, pair, django_capture_on_commit_callbacks, settings
+    make_owner, pair_robot, django_capture_on_commit_callbacks, settings
 ):
     settings.ANCHOR_STALE_AFTER = 0
     # Owners of their own: a key's confirmation also queues its owner's waiting revocations.
     alice, carol, waiting = make_owner("alice"), make_owner("carol"), make_owner("bob")
     Owner.objects.filter(pk=waiting.pk).update(chain_state=ChainState.PENDING)
-    robot, unpaired = pair(alice, delivered=False), pair(carol)
-    pair(waiting, delivered=False)  # waits for its owner's registration: not queued
+    robot, unpaired = pair_robot(alice, delivered=False).robot, pair_robot(carol).robot
+    pair_robot(waiting, delivered=False)  # waits for its owner's registration: not queued
     with django_capture_on_commit_callbacks(execute=False):  # lost too
         robot_token_revoke(robot=unpaired, actor=carol.user)
 
@@ -328,12 +296,12 @@ def test_the_sweep_queues_again_keys_and_revocations_whose_message_was_lost(
 
 
 def test_keys_and_revocations_the_chain_lost_are_sent_again(
-    make_owner, pair, on_commit, blocks_lost
+    make_owner, pair_robot, on_commit, blocks_lost
 ):
     owner = make_owner("alice")
-    unpaired = pair(owner)
+    unpaired = pair_robot(owner).robot
     with blocks_lost():
-        robot = pair(owner)
+        robot = pair_robot(owner).robot
         on_commit(lambda: robot_token_revoke(robot=unpaired, actor=owner.user))
         _assert_on_chain(robot)
         _assert_on_chain(unpaired, revoked=True)
@@ -368,13 +336,13 @@ def _records_on_chain(records: list[Record]) -> None:
 @pytest.mark.parametrize("mode", ["records", "root"])
 @pytest.mark.parametrize("how", ["reconcile", "chain_resync"])
 def test_after_a_chain_reset_keys_are_added_and_revoked_again_around_their_records(
-    make_owner, pair, on_commit, fresh_chain, settings, mode, how
+    make_owner, pair_robot, on_commit, fresh_chain, settings, mode, how
 ):
     """Every key is added again before the records it signed are anchored again, and a
     revoked key revoked again only after them: each record still verifies as signed."""
     settings.ANCHOR_MODE = mode
     owner = make_owner("alice")
-    robot, unpaired = pair(owner), pair(owner)
+    robot, unpaired = pair_robot(owner).robot, pair_robot(owner).robot
     by_hand, _token = robot_create(owner=owner, name="by-hand")
     records = [_record(robot, 1), _record(unpaired, 1), _record(by_hand, 1, signed=False)]
     _anchor(owner, on_commit)

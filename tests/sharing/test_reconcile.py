@@ -24,15 +24,6 @@ from smcrypto import sm4
 pytestmark = [pytest.mark.django_db, pytest.mark.usefixtures("records_mode")]
 
 
-@pytest.fixture
-def on_commit(django_capture_on_commit_callbacks):
-    def run(action):
-        with django_capture_on_commit_callbacks(execute=True):
-            return action()
-
-    return run
-
-
 def _uploaded_ids(client) -> Counter:
     return Counter(
         bytes32_to_record_id(event.args["id"]) for event in client.events(names=["DataUploaded"])
