@@ -10,11 +10,13 @@ accounts imports none of them.
 """
 
 import logging
+import uuid
 from collections.abc import Callable, Sequence
 from datetime import timedelta
 
 from django.conf import settings
 from django.db import transaction
+from django.db.models import QuerySet
 from django.utils import timezone
 
 from accounts.errors import IdentityMismatch
@@ -160,48 +162,40 @@ def chain_work_sweep() -> dict[str, int]:
     waiting for the funding budget); their tasks are idempotent. Sign-ups awaiting or refused
     an operator's approval stay put."""
     cutoff = timezone.now() - timedelta(seconds=settings.ANCHOR_STALE_AFTER)
-    registrations = list(
-        Owner.objects.filter(
-            chain_state=ChainState.PENDING, created_at__lt=cutoff, approval=Approval.APPROVED
-        ).values_list("pk", flat=True)
+    registrations = Owner.objects.filter(
+        chain_state=ChainState.PENDING, created_at__lt=cutoff, approval=Approval.APPROVED
     )
-    for owner_id in registrations:
-        enqueue("accounts.tasks.owner_register", owner_id)
-    keys = list(
-        OwnerKey.objects.filter(
-            chain_state=ChainState.PENDING,
-            created_at__lt=cutoff,
-            owner__chain_state=ChainState.CONFIRMED,
-        ).values_list("pk", flat=True)
+    keys = OwnerKey.objects.filter(
+        chain_state=ChainState.PENDING,
+        created_at__lt=cutoff,
+        owner__chain_state=ChainState.CONFIRMED,
     )
-    for key_pk in keys:
-        enqueue("accounts.tasks.key_rotate", key_pk)
-    robot_keys = list(
-        Robot.objects.filter(
-            key_chain_state=ChainState.PENDING,
-            paired_at__lt=cutoff,
-            owner__chain_state=ChainState.CONFIRMED,
-        ).values_list("pk", flat=True)
+    robot_keys = Robot.objects.filter(
+        key_chain_state=ChainState.PENDING,
+        paired_at__lt=cutoff,
+        owner__chain_state=ChainState.CONFIRMED,
     )
-    for robot_id in robot_keys:
-        enqueue("accounts.tasks.robot_key_register", str(robot_id))
     # A revocation also waits for the records its key signed (robot_key_revoke_on_chain).
-    revocations = list(
-        Robot.objects.filter(
-            key_revoke_state=ChainState.PENDING,
-            key_chain_state=ChainState.CONFIRMED,
-            revoked_at__lt=cutoff,
-        ).values_list("pk", flat=True)
+    revocations = Robot.objects.filter(
+        key_revoke_state=ChainState.PENDING,
+        key_chain_state=ChainState.CONFIRMED,
+        revoked_at__lt=cutoff,
     )
-    for robot_id in revocations:
-        enqueue("accounts.tasks.robot_key_revoke", str(robot_id))
     return {
-        "registrations": len(registrations),
-        "keys": len(keys),
-        "robot_keys": len(robot_keys),
-        "robot_key_revocations": len(revocations),
+        "registrations": _queue_again("accounts.tasks.owner_register", registrations),
+        "keys": _queue_again("accounts.tasks.key_rotate", keys),
+        "robot_keys": _queue_again("accounts.tasks.robot_key_register", robot_keys),
+        "robot_key_revocations": _queue_again("accounts.tasks.robot_key_revoke", revocations),
         "top_ups": gas_sweep(),
     }
+
+
+def _queue_again(task_name: str, rows: QuerySet) -> int:
+    """Queue `task_name` for each of these rows, by primary key (a robot's as text); how many."""
+    pks = list(rows.values_list("pk", flat=True))
+    for pk in pks:
+        enqueue(task_name, str(pk) if isinstance(pk, uuid.UUID) else pk)
+    return len(pks)
 
 
 def owners_reconcile(*, owners: Sequence[Owner]) -> dict[str, int]:
