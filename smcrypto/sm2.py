@@ -75,11 +75,16 @@ def encrypt(public_key_hex: str, data: bytes) -> str:
     key = _public_key(_parse_public_key(public_key_hex))
     if not data:
         raise CryptoError("SM2 cannot encrypt an empty message")
-    der = _pkey_crypt(key, bytes(data), encrypt=True)
-    if der is None:
-        raise CryptoError("SM2 encryption failed in Tongsuo")
-    x, y, c3, c2 = _ciphertext_from_der(der)
-    return f"{x:064x}{y:064x}" + c3.hex() + c2.hex()
+    while True:
+        der = _pkey_crypt(key, bytes(data), encrypt=True)
+        if der is None:
+            raise CryptoError("SM2 encryption failed in Tongsuo")
+        x, y, c3, c2 = _ciphertext_from_der(der)
+        # GB/T 32918.4 A5: a key stream t of zeros (C2 = M ^ t equal to M) starts over with a
+        # new k. Tongsuo does not, and decryptors that follow the standard (gmssl) refuse such
+        # a ciphertext: one in 256 of one-byte messages.
+        if c2 != data:
+            return f"{x:064x}{y:064x}" + c3.hex() + c2.hex()
 
 
 def decrypt(private_key_hex: str, ciphertext_hex: str) -> bytes:

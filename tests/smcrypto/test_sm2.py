@@ -217,6 +217,28 @@ def test_one_byte_messages_round_trip_and_gmssl_reads_them() -> None:
         assert _gmssl(private, public).decrypt(bytes.fromhex(ciphertext)) == bytes([value])
 
 
+def test_a_key_stream_of_zeros_starts_over_with_a_new_k(monkeypatch) -> None:
+    """GB/T 32918.4 A5: Tongsuo hands back C2 = M when the KDF gives zeros; encrypt asks again,
+    so that standard decryptors (gmssl refuses it) read every ciphertext."""
+    real = sm2._pkey_crypt
+    answers = []
+
+    def zero_key_stream_first(key, data, *, encrypt):
+        der = real(key, data, encrypt=encrypt)
+        if not answers:
+            x, y, c3, _c2 = sm2._ciphertext_from_der(der)
+            der = sm2._ciphertext_to_der(x, y, c3, data)  # as if t were all zeros
+        answers.append(der)
+        return der
+
+    monkeypatch.setattr(sm2, "_pkey_crypt", zero_key_stream_first)
+    private, public = sm2.generate_keypair()
+    ciphertext = sm2.encrypt(public, b"\xd7")
+    assert len(answers) >= 2  # asked again (a third time, one run in 256)
+    assert ciphertext[-2:] != "d7"
+    assert sm2.decrypt(private, ciphertext) == b"\xd7"
+
+
 def test_tampered_ciphertext_is_decryption_error_where_gmssl_returns_garbage() -> None:
     private, public = sm2.generate_keypair()
     ciphertext = bytearray.fromhex(sm2.encrypt(public, b"attack at dawn"))
