@@ -25,7 +25,7 @@ from accounts.identity import owner_identity_check
 from accounts.models import Owner, OwnerKey, OwnerToken
 from accounts.selectors import owner_key_by_id, owner_key_bytes, owner_key_current
 from alerts.services import record_tampered_alert
-from chainworker.chain import AuthROSChain
+from chainworker.chain import AuthROSChain, RobotKeyOnChain
 from chainworker.services import chain_client, chain_head
 from core.outbox import dispatch
 from sharing.cache import envelope_cache_evict, envelope_fetch
@@ -129,12 +129,14 @@ def records_verify(
     """
     _credential_check(credential, token_id)
     wanted = [uuid.UUID(str(record_id)) for record_id in record_ids]
-    found = Record.objects.select_related("owner", "anchor_root").in_bulk(wanted)
+    # The robot too: a signed record's check reads its public key.
+    found = Record.objects.select_related("owner", "anchor_root", "robot").in_bulk(wanted)
     records = [found[record_id] for record_id in wanted if record_id in found]
     viewer = Owner.objects.get(pk=viewer_id)
     client = chain_client()
     block = chain_head(client)
     grants: dict[int, Grant | None] = {}  # per owner: the grant checked on chain, if it holds
+    robot_keys: dict[str, RobotKeyOnChain] = {}  # per signer: robotKeyOf, asked once
     identified: set[int] = set()
     checked: list[tuple[dict[str, object], bytes | None]] = []
     for record in records:
@@ -147,7 +149,7 @@ def records_verify(
             if record.owner_id not in identified:
                 owner_identity_check(owner=record.owner)
                 identified.add(record.owner_id)
-            checked.append(_digest_check(record, viewer, client))
+            checked.append(_digest_check(record, viewer, client, robot_keys))
         else:
             checked.append(({"outcome": Verdict.Outcome.NO_ACCESS}, None))
     verdicts = Verdict.objects.bulk_create(
@@ -183,12 +185,18 @@ def _verdict_block(head: int, record: Record) -> int:
 
 
 def _digest_check(
-    record: Record, viewer: Owner, client: AuthROSChain
+    record: Record,
+    viewer: Owner,
+    client: AuthROSChain,
+    robot_keys: dict[str, RobotKeyOnChain] | None = None,
 ) -> tuple[dict[str, object], bytes | None]:
     """The stored envelope's SM3 digest against the chain's, then its robot signature: the
-    verdict's fields, and the bytes checked when both hold."""
+    verdict's fields, and the bytes checked when both hold. `robot_keys` keeps the chain's
+    answer per signer across the records of one run."""
     fields, data = _anchored_check(record, viewer, client)
-    if data is None or _provenance_holds(record, data, client):
+    if data is None or _provenance_holds(
+        record, data, client, {} if robot_keys is None else robot_keys
+    ):
         return fields, data
     security_log.error(
         "record %s is anchored but its robot signature does not hold (signer %r)",
@@ -198,7 +206,9 @@ def _digest_check(
     return {**fields, "outcome": Verdict.Outcome.SIGNATURE_REFUSED}, None
 
 
-def _provenance_holds(record: Record, data: bytes, client: AuthROSChain) -> bool:
+def _provenance_holds(
+    record: Record, data: bytes, client: AuthROSChain, robot_keys: dict[str, RobotKeyOnChain]
+) -> bool:
     """DESIGN.md "Provenance": the anchored envelope names the signer the record was stored
     with; a signed record's key is its owner's on chain (robotKeyOf), added at or before the
     record's anchoring block and not revoked by then, hashes to `signer`, and its signature
@@ -210,7 +220,9 @@ def _provenance_holds(record: Record, data: bytes, client: AuthROSChain) -> bool
         return False
     if not signer:
         return True
-    on_chain = client.robot_key_of(bytes.fromhex(signer))
+    if signer not in robot_keys:
+        robot_keys[signer] = client.robot_key_of(bytes.fromhex(signer))
+    on_chain = robot_keys[signer]
     public_key = record.robot.public_key
     return (
         on_chain.owner is not None

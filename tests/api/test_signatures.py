@@ -15,7 +15,7 @@ from sharing import services as sharing_services
 from sharing.errors import IntegrityCheckFailed
 from sharing.models import Record, SecurityEvent, Verdict
 from sharing.services import grant_create, record_create
-from sharing.verification import record_open, record_verify
+from sharing.verification import record_open, record_verify, records_verify
 from smcrypto import envelope, provenance, sm2
 from tests.api.conftest import RECORDS, Snapshot, token_client
 
@@ -208,3 +208,18 @@ def test_a_robot_whose_key_could_not_be_registered_is_refused(make_paired_robot,
     assert (response.status_code, response.json()["error"]) == (403, "signature_refused")
     assert "pair the robot again" in response.json()["detail"]
     assert before.unchanged()
+
+
+def test_a_run_over_many_records_of_one_robot_asks_the_chain_for_its_key_once(
+    make_paired_robot, upload, deployed, monkeypatch
+):
+    setup = make_paired_robot("alice")
+    envelopes = [setup.seal(seq) for seq in range(1, 4)]
+    assert upload(token_client(setup.token), *envelopes).status_code == 201
+    asked = []
+    real = deployed.robot_key_of
+    monkeypatch.setattr(deployed, "robot_key_of", lambda key: asked.append(key) or real(key))
+    ids = list(Record.objects.values_list("pk", flat=True))
+    verifications = records_verify(record_ids=ids, viewer_id=setup.owner.pk)
+    assert [v.verdict.outcome for v in verifications] == [Verdict.Outcome.VERIFIED] * 3
+    assert asked == [bytes.fromhex(setup.robot.key_hash)]
