@@ -1,12 +1,10 @@
 """The endpoint browsers report Content-Security-Policy violations to (portal.csp).
 
-Browsers send what they blocked both as `report-uri` (one JSON object,
-`application/csp-report`) and as `report-to` (the Reporting API: a list,
-`application/reports+json`). A report is anybody's input: it is read up to
-CSP_REPORT_MAX_BYTES, at most CSP_REPORTS_PER_REQUEST of a list, each field cut to
-CSP_REPORT_FIELD_CHARS printable characters with query strings and fragments dropped (they
-could carry a token), logged at WARNING, and counted per client address (the "csp_report" API
-rate). Junk is a 400 or 413, never a 500.
+Browsers POST what they blocked, one violation a request, as `report-uri` asks (a JSON object
+`{"csp-report": {...}}`, `application/csp-report`). A report is anybody's input: it is read up
+to CSP_REPORT_MAX_BYTES, each field cut to CSP_REPORT_FIELD_CHARS printable characters with
+query strings and fragments dropped (they could carry a token), logged at WARNING, and counted
+per client address (the "csp_report" API rate). Junk is a 400 or 413, never a 500.
 """
 
 import json
@@ -27,40 +25,26 @@ from accounts.authentication import AnonRateThrottle
 logger = logging.getLogger(__name__)
 
 CSP_REPORT_MAX_BYTES = 16 * 1024
-CSP_REPORTS_PER_REQUEST = 10
 CSP_REPORT_FIELD_CHARS = 200
 
-# What is logged of a report, by its name in `report-uri` bodies and in Reporting API bodies.
+# What is logged of a report: its field, or the first of its fields that the report has.
 _FIELDS = {
-    "document": ("document-uri", "documentURL"),
-    "directive": ("effective-directive", "effectiveDirective", "violated-directive"),
-    "blocked": ("blocked-uri", "blockedURL"),
-    "source": ("source-file", "sourceFile"),
-    "line": ("line-number", "lineNumber"),
-    "sample": ("script-sample", "sample"),
+    "document": ("document-uri",),
+    "directive": ("effective-directive", "violated-directive"),
+    "blocked": ("blocked-uri",),
+    "source": ("source-file",),
+    "line": ("line-number",),
+    "sample": ("script-sample",),
 }
 _URI_FIELDS = ("document", "blocked", "source")
 
 
-def csp_reports_read(body: object) -> list[dict[str, str]]:
-    """The violations a report body holds, sanitised: a `report-uri` object
-    ({"csp-report": {...}}) or a Reporting API list ([{"type": "csp-violation", "body":
-    {...}}, ...]), at most CSP_REPORTS_PER_REQUEST. Raises ValueError for anything else."""
-    if isinstance(body, Mapping) and isinstance(body.get("csp-report"), Mapping):
-        raw = [body["csp-report"]]
-    elif isinstance(body, list) and body:
-        raw = [
-            item["body"]
-            for item in body[:CSP_REPORTS_PER_REQUEST]
-            if isinstance(item, Mapping)
-            and item.get("type") == "csp-violation"
-            and isinstance(item.get("body"), Mapping)
-        ]
-    else:
-        raw = []
-    if not raw:
+def csp_report_read(body: object) -> dict[str, str]:
+    """The violation a `report-uri` body ({"csp-report": {...}}) holds, sanitised. Raises
+    ValueError for anything else."""
+    if not (isinstance(body, Mapping) and isinstance(body.get("csp-report"), Mapping)):
         raise ValueError("no Content-Security-Policy violation report in the body")
-    return [_violation(report) for report in raw]
+    return _violation(body["csp-report"])
 
 
 def _violation(report: Mapping[str, Any]) -> dict[str, str]:
@@ -83,7 +67,8 @@ def _printable(text: str) -> str:
 
 
 class CspReportParser(BaseParser):
-    """Both report bodies browsers send, and plain JSON; bounded before it is read whole."""
+    """A JSON body whatever its content type (browsers say application/csp-report), refused
+    past CSP_REPORT_MAX_BYTES before it is read whole."""
 
     media_type = "*/*"
 
@@ -131,17 +116,16 @@ class CspReportView(APIView):
         ):
             raise _TooLarge()
         try:
-            violations = csp_reports_read(request.data)
+            violation = csp_report_read(request.data)
         except ValueError as exc:
             raise exceptions.ParseError(str(exc)) from None
-        for violation in violations:
-            logger.warning(
-                "Content-Security-Policy violation: %s blocked %s on %s (%s:%s) %s",
-                violation["directive"] or "?",
-                violation["blocked"] or "?",
-                violation["document"] or "?",
-                violation["source"] or "?",
-                violation["line"] or "?",
-                violation["sample"],
-            )
+        logger.warning(
+            "Content-Security-Policy violation: %s blocked %s on %s (%s:%s) %s",
+            violation["directive"] or "?",
+            violation["blocked"] or "?",
+            violation["document"] or "?",
+            violation["source"] or "?",
+            violation["line"] or "?",
+            violation["sample"],
+        )
         return Response(status=status.HTTP_204_NO_CONTENT)

@@ -25,7 +25,7 @@ from django.http import HttpRequest, HttpResponse, JsonResponse
 from django.template.loader import render_to_string
 
 from accounts.apps import SERVICE_CHECKS
-from portal.csp import content_security_policy, reporting_endpoints
+from portal.csp import content_security_policy
 
 logger = logging.getLogger(__name__)
 
@@ -128,16 +128,13 @@ def _refusal(request: HttpRequest, problems: list[str]) -> HttpResponse:
 
 
 class ContentSecurityPolicyMiddleware:
-    """The Content-Security-Policy (portal.csp) on every answer that sets none of its own,
-    with the Reporting-Endpoints header its `report-to` names."""
+    """The Content-Security-Policy (portal.csp) on every answer that sets none of its own."""
 
     def __init__(self, get_response: Callable[[HttpRequest], HttpResponse]) -> None:
         self.get_response = get_response
         self.policy = content_security_policy()
-        self.endpoints = reporting_endpoints()
 
     def __call__(self, request: HttpRequest) -> HttpResponse:
         response = self.get_response(request)
         response.headers.setdefault("Content-Security-Policy", self.policy)
-        response.headers.setdefault("Reporting-Endpoints", self.endpoints)
         return response

@@ -43,7 +43,7 @@ def test_the_policy_is_strict():
     assert policy["frame-ancestors"] == "'none'"
     assert policy["form-action"] == "'self'"
     assert policy["report-uri"] == REPORT == reverse("csp-report") == settings.CSP_REPORT_URL
-    assert policy["report-to"] == "csp"
+    assert "report-to" not in policy
     assert "unsafe" not in " ".join(policy.values())
 
 
@@ -142,7 +142,6 @@ def test_every_route_answers_with_the_policy_and_renders_no_inline_script(client
         response = client.get(route)
         assert response.status_code < 500, (route, response.status_code)
         assert _policy(response) == expected, route
-        assert response.headers["Reporting-Endpoints"] == f'csp="{REPORT}"', route
         content_type = response.headers.get("Content-Type", "")
         if content_type.startswith("text/html") and not response.streaming:
             assert inline_code(response.content.decode()) == [], route
@@ -206,21 +205,6 @@ def test_a_report_is_logged_sanitised(client):
     assert "evil___FAKE LINE" in text
 
 
-def test_reporting_api_batches_are_read_up_to_a_limit(client):
-    batch = [
-        {
-            "type": "csp-violation",
-            "url": "x",
-            "body": {"effectiveDirective": "img-src", "blockedURL": f"http://e/{n}"},
-        }
-        for n in range(50)
-    ]
-    with logged_by("portal.csp_reports") as logs:
-        answer = client.post(REPORT, json.dumps(batch), content_type="application/reports+json")
-    assert answer.status_code == 204
-    assert len([record for record in logs if record.levelno == logging.WARNING]) == 10
-
-
 @pytest.mark.parametrize(
     ("body", "content_type", "status"),
     [
@@ -228,7 +212,7 @@ def test_reporting_api_batches_are_read_up_to_a_limit(client):
         (b"not json", "application/csp-report", 400),
         (b"{}", "application/csp-report", 400),
         (b"[]", "application/reports+json", 400),
-        (b'[{"type": "deprecation", "body": {}}]', "application/reports+json", 400),
+        (b'[{"type": "csp-violation", "body": {}}]', "application/reports+json", 400),
         (b'{"csp-report": "x"}', "application/json", 400),
         (b'{"csp-report": {"line-number": {"a": [1]}, "blocked-uri": null}}', "text/plain", 204),
         (b"[" * 100_000, "application/json", 413),
