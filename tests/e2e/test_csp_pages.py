@@ -1,6 +1,6 @@
 """The Content-Security-Policy in Chromium: the pages that run SM2 on the owner's key
-(registration with a generated key, key rotation with a typed one), the everyday pages and
-the admin console run under it without a single violation; an injected inline script is
+(registration with a generated key, key rotation with a typed one), the everyday pages, the
+API docs and the admin console run under it without a single violation; an injected inline script is
 refused and reported.
 
 Violations are collected from the `securitypolicyviolation` events of every page (listened
@@ -86,6 +86,9 @@ def test_the_key_pages_and_the_admin_run_with_no_violation(live_server, deployed
 
     for path in ("/dashboard/", "/records/", "/grants/", "/account/alerts/", "/access-log/"):
         watched.visit(f"{base}{path}")
+    # The API docs: Swagger UI's own bundle, and its set-up script from ?script.
+    page = watched.visit(f"{base}/api/docs/")
+    expect(page.locator(".swagger-ui .info .title")).to_contain_text("AuthROS portal API")
 
     # The admin console, with its own scripts (the changelist's actions and filters).
     get_user_model().objects.create_superuser("csp-admin", "", TEST_PASSWORD)
