@@ -511,7 +511,11 @@ def grants(request: HttpRequest) -> HttpResponse:
         if form.is_valid() and (done := _grant_give_or_change(request, form)) is not None:
             return done
     else:
-        form = GrantForm(initial=_grant_change_initial(owner, request.GET.get("change")), **choices)
+        asked = request.GET.get("change")
+        initial = _grant_change_initial(owner, asked)
+        if asked and not initial:
+            messages.warning(request, "You give that owner no access to change: nothing filled in.")
+        form = GrantForm(initial=initial, **choices)
     context = {
         "form": form,
         "changing": form.fields["change"].to_python(form["change"].value()),

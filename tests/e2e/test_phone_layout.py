@@ -56,12 +56,13 @@ def _fits(page: Page) -> bool:
 
 @pytest.fixture
 def signed_in(live_server, make_robot, client):
-    """alice with 30 odometry records (two pages of 25) and bob's grant; her session."""
+    """alice with 30 odometry records (two pages of 25) and bob's grant: the portal's
+    address, her session, the path of her newest record."""
     alice = make_robot("alice")
     bob = make_robot("bob")
     for seq in range(1, 31):
         time = (NOON + timedelta(seconds=seq)).isoformat().replace("+00:00", "Z")
-        record_create(
+        record = record_create(
             robot=alice.robot,
             data=alice.seal(seq, time=time, plaintext=odometry("alice", seq, seq / 2)),
         )
@@ -73,7 +74,9 @@ def signed_in(live_server, make_robot, client):
         terms=grant_terms_make(owner=bob.owner),
     )
     client.force_login(alice.owner.user)
-    return live_server.url, client.cookies[settings.SESSION_COOKIE_NAME].value
+    session = client.cookies[settings.SESSION_COOKIE_NAME].value
+    # The newest record's page (with its plot) is a main page too.
+    return live_server.url, session, f"/records/{record.pk}/"
 
 
 def _page_at(browser: Browser, base: str, session: str, size: tuple[int, int]) -> Page:
@@ -83,22 +86,22 @@ def _page_at(browser: Browser, base: str, session: str, size: tuple[int, int]) -
 
 
 def test_every_main_page_fits_a_phone_and_a_desktop(signed_in, browser: Browser, shots: Path):
-    base, session = signed_in
+    base, session, record_page = signed_in
     errors: list[str] = []
     for name, size in (("desktop", DESKTOP), ("phone", PHONE)):
         page = _page_at(browser, base, session, size)
         page.on("pageerror", lambda error: errors.append(str(error)))
-        for path in PAGES:
+        for path in [*PAGES, record_page]:
             page.goto(base + path)
             assert _fits(page), (name, path)
-            slug = path.strip("/").replace("/", "-")
+            slug = path.strip("/").replace("/", "-")[:40]
             page.screenshot(path=shots / f"{slug}-{name}.png", full_page=True)
         page.context.close()
     assert errors == []
 
 
 def test_the_header_menu_folds_on_a_phone_and_opens(signed_in, browser: Browser, shots: Path):
-    base, session = signed_in
+    base, session, _record_page = signed_in
     page = _page_at(browser, base, session, PHONE)
     page.goto(base + "/dashboard/")
     records_link = page.get_by_test_id("nav-records")
@@ -127,7 +130,7 @@ def test_the_header_menu_folds_on_a_phone_and_opens(signed_in, browser: Browser,
 
 
 def test_a_page_of_records_on_a_phone(signed_in, browser: Browser, shots: Path):
-    base, session = signed_in
+    base, session, _record_page = signed_in
     page = _page_at(browser, base, session, PHONE)
     page.goto(base + "/records/")
     rows = page.get_by_test_id("record-row")
