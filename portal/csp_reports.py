@@ -13,6 +13,7 @@ import unicodedata
 from collections.abc import Mapping
 from typing import Any
 
+from drf_spectacular.utils import extend_schema
 from rest_framework import exceptions, status
 from rest_framework.parsers import BaseParser
 from rest_framework.permissions import AllowAny
@@ -110,6 +111,8 @@ class CspReportView(APIView):
     parser_classes = [CspReportParser]
     throttle_classes = [CspReportThrottle]
 
+    # Browsers' endpoint, not the agents' API: left out of its schema.
+    @extend_schema(exclude=True)
     def post(self, request: Request) -> Response:
         if request.META.get("CONTENT_LENGTH", "0").isdigit() and (
             int(request.META.get("CONTENT_LENGTH", "0")) > CSP_REPORT_MAX_BYTES
