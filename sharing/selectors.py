@@ -154,47 +154,20 @@ def record_counts_of(owner: Owner) -> dict[str, int]:
     }
 
 
-def record_list_same_topic(record: Record, *, since: datetime, until: datetime) -> QuerySet[Record]:
-    """The records of the record's owner, topic and type captured in [since, until), oldest
-    first (over the index record_owner_topic_captured)."""
+def record_list_same_topic(
+    viewer: Owner, record: Record, *, since: datetime, until: datetime
+) -> QuerySet[Record]:
+    """The records of the record's robot, topic and type captured in [since, until) that
+    `viewer` may see (their own, or within a live grant's scope: nothing of another robot or
+    outside the grant's window), not deleted, oldest first (a gallery's images)."""
+    around = RecordSelection(
+        robots=(record.robot_id,), topics=(record.topic,), since=since, until=until
+    )
     return (
-        Record.objects.filter(
-            owner_id=record.owner_id,
-            topic=record.topic,
-            data_type=record.data_type,
-            captured_at__gte=since,
-            captured_at__lt=until,
-        )
-        .select_related("owner__user", "robot")
+        around.apply(record_list_visible_to(viewer))
+        .filter(data_type=record.data_type, deleted_at__isnull=True)
         .order_by("captured_at", "seq")
     )
-
-
-def record_topic_range(
-    record: Record, *, since: datetime, until: datetime, limit: int
-) -> tuple[list[Record], int]:
-    """The records of the record's owner and topic captured in [since, until), oldest first,
-    at most `limit` of them: when the range holds more, the first record of each of `limit`
-    equal slices of the range (a plot over time shows the time evenly). And how many the
-    range holds.
-
-    Bounded whatever the range holds: one count, then at most `limit` single-row reads, each
-    a seek in the index record_owner_topic_captured (measured: a window function numbering
-    25,000 rows took 0.8 s on SQLite, this about as many milliseconds as it reads rows).
-    """
-    in_range = record_list_same_topic(record, since=since, until=until)
-    total = in_range.count()
-    if total <= limit:
-        return list(in_range), total
-    span = (until - since) / limit
-    picked: dict[uuid.UUID, Record] = {}
-    for index in range(limit):
-        start = since + span * index
-        end = until if index == limit - 1 else start + span
-        first = record_list_same_topic(record, since=start, until=end).first()
-        if first is not None:
-            picked[first.pk] = first
-    return list(picked.values()), total
 
 
 def record_get_visible(viewer: Owner, record_id: uuid.UUID | str) -> Record | None:
@@ -268,25 +241,6 @@ def verdict_latest(record: Record, viewer: Owner) -> Verdict | None:
         .order_by("-created_at", "-pk")
         .first()
     )
-
-
-def record_topic_history(record: Record, *, limit: int, viewer: Owner) -> list[Record]:
-    """Up to `limit` records of the record's owner and topic, up to and with it, oldest first;
-    of those before it, only the ones `viewer` may see (record_list_visible_to)."""
-    earlier = (
-        record_list_visible_to(viewer)
-        .filter(
-            owner_id=record.owner_id,
-            topic=record.topic,
-            data_type=record.data_type,
-            captured_at__lte=record.captured_at,
-            deleted_at__isnull=True,
-        )
-        .exclude(pk=record.pk)
-        .select_related("owner")
-        .order_by("-captured_at", "-seq")[: max(limit - 1, 0)]
-    )
-    return [*reversed(list(earlier)), record]
 
 
 def record_deletion_text(record: Record) -> str:

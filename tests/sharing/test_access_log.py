@@ -302,7 +302,7 @@ def test_the_api_needs_the_read_scope_and_never_a_robot(world, make_owner_token)
 def test_views_record_their_credential(
     alice, bob, upload, client, make_owner_token, django_user_model
 ):
-    from sharing.verification import record_verify, records_verify
+    from sharing.verification import records_verify
 
     record = upload(alice, 1)
     second = upload(alice, 2)
@@ -313,7 +313,7 @@ def test_views_record_their_credential(
     assert content.status_code == 200, content.content
     assert session_client(bob).get(f"/api/v1/records/{second.pk}/content/").status_code == 200
     operator = django_user_model.objects.create_user(username="op", is_staff=True)
-    record_verify(record_id=record.pk, viewer_id=alice.owner.pk, checked_by_id=operator.pk)
+    records_verify(record_ids=[record.pk], viewer_id=alice.owner.pk, checked_by_id=operator.pk)[0]
     records_verify(
         record_ids=[record.pk, second.pk],
         viewer_id=bob.pk,
@@ -335,7 +335,7 @@ def test_views_record_their_credential(
         (b, a, "token", token.pk, None),
     ]
     with pytest.raises(ValueError, match="token"):
-        record_verify(record_id=record.pk, viewer_id=b, credential=Verdict.Credential.TOKEN)
+        records_verify(record_ids=[record.pk], viewer_id=b, credential=Verdict.Credential.TOKEN)[0]
     assert Verdict.objects.count() == len(made)
     # And the owner's log lists all of them; bob's outgoing side his own.
     log = verdict_list_access_log(alice.owner, direction=ACCESS_LOG_INCOMING)

@@ -6,9 +6,10 @@ from accounts.selectors import owner_key_bytes, owner_key_current
 from core.redis_client import get_redis
 from sharing import errors, verification
 from sharing.cache import _key as cache_key
+from sharing.models import Access
 from sharing.selectors import record_get_visible, record_list_visible_to
 from sharing.services import grant_create, grant_revoke, record_create
-from sharing.verification import record_open, record_open_many, record_reseal_for
+from sharing.verification import record_open, record_reseal_for, records_open
 from smcrypto import CryptoError, envelope, sm3
 
 pytestmark = pytest.mark.django_db
@@ -80,8 +81,8 @@ def test_opening_many_gives_each_record_its_own_outcome(
     cached[-1] ^= 1
     get_redis().set(cache_key(tampered.pk), bytes(cached))
 
-    opened, not_yet, refused = record_open_many(
-        records=[anchored, pending, tampered], viewer=alice.owner
+    opened, not_yet, refused = records_open(
+        records=[anchored, pending, tampered], viewer=alice.owner, kind=Access.Kind.PAGE
     )
     assert opened.plaintext == b'{"K": "odom"}'
     assert isinstance(not_yet, errors.NotAnchoredYet)
@@ -89,7 +90,7 @@ def test_opening_many_gives_each_record_its_own_outcome(
     # Someone without a grant gets a refusal for each, and nothing else.
     assert all(
         isinstance(result, errors.AccessDenied)
-        for result in record_open_many(records=[anchored, tampered], viewer=bob)
+        for result in records_open(records=[anchored, tampered], viewer=bob, kind="page")
     )
 
 
@@ -120,7 +121,7 @@ def test_the_view_decrypts_what_the_worker_checked_not_a_later_copy(shared, monk
     """Stored bytes that change after the check are never what is shown."""
     alice, _bob, record = shared
     checked = get_redis().get(cache_key(record.pk))
-    real_verify = verification.record_verify
+    real_verify = verification.records_verify
 
     def verify_then_tamper(**kwargs):
         result = real_verify(**kwargs)
@@ -129,7 +130,7 @@ def test_the_view_decrypts_what_the_worker_checked_not_a_later_copy(shared, monk
         get_redis().set(cache_key(record.pk), bytes(changed))
         return result
 
-    monkeypatch.setattr(verification, "record_verify", verify_then_tamper)
+    monkeypatch.setattr(verification, "records_verify", verify_then_tamper)
     opened = record_open(record_id=record.pk, viewer=alice.owner)
     assert opened.envelope == checked
     assert opened.plaintext == b'{"K": "odom"}'
