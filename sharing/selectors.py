@@ -4,13 +4,13 @@ import uuid
 from collections.abc import Iterable
 from datetime import datetime
 
-from django.db.models import F, Q, QuerySet, Window
+from django.db.models import Exists, F, OuterRef, Q, QuerySet, Window
 from django.db.models.functions import RowNumber
 from django.utils import timezone
 
 from accounts.models import ChainActivity, Owner, OwnerToken, Robot
 from core.rows import FixedSelect
-from sharing.models import Export, Grant, Record, SecurityEvent, Verdict
+from sharing.models import Access, Export, Grant, Record, SecurityEvent, Verdict
 from sharing.selection import RecordSelection
 from smcrypto.merkle import path_split
 
@@ -413,6 +413,68 @@ def verdict_list_filtered(
     if until is not None:
         verdicts = verdicts.filter(created_at__lt=until)
     return verdicts
+
+
+def access_list_access_log(owner: Owner, *, direction: str) -> QuerySet[Access]:
+    """The owner's access log as people read it: one row per access (a record page, a gallery
+    page, a plot, an export, an operator's check), newest first, with everything a row shows
+    in the same query.
+
+    Incoming: every access to the owner's records (Access.record_owner, indexed with the time),
+    refused ones included. Outgoing: the owner's own accesses to other owners' records that
+    at least one record was granted for (one refused whole would show what a record the viewer
+    may not read is; an operator's checks are made with the record owner's rights, so they are
+    only ever incoming).
+    """
+    if direction == ACCESS_LOG_INCOMING:
+        accesses = Access.objects.filter(record_owner=owner)
+    elif direction == ACCESS_LOG_OUTGOING:
+        granted = Verdict.objects.filter(access=OuterRef("pk")).exclude(
+            outcome=Verdict.Outcome.NO_ACCESS
+        )
+        accesses = Access.objects.filter(
+            Exists(granted), viewer=owner, checked_by__isnull=True
+        ).exclude(record_owner=owner)
+    else:
+        raise ValueError(f"unknown access log direction {direction!r}")
+    return accesses.select_related(
+        "viewer__user", "record_owner__user", "record", "robot", "token", "checked_by"
+    ).order_by("-created_at", "-id")
+
+
+def access_list_filtered(
+    accesses: QuerySet[Access],
+    *,
+    viewer: str | None = None,
+    owner: str | None = None,
+    robot: uuid.UUID | str | None = None,
+    topic: str | None = None,
+    verdict: str | None = None,
+    credential: str | None = None,
+    since: datetime | None = None,
+    until: datetime | None = None,
+) -> QuerySet[Access]:
+    """The accesses that match every filter given (None or empty: not filtered), as
+    verdict_list_filtered for views: `robot` and `topic` those all its records share,
+    `verdict` an outcome of any of its records; access times half-open, [since, until)."""
+    if viewer:
+        accesses = accesses.filter(viewer__user__username=viewer)
+    if owner:
+        accesses = accesses.filter(record_owner__user__username=owner)
+    if robot:
+        accesses = accesses.filter(robot_id=robot)
+    if topic:
+        accesses = accesses.filter(topic=topic)
+    if verdict:
+        found = Verdict.objects.filter(access=OuterRef("pk"), outcome=verdict)
+        accesses = accesses.filter(Exists(found))
+    if credential:
+        accesses = accesses.filter(credential=credential)
+    if since is not None:
+        accesses = accesses.filter(created_at__gte=since)
+    if until is not None:
+        accesses = accesses.filter(created_at__lt=until)
+    return accesses
 
 
 def access_log_filter_choices(owner: Owner, *, direction: str) -> dict[str, QuerySet]:

@@ -68,6 +68,8 @@ from sharing.forms import (
 from sharing.models import Access, Grant, Record, Verdict
 from sharing.selectors import (
     ACCESS_LOG_DIRECTIONS,
+    access_list_access_log,
+    access_list_filtered,
     access_log_filter_choices,
     export_list_of,
     export_of,
@@ -85,8 +87,6 @@ from sharing.selectors import (
     record_list_shared_with,
     record_list_sorted,
     robots_visible_to,
-    verdict_list_access_log,
-    verdict_list_filtered,
 )
 from sharing.series import DEFAULT_POINTS
 from sharing.services import (
@@ -591,13 +591,14 @@ def audit(request: HttpRequest) -> HttpResponse:
 @page_throttle()
 @require_GET
 def access_log(request: HttpRequest) -> HttpResponse:
-    """Who viewed the owner's records (or, on the other tab, the owner's own views of records
-    shared with the owner), filtered, a page at a time."""
-    form, direction, verdicts = _access_log_asked(request)
-    if verdicts is None:
+    """Who read the owner's records (or, on the other tab, the owner's own reads of records
+    shared with the owner), one line per access (a page, a plot...), filtered, a page at a
+    time."""
+    form, direction, accesses = _access_log_asked(request)
+    if accesses is None:
         return _access_log_refused(request, form, direction)
     page = access_log_page(
-        verdicts, reader=request.owner, page=request.GET.get("page"), per_page=ACCESS_LOG_PER_PAGE
+        accesses, reader=request.owner, page=request.GET.get("page"), per_page=ACCESS_LOG_PER_PAGE
     )
     context = {
         "form": form,
@@ -613,12 +614,12 @@ def access_log(request: HttpRequest) -> HttpResponse:
 @page_throttle()
 @require_GET
 def access_log_download(request: HttpRequest) -> HttpResponse:
-    """The access log with the page's filters, every row, as a streamed CSV download."""
-    form, direction, verdicts = _access_log_asked(request)
-    if verdicts is None:
+    """The access log with the page's filters, every access, as a streamed CSV download."""
+    form, direction, accesses = _access_log_asked(request)
+    if accesses is None:
         return _access_log_refused(request, form, direction)
     response = StreamingHttpResponse(
-        access_log_csv(verdicts, reader=request.owner), content_type="text/csv; charset=utf-8"
+        access_log_csv(accesses, reader=request.owner), content_type="text/csv; charset=utf-8"
     )
     name = f"access-log-{direction}-{timezone.now():%Y%m%dT%H%M%SZ}.csv"
     response["Content-Disposition"] = f'attachment; filename="{name}"'
@@ -627,16 +628,16 @@ def access_log_download(request: HttpRequest) -> HttpResponse:
 
 def _access_log_asked(
     request: HttpRequest,
-) -> tuple[AccessLogFilterForm, str, QuerySet[Verdict] | None]:
-    """The filter form, the side of the log, and the views its filters select (None while
+) -> tuple[AccessLogFilterForm, str, QuerySet[Access] | None]:
+    """The filter form, the side of the log, and the accesses its filters select (None while
     the form is invalid)."""
     direction = AccessLogFilterForm.direction_of(request.GET)
     choices = access_log_filter_choices(request.owner, direction=direction)
     form = AccessLogFilterForm(request.GET or None, choices=choices)
     if form.is_bound and not form.is_valid():
         return form, direction, None
-    verdicts = verdict_list_access_log(request.owner, direction=direction)
-    return form, direction, verdict_list_filtered(verdicts, **form.filters())
+    accesses = access_list_access_log(request.owner, direction=direction)
+    return form, direction, access_list_filtered(accesses, **form.filters())
 
 
 def _access_log_refused(

@@ -23,7 +23,7 @@ from accounts.models import Owner, OwnerToken, Robot
 from accounts.services.api_tokens import owner_token_create
 from accounts.services.owners import owner_create
 from accounts.services.robots import robot_create
-from sharing.models import Grant, Record, Verdict
+from sharing.models import Access, Grant, Record, Verdict
 from smcrypto import sm4
 from tests.conftest import TEST_PASSWORD
 
@@ -52,6 +52,9 @@ class World:
 
     def ids(self, *names: str) -> list[int]:
         return [self.views[name].pk for name in names]
+
+    def access_ids(self, *names: str) -> list[int]:
+        return [self.views[name].access_id for name in names]
 
 
 def _owner(name: str, *, signed_up: bool) -> Owner:
@@ -86,8 +89,23 @@ def view(
     token: OwnerToken | None = None,
     checked_by: object = None,
 ) -> Verdict:
-    """A verdict as the worker writes it, at NOON + minutes."""
+    """A view of one record as the worker writes it, at NOON + minutes: its access and its
+    verdict."""
+    access = Access.objects.create(
+        kind=Access.Kind.CHECK if checked_by else Access.Kind.VIEW,
+        viewer=viewer,
+        record_owner_id=record.owner_id,
+        credential=credential,
+        token=token,
+        checked_by=checked_by,
+        count=1,
+        record=record,
+        robot_id=record.robot_id,
+        topic=record.topic,
+    )
+    Access.objects.filter(pk=access.pk).update(created_at=at(minutes))
     verdict = Verdict.objects.create(
+        access=access,
         record=record,
         viewer=viewer,
         record_owner_id=record.owner_id,
