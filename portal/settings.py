@@ -234,7 +234,7 @@ AXES_CLIENT_IP_CALLABLE = "accounts.views.client_ip_address"
 # --- Page rate limits (accounts.decorators.page_throttle) ---------------------------------
 # Per signed-in user, counted in Redis across web processes: "<count>/<second|minute|hour|day>"
 # (empty: no limit). Every page counts against PAGE_RATE_USER; pages that run an integrity
-# check (a record, its download, its trajectory) count their cost against PAGE_RATE_CONTENT.
+# check (a record, its download, a gallery page) count their cost against PAGE_RATE_CONTENT.
 PAGE_RATE_USER = env.str("PAGE_RATE_USER", default="600/minute")
 PAGE_RATE_CONTENT = env.str("PAGE_RATE_CONTENT", default="120/minute")
 

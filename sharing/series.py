@@ -14,6 +14,7 @@ never plotted.
 
 import math
 import uuid
+from collections.abc import Sequence
 from dataclasses import dataclass
 from datetime import datetime
 
@@ -169,13 +170,19 @@ def series_of(
 
 def _row(opened: OpenedRecord, fields: tuple[str, ...]) -> list[float | None]:
     moment = round(opened.record.captured_at.timestamp(), 6)
+    return [moment, *record_values(opened.plaintext, fields)]
+
+
+def record_values(plaintext: bytes, fields: Sequence[str]) -> list[float | None]:
+    """The fields' numbers in a record's plaintext (document_parse's bounds hold: a record that
+    is not JSON it takes has none); paths start in the message (`K`) when the record has one."""
     try:
-        document = document_parse(opened.plaintext)
+        document = document_parse(plaintext)
     except Uninterpretable:
-        return [moment, *(None for _ in fields)]
+        return [None for _ in fields]
     message = document.get("K") if isinstance(document, dict) else None
     base = message if isinstance(message, dict | list) else document
-    return [moment, *(field_value(base, field) for field in fields)]
+    return [field_value(base, field) for field in fields]
 
 
 def field_value(document: object, field: str) -> float | None:
