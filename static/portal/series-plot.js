@@ -21,6 +21,7 @@
  *        data-url="/api/v1/records/series/" optional: another address of the series API
  *   ></div>
  *
+ * An element added later is plotted by window.AuthROSSeriesPlot.start(element).
  * The browser's session authenticates the call (a GET: no CSRF token needed). The element gets
  * an <svg> that scales to its width (readable from 390 px up) and a status line; its
  * data-state becomes "loading", "ready" or "error", and data-verified / data-refused the counts.
@@ -121,7 +122,7 @@
   function draw(element, answer) {
     var data = element.dataset;
     // Drawn at the element's own width, so that 12 px text stays 12 px on a phone.
-    var WIDTH = Math.max(300, Math.min(element.clientWidth || 640, 960));
+    var WIDTH = Math.max(240, Math.min(element.clientWidth || 640, 960));
     var HEIGHT = Math.round(Math.min(Math.max(WIDTH * 0.75, 280), 480));
     var xy = data.mode === "xy" && answer.fields.length >= 2;
     var units = data.units ? " (" + data.units + ")" : "";
@@ -299,6 +300,9 @@
   function startAll() {
     Array.prototype.forEach.call(document.querySelectorAll("[data-series-plot]"), start);
   }
+
+  // For elements added after the page loaded: window.AuthROSSeriesPlot.start(element).
+  window.AuthROSSeriesPlot = { start: start };
 
   if (document.readyState === "loading") {
     document.addEventListener("DOMContentLoaded", startAll);
