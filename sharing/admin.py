@@ -17,7 +17,7 @@ from accounts.admin import ReadOnlyAdmin, admin_action_record
 from accounts.errors import IdentityMismatch
 from chainworker.chain import ChainError
 from sharing.anchoring import records_reanchor
-from sharing.models import Grant, Record, SecurityEvent, Verdict
+from sharing.models import Access, Grant, Record, SecurityEvent, Verdict
 from sharing.verification import records_verify
 
 # Re-verification runs in the admin's request: keep a selection small enough to answer.
@@ -211,6 +211,17 @@ class GrantAdmin(ReadOnlyAdmin):
     )
     list_select_related = ("owner__user", "grantee__user")
     readonly_fields = [f.name for f in Grant._meta.fields]
+
+
+@admin.register(Access)
+class AccessAdmin(ReadOnlyAdmin):
+    """The access log's lines (a page, a plot, an export...); their verdicts point to them."""
+
+    list_display = ("created_at", "kind", "count", "viewer", "record_owner", "credential")
+    list_filter = ("kind", "credential", "created_at")
+    search_fields = ("viewer__user__username", "record_owner__user__username", "topic")
+    list_select_related = ("viewer__user", "record_owner__user")
+    readonly_fields = [f.name for f in Access._meta.fields]
 
 
 @admin.register(Verdict)

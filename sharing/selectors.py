@@ -519,23 +519,8 @@ def export_of(owner: Owner, export_id: uuid.UUID | str) -> Export | None:
 _RECORD_TO_OPEN = FixedSelect(
     Record, related=("owner__user", "deleted_by"), where="t0.id = %s", params_of=("id",)
 )
-_RECORD_TO_CHECK = FixedSelect(
-    Record, related=("owner", "anchor_root"), where="t0.id = %s", params_of=("id",)
-)
-_VERDICT = FixedSelect(Verdict, where="t0.id = %s", params_of=("id",))
 
 
 def record_to_open(record_id: uuid.UUID) -> Record | None:
     """The record a view opens, with its owner (and user) and who deleted it, if anyone."""
     return _RECORD_TO_OPEN.fetch_one(record_id)
-
-
-def record_to_check(record_id: uuid.UUID | str) -> Record:
-    """The record the worker checks, with its owner and its Merkle root, if it has one;
-    Record.DoesNotExist if there is none."""
-    return _RECORD_TO_CHECK.get(uuid.UUID(str(record_id)))
-
-
-def verdict_by_id(verdict_id: int) -> Verdict:
-    """A verdict the worker just wrote; Verdict.DoesNotExist if it is not there."""
-    return _VERDICT.get(verdict_id)

@@ -128,6 +128,9 @@ def series_records(viewer: Owner, query: SeriesQuery) -> list[Record]:
     in_range = (
         selection.apply(record_list_visible_to(viewer))
         .filter(deleted_at__isnull=True)
+        # One owner instance for all its records (its key is looked up per owner), no joins.
+        .select_related(None)
+        .prefetch_related("owner")
         .defer("merkle_path")
         .order_by("captured_at", "seq")
     )

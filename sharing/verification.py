@@ -25,6 +25,7 @@ from datetime import datetime
 from typing import Any
 
 from django.conf import settings
+from django.db.models import Prefetch
 from django.utils import timezone
 from redis.exceptions import RedisError
 
@@ -36,7 +37,7 @@ from alerts.services import record_tampered_alert
 from chainworker.chain import AuthROSChain, OnChainRoot, RobotKeyOnChain
 from chainworker.services import chain_client, chain_head
 from core.outbox import dispatch
-from sharing.cache import envelope_cache_evict, envelope_fetch
+from sharing.cache import envelope_cache_evict, envelopes_fetch
 from sharing.errors import (
     AccessDenied,
     IntegrityCheckFailed,
@@ -46,7 +47,7 @@ from sharing.errors import (
     SharingError,
     VerificationUnavailable,
 )
-from sharing.models import Access, Grant, Record, SecurityEvent, Verdict
+from sharing.models import Access, AnchorRoot, Grant, Record, SecurityEvent, Verdict
 from sharing.roots import record_path
 from sharing.scope import scope_commitment
 from sharing.selectors import grant_live, record_deletion_text, record_to_open
@@ -132,11 +133,17 @@ def records_verify(
         credential, token_id = Verdict.Credential.OPERATOR, None
     _credential_check(credential, token_id)
     wanted = [uuid.UUID(str(record_id)) for record_id in record_ids]
-    # The robot too: a signed record's check reads its public key.
-    found = Record.objects.select_related("owner", "anchor_root", "robot").in_bulk(wanted)
+    # Owners, robots (a signed record's check reads its key) and trees read once each, not
+    # once per record: the records of one tree share them (a tree's leaves are not read).
+    found = Record.objects.prefetch_related(
+        "owner", "robot", Prefetch("anchor_root", AnchorRoot.objects.defer("leaves"))
+    ).in_bulk(wanted)
     records = [found[record_id] for record_id in wanted if record_id in found]
     viewer = Owner.objects.get(pk=viewer_id)
-    if accesses is None:
+    reads = _ChainReads(chain_client())
+    block = chain_head(reads.client)
+    checked = _records_check(records, viewer, reads)
+    if accesses is None:  # opened once the checks ran: a check that raised leaves no line
         accesses = accesses_open(
             kind=kind or _kind_of(len(records), checked_by_id),
             viewer_id=viewer_id,
@@ -145,9 +152,6 @@ def records_verify(
             token_id=token_id,
             checked_by_id=checked_by_id,
         )
-    reads = _ChainReads(chain_client())
-    block = chain_head(reads.client)
-    checked = [_record_check(record, viewer, reads) for record in records]
     verdicts = Verdict.objects.bulk_create(
         Verdict(
             record=record,
@@ -211,17 +215,28 @@ def _shared(values: set[Any]) -> Any:
     return next(iter(values)) if len(values) == 1 else None
 
 
-def _record_check(
-    record: Record, viewer: Owner, reads: _ChainReads
-) -> tuple[dict[str, object], bytes | None]:
-    """One record's verdict fields, and the bytes checked when it is verified."""
-    grant = reads.grant(record, viewer)
-    if grant is None or not _in_scope(grant, record):
-        return {"outcome": Verdict.Outcome.NO_ACCESS}, None
-    if record.is_deleted:
-        return {"outcome": Verdict.Outcome.DELETED}, None
-    reads.identify(record.owner)
-    return _digest_check(record, viewer, reads)
+def _records_check(
+    records: Sequence[Record], viewer: Owner, reads: _ChainReads
+) -> list[tuple[dict[str, object], bytes | None]]:
+    """Each record's verdict fields, and the bytes checked when it is verified: access, then
+    deleted, then the owner's identity; the envelopes of those left fetched at once, then
+    each checked against the chain."""
+    checked: list[tuple[dict[str, object], bytes | None] | None] = []
+    for record in records:
+        grant = reads.grant(record, viewer)
+        if grant is None or not _in_scope(grant, record):
+            checked.append(({"outcome": Verdict.Outcome.NO_ACCESS}, None))
+        elif record.is_deleted:
+            checked.append(({"outcome": Verdict.Outcome.DELETED}, None))
+        else:
+            reads.identify(record.owner)
+            checked.append(None)
+    to_fetch = [record for record, done in zip(records, checked, strict=True) if done is None]
+    fetched = iter(envelopes_fetch(to_fetch))
+    return [
+        done if done is not None else _digest_check(record, viewer, reads, next(fetched))
+        for record, done in zip(records, checked, strict=True)
+    ]
 
 
 def _credential_check(credential: str, token_id: int | None) -> None:
@@ -239,11 +254,14 @@ def _verdict_block(head: int, record: Record) -> int:
 
 
 def _digest_check(
-    record: Record, viewer: Owner, reads: _ChainReads
+    record: Record,
+    viewer: Owner,
+    reads: _ChainReads,
+    fetched: tuple[bytes, str] | FileNotFoundError,
 ) -> tuple[dict[str, object], bytes | None]:
-    """The stored envelope's SM3 digest against the chain's, then its robot signature: the
-    verdict's fields, and the bytes checked when both hold."""
-    fields, data = _anchored_check(record, viewer, reads)
+    """The stored envelope (as envelopes_fetch found it)'s SM3 digest against the chain's, then
+    its robot signature: the verdict's fields, and the bytes checked when both hold."""
+    fields, data = _anchored_check(record, viewer, reads, fetched)
     if data is None or _provenance_holds(record, data, reads):
         return fields, data
     security_log.error(
@@ -301,13 +319,14 @@ def record_signature(record: Record, data: bytes, client: AuthROSChain) -> dict[
 
 
 def _anchored_check(
-    record: Record, viewer: Owner, reads: _ChainReads
+    record: Record,
+    viewer: Owner,
+    reads: _ChainReads,
+    fetched: tuple[bytes, str] | FileNotFoundError,
 ) -> tuple[dict[str, object], bytes | None]:
     """The stored envelope's SM3 digest against the chain's: the verdict's fields, and the
     bytes checked when they match."""
-    try:
-        data, source = envelope_fetch(record)
-    except FileNotFoundError:
+    if isinstance(fetched, FileNotFoundError):
         if Record.objects.filter(pk=record.pk, deleted_at__isnull=False).exists():
             # Deleted while this check ran: its ciphertext was removed on purpose.
             return {"outcome": Verdict.Outcome.DELETED, "source": "storage"}, None
@@ -315,6 +334,7 @@ def _anchored_check(
         # hashes to the digest the chain holds.
         _record_tampered(record, viewer, source="storage", computed="missing", chain="")
         return {"outcome": Verdict.Outcome.TAMPERED, "source": "storage"}, None
+    data, source = fetched
     computed = sm3.sm3_hex(data)
     if record.anchor_root_id is not None:
         return _proof_check(record, viewer, reads, data=data, source=source, computed=computed)

@@ -98,17 +98,17 @@ def test_a_view_fetches_and_hashes_the_envelope_once(shared, monkeypatch):
     """The worker fetches and hashes; the view decrypts the bytes the worker checked."""
     alice, _bob, record = shared
     fetches, hashes = [], []
-    real_fetch, real_hash = verification.envelope_fetch, sm3.sm3_hex
+    real_fetch, real_hash = verification.envelopes_fetch, sm3.sm3_hex
 
-    def counting_fetch(fetched):
-        fetches.append(fetched.pk)
-        return real_fetch(fetched)
+    def counting_fetch(records):
+        fetches.extend(record.pk for record in records)
+        return real_fetch(records)
 
     def counting_hash(data):
         hashes.append(len(data))
         return real_hash(data)
 
-    monkeypatch.setattr(verification, "envelope_fetch", counting_fetch)
+    monkeypatch.setattr(verification, "envelopes_fetch", counting_fetch)
     monkeypatch.setattr(sm3, "sm3_hex", counting_hash)
     opened = record_open(record_id=record.pk, viewer=alice.owner)
     assert opened.plaintext == b'{"K": "odom"}'
