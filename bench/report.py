@@ -947,6 +947,9 @@ def _section_series(results: Path) -> str | None:
             f"{row['others_cpu_share']:.0%} |"
         )
     met = "met" if report["goal_met"] else "NOT met"
+    cpu_per_record = series["web_cpu_ms_per_record"] + series["workers_cpu_ms_per_record"]
+    cores = report["machine"]["logical_cores"]
+    floor = cpu_per_record * series["records"] / 1000 / cores
     lines += [
         "",
         f"Series over per record: p50 x{series['p50_ratio_vs_per_record']:.3f}, web CPU per "
@@ -957,6 +960,9 @@ def _section_series(results: Path) -> str | None:
         f"{answers[0]['refused']} refused, in {answers[0]['points']} points. Load average at "
         f"start {report['load_average_at_start']}, at end {report['load_average_at_end']} "
         "(other engineers' test runs share the machine: see the others' share).\n",
+        f"The CPU a series spends, {cpu_per_record:.3f} ms per record (web and workers), puts "
+        f"a floor of {floor:.1f} s under its answer on {cores} cores with nothing else running "
+        "(the CPU divided by the cores; not measured here, as the machine was not idle).\n",
         "![Series against per record](results/series.png)\n",
     ]
     return "\n".join(lines)

@@ -516,7 +516,7 @@ def records_open(
     records: Sequence[Record],
     viewer: Owner,
     kind: str,
-    credential: str = Verdict.Credential.UNKNOWN,
+    credential: str,
     token: OwnerToken | None = None,
 ) -> list[OpenedRecord | SharingError]:
     """Have the worker check the records, then decrypt what it checked: one Access of `kind`

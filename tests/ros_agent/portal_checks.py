@@ -65,7 +65,9 @@ def opened_records(robot, *, expected: int, timeout: float = 60) -> list[tuple[R
         timeout=timeout,
         what="the records anchored",
     )
-    opened = records_open(records=records, viewer=records[0].owner, kind=Access.Kind.PAGE)
+    opened = records_open(
+        records=records, viewer=records[0].owner, kind=Access.Kind.PAGE, credential="session"
+    )
     result = []
     for record, item in zip(records, opened, strict=True):
         assert not isinstance(item, Exception), f"{record}: {item!r}"

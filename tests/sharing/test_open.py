@@ -82,7 +82,10 @@ def test_opening_many_gives_each_record_its_own_outcome(
     get_redis().set(cache_key(tampered.pk), bytes(cached))
 
     opened, not_yet, refused = records_open(
-        records=[anchored, pending, tampered], viewer=alice.owner, kind=Access.Kind.PAGE
+        records=[anchored, pending, tampered],
+        viewer=alice.owner,
+        kind=Access.Kind.PAGE,
+        credential="session",
     )
     assert opened.plaintext == b'{"K": "odom"}'
     assert isinstance(not_yet, errors.NotAnchoredYet)
@@ -90,7 +93,9 @@ def test_opening_many_gives_each_record_its_own_outcome(
     # Someone without a grant gets a refusal for each, and nothing else.
     assert all(
         isinstance(result, errors.AccessDenied)
-        for result in records_open(records=[anchored, tampered], viewer=bob, kind="page")
+        for result in records_open(
+            records=[anchored, tampered], viewer=bob, kind="page", credential="session"
+        )
     )
 
 
