@@ -63,7 +63,7 @@ def _owner(name: str, *, signed_up: bool) -> Owner:
     )
 
 
-def _record(robot: Robot, seq: int, topic: str, data_type: str) -> Record:
+def stored_record(robot: Robot, seq: int, topic: str, data_type: str) -> Record:
     return Record.objects.create(
         owner=robot.owner,
         robot=robot,
@@ -120,6 +120,36 @@ def view(
     return verdict
 
 
+def plot(records: list[Record], viewer: Owner, minutes: float) -> Access:
+    """A plot of `viewer`'s over the records (all of one owner), at NOON + minutes: one access
+    of kind plot naming how many, a verified verdict per record under it."""
+    owner_id = records[0].owner_id
+    access = Access.objects.create(
+        kind=Access.Kind.PLOT,
+        viewer=viewer,
+        record_owner_id=owner_id,
+        credential=Verdict.Credential.SESSION,
+        count=len(records),
+        topic=records[0].topic,
+        robot_id=records[0].robot_id,
+    )
+    Access.objects.filter(pk=access.pk).update(created_at=at(minutes))
+    Verdict.objects.bulk_create(
+        Verdict(
+            access=access,
+            record=record,
+            viewer=viewer,
+            record_owner_id=owner_id,
+            outcome=Verdict.Outcome.VERIFIED,
+            credential=Verdict.Credential.SESSION,
+            block_number=7,
+        )
+        for record in records
+    )
+    access.refresh_from_db()
+    return access
+
+
 def access_log_world(*, signed_up: bool = False) -> World:
     """The world above. `signed_up`: the owners signed up themselves, and with
     SIGNUP_APPROVAL they await an operator, so that nothing goes to the chain even where
@@ -137,9 +167,9 @@ def access_log_world(*, signed_up: bool = False) -> World:
         username="operator", password=TEST_PASSWORD, is_staff=True
     )
     world = World(alice, bob, carol, arm, rover, token)
-    odom = _record(arm, 1, "/odom", "nav_msgs/Odometry")
-    camera = _record(rover, 2, FORMULA_TOPIC, "sensor_msgs/Image")
-    private = _record(carols, 1, CAROL_TOPIC, "std_msgs/String")
+    odom = stored_record(arm, 1, "/odom", "nav_msgs/Odometry")
+    camera = stored_record(rover, 2, FORMULA_TOPIC, "sensor_msgs/Image")
+    private = stored_record(carols, 1, CAROL_TOPIC, "std_msgs/String")
     world.records = {"odom": odom, "camera": camera, "private": private}
     world.views = {
         "old": view(odom, alice, -24 * 60, credential=Verdict.Credential.UNKNOWN),
