@@ -197,19 +197,15 @@ def _no_constant(name: str) -> float:
 
 
 def _depth_exceeds(document: Any, limit: int) -> bool:
-    """Whether lists and dicts nest deeper than `limit` (walked without recursion)."""
-    stack = [(document, 1)]
+    """Whether lists and dicts nest deeper than `limit` (walked without recursion; only
+    containers are visited, so a long list of numbers costs one pass over it)."""
+    stack = [(document, 1)] if isinstance(document, dict | list) else []
     while stack:
         value, depth = stack.pop()
-        if isinstance(value, dict):
-            children = value.values()
-        elif isinstance(value, list):
-            children = value
-        else:
-            continue
         if depth > limit:
             return True
-        stack.extend((child, depth + 1) for child in children)
+        children = value.values() if isinstance(value, dict) else value
+        stack.extend((child, depth + 1) for child in children if isinstance(child, dict | list))
     return False
 
 
