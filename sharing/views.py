@@ -1,10 +1,10 @@
 """Owner pages of the sharing app: my data, shared with me, a record, grants, audit.
 
 A record's content is only ever shown through `records_open` (`record_open` for one): the
-worker checks access and
-the stored ciphertext's SM3 digest against the chain, and the content is decrypted only
-when the verdict is `verified`. The verdict is shown first, with its HTTP status. How the
-content is shown is sharing/content.py; the audit trail's entries are sharing/audit.py.
+worker checks access and the stored ciphertext's SM3 digest against the chain, and the
+content is decrypted only when the verdict is `verified`. The verdict is shown first, with
+its HTTP status. How the content is shown is sharing/content.py; the audit trail's entries
+are sharing/audit.py.
 """
 
 import re
