@@ -571,7 +571,7 @@ def _profiles(stack: BenchStack, client: Client, token: str, owner: Any) -> dict
     and the worker's check alone."""
     from django.test import Client as DjangoClient
 
-    from sharing.verification import record_verify
+    from sharing.verification import records_verify
 
     web = DjangoClient(HTTP_HOST="127.0.0.1")
     bodies = iter(client.bodies(2, BATCH))  # one to warm up with, one to profile: no replay
@@ -593,7 +593,7 @@ def _profiles(stack: BenchStack, client: Client, token: str, owner: Any) -> dict
                 f"/api/v1/records/{record_id}/content/", HTTP_AUTHORIZATION=f"Token {token}"
             ),
         ),
-        ("worker_check", lambda: record_verify(record_id=record_id, viewer_id=owner.pk)),
+        ("worker_check", lambda: records_verify(record_ids=[record_id], viewer_id=owner.pk)[0]),
     ):
         call()  # warm: the first call of each opens connections
         profiler = cProfile.Profile()

@@ -6,6 +6,7 @@ are created on first use as 0600 files under AUTHROS_VAR_DIR, never in the datab
 """
 
 import os
+from datetime import timedelta
 from pathlib import Path
 
 import environ
@@ -251,7 +252,7 @@ AXES_CLIENT_IP_CALLABLE = "accounts.views.client_ip_address"
 # --- Page rate limits (accounts.decorators.page_throttle) ---------------------------------
 # Per signed-in user, counted in Redis across web processes: "<count>/<second|minute|hour|day>"
 # (empty: no limit). Every page counts against PAGE_RATE_USER; pages that run an integrity
-# check (a record, its download, its trajectory) count their cost against PAGE_RATE_CONTENT.
+# check (a record, its download, a gallery page) count their cost against PAGE_RATE_CONTENT.
 PAGE_RATE_USER = env.str("PAGE_RATE_USER", default="600/minute")
 PAGE_RATE_CONTENT = env.str("PAGE_RATE_CONTENT", default="120/minute")
 
@@ -480,6 +481,10 @@ RETENTION_MAX_BATCHES = env.int("RETENTION_MAX_BATCHES", default=20)
 RETENTION_LOCK_TTL = env.float("RETENTION_LOCK_TTL", default=900.0)
 # How long a web request waits for the worker's integrity verdict.
 VERIFY_TIMEOUT = env.float("VERIFY_TIMEOUT", default=30.0)
+# Series (sharing/series.py, docs/api.md): the longest capture-time range one series covers,
+# and the most records it may check (every record in range is checked, none skipped).
+SERIES_MAX_RANGE = timedelta(seconds=env.int("SERIES_MAX_RANGE_SECONDS", default=6 * 3600))
+SERIES_MAX_RECORDS = env.int("SERIES_MAX_RECORDS", default=100_000)
 # Exports (sharing/exports.py, docs/export.md): records in one export at most, records checked
 # against the chain per run of the integrity check, and hours its files are kept.
 EXPORT_MAX_RECORDS = env.int("EXPORT_MAX_RECORDS", default=5000)
