@@ -71,8 +71,10 @@ def task_request_id_attach(headers: dict[str, Any] | None = None, **kwargs: obje
 def task_log_context_start(task_id: str = "", task: Any = None, **kwargs: object) -> None:
     """Every line the task logs names it and the request that queued it."""
     request = getattr(task, "request", None)
-    request_id = getattr(request, REQUEST_ID_HEADER, None) or (
-        (getattr(request, "headers", None) or {}).get(REQUEST_ID_HEADER)
+    request_id = (
+        getattr(request, REQUEST_ID_HEADER, None)
+        or (getattr(request, "headers", None) or {}).get(REQUEST_ID_HEADER)
+        or current_request_id()  # a task run inline, in the request's own thread
     )
     _task_contexts[task_id] = log_context_set(
         request_id=request_id, task=getattr(task, "name", None), task_id=task_id
