@@ -16,7 +16,6 @@ read when scraped, by collectors the caller hands to `metrics_text` (portal/scra
 from __future__ import annotations
 
 import os
-import shutil
 import threading
 import time
 from collections.abc import Callable, Iterable, Iterator
@@ -38,6 +37,16 @@ MULTIPROC_ENV = "PROMETHEUS_MULTIPROC_DIR"
 # Seconds: what a person waits for (an upload's answer, a record's integrity-checked view).
 # No `*_created` series: the multiprocess files have none, so one process alone would differ.
 disable_created_metrics()
+
+
+def multiproc_folder() -> Path | None:
+    value = os.environ.get(MULTIPROC_ENV, "")
+    return Path(value) if value else None
+
+
+# A metric without labels gets its file as it is defined, below: the folder must be there.
+if (_folder := multiproc_folder()) is not None:
+    _folder.mkdir(parents=True, exist_ok=True)
 LATENCY_BUCKETS = (0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0, 30.0, 60.0)
 
 HTTP_REQUESTS = Counter(
@@ -146,11 +155,6 @@ class _ProcessCounts:
         yield from REGISTRY.collect()
 
 
-def multiproc_folder() -> Path | None:
-    value = os.environ.get(MULTIPROC_ENV, "")
-    return Path(value) if value else None
-
-
 def metrics_text(collectors: Iterable[Collector] = ()) -> bytes:
     """The exposition every web process answers /metrics with: the counts, and `collectors`
     read now (state: backlogs, queues, the chain)."""
@@ -169,6 +173,6 @@ def metrics_folder_reset() -> None:
     folder = multiproc_folder()
     if folder is None:
         return
-    if folder.exists():
-        shutil.rmtree(folder)
     folder.mkdir(parents=True, exist_ok=True)
+    for path in folder.glob("*.db"):
+        path.unlink(missing_ok=True)

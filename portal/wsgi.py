@@ -1,4 +1,4 @@
-"""WSGI entry point (granian portal.wsgi:application --interface wsgi)."""
+"""WSGI entry point (gunicorn portal.wsgi:application, stack/processes.py web_server)."""
 
 import gc
 import logging
