@@ -2,7 +2,8 @@
 
 Four parts, checked at once, each in a thread of its own and given CHECK_TIMEOUT seconds: the
 database (a `SELECT 1`), Redis (a PING of the cache's and the broker's), the envelope storage
-(its folder exists or can be made, and is writable; or the bucket answers a lookup) and the chain node (its latest block).
+(its folder exists or can be made, and is writable; or the bucket answers a lookup) and the
+chain node (its latest block).
 A part that raises or takes longer has failed, and the answer names it and says why, without
 the URL or credentials behind it.
 """
