@@ -189,10 +189,12 @@ def celery_worker(
         str(concurrency),
         "--pool",
         "prefork",
-        # No worker-to-worker chatter: nothing here uses remote control or events.
+        # No worker-to-worker chatter (gossip: every worker following every other's events;
+        # mingle: a second of start-up asking the others for their state): nothing here needs
+        # it. Heartbeats stay on: Flower and `celery inspect` tell a live worker by them, and
+        # remote control (`celery -A portal inspect ping`) answers.
         "--without-gossip",
         "--without-mingle",
-        "--without-heartbeat",
         "-l",
         log_level,
         *(["-Q", ",".join(queues)] if queues else []),
