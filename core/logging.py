@@ -10,7 +10,7 @@ No line may carry a secret, a key or content. What the portal logs is written no
 second guard, anything shaped like a credential in a message (an `Authorization` value, a
 `Token`/`Bearer` key, a `password=`/`sm4_key=` value, 32 hex digits: an SM4 key) is replaced by
 `[redacted]` before the line is written; and Celery's "task succeeded" line goes without the
-task's return value (a view's check returns the record's envelope).
+task's return value unless it is a number (a view's check returns the record's envelope).
 """
 
 from __future__ import annotations
@@ -36,6 +36,9 @@ _SECRET_SHAPES = re.compile(
     r"|\b[0-9a-fA-F]{32}\b"
 )
 REDACTED = "[redacted]"
+# A task's return value logged as it is: a number or a constant (how many records a run
+# anchored); anything else may carry content.
+_PLAIN_VALUE = re.compile(r"-?\d+(\.\d+)?|None|True|False")
 
 _context: ContextVar[dict[str, Any] | None] = ContextVar("authros_log_context", default=None)
 
@@ -86,7 +89,9 @@ class ContextFilter(logging.Filter):
     def filter(self, record: logging.LogRecord) -> bool:
         record.context = log_context()
         if isinstance(record.args, dict) and "return_value" in record.args:
-            record.args = {**record.args, "return_value": "(not logged)"}
+            shown = str(record.args["return_value"])
+            if not _PLAIN_VALUE.fullmatch(shown):
+                record.args = {**record.args, "return_value": "(not logged)"}
         return True
 
 

@@ -160,3 +160,12 @@ def test_a_console_line_is_readable_and_names_the_request():
         log_context_reset(context)
     line = ConsoleFormatter().format(record)
     assert line.endswith(f" INFO portal.access {record.process} request_id=req-7 owner=3 GET /x")
+
+
+def test_a_tasks_return_value_is_logged_only_when_it_is_a_number():
+    line = "Task %(name)s[%(id)s] succeeded in %(runtime)ss: %(return_value)s"
+    for value, shown in (("12", "12"), ("{'envelope': 'QVIB...'}", "(not logged)")):
+        record = logging.LogRecord("celery.app.trace", logging.INFO, __file__, 1, line, None, None)
+        record.args = {"name": "t", "id": "1", "runtime": 0.1, "return_value": value}
+        ContextFilter().filter(record)
+        assert record.getMessage().endswith(f": {shown}")
