@@ -8,6 +8,7 @@ log context of the task's run: core/logging.py), count every finished task for /
 import logging
 import os
 import threading
+from contextlib import suppress
 from contextvars import Token
 from typing import Any
 
@@ -88,7 +89,9 @@ def task_finished(
     task_observed(getattr(task, "name", "unknown"), state or "UNKNOWN", retval)
     context = _task_contexts.pop(task_id, None)
     if context is not None:
-        log_context_reset(context)
+        # A pool that ran the task in another context (threads) has nothing to reset here.
+        with suppress(ValueError):
+            log_context_reset(context)
 
 
 @signals.worker_init.connect
