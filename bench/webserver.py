@@ -5,10 +5,13 @@ served as make run serves it. Measures first POST to last answer and to last anc
 answers that were not 201, and the web's CPU up to the last record anchored.
 
 The comparison of two web servers runs this from two checkouts (one per server) one burst at a
-time in alternation, so that both see the same machine: bench/REPORT.md, "Web server".
+time in alternation, so that both see the same machine, then joins their results:
+`python -m bench webserver --combine granian=A1.json gunicorn=B1.json granian=A2.json ...`
+writes bench/results/webserver.json with every burst under its server's name, which
+`python -m bench report` shows (bench/REPORT.md, "Web server").
 
 Run: `python -m bench webserver [--agents 700] [--bursts 5]`; prints one JSON line per burst
-and writes bench/results/webserver.json.
+and writes <results-dir>/webserver.json.
 """
 
 from __future__ import annotations
@@ -17,6 +20,7 @@ import argparse
 import dataclasses
 import json
 import statistics
+from pathlib import Path
 
 from bench import now_iso, run_in_child
 from bench.rest import add_arguments, check_arguments, report_header, upload_run
@@ -38,12 +42,23 @@ FIELDS = (
 )
 
 
+SUMMARIZED = ("total_to_anchored_s", "total_response_s", "first_answer_s", "web_cpu_s")
+
+
 def main(argv: list[str]) -> int:
     parser = argparse.ArgumentParser(prog="python -m bench webserver", description=__doc__)
     add_arguments(parser)
     parser.add_argument("--agents", type=int, default=700, help="concurrent uploads (700)")
     parser.add_argument("--bursts", type=int, default=5, help="bursts, each on a fresh stack")
+    parser.add_argument(
+        "--combine",
+        nargs="+",
+        metavar="SERVER=FILE",
+        help="join runs' webserver.json files (in the order run) instead of running",
+    )
     args = parser.parse_args(argv)
+    if args.combine:
+        return combine(args.combine, args.results_dir)
     check_arguments(parser, args)
     started = now_iso()
     run = dataclasses.replace(
@@ -83,3 +98,46 @@ def main(argv: list[str]) -> int:
     args.results_dir.mkdir(parents=True, exist_ok=True)
     (args.results_dir / f"{NAME}.json").write_text(json.dumps(report, indent=2) + "\n")
     return 0 if all(row["http_201"] == row["sent"] for row in rows) else 1
+
+
+def combine(items: list[str], results_dir: Path) -> int:
+    """One report of runs from several checkouts: every burst with its server's name and its
+    place in the alternation, the servers' command lines, and each run's load at start."""
+    runs = []
+    for item in items:
+        server, _, path = item.partition("=")
+        runs.append((server, json.loads(Path(path).read_text())))
+    first = runs[0][1]
+    results, commands, loads = [], {}, []
+    for order, (server, report) in enumerate(runs, start=1):
+        commands[server] = report["settings"]["web_command"]
+        loads.append(report.get("load_average_at_start"))
+        for row in report["results"]:
+            results.append({"server": server, "order": order, **row})
+    summary = {}
+    for server in commands:
+        rows = [row for row in results if row["server"] == server]
+        summary[server] = {
+            "bursts": len(rows),
+            "not_201": sum(row["sent"] - row["http_201"] for row in rows),
+            **{f"median_{key}": statistics.median(row[key] for row in rows) for key in SUMMARIZED},
+        }
+    combined = {
+        "benchmark": NAME,
+        "date": first["date"],
+        "machine": first["machine"],
+        "anvil": first.get("anvil"),
+        "load_average_at_start": first.get("load_average_at_start"),
+        "loads_at_start": loads,
+        "settings": {**first["settings"], "web_commands": commands},
+        "summary": summary,
+        "results": results,
+        "notes": [
+            "each burst on a fresh make-run stack, the servers in alternation (order), one "
+            "checkout per server; the figure of each server is the median of its bursts",
+        ],
+    }
+    results_dir.mkdir(parents=True, exist_ok=True)
+    (results_dir / f"{NAME}.json").write_text(json.dumps(combined, indent=2) + "\n")
+    print(json.dumps(summary, indent=2))
+    return 0
