@@ -67,10 +67,10 @@ ANVIL_STATE_INTERVAL = 1.0
 # (about 17 minutes of make run's traffic): the portal reads the chain's state and recent
 # receipts, never old logs, and the state written every second stays a few MiB.
 ANVIL_TRANSACTION_BLOCKS = 1024
-# Stopped one at a time in this order (anvil and Redis after them): nothing new is
-# scheduled while workers finish, and the chain outlives everything that writes to it.
 # The processes that count for /metrics (core/metrics.py), each in its own folder.
 METRICS_SERVICES = ("web", "worker", "verify")
+# Stopped one at a time in this order (anvil and Redis after them): nothing new is
+# scheduled while workers finish, and the chain outlives everything that writes to it.
 STOP_ORDER = (("beat",), ("web",), ("worker", "verify"), ("agent",), ("sim",), ("roscore",))
 _STOP = {  # signal and seconds each process gets before its group is killed
     "beat": (signal.SIGTERM, 10.0),
