@@ -34,7 +34,6 @@ from prometheus_client.registry import Collector
 
 CONTENT_TYPE = "text/plain; version=0.0.4; charset=utf-8"
 MULTIPROC_ENV = "PROMETHEUS_MULTIPROC_DIR"
-# Seconds: what a person waits for (an upload's answer, a record's integrity-checked view).
 # No `*_created` series: the multiprocess files have none, so one process alone would differ.
 disable_created_metrics()
 
@@ -47,11 +46,13 @@ def multiproc_folder() -> Path | None:
 # A metric without labels gets its file as it is defined, below: the folder must be there.
 if (_folder := multiproc_folder()) is not None:
     _folder.mkdir(parents=True, exist_ok=True)
+
+# Seconds: what a person waits for (an upload's answer, a record's integrity-checked view).
 LATENCY_BUCKETS = (0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0, 30.0, 60.0)
 
 HTTP_REQUESTS = Counter(
     "authros_http_requests",
-    "Web requests answered, by route (URL name) and status code",
+    "Web requests answered, by route (URL pattern), method and status code",
     ["route", "method", "status"],
 )
 UPLOADS = Counter(
