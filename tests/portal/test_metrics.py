@@ -2,15 +2,19 @@
 anchoring transactions and their gas, with latency histograms; and reads state when scraped
 (backlog, queues, the chain's head)."""
 
+import re
 import threading
+import uuid
 from datetime import timedelta
 
 import pytest
 from django.db import connection
 from django.test import Client
+from django.urls import resolve
 from django.utils import timezone
 from prometheus_client.parser import text_string_to_metric_families
 
+from portal.metrics import UPLOAD_ROUTES, VIEW_ROUTES
 from portal.scrape import state_collector
 from sharing.models import Record
 from tests.api.conftest import RECORDS, b64, token_client
@@ -142,3 +146,10 @@ def test_the_backlog_and_its_oldest_record_are_read_when_scraped(make_robot, set
     state_collector.forget()
     assert value(samples, "authros_chain_backlog", kind="records") == 2
     assert 600 <= value(samples, "authros_anchoring_oldest_pending_seconds") < 3600
+
+
+@pytest.mark.parametrize("route", sorted(route for _, route in UPLOAD_ROUTES | VIEW_ROUTES))
+def test_the_counted_routes_are_the_portals(route):
+    """Renamed routes would silently stop being counted: each one counted resolves to itself."""
+    path = "/" + re.sub(r"<\w+:\w+>", str(uuid.uuid4()), route)
+    assert resolve(path).route == route
