@@ -8,7 +8,8 @@ environment each, and run from a folder outside the repository, which is on no p
 - the auditor's (`[verify]`, nothing of the system's): `authros-verify` checks an export the
   portal made against the session's chain, and fails it once a byte of it changes.
 
-The packages come from a wheelhouse in var/ filled once (`pip download`), then offline.
+The packages come from a wheelhouse per role in var/wheelhouse/, filled once (`pip download`),
+then offline.
 """
 
 import json
@@ -64,9 +65,10 @@ def wheel(tmp_path_factory) -> Path:
 def role_venv(folder: Path, role: str, wheel: Path, *, system_site_packages: bool) -> Path:
     """A fresh virtual environment with the role's locked set and the wheel: its bin/."""
     locked = REPO_ROOT / "requirements" / f"{role}.txt"
-    offline = ["--no-index", "--find-links", str(WHEELHOUSE)]
+    wheelhouse = WHEELHOUSE / role  # one per role: the two tests may run at once
+    offline = ["--no-index", "--find-links", str(wheelhouse)]
     download = [sys.executable, "-m", "pip", "download", "-q", "--no-deps", "--require-hashes"]
-    download += ["-r", str(locked), "-d", str(WHEELHOUSE)]
+    download += ["-r", str(locked), "-d", str(wheelhouse)]
     if run([*download, *offline], cwd=folder, check=False).returncode != 0:
         run(download, cwd=folder)  # once: what the wheelhouse lacks, from the index
     venv = folder / f"{role}-venv"
