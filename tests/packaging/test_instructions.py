@@ -4,6 +4,7 @@ package's own; the robots page says how to install the agent and pair it, with t
 command's real name and options."""
 
 import re
+import sys
 import tomllib
 
 import pytest
@@ -61,3 +62,12 @@ def test_the_robots_page_says_how_to_install_the_agent_and_pair_it(client, make_
     page = client.get(reverse("robots")).content.decode()
     assert INSTALL.findall(page.replace("&quot;", '"')) == [(*WHEEL, "agent")]
     assert "authros-agent pair --portal http://testserver --name NAME" in page
+
+
+def test_the_ros1_agent_without_rospy_says_how_to_get_it(monkeypatch, capsys):
+    """A robot without Debian's rospy (or a virtual environment that cannot see it) is told
+    what to install, or to run the ROS 2 agent, instead of a traceback."""
+    monkeypatch.delitem(sys.modules, "ros_agent.node", raising=False)
+    monkeypatch.setitem(sys.modules, "rospy", None)  # `import rospy` fails as when missing
+    assert agent_main(["--config", "agent.yaml"]) == 2
+    assert "install Debian's python3-rospy" in capsys.readouterr().err
