@@ -48,6 +48,7 @@ def main(argv: list[str]) -> int:
         _section_signing,
         _section_series,
         _section_soak,
+        _section_webserver,
     ]
     parts = [
         "# AuthROS benchmarks beside the paper\n",
@@ -69,6 +70,85 @@ def main(argv: list[str]) -> int:
 
 
 # --- sections -------------------------------------------------------------------------------
+
+
+def _section_webserver(results: Path) -> str | None:
+    """gunicorn against granian (issue 36): the 700-upload burst of each in alternation, and
+    the web's memory in a soak of each, run side by side."""
+    report = _load(results, "webserver")
+    if report is None:
+        return None
+    servers = list(report["summary"])
+    base = servers[0]
+    bursts = _table(
+        report["results"],
+        (
+            ("order", lambda r: r["order"]),
+            ("server", lambda r: r["server"]),
+            ("answered 201", lambda r: f"{r['http_201']}/{r['sent']}"),
+            ("first answer s", lambda r: _num(r.get("first_answer_s"), 2)),
+            ("last answer s", lambda r: _num(r.get("total_response_s"), 2)),
+            ("last anchored s", lambda r: _num(r.get("total_to_anchored_s"), 2)),
+            ("web CPU s", lambda r: _num(r.get("web_cpu_s"), 2)),
+            (
+                "load at start",
+                lambda r: (report.get("loads_at_start") or [None] * 99)[r["order"] - 1],
+            ),
+        ),
+    )
+
+    def ratio(server: str, key: str) -> str:
+        ours, theirs = report["summary"][server][key], report["summary"][base][key]
+        return f"{ours / theirs:.2f}x" if server != base and theirs else ""
+
+    summary = _table(
+        [{"server": server, **report["summary"][server]} for server in servers],
+        (
+            ("server (median of its bursts)", lambda r: r["server"]),
+            ("bursts", lambda r: r["bursts"]),
+            ("not 201", lambda r: r["not_201"]),
+            ("last anchored s", lambda r: _num(r["median_total_to_anchored_s"], 2)),
+            (f"x {base}", lambda r: ratio(r["server"], "median_total_to_anchored_s")),
+            ("last answer s", lambda r: _num(r["median_total_response_s"], 2)),
+            ("first answer s", lambda r: _num(r["median_first_answer_s"], 2)),
+            ("web CPU s", lambda r: _num(r["median_web_cpu_s"], 2)),
+            (f"CPU x {base}", lambda r: ratio(r["server"], "median_web_cpu_s")),
+        ),
+    )
+    commands = "\n".join(
+        f"- {server}: `{command}`" for server, command in report["settings"]["web_commands"].items()
+    )
+    lines = [
+        "## Web server: gunicorn against granian (issue 36; no paper figure)\n",
+        f"**Our run:** {_machine(report)}\n",
+        "The paper's 700 concurrent 1 KB uploads as bench/roots.py sends them (each agent its own "
+        "robot token and connection, all opened at once from one selector loop; root mode, "
+        "anvil automine), each burst on a fresh `make run` stack, the two servers in "
+        "alternation, each from a checkout of its own (`python -m bench webserver`). Servers:\n",
+        commands + "\n",
+        summary,
+        bursts,
+    ]
+    soak = report.get("soak")
+    if soak:
+        lines.append(soak["text"] + "\n")
+        lines.append(
+            _table(
+                soak["rows"],
+                (
+                    ("server", lambda r: r["server"]),
+                    ("minutes", lambda r: r["minutes"]),
+                    ("web MiB, first quarter", lambda r: _num(r["first"], 1)),
+                    ("web MiB, last quarter", lambda r: _num(r["last"], 1)),
+                    ("growth", lambda r: f"{r['growth']:+.1%}" if r["growth"] is not None else "-"),
+                    ("records anchored", lambda r: r["anchored"]),
+                ),
+            )
+        )
+    notes = report.get("notes", [])
+    if notes:
+        lines.append("Notes from the run:\n\n" + "\n".join(f"- {note}" for note in notes) + "\n")
+    return "\n".join(lines)
 
 
 def _section_concurrency(results: Path) -> str | None:

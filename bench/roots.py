@@ -3,7 +3,7 @@ paper's numbers for scale).
 
 For each ANCHOR_MODE (`records`, the paper's one slot per record and the baseline, and `root`,
 make run's default), each in its own process with a fresh `make run` stack (bench/stack.py,
-granian as make run serves it, anvil with automine):
+gunicorn as make run serves it, anvil with automine):
 
 - ingest: C clients (one robot each, robots round-robin over the owners) POST batches of 100
   sealed 1 KB envelopes to `/api/v1/records/` as fast as they are answered, for D seconds;

@@ -10,7 +10,7 @@ hold with signatures.
   sensor_msgs/Image (PNG-encoded by the extractor). Unsigned is a robot set up by hand (no
   pairing key), signed a paired one. Envelopes/s; each round measures every kind and variant,
   the order of the variants alternating by round; the figure is the median round's.
-- then one fresh `make run` stack (bench/stack.py: granian as make run serves it, anvil with
+- then one fresh `make run` stack (bench/stack.py: gunicorn as make run serves it, anvil with
   automine, ANCHOR_MODE=root, make run's), K owners registered on chain, each with robots
   added by hand (unsigned) and robots paired through the pairing services (the owner approves
   the request; the workers add each key on chain from the owner's EOA, and the benchmark waits

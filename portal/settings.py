@@ -13,6 +13,7 @@ import environ
 from django.core.exceptions import ImproperlyConfigured
 from kombu import Queue
 
+from core.logging import logging_config
 from core.redis_url import celery_redis, redis_target
 from core.secrets import load_or_create_secret
 from core.storage_url import envelope_storage_config
@@ -79,6 +80,10 @@ INSTALLED_APPS = [
 ]
 
 MIDDLEWARE = [
+    # First: the probes (/healthz, /readyz, /metrics) are answered here, before any other
+    # middleware (no host check, session, redirect or service check); every other request gets
+    # its id, log context, access line and metrics.
+    "portal.request_context.RequestContextMiddleware",
     "django.middleware.security.SecurityMiddleware",
     # The Content-Security-Policy header on every answer, the 503s and static files included.
     "portal.middleware.ContentSecurityPolicyMiddleware",
@@ -311,19 +316,15 @@ SPECTACULAR_SETTINGS = {
 # Request bodies: the envelope limit plus base64 and JSON overhead.
 DATA_UPLOAD_MAX_MEMORY_SIZE = env.int("DATA_UPLOAD_MAX_MEMORY_SIZE", default=12 * 1024 * 1024)
 
-LOGGING = {
-    "version": 1,
-    "disable_existing_loggers": False,
-    "formatters": {
-        "plain": {"format": "%(asctime)s %(levelname)s %(name)s %(process)d %(message)s"},
-    },
-    "handlers": {"console": {"class": "logging.StreamHandler", "formatter": "plain"}},
-    "root": {"handlers": ["console"], "level": env.str("LOG_LEVEL", default="INFO")},
-    "loggers": {
-        "web3": {"level": "WARNING"},
-        "urllib3": {"level": "WARNING"},
-    },
-}
+# One JSON object per line (LOG_FORMAT=json, the default: production, the systemd units) or a
+# readable line (console: `make run` sets it unless LOG_FORMAT is given); core/logging.py.
+LOG_FORMAT = env.str("LOG_FORMAT", default="json")
+LOGGING = logging_config(log_format=LOG_FORMAT, level=env.str("LOG_LEVEL", default="INFO"))
+
+# --- Metrics (core/metrics.py, portal/probes.py, docs/operations.md) ---------------------
+# GET /metrics is free from this host; from anywhere else it needs `Authorization: Bearer
+# <METRICS_TOKEN>` (empty: refused from anywhere else). "Anywhere else" follows API_NUM_PROXIES.
+METRICS_TOKEN = env.str("METRICS_TOKEN", default="")
 
 # --- Celery (broker and results in Redis) ------------------------------------------------
 # Both in the URL forms of REDIS_URL; a Cluster cannot carry either (kombu has no Cluster

@@ -4,7 +4,7 @@ import uuid
 from collections.abc import Iterable
 from datetime import datetime
 
-from django.db.models import Exists, F, OuterRef, Q, QuerySet, Window
+from django.db.models import Count, Exists, F, OuterRef, Q, QuerySet, Window
 from django.db.models.functions import RowNumber
 from django.utils import timezone
 
@@ -524,3 +524,25 @@ _RECORD_TO_OPEN = FixedSelect(
 def record_to_open(record_id: uuid.UUID) -> Record | None:
     """The record a view opens, with its owner (and user) and who deleted it, if anyone."""
     return _RECORD_TO_OPEN.fetch_one(record_id)
+
+
+def record_oldest_pending_since() -> datetime | None:
+    """When the oldest record still waiting for anchoring was stored (the metrics' backlog
+    age); one row of the (status, created_at) index."""
+    return (
+        Record.objects.filter(status=Record.Status.PENDING)
+        .order_by("created_at")
+        .values_list("created_at", flat=True)
+        .first()
+    )
+
+
+def export_counts_unfinished() -> dict[str, int]:
+    """Exports queued and running, by status (the metrics)."""
+    unfinished = [Export.Status.QUEUED, Export.Status.RUNNING]
+    counts = dict.fromkeys(unfinished, 0)
+    rows = (
+        Export.objects.filter(status__in=unfinished).values_list("status").annotate(n=Count("id"))
+    )
+    counts.update(dict(rows))
+    return {str(status): count for status, count in counts.items()}
