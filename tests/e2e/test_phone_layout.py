@@ -1,8 +1,8 @@
 """The pages on a phone (390x844) and a desktop (1280x900), in Chromium (issue 35): the
 header's links fold under a Menu button and the list filters under a Filters button (both
 with no script), a page of 25 records shows the first on the first screen as compact cards,
-and no main page scrolls sideways. Screenshots of every page at both sizes go to
-test-artifacts/e2e/layout/.
+and no main page scrolls sideways or has anything blocked by the Content-Security-Policy.
+Screenshots of every page at both sizes go to test-artifacts/e2e/layout/.
 
 The portal runs in pytest-django's live server with chain work run inline (eager) on the
 session's anvil: these tests are about the pages, not the worker.
@@ -82,6 +82,11 @@ def signed_in(live_server, make_robot, client):
 def _page_at(browser: Browser, base: str, session: str, size: tuple[int, int]) -> Page:
     context = browser.new_context(viewport={"width": size[0], "height": size[1]})
     context.add_cookies([{"name": settings.SESSION_COOKIE_NAME, "value": session, "url": base}])
+    # What the Content-Security-Policy blocks on these pages (none may be blocked).
+    context.add_init_script(
+        "window.__blocked = []; document.addEventListener('securitypolicyviolation',"
+        " (e) => window.__blocked.push(e.effectiveDirective + ' ' + e.blockedURI));"
+    )
     return context.new_page()
 
 
@@ -93,7 +98,9 @@ def test_every_main_page_fits_a_phone_and_a_desktop(signed_in, browser: Browser,
         page.on("pageerror", lambda error: errors.append(str(error)))
         for path in [*PAGES, record_page]:
             page.goto(base + path)
+            page.wait_for_load_state("networkidle")  # the record page's plot draws itself
             assert _fits(page), (name, path)
+            assert page.evaluate("window.__blocked") == [], (name, path)
             slug = path.strip("/").replace("/", "-")[:40]
             page.screenshot(path=shots / f"{slug}-{name}.png", full_page=True)
         page.context.close()
