@@ -926,7 +926,9 @@ class GrantRevokeApi(APIView):
                 404,
                 415,
                 e400="`invalid_request`, `invalid_grant_terms`",
-                e403=ROBOT_REFUSED.format(scope="share"),
+                e403=ROBOT_REFUSED.format(scope="share")
+                + "; `token_cannot_widen`: an API token may narrow a grant, but widen only a "
+                "grant it made and nothing else changed since",
                 e404="`owner_not_found`, or `no_grant`: nothing live to change",
             ),
         },
@@ -936,7 +938,14 @@ class GrantRevokeApi(APIView):
         payload = GrantTermsInputSerializer(data=request.data)
         payload.is_valid(raise_exception=True)
         terms = payload.terms_for(owner)
-        grant = grant_terms_change(owner=owner, grantee=owner_resolve(grantee), terms=terms)
+        token = caller_owner_token(request)
+        grant = grant_terms_change(
+            owner=owner,
+            grantee=owner_resolve(grantee),
+            terms=terms,
+            made_with="session" if token is None else "token",
+            made_with_token=token,
+        )
         return Response(GrantOutputSerializer(grant).data)
 
     @extend_schema(
@@ -961,7 +970,13 @@ class GrantRevokeApi(APIView):
     )
     def delete(self, request: Request, grantee: str) -> Response:
         owner = caller_owner(request)
-        grant = grant_revoke(owner=owner, grantee=owner_resolve(grantee))
+        token = caller_owner_token(request)
+        grant = grant_revoke(
+            owner=owner,
+            grantee=owner_resolve(grantee),
+            made_with="session" if token is None else "token",
+            made_with_token=token,
+        )
         return Response(GrantOutputSerializer(grant).data)
 
 

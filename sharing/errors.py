@@ -199,3 +199,10 @@ class NotDeletableYet(SharingError):
 
     code = "not_anchored_yet"
     http_status = 409
+
+
+class TokenCannotWiden(SharingError):
+    """An owner API token asked to widen a grant it did not wholly make (docs/grants.md)."""
+
+    code = "token_cannot_widen"
+    http_status = 403

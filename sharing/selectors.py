@@ -10,7 +10,7 @@ from django.utils import timezone
 
 from accounts.models import ChainActivity, Owner, OwnerToken, Robot
 from core.rows import FixedSelect
-from sharing.models import Export, Grant, Record, SecurityEvent, Verdict
+from sharing.models import Export, Grant, GrantChange, Record, SecurityEvent, Verdict
 from sharing.selection import RecordSelection
 from smcrypto.merkle import path_split
 
@@ -356,6 +356,32 @@ def grant_list_made_with(token: OwnerToken) -> QuerySet[Grant]:
         .select_related("owner__user", "grantee__user")
         .order_by("-created_at")
     )
+
+
+def grant_list_changed_with(token: OwnerToken) -> list[tuple[Grant, dict]]:
+    """Live grants (pending or active) not made with `token` whose last change was, each with
+    the terms it had before that run of the token's changes (GrantChange.terms_before)."""
+    changed = (
+        Grant.objects.filter(
+            owner_id=token.owner_id,
+            status__in=(Grant.Status.PENDING, Grant.Status.ACTIVE),
+            changes__token=token,
+        )
+        .exclude(made_with_token=token)
+        .distinct()
+        .select_related("owner__user", "grantee__user")
+        .order_by("-created_at")
+    )
+    found = []
+    for grant in changed:
+        before = None
+        for change in grant.changes.order_by("-id"):
+            if change.token_id != token.pk or change.kind != GrantChange.Kind.CHANGED:
+                break
+            before = change.terms_before
+        if before is not None:
+            found.append((grant, before))
+    return found
 
 
 def record_list_uploaded_by(robot: Robot) -> QuerySet[Record]:

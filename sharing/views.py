@@ -71,6 +71,7 @@ from sharing.selectors import (
     access_log_filter_choices,
     export_list_of,
     export_of,
+    grant_list_changed_with,
     grant_list_given,
     grant_list_made_with,
     grant_list_received,
@@ -90,11 +91,12 @@ from sharing.selectors import (
     verdict_list_filtered,
 )
 from sharing.services import (
+    GrantTerms,
     grant_create,
     grant_revoke,
     grant_terms_change,
     grant_terms_make,
-    grants_revoke_made_with,
+    grants_undo_made_with,
     owner_resolve,
 )
 from sharing.verification import OpenedRecord, record_open, record_open_many
@@ -705,23 +707,36 @@ def _access_log_refused(
 @page_throttle()
 @require_http_methods(["GET", "POST"])
 def api_token_revoke(request: HttpRequest, token_id: int) -> HttpResponse:
-    """GET: what revoking the token does, with the live grants it made; POST: revoke it, and
-    those grants too unless the owner unticked them."""
+    """GET: what revoking the token does, with the live grants it made and those it changed
+    last; POST: revoke it, then revoke the grants it made and give the grants it changed back
+    their former terms, unless the owner unticked either."""
     token = owner_token_of(request.owner, token_id)
     if token is None:
         raise Http404("no such API token")
     if request.method == "GET":
-        context = {"token": token, "grants": list(grant_list_made_with(token))}
+        context = {
+            "token": token,
+            "grants": list(grant_list_made_with(token)),
+            "changed": [
+                {"grant": grant, "before": GrantTerms.from_json(before)}
+                for grant, before in grant_list_changed_with(token)
+            ],
+        }
         return render(request, "accounts/api_token_revoke.html", context)
     was_live = token.revoked_at is None
     owner_token_revoke(token=token, actor=request.user)
-    revoked = []
-    if request.POST.get("revoke_grants") == "yes":
-        revoked = grants_revoke_made_with(token=token)
+    undone = grants_undo_made_with(
+        token=token,
+        revoke_made=request.POST.get("revoke_grants") == "yes",
+        restore_changed=request.POST.get("restore_grants") == "yes",
+    )
     said = [f"The API token {token.name} {'is' if was_live else 'was already'} revoked."]
-    if revoked:
-        names = ", ".join(grant.grantee.username for grant in revoked)
-        said.append(f"The access it gave {names} is revoked too; the chain follows.")
+    if undone.revoked:
+        names = ", ".join(grant.grantee.username for grant in undone.revoked)
+        said.append(f"The access of {names} is revoked too; the chain follows.")
+    if undone.restored:
+        names = ", ".join(grant.grantee.username for grant in undone.restored)
+        said.append(f"Your grants to {names} have their terms from before the token's changes.")
     messages.success(request, " ".join(said))
     return redirect("api-tokens")
 
