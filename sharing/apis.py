@@ -47,7 +47,7 @@ from core.api_errors import ErrorSerializer, error_responses
 from sharing.access_log import access_log_redacted
 from sharing.cache import envelope_fetch
 from sharing.deletion import record_delete
-from sharing.errors import AccessDenied, ExportNotFound, NotAnchoredYet, RecordNotFound
+from sharing.errors import NOT_VISIBLE, ExportNotFound, NotAnchoredYet, RecordNotFound
 from sharing.exports import export_create, export_download
 from sharing.models import Export, Grant, Record, Verdict
 from sharing.selection import MAX_SELECTED_ROBOTS, MAX_SELECTED_TOPICS, MAX_TOPIC_LENGTH
@@ -63,7 +63,6 @@ from sharing.selectors import (
     record_list_uploaded_by,
     record_list_visible_to,
     record_proof,
-    record_refused_by_grant,
     verdict_list_access_log,
     verdict_list_filtered,
 )
@@ -535,7 +534,7 @@ def _record_uuid(record_id: str) -> uuid.UUID:
     try:
         return uuid.UUID(record_id)
     except ValueError:
-        raise RecordNotFound("no such record") from None
+        raise RecordNotFound(NOT_VISIBLE) from None
 
 
 def _records_of_caller(request: Request) -> QuerySet[Record]:
@@ -547,12 +546,9 @@ def _records_of_caller(request: Request) -> QuerySet[Record]:
 
 
 def _refuse_unseen(request: Request, record_id: uuid.UUID) -> None:
-    """A record the caller may not see: 403 when its owner's grant to the caller does not
-    cover it (outside its scope, or expired), else 404 (nothing tells it exists)."""
-    owner = caller_owner(request) if caller_robot(request) is None else None
-    if owner is not None and record_refused_by_grant(owner, record_id):
-        raise AccessDenied("the record is outside the scope of your grant, or the grant expired")
-    raise RecordNotFound("no such record, or not shared with you")
+    """A record the caller may not see: 404 whether it exists or not, outside a grant's scope
+    or not (nothing tells it exists)."""
+    raise RecordNotFound(NOT_VISIBLE)
 
 
 class RecordDetailApi(APIView):
@@ -666,8 +662,7 @@ class RecordContentApi(APIView):
                 409,
                 410,
                 503,
-                e403="`access_denied`: no live grant from the record's owner; "
-                + ROBOT_REFUSED.format(scope="read"),
+                e403=ROBOT_REFUSED.format(scope="read"),
                 e409="`integrity_check_failed`: the stored data differs from the chain; "
                 "`not_anchored_yet`: try again shortly; `identity_check_failed`: the owner's "
                 "key commitment on chain differs from the key the portal holds",

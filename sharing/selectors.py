@@ -254,13 +254,6 @@ def grant_terms_of(owner: Owner, grantee: Owner) -> Grant | None:
     ).first()
 
 
-def record_refused_by_grant(viewer: Owner, record_id: uuid.UUID) -> bool:
-    """Whether the record exists and its owner's grant to `viewer` is active but does not let
-    the viewer read it (outside the grant's scope, or expired): refused (403), not unknown."""
-    granting = Grant.objects.filter(grantee=viewer, status=Grant.Status.ACTIVE).values("owner_id")
-    return Record.objects.filter(pk=record_id, owner_id__in=granting).exists()
-
-
 def verdict_latest(record: Record, viewer: Owner) -> Verdict | None:
     """The viewer's most recent integrity verdict on the record (their own views only)."""
     return (

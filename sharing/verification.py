@@ -14,6 +14,7 @@ import uuid
 from collections.abc import Sequence
 from contextlib import suppress
 from dataclasses import dataclass
+from datetime import timedelta
 from typing import Any
 
 from django.conf import settings
@@ -30,6 +31,7 @@ from chainworker.services import chain_client, chain_head
 from core.outbox import dispatch
 from sharing.cache import envelope_cache_evict, envelope_fetch
 from sharing.errors import (
+    NOT_VISIBLE,
     AccessDenied,
     IntegrityCheckFailed,
     NotAnchoredYet,
@@ -44,6 +46,7 @@ from sharing.scope import scope_commitment
 from sharing.selectors import (
     grant_live,
     record_deletion_text,
+    record_get_visible,
     record_to_check,
     record_to_open,
     record_topic_history,
@@ -107,11 +110,35 @@ def record_verify(
         )
 
     if not _may_view_identified(record, viewer, client):
-        return Verification(verdict(Verdict.Outcome.NO_ACCESS), None)
+        coalesced = None if checked_by_id is not None else _refused_lately(record, viewer)
+        return Verification(coalesced or verdict(Verdict.Outcome.NO_ACCESS), None)
     if record.is_deleted:
         return Verification(verdict(Verdict.Outcome.DELETED), None)
     fields, data = _digest_check(record, viewer, client)
     return Verification(verdict(**fields), data)
+
+
+# Refused views of one owner's records by one viewer in a row leave one verdict (a row in both
+# access logs) per this long: the first; later ones are answered the same and not written, so
+# an owner without a grant cannot fill another owner's access log (docs/security.md). A view
+# that passed in between starts a new row.
+REFUSED_VIEWS_COALESCED = timedelta(hours=1)
+
+
+def _refused_lately(record: Record, viewer: Owner) -> Verdict | None:
+    """The viewer's last own view of a record of the same owner, if it was refused within
+    REFUSED_VIEWS_COALESCED."""
+    last = (
+        Verdict.objects.filter(
+            viewer=viewer,
+            record_owner_id=record.owner_id,
+            checked_by__isnull=True,
+            created_at__gte=timezone.now() - REFUSED_VIEWS_COALESCED,
+        )
+        .order_by("-created_at", "-pk")
+        .first()
+    )
+    return last if last is not None and last.outcome == Verdict.Outcome.NO_ACCESS else None
 
 
 def records_verify(
@@ -455,8 +482,10 @@ def record_open(
     except ValueError:
         record = None
     if record is None:
-        raise RecordNotFound("no such record")
+        raise RecordNotFound(NOT_VISIBLE)
     if record.is_deleted:
+        if record.owner_id != viewer.pk and record_get_visible(viewer, record.pk) is None:
+            raise RecordNotFound(NOT_VISIBLE)  # "deleted" would tell it existed
         raise _deleted(record)
     if earlier <= 0:
         pending = _send(VERIFY_TASK, str(record.pk), viewer.pk, credential, _token_id(token))
@@ -553,7 +582,7 @@ def _decrypted(
 ) -> OpenedRecord:
     """The record decrypted from the bytes the worker checked, if its verdict allows."""
     if verdict.outcome == Verdict.Outcome.NO_ACCESS:
-        raise AccessDenied("you have no live grant to this record", record=record, verdict=verdict)
+        raise AccessDenied(NOT_VISIBLE, record=record, verdict=verdict)
     if verdict.outcome == Verdict.Outcome.DELETED:
         record.refresh_from_db()
         raise _deleted(record, verdict)

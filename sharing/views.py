@@ -38,6 +38,7 @@ from sharing.deletion import (
     records_delete,
 )
 from sharing.errors import (
+    NOT_VISIBLE,
     AccessDenied,
     ExportRefused,
     IntegrityCheckFailed,
@@ -190,14 +191,12 @@ def _open_or_refuse(
             earlier=earlier,
             credential=Verdict.Credential.SESSION,
         )
-    except RecordNotFound as exc:
-        return Refusal("not_found", 404, str(exc))
+    except (RecordNotFound, AccessDenied):
+        # One answer whether it exists or not (the worker kept the refused view's verdict).
+        return Refusal("not_found", 404, NOT_VISIBLE)
     except RecordDeleted as exc:
         # Its metadata stays (a tombstone), never TAMPERED: the ciphertext went on purpose.
         return Refusal("deleted", 410, str(exc), exc.record, exc.verdict)
-    except AccessDenied as exc:
-        # Nothing of a record the viewer may not read is shown, not even its metadata.
-        return Refusal(Verdict.Outcome.NO_ACCESS, 403, str(exc))
     except IntegrityCheckFailed as exc:
         unsigned = (
             exc.verdict is not None and exc.verdict.outcome == Verdict.Outcome.SIGNATURE_REFUSED
@@ -403,7 +402,7 @@ def record_trajectory_range(request: HttpRequest, record_id: str) -> HttpRespons
     in [since, until): at most RANGE_PLOT_POINTS, evenly spread, each integrity-checked."""
     record = record_get_visible(request.owner, record_id)
     if record is None:
-        return _plain_refusal("no such record, or no access to it", 404)
+        return _plain_refusal(NOT_VISIBLE, 404)
     if record.data_type != ODOMETRY:
         raise Http404("only odometry records have a trajectory")
     form = TopicRangeForm(_range_given(request))
@@ -448,7 +447,7 @@ def record_gallery(request: HttpRequest, record_id: str) -> HttpResponse:
     page, oldest first; each one integrity-checked (in one batched run) before it is shown."""
     record = record_get_visible(request.owner, record_id)
     if record is None:
-        raise Http404("no such record, or no access to it")
+        raise Http404(NOT_VISIBLE)
     if record.data_type not in IMAGE_TYPES:
         raise Http404("only image records have a gallery")
     form = _range_of(request, record)
