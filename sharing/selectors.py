@@ -134,12 +134,17 @@ def record_list_sorted(records: QuerySet[Record], sort: str | None) -> QuerySet[
 
 def robots_visible_to(viewer: Owner, *, shared: bool) -> QuerySet[Robot]:
     """The robots whose records a record list of the viewer may show: the viewer's own, or
-    those of the owners with an active grant to the viewer."""
-    if shared:
-        robots = Robot.objects.filter(owner__in=owners_granting(viewer))
-    else:
-        robots = Robot.objects.filter(owner=viewer)
+    those with a record inside a live grant to the viewer (robots_in_scope_of)."""
+    robots = robots_in_scope_of(viewer) if shared else Robot.objects.filter(owner=viewer)
     return robots.select_related("owner__user").order_by("owner__user__username", "name")
+
+
+def robots_in_scope_of(viewer: Owner) -> QuerySet[Robot]:
+    """Other owners' robots with a record the viewer may read now: inside the scope of a live
+    (active, unexpired) grant, by the one selection (record_list_shared_with). A revoked or
+    expired grant, or a robot outside a grant's scope, lists nothing (issue 37)."""
+    in_scope = record_list_shared_with(viewer).order_by().values("robot_id")
+    return Robot.objects.filter(pk__in=in_scope)
 
 
 def record_counts_of(owner: Owner) -> dict[str, int]:
@@ -485,10 +490,11 @@ def access_log_filter_choices(owner: Owner, *, direction: str) -> dict[str, Quer
     (id, name, owner's username), topics, and the usernames of the other side (the owner and
     grantees, or the owners who shared with the owner)."""
     if direction == ACCESS_LOG_OUTGOING:
-        owners = Owner.objects.filter(grants_given__grantee=owner)
-        robots = Robot.objects.filter(owner__in=owners)
-        topics = Record.objects.filter(owner__in=owners)
-        people = owners
+        # Only what the owner's live grants let it read now (their scopes), never the rest of
+        # a granting owner's robots and topics, nor those of a revoked or expired grant.
+        robots = robots_in_scope_of(owner)
+        topics = record_list_shared_with(owner)
+        people = owners_granting(owner)
     else:
         robots = Robot.objects.filter(owner=owner)
         topics = Record.objects.filter(owner=owner)
