@@ -127,7 +127,7 @@ def _slot_check(
             check="merkle path",
         )
     slot_id = anchored_id.bytes + bytes(16)
-    anchored = chain.data_query(contract, slot_id)
+    anchored = chain.data_query(contract, slot_id, owner=owner)
     if anchored.owner.lower() != owner.lower() or anchored.digest != digest:
         raise Invalid(
             "the chain holds another owner or digest for its id (dataQuery)", check="dataQuery"

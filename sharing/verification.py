@@ -301,7 +301,7 @@ def _anchored_check(
     computed = sm3.sm3_hex(data)
     if record.anchor_root_id is not None:
         return _proof_check(record, viewer, client, data=data, source=source, computed=computed)
-    on_chain = client.data_query(record.id)
+    on_chain = client.data_query(record.id, owner=record.owner.eoa_address)
     if on_chain is None:
         fields = {"computed_digest": computed, "source": source}
         return {"outcome": Verdict.Outcome.NOT_ANCHORED_YET, **fields}, None
