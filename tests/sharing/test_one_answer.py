@@ -13,7 +13,7 @@ from django.utils import timezone
 from sharing.deletion import record_delete
 from sharing.models import Record, Verdict
 from sharing.services import record_create
-from sharing.verification import REFUSED_VIEWS_COALESCED, record_verify
+from sharing.verification import REFUSED_VIEWS_COALESCED, records_verify
 from tests.api.conftest import RECORDS, token_client
 
 pytestmark = pytest.mark.django_db
@@ -68,12 +68,11 @@ def test_refused_views_in_a_row_leave_one_row_an_hour(anchored, make_owner):
     mallory = make_owner("mallory")
     for _ in range(5):
         for record in records:
-            assert record_verify(record_id=record.pk, viewer_id=mallory.pk).verdict.outcome == (
-                "no_access"
-            )
+            (checked,) = records_verify(record_ids=[record.pk], viewer_id=mallory.pk)
+            assert checked.verdict.outcome == "no_access"
     refused = Verdict.objects.filter(viewer=mallory)
     assert refused.count() == 1
     # An hour later, the next refused view is a row of its own.
     refused.update(created_at=timezone.now() - REFUSED_VIEWS_COALESCED - timedelta(seconds=1))
-    record_verify(record_id=records[0].pk, viewer_id=mallory.pk)
+    records_verify(record_ids=[records[0].pk], viewer_id=mallory.pk)
     assert refused.count() == 2

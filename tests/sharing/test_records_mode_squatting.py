@@ -11,7 +11,7 @@ from chainworker.services import chain_client
 from sharing.anchoring import anchor_item
 from sharing.models import Record, SecurityEvent, Verdict
 from sharing.services import record_create
-from sharing.verification import record_verify
+from sharing.verification import records_verify
 from smcrypto import sm3
 
 pytestmark = pytest.mark.django_db
@@ -36,6 +36,6 @@ def test_a_squatted_record_id_does_not_fail_its_owners_record(
     assert record.status == Record.Status.ANCHORED
     on_chain = client.data_query(record.id, owner=alice.owner.eoa_address)
     assert on_chain.digest.hex() == record.digest
-    verdict = record_verify(record_id=record.id, viewer_id=alice.owner.pk).verdict
+    verdict = records_verify(record_ids=[record.id], viewer_id=alice.owner.pk)[0].verdict
     assert verdict.outcome == Verdict.Outcome.VERIFIED
     assert not SecurityEvent.objects.filter(record=record).exists()
