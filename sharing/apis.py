@@ -868,7 +868,7 @@ class RecordProofApi(APIView):
             "Root mode: SM3 the envelope, make the leaf SM3(0x00 || owner || record id || "
             "digest), fold the path (RFC 9162 2.1.3.2) to the root, and call "
             "rootOf(sender, root) on the contract: its size must be tree_size. Record mode: "
-            "dataQuery(record id) holds the digest. `envelope` is the stored envelope and "
+            "dataQueryOf(owner, record id) holds the digest. `envelope` is the stored envelope and "
             "`signature` the robot's: SM3 of public_key must be signer, the SM2 signature over "
             "the record's plaintext must hold (DESIGN.md Provenance), and robotKeyOf(signer) "
             "must name the owner, added at or before the anchoring block and not revoked by "
