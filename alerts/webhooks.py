@@ -1,10 +1,13 @@
 """Webhook transport: which URLs the portal POSTs to, and the signed POST itself.
 
-A URL's host is resolved once; every address it resolves to must be public (not loopback,
-private, link-local, shared, reserved or multicast) unless ALERTS_WEBHOOK_ALLOW_PRIVATE, and
-the POST then connects to that very address (TLS still checks the host's name), so a DNS
-answer that changes between the check and the connection cannot reach an inner address.
-Redirects are not followed; the timeout is short.
+A URL's host is resolved once; every address it resolves to must be globally routable (not
+loopback, private, link-local, shared, reserved, site-local or multicast, nor an IPv6 spelling
+that carries an inner IPv4 address: IPv4-compatible, mapped, translated, NAT64, 6to4, Teredo)
+unless ALERTS_WEBHOOK_ALLOW_PRIVATE, and the POST then connects to that very address (TLS still
+checks the host's name), so a DNS answer that changes between the check and the connection
+cannot reach an inner address (urllib3 is handed the IP literal, never the name). Only ports
+80 and 443 (or ALERTS_WEBHOOK_PORTS); no user name, password or fragment in the URL. Redirects
+are not followed; the timeout is short.
 """
 
 import hashlib
@@ -54,32 +57,71 @@ def webhook_url_check(url: str) -> ResolvedUrl:
         raise WebhookUrlRefused("a webhook URL starts with https:// (or http://)")
     if not parts.hostname:
         raise WebhookUrlRefused("the URL names no host")
-    if parts.username or parts.password:
+    if "@" in parts.netloc:
         raise WebhookUrlRefused("put no user name or password in the URL: the signature proves it")
-    port = port or _DEFAULT_PORTS[parts.scheme]
+    if "#" in url:
+        raise WebhookUrlRefused("a webhook URL has no #fragment: the receiver never sees it")
+    port = _DEFAULT_PORTS[parts.scheme] if port is None else port
+    if port not in _DEFAULT_PORTS.values() and port not in settings.ALERTS_WEBHOOK_PORTS:
+        raise WebhookUrlRefused(
+            f"port {port} is not allowed: webhooks go to ports 80 and 443"
+            + (f" (or {_ports_listed()})" if settings.ALERTS_WEBHOOK_PORTS else "")
+        )
     try:
         infos = socket.getaddrinfo(parts.hostname, port, type=socket.SOCK_STREAM)
     except (socket.gaierror, UnicodeError):
         raise WebhookUrlRefused(f"the host {parts.hostname} does not resolve") from None
     addresses = list(dict.fromkeys(info[4][0] for info in infos))
-    if not settings.ALERTS_WEBHOOK_ALLOW_PRIVATE:
-        for address in addresses:
-            if not _public(address):
-                raise WebhookUrlRefused(
-                    f"the host {parts.hostname} is a loopback, private or link-local address "
-                    f"({address}): webhooks go to public addresses only"
-                )
+    for address in addresses:
+        _address_check(address, host=parts.hostname)
     target = parts.path or "/"
     if parts.query:
         target += "?" + parts.query
     return ResolvedUrl(parts.scheme, parts.hostname, port, target, addresses[0])
 
 
-def _public(address: str) -> bool:
+def _ports_listed() -> str:
+    return ", ".join(str(port) for port in sorted(settings.ALERTS_WEBHOOK_PORTS))
+
+
+# IPv6 spellings of an IPv4 address, and prefixes that are not globally routable though
+# Python's is_global (3.11) says they are: refused whatever they embed.
+_NEVER_ROUTED = tuple(
+    ipaddress.ip_network(net)
+    for net in (
+        "::/96",  # IPv4-compatible ::a.b.c.d (deprecated, RFC 4291 2.5.5.1)
+        "::ffff:0:0:0/96",  # SIIT IPv4-translated ::ffff:0:a.b.c.d (RFC 2765)
+        "64:ff9b:1::/48",  # NAT64 local use (RFC 8215)
+        "2001::/32",  # Teredo (RFC 4380)
+        "2002::/16",  # 6to4 (RFC 3056)
+        "fec0::/10",  # site-local (deprecated, RFC 3879)
+    )
+)
+# NAT64's well-known prefix (RFC 6052): on a DNS64 network a public IPv4-only receiver is
+# reached this way, so the IPv4 address in its last 32 bits is checked instead.
+_NAT64 = ipaddress.ip_network("64:ff9b::/96")
+
+
+def globally_routable(address: str) -> bool:
+    """Whether the portal may connect to `address` (IPv4 or IPv6, zone id ignored)."""
     ip = ipaddress.ip_address(address.split("%", 1)[0])
-    if isinstance(ip, ipaddress.IPv6Address) and ip.ipv4_mapped is not None:
-        ip = ip.ipv4_mapped
+    if isinstance(ip, ipaddress.IPv6Address):
+        if ip.ipv4_mapped is not None:
+            ip = ip.ipv4_mapped
+        elif ip in _NAT64:
+            ip = ipaddress.IPv4Address(int(ip) & 0xFFFFFFFF)
+        elif any(ip in net for net in _NEVER_ROUTED):
+            return False
     return ip.is_global and not ip.is_multicast
+
+
+def _address_check(address: str, *, host: str) -> None:
+    if settings.ALERTS_WEBHOOK_ALLOW_PRIVATE or globally_routable(address):
+        return
+    raise WebhookUrlRefused(
+        f"the host {host} is not a globally routable address ({address}): webhooks go to "
+        "public addresses only"
+    )
 
 
 @dataclass(frozen=True)

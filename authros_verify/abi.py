@@ -17,10 +17,13 @@ ROOT_OF = {
     "type": "function",
 }
 DATA_QUERY = {
-    "inputs": [{"internalType": "bytes32", "name": "id", "type": "bytes32"}],
-    "name": "dataQuery",
-    "outputs": [
+    "inputs": [
         {"internalType": "address", "name": "owner", "type": "address"},
+        {"internalType": "bytes32", "name": "id", "type": "bytes32"},
+    ],
+    "name": "dataQueryOf",
+    "outputs": [
+        {"internalType": "address", "name": "recordOwner", "type": "address"},
         {"internalType": "bytes32", "name": "digest", "type": "bytes32"},
         {"internalType": "uint64", "name": "time", "type": "uint64"},
         {"internalType": "bytes32", "name": "dataType", "type": "bytes32"},

@@ -3,9 +3,10 @@ fields of `GET /api/v1/records/{id}/proof/`, which every entry of an export's bu
 
 Root mode: the leaf SM3(0x00 || owner || record id || digest) folds up the path (RFC 9162
 2.1.3.2) to the root, `rootOf(owner, root)` answers the tree's size and block, and the receipt
-of the transaction holds the contract's RootAnchored event. Record mode: `dataQuery(id)` holds
-the owner and digest, and the receipt holds DataUploaded. Each failure is an Invalid whose
-`check` is `proof` (its form), `merkle path`, `rootOf` or `dataQuery`.
+of the transaction holds the contract's RootAnchored event. Record mode:
+`dataQueryOf(owner, id)` holds the owner and digest, and the receipt holds DataUploaded.
+Each failure is an Invalid whose `check` is `proof` (its form), `merkle path`, `rootOf` or
+`dataQuery`.
 """
 
 import uuid
@@ -118,7 +119,7 @@ def _slot_check(
     digest: bytes,
     block: int,
 ) -> None:
-    """Record mode: dataQuery(id) holds the digest, and the transaction uploaded it."""
+    """Record mode: dataQueryOf(owner, id) holds the digest, and the transaction uploaded it."""
     if (proof["path"], proof["leaf_index"], proof["tree_size"]) != ([], 0, 1) or proof[
         "root"
     ] != proof["digest"]:
@@ -127,7 +128,7 @@ def _slot_check(
             check="merkle path",
         )
     slot_id = anchored_id.bytes + bytes(16)
-    anchored = chain.data_query(contract, slot_id)
+    anchored = chain.data_query(contract, slot_id, owner=owner)
     if anchored.owner.lower() != owner.lower() or anchored.digest != digest:
         raise Invalid(
             "the chain holds another owner or digest for its id (dataQuery)", check="dataQuery"

@@ -128,14 +128,18 @@ class ChainReader:
 
         return self._once(("rootOf", contract, sender, root), ask)
 
-    def data_query(self, contract: str, record_id: bytes) -> AnchoredRecord:
-        def ask() -> AnchoredRecord:
-            owner, digest, _when, _type = (
-                self._contract(contract).functions.dataQuery(record_id).call()
-            )
-            return AnchoredRecord(str(owner), bytes(digest))
+    def data_query(self, contract: str, record_id: bytes, *, owner: str) -> AnchoredRecord:
+        """`owner`'s record under the id (dataQueryOf: ids are bound to their owner)."""
 
-        return self._once(("dataQuery", contract, record_id), ask)
+        def ask() -> AnchoredRecord:
+            found, digest, _when, _type = (
+                self._contract(contract)
+                .functions.dataQueryOf(Web3.to_checksum_address(owner), record_id)
+                .call()
+            )
+            return AnchoredRecord(str(found), bytes(digest))
+
+        return self._once(("dataQueryOf", contract, owner, record_id), ask)
 
     def robot_key_of(self, contract: str, key_hash: bytes) -> RobotKey:
         def ask() -> RobotKey:

@@ -665,9 +665,12 @@ class AuthROSChain:
 
     # reads ----------------------------------------------------------------------------
 
-    def data_query(self, record_id: uuid.UUID | str) -> OnChainRecord | None:
-        """The anchored record, or None if nothing is anchored under this id yet."""
-        owner, digest, when, data_type = self._call("dataQuery", record_id_to_bytes32(record_id))
+    def data_query(self, record_id: uuid.UUID | str, *, owner: str) -> OnChainRecord | None:
+        """`owner`'s anchored record under this id, or None if it has none yet (record ids are
+        bound to their owner on chain: another account's record under the id is not this)."""
+        owner, digest, when, data_type = self._call(
+            "dataQueryOf", Web3.to_checksum_address(owner), record_id_to_bytes32(record_id)
+        )
         if int(owner, 16) == 0:
             return None
         return OnChainRecord(
@@ -736,8 +739,15 @@ class AuthROSChain:
         """The last root `sender` anchored (zeros before its first)."""
         return bytes(self._call_lean("lastRootOf", Web3.to_checksum_address(sender))[0])
 
-    def data_check(self, record_id: uuid.UUID | str, digest: bytes) -> bool:
-        return bool(self._call("dataCheck", record_id_to_bytes32(record_id), _bytes32(digest)))
+    def data_check(self, record_id: uuid.UUID | str, digest: bytes, *, owner: str) -> bool:
+        return bool(
+            self._call(
+                "dataCheckOf",
+                Web3.to_checksum_address(owner),
+                record_id_to_bytes32(record_id),
+                _bytes32(digest),
+            )
+        )
 
     def has_access(self, owner: str, viewer: str) -> bool:
         return bool(
@@ -838,16 +848,17 @@ class AuthROSChain:
             event for _, log in sorted(logs.items()) if (event := self._decode_log(log)) is not None
         ]
 
-    def upload_event(self, record_id: uuid.UUID | str) -> ChainEvent | None:
-        """The DataUploaded event of a record (its transaction and block), if anchored."""
+    def upload_event(self, record_id: uuid.UUID | str, *, owner: str) -> ChainEvent | None:
+        """The DataUploaded event of `owner`'s record (its transaction and block), if anchored."""
         topic = "0x" + bytes(self._topic_by_event["DataUploaded"]).hex()
+        word = "0x" + Web3.to_checksum_address(owner).lower().removeprefix("0x").rjust(64, "0")
         with _translated_errors():
             logs = self.w3.eth.get_logs(
                 {
                     "address": self.address,
                     "fromBlock": 0,
                     "toBlock": "latest",
-                    "topics": [topic, "0x" + record_id_to_bytes32(record_id).hex()],
+                    "topics": [topic, "0x" + record_id_to_bytes32(record_id).hex(), word],
                 }
             )
         events = [event for log in logs if (event := self._decode_log(log)) is not None]

@@ -60,7 +60,9 @@ contract AuthROS {
     /// that sender must name it as prevRoot, so a sender's roots form one chain.
     mapping(address sender => bytes32) public lastRootOf;
 
-    mapping(bytes32 id => Record) private _records;
+    /// @dev Per-record digests keyed by (owner, id), as roots are keyed by sender: nobody can
+    /// take another owner's record id first (issue 38). Key: _recordKey(owner, id).
+    mapping(bytes32 ownerAndId => Record) private _records;
     mapping(address owner => mapping(address grantee => bool)) private _granted;
     mapping(address sender => mapping(bytes32 root => Root)) private _roots;
     /// @dev The terms of a grant: its scope commitment (0 = all records) and expiry (0 = none).
@@ -154,7 +156,7 @@ contract AuthROS {
         emit KeyRotated(msg.sender, old, commitment);
     }
 
-    /// @notice Anchor the digest of one record; each id can be written once, by anyone.
+    /// @notice Anchor the digest of one record; each id can be written once per owner.
     function dataUpload(bytes32 id, bytes32 digest, uint64 time, bytes32 dataType)
         external
         onlyRegistered
@@ -278,19 +280,34 @@ contract AuthROS {
         emit RobotKeyRevoked(msg.sender, keyHash);
     }
 
-    /// @notice The anchored record, or all zeros if the id is not anchored (yet).
+    /// @notice The caller's anchored record under `id`, or all zeros if it has none (yet).
+    /// Record ids are bound to their owner: dataQueryOf reads another owner's.
     function dataQuery(bytes32 id)
         external
         view
         returns (address owner, bytes32 digest, uint64 time, bytes32 dataType)
     {
-        Record storage r = _records[id];
+        return dataQueryOf(msg.sender, id);
+    }
+
+    /// @notice `owner`'s anchored record under `id`, or all zeros if it has none (yet).
+    function dataQueryOf(address owner, bytes32 id)
+        public
+        view
+        returns (address recordOwner, bytes32 digest, uint64 time, bytes32 dataType)
+    {
+        Record storage r = _records[_recordKey(owner, id)];
         return (r.owner, r.digest, r.time, r.dataType);
     }
 
-    /// @notice True iff the record is anchored with exactly this digest.
+    /// @notice True iff the caller anchored the record `id` with exactly this digest.
     function dataCheck(bytes32 id, bytes32 digest) external view returns (bool) {
-        Record storage r = _records[id];
+        return dataCheckOf(msg.sender, id, digest);
+    }
+
+    /// @notice True iff `owner` anchored the record `id` with exactly this digest.
+    function dataCheckOf(address owner, bytes32 id, bytes32 digest) public view returns (bool) {
+        Record storage r = _records[_recordKey(owner, id)];
         return r.owner != address(0) && r.digest == digest;
     }
 
@@ -347,8 +364,13 @@ contract AuthROS {
     function _store(bytes32 id, bytes32 digest, uint64 time, bytes32 dataType) private {
         if (id == 0) revert EmptyId();
         if (digest == 0) revert EmptyDigest();
-        if (_records[id].owner != address(0)) revert RecordExists(id);
-        _records[id] = Record(msg.sender, time, digest, dataType);
+        bytes32 key = _recordKey(msg.sender, id);
+        if (_records[key].owner != address(0)) revert RecordExists(id);
+        _records[key] = Record(msg.sender, time, digest, dataType);
         emit DataUploaded(id, msg.sender, digest, time, dataType);
+    }
+
+    function _recordKey(address owner, bytes32 id) private pure returns (bytes32) {
+        return keccak256(abi.encode(owner, id));
     }
 }

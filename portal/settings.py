@@ -517,6 +517,8 @@ ALERTS_WEBHOOK_TIMEOUT = env.float("ALERTS_WEBHOOK_TIMEOUT", default=5.0)
 # Webhooks to loopback, private, link-local or reserved addresses are refused unless this is
 # set (a receiver on the portal's own network; the tests).
 ALERTS_WEBHOOK_ALLOW_PRIVATE = env.bool("ALERTS_WEBHOOK_ALLOW_PRIVATE", default=False)
+# Webhooks go to ports 80 and 443; the operator may allow more (comma-separated numbers).
+ALERTS_WEBHOOK_PORTS = [int(port) for port in env.list("ALERTS_WEBHOOK_PORTS", default=[])]
 ALERTS_WEBHOOKS_PER_OWNER = env.int("ALERTS_WEBHOOKS_PER_OWNER", default=5)
 # A failed delivery is tried again after 2, 4, 8 ... seconds (at most ALERTS_RETRY_BACKOFF_MAX
 # apart), this many times, then marked failed in the owner's delivery log.

@@ -370,13 +370,13 @@ def _settle_attempted(
         if record.anchor_attempts == 0 and not force:
             still_pending.append(record)
             continue
-        on_chain = client.data_query(record.id)
+        on_chain = client.data_query(record.id, owner=owner.eoa_address)
         if on_chain is None:
             still_pending.append(record)
         elif on_chain.digest.hex() == record.digest and (
             on_chain.owner.lower() == owner.eoa_address.lower()
         ):
-            event = client.upload_event(record.id)
+            event = client.upload_event(record.id, owner=owner.eoa_address)
             if client.confirmations:
                 latest = client.latest_block() if latest is None else latest
                 if event is None or latest - event.block_number < client.confirmations:

@@ -47,7 +47,7 @@ from core.api_errors import ErrorSerializer, error_responses
 from sharing.access_log import access_log_redacted
 from sharing.cache import envelope_fetch
 from sharing.deletion import record_delete
-from sharing.errors import AccessDenied, ExportNotFound, NotAnchoredYet, RecordNotFound
+from sharing.errors import NOT_VISIBLE, ExportNotFound, NotAnchoredYet, RecordNotFound
 from sharing.exports import export_create, export_download
 from sharing.models import Export, Grant, Record, Verdict
 from sharing.selection import MAX_SELECTED_ROBOTS, MAX_SELECTED_TOPICS, MAX_TOPIC_LENGTH
@@ -63,7 +63,6 @@ from sharing.selectors import (
     record_list_uploaded_by,
     record_list_visible_to,
     record_proof,
-    record_refused_by_grant,
     verdict_list_access_log,
     verdict_list_filtered,
 )
@@ -542,7 +541,7 @@ def _record_uuid(record_id: str) -> uuid.UUID:
     try:
         return uuid.UUID(record_id)
     except ValueError:
-        raise RecordNotFound("no such record") from None
+        raise RecordNotFound(NOT_VISIBLE) from None
 
 
 def _records_of_caller(request: Request) -> QuerySet[Record]:
@@ -554,12 +553,9 @@ def _records_of_caller(request: Request) -> QuerySet[Record]:
 
 
 def _refuse_unseen(request: Request, record_id: uuid.UUID) -> None:
-    """A record the caller may not see: 403 when its owner's grant to the caller does not
-    cover it (outside its scope, or expired), else 404 (nothing tells it exists)."""
-    owner = caller_owner(request) if caller_robot(request) is None else None
-    if owner is not None and record_refused_by_grant(owner, record_id):
-        raise AccessDenied("the record is outside the scope of your grant, or the grant expired")
-    raise RecordNotFound("no such record, or not shared with you")
+    """A record the caller may not see: 404 whether it exists or not, outside a grant's scope
+    or not (nothing tells it exists)."""
+    raise RecordNotFound(NOT_VISIBLE)
 
 
 class RecordDetailApi(APIView):
@@ -673,8 +669,7 @@ class RecordContentApi(APIView):
                 409,
                 410,
                 503,
-                e403="`access_denied`: no live grant from the record's owner; "
-                + ROBOT_REFUSED.format(scope="read"),
+                e403=ROBOT_REFUSED.format(scope="read"),
                 e409="`integrity_check_failed`: the stored data differs from the chain; "
                 "`not_anchored_yet`: try again shortly; `identity_check_failed`: the owner's "
                 "key commitment on chain differs from the key the portal holds",
@@ -873,7 +868,7 @@ class RecordProofApi(APIView):
             "Root mode: SM3 the envelope, make the leaf SM3(0x00 || owner || record id || "
             "digest), fold the path (RFC 9162 2.1.3.2) to the root, and call "
             "rootOf(sender, root) on the contract: its size must be tree_size. Record mode: "
-            "dataQuery(record id) holds the digest. `envelope` is the stored envelope and "
+            "dataQueryOf(owner, record id) holds the digest. `envelope` is the stored envelope and "
             "`signature` the robot's: SM3 of public_key must be signer, the SM2 signature over "
             "the record's plaintext must hold (DESIGN.md Provenance), and robotKeyOf(signer) "
             "must name the owner, added at or before the anchoring block and not revoked by "
@@ -1044,7 +1039,9 @@ class GrantRevokeApi(APIView):
                 404,
                 415,
                 e400="`invalid_request`, `invalid_grant_terms`",
-                e403=ROBOT_REFUSED.format(scope="share"),
+                e403=ROBOT_REFUSED.format(scope="share")
+                + "; `token_cannot_widen`: an API token may narrow a grant, but widen only a "
+                "grant it made and nothing else changed since",
                 e404="`owner_not_found`, or `no_grant`: nothing live to change",
             ),
         },
@@ -1054,7 +1051,14 @@ class GrantRevokeApi(APIView):
         payload = GrantTermsInputSerializer(data=request.data)
         payload.is_valid(raise_exception=True)
         terms = payload.terms_for(owner)
-        grant = grant_terms_change(owner=owner, grantee=owner_resolve(grantee), terms=terms)
+        token = caller_owner_token(request)
+        grant = grant_terms_change(
+            owner=owner,
+            grantee=owner_resolve(grantee),
+            terms=terms,
+            made_with="session" if token is None else "token",
+            made_with_token=token,
+        )
         return Response(GrantOutputSerializer(grant).data)
 
     @extend_schema(
@@ -1079,7 +1083,13 @@ class GrantRevokeApi(APIView):
     )
     def delete(self, request: Request, grantee: str) -> Response:
         owner = caller_owner(request)
-        grant = grant_revoke(owner=owner, grantee=owner_resolve(grantee))
+        token = caller_owner_token(request)
+        grant = grant_revoke(
+            owner=owner,
+            grantee=owner_resolve(grantee),
+            made_with="session" if token is None else "token",
+            made_with_token=token,
+        )
         return Response(GrantOutputSerializer(grant).data)
 
 

@@ -107,9 +107,17 @@ class NoGrant(SharingError):
     http_status = 404
 
 
+# The one answer for a record the caller may not see, whether it exists or not (issue 37):
+# the same status, code and words, so that an id tells nothing.
+NOT_VISIBLE = "no such record, or not shared with you"
+
+
 class AccessDenied(ViewRefused):
-    code = "access_denied"
-    http_status = 403
+    """The caller may not see the record (no live grant, or outside its scope): answered as
+    RecordNotFound is (404 `not_found`, NOT_VISIBLE); the refused view's verdict is kept."""
+
+    code = "not_found"
+    http_status = 404
 
 
 class IntegrityCheckFailed(ViewRefused):
@@ -206,3 +214,10 @@ class NotDeletableYet(SharingError):
 
     code = "not_anchored_yet"
     http_status = 409
+
+
+class TokenCannotWiden(SharingError):
+    """An owner API token asked to widen a grant it did not wholly make (docs/grants.md)."""
+
+    code = "token_cannot_widen"
+    http_status = 403

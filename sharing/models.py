@@ -236,6 +236,41 @@ class Grant(models.Model):
         return "expired" if self.shown_status == "expired" else self.get_status_display()
 
 
+class GrantChange(models.Model):
+    """One change to a grant (made, terms changed, revoked) and the credential that made it:
+    the owner's browser session, one of the owner's API tokens, or an operator's command. The
+    terms before and after let a revoked token's changes be undone (docs/grants.md)."""
+
+    class Kind(models.TextChoices):
+        CREATED = "created", "access given"
+        CHANGED = "changed", "terms changed"
+        REVOKED = "revoked", "access revoked"
+
+    grant = models.ForeignKey(Grant, on_delete=models.CASCADE, related_name="changes")
+    kind = models.CharField(max_length=16, choices=Kind.choices)
+    # "session", "token" or "cli" (sharing.services.GRANT_MADE_WITH), with the token if one.
+    made_with = models.CharField(max_length=16)
+    token = models.ForeignKey(
+        OwnerToken,
+        on_delete=models.SET_NULL,
+        null=True,
+        blank=True,
+        related_name="grant_changes",
+    )
+    # The grant's terms before and after (GrantTerms.as_json); null before its creation and
+    # after its revocation.
+    terms_before = models.JSONField(null=True, blank=True)
+    terms_after = models.JSONField(null=True, blank=True)
+    created_at = models.DateTimeField(default=timezone.now)
+
+    class Meta:
+        ordering = ["-created_at", "-id"]
+        indexes = [models.Index(fields=["token", "-created_at"], name="grant_change_by_token")]
+
+    def __str__(self) -> str:
+        return f"{self.grant} {self.kind} with {self.made_with}"
+
+
 class Credential(models.TextChoices):
     """Which credential of the viewer asked: the access log's "from which credential"."""
 

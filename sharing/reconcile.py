@@ -172,7 +172,7 @@ def records_reconcile() -> dict[str, int]:
     lost: list[Record] = []
     mismatches = 0
     for record in records.values():
-        on_chain = client.data_query(record.id)
+        on_chain = client.data_query(record.id, owner=record.owner.eoa_address)
         if on_chain is None:
             lost.append(record)
         elif on_chain.digest.hex() != record.digest or (

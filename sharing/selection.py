@@ -128,6 +128,16 @@ class RecordSelection:
             return False
         return self.until is None or captured_at < self.until
 
+    def within(self, other: "RecordSelection") -> bool:
+        """Whether every record this selection covers, `other` covers too (a narrowing)."""
+        if other.robots and not (self.robots and set(self.robots) <= set(other.robots)):
+            return False
+        if other.topics and not (self.topics and set(self.topics) <= set(other.topics)):
+            return False
+        if other.since is not None and (self.since is None or self.since < other.since):
+            return False
+        return other.until is None or (self.until is not None and self.until <= other.until)
+
     def as_q(self) -> Q:
         """The selection as a filter of Record rows (`covers`, in the database)."""
         q = Q()

@@ -10,7 +10,7 @@ from django.utils import timezone
 
 from accounts.models import ChainActivity, Owner, OwnerToken, Robot
 from core.rows import FixedSelect
-from sharing.models import Access, Export, Grant, Record, SecurityEvent, Verdict
+from sharing.models import Access, Export, Grant, GrantChange, Record, SecurityEvent, Verdict
 from sharing.selection import RecordSelection
 from smcrypto.merkle import path_split
 
@@ -134,12 +134,17 @@ def record_list_sorted(records: QuerySet[Record], sort: str | None) -> QuerySet[
 
 def robots_visible_to(viewer: Owner, *, shared: bool) -> QuerySet[Robot]:
     """The robots whose records a record list of the viewer may show: the viewer's own, or
-    those of the owners with an active grant to the viewer."""
-    if shared:
-        robots = Robot.objects.filter(owner__in=owners_granting(viewer))
-    else:
-        robots = Robot.objects.filter(owner=viewer)
+    those with a record inside a live grant to the viewer (robots_in_scope_of)."""
+    robots = robots_in_scope_of(viewer) if shared else Robot.objects.filter(owner=viewer)
     return robots.select_related("owner__user").order_by("owner__user__username", "name")
+
+
+def robots_in_scope_of(viewer: Owner) -> QuerySet[Robot]:
+    """Other owners' robots with a record the viewer may read now: inside the scope of a live
+    (active, unexpired) grant, by the one selection (record_list_shared_with). A revoked or
+    expired grant, or a robot outside a grant's scope, lists nothing (issue 37)."""
+    in_scope = record_list_shared_with(viewer).order_by().values("robot_id")
+    return Robot.objects.filter(pk__in=in_scope)
 
 
 def record_counts_of(owner: Owner) -> dict[str, int]:
@@ -227,13 +232,6 @@ def grant_terms_of(owner: Owner, grantee: Owner) -> Grant | None:
     ).first()
 
 
-def record_refused_by_grant(viewer: Owner, record_id: uuid.UUID) -> bool:
-    """Whether the record exists and its owner's grant to `viewer` is active but does not let
-    the viewer read it (outside the grant's scope, or expired): refused (403), not unknown."""
-    granting = Grant.objects.filter(grantee=viewer, status=Grant.Status.ACTIVE).values("owner_id")
-    return Record.objects.filter(pk=record_id, owner_id__in=granting).exists()
-
-
 def verdict_latest(record: Record, viewer: Owner) -> Verdict | None:
     """The viewer's most recent integrity verdict on the record (their own views only)."""
     return (
@@ -310,6 +308,32 @@ def grant_list_made_with(token: OwnerToken) -> QuerySet[Grant]:
         .select_related("owner__user", "grantee__user")
         .order_by("-created_at")
     )
+
+
+def grant_list_changed_with(token: OwnerToken) -> list[tuple[Grant, dict]]:
+    """Live grants (pending or active) not made with `token` whose last change was, each with
+    the terms it had before that run of the token's changes (GrantChange.terms_before)."""
+    changed = (
+        Grant.objects.filter(
+            owner_id=token.owner_id,
+            status__in=(Grant.Status.PENDING, Grant.Status.ACTIVE),
+            changes__token=token,
+        )
+        .exclude(made_with_token=token)
+        .distinct()
+        .select_related("owner__user", "grantee__user")
+        .order_by("-created_at")
+    )
+    found = []
+    for grant in changed:
+        before = None
+        for change in grant.changes.order_by("-id"):
+            if change.token_id != token.pk or change.kind != GrantChange.Kind.CHANGED:
+                break
+            before = change.terms_before
+        if before is not None:
+            found.append((grant, before))
+    return found
 
 
 def record_list_uploaded_by(robot: Robot) -> QuerySet[Record]:
@@ -482,10 +506,11 @@ def access_log_filter_choices(owner: Owner, *, direction: str) -> dict[str, Quer
     (id, name, owner's username), topics, and the usernames of the other side (the owner and
     grantees, or the owners who shared with the owner)."""
     if direction == ACCESS_LOG_OUTGOING:
-        owners = Owner.objects.filter(grants_given__grantee=owner)
-        robots = Robot.objects.filter(owner__in=owners)
-        topics = Record.objects.filter(owner__in=owners)
-        people = owners
+        # Only what the owner's live grants let it read now (their scopes), never the rest of
+        # a granting owner's robots and topics, nor those of a revoked or expired grant.
+        robots = robots_in_scope_of(owner)
+        topics = record_list_shared_with(owner)
+        people = owners_granting(owner)
     else:
         robots = Robot.objects.filter(owner=owner)
         topics = Record.objects.filter(owner=owner)

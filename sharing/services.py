@@ -57,9 +57,10 @@ from sharing.errors import (
     SequenceConflict,
     SignatureRefused,
     StorageUnavailable,
+    TokenCannotWiden,
     UnknownKey,
 )
-from sharing.models import Grant, Record, SecurityEvent
+from sharing.models import Grant, GrantChange, Record, SecurityEvent
 from sharing.scope import (
     ALL_RECORDS_COMMITMENT,
     ScopeError,
@@ -67,8 +68,8 @@ from sharing.scope import (
     scope_commitment,
     scope_make,
 )
-from sharing.selection import RecordSelection
-from sharing.selectors import grant_list_made_with
+from sharing.selection import RecordSelection, iso_utc
+from sharing.selectors import grant_list_changed_with, grant_list_made_with
 from sharing.storage import envelope_storage, envelopes_save
 from smcrypto import CryptoError, envelope, provenance, sm3
 
@@ -372,6 +373,31 @@ class GrantTerms:
     scope: RecordSelection = dataclasses.field(default_factory=RecordSelection)
     expires_at: datetime | None = None
 
+    @classmethod
+    def of(cls, grant: Grant) -> "GrantTerms":
+        return cls(scope=grant.scope, expires_at=grant.expires_at)
+
+    def within(self, other: "GrantTerms") -> bool:
+        """Whether these terms give no more than `other`: a scope inside its scope, and an
+        expiry no later (never expiring is the latest)."""
+        if other.expires_at is not None and (
+            self.expires_at is None or self.expires_at > other.expires_at
+        ):
+            return False
+        return self.scope.within(other.scope)
+
+    def as_json(self) -> dict[str, object]:
+        """The terms as a GrantChange keeps them: the scope's JSON and the expiry."""
+        return {**self.scope.as_json(), "expires_at": iso_utc(self.expires_at)}
+
+    @classmethod
+    def from_json(cls, value: dict) -> "GrantTerms":
+        expiry = value.get("expires_at")
+        return cls(
+            scope=RecordSelection.from_json(value),
+            expires_at=datetime.fromisoformat(expiry) if expiry else None,
+        )
+
 
 ALL_RECORDS_FOREVER = GrantTerms()
 # An expiry this close to now could pass before the grant is confirmed on chain.
@@ -461,10 +487,7 @@ def grant_create(
     `made_with` says which credential asked, `made_with_token` which owner API token (exactly
     when `made_with` is "token"), so that revoking the token can take its grants back.
     """
-    if made_with not in GRANT_MADE_WITH or (made_with == "token") != (made_with_token is not None):
-        raise ValueError(f"made_with is one of {GRANT_MADE_WITH}, with a token for 'token' only")
-    if made_with_token is not None and made_with_token.owner_id != owner.pk:
-        raise ValueError("a grant is made with a token of its own owner")
+    _credential_check(owner, made_with, made_with_token)
     if grantee.pk == owner.pk:
         raise SelfGrant("You always see your own records: name another owner.")
     if owner.chain_state != ChainState.CONFIRMED:
@@ -486,11 +509,39 @@ def grant_create(
                 made_with_token=made_with_token,
                 **_terms_fields(terms),
             )
+            _grant_change_record(
+                grant, GrantChange.Kind.CREATED, made_with, made_with_token, None, terms
+            )
             transaction.on_commit(lambda: enqueue("sharing.tasks.grant_sync", grant.pk))
     except IntegrityError:
         # A simultaneous grant for the same pair won the race (one live grant per pair).
         raise AlreadyGranted(_ALREADY_GRANTED.format(grantee=grantee)) from None
     return grant
+
+
+def _credential_check(owner: Owner, made_with: str, made_with_token: OwnerToken | None) -> None:
+    if made_with not in GRANT_MADE_WITH or (made_with == "token") != (made_with_token is not None):
+        raise ValueError(f"made_with is one of {GRANT_MADE_WITH}, with a token for 'token' only")
+    if made_with_token is not None and made_with_token.owner_id != owner.pk:
+        raise ValueError("a grant is changed with a token of its own owner")
+
+
+def _grant_change_record(
+    grant: Grant,
+    kind: str,
+    made_with: str,
+    token: OwnerToken | None,
+    before: GrantTerms | None,
+    after: GrantTerms | None,
+) -> None:
+    GrantChange.objects.create(
+        grant=grant,
+        kind=kind,
+        made_with=made_with,
+        token=token,
+        terms_before=None if before is None else before.as_json(),
+        terms_after=None if after is None else after.as_json(),
+    )
 
 
 def _refuse_second_grant(live: Grant | None, grantee: Owner) -> None:
@@ -508,10 +559,23 @@ def _refuse_second_grant(live: Grant | None, grantee: Owner) -> None:
     raise AlreadyGranted(_ALREADY_GRANTED.format(grantee=grantee))
 
 
-def grant_terms_change(*, owner: Owner, grantee: Owner, terms: GrantTerms) -> Grant:
+def grant_terms_change(
+    *,
+    owner: Owner,
+    grantee: Owner,
+    terms: GrantTerms,
+    made_with: str = "session",
+    made_with_token: OwnerToken | None = None,
+) -> Grant:
     """Change what a live grant covers or when it expires: the portal enforces the new terms
     at once (the grant is pending until authorityGrantScoped, a new transaction, confirms
-    them; meanwhile nothing of it can be read), and the chain follows."""
+    them; meanwhile nothing of it can be read), and the chain follows.
+
+    An owner API token may narrow any grant, but widen (more records, a later expiry or none)
+    only a grant that it made and that no other credential has changed since: a stolen token
+    cannot turn the owner's grant into "all records, never expires" (TokenCannotWiden).
+    """
+    _credential_check(owner, made_with, made_with_token)
     with transaction.atomic():
         grant = (
             Grant.objects.select_for_update()
@@ -525,16 +589,42 @@ def grant_terms_change(*, owner: Owner, grantee: Owner, terms: GrantTerms) -> Gr
         fields = _terms_fields(terms)
         if all(getattr(grant, name) == value for name, value in fields.items()):
             return grant  # the same terms: nothing to send
+        before = GrantTerms.of(grant)
+        if made_with_token is not None and not terms.within(before):
+            _token_widening_check(grant, made_with_token, grantee)
         for name, value in fields.items():
             setattr(grant, name, value)
         grant.status = Grant.Status.PENDING
         grant.save(update_fields=[*fields, "status", "updated_at"])
+        _grant_change_record(
+            grant, GrantChange.Kind.CHANGED, made_with, made_with_token, before, terms
+        )
         transaction.on_commit(lambda: enqueue("sharing.tasks.grant_sync", grant.pk))
     return grant
 
 
-def grant_revoke(*, owner: Owner, grantee: Owner) -> Grant:
+def _token_widening_check(grant: Grant, token: OwnerToken, grantee: Owner) -> None:
+    """TokenCannotWiden unless `grant` is wholly `token`'s work: made with it, and every
+    change since made with it too."""
+    others = grant.changes.exclude(made_with="token", token=token)
+    if grant.made_with_token_id == token.pk and not others.exists():
+        return
+    raise TokenCannotWiden(
+        f"An API token can narrow your grant to {grantee} but not widen it (more records, a "
+        "later expiry or none): it was given or changed in another way. Widen it on the "
+        "grants page."
+    )
+
+
+def grant_revoke(
+    *,
+    owner: Owner,
+    grantee: Owner,
+    made_with: str = "session",
+    made_with_token: OwnerToken | None = None,
+) -> Grant:
     """Take access away: refused by the portal at once, authorityRevoke sent on commit."""
+    _credential_check(owner, made_with, made_with_token)
     with transaction.atomic():
         grant = (
             Grant.objects.select_for_update()
@@ -545,21 +635,59 @@ def grant_revoke(*, owner: Owner, grantee: Owner) -> Grant:
             raise NoGrant(f"{grantee} has no access to revoke.")
         grant.status = Grant.Status.REVOKING
         grant.save(update_fields=["status", "updated_at"])
+        _grant_change_record(
+            grant,
+            GrantChange.Kind.REVOKED,
+            made_with,
+            made_with_token,
+            GrantTerms.of(grant),
+            None,
+        )
         grant_revoked_alert(grantee=grant.grantee, owner=owner)
         transaction.on_commit(lambda: enqueue("sharing.tasks.grant_sync", grant.pk))
     return grant
 
 
-def grants_revoke_made_with(*, token: OwnerToken) -> list[Grant]:
-    """Take back every grant made with `token` that is still pending or active (a token that
-    was revoked, perhaps stolen), each as grant_revoke does."""
-    revoked = []
-    for grant in grant_list_made_with(token):
-        try:
-            revoked.append(grant_revoke(owner=grant.owner, grantee=grant.grantee))
-        except NoGrant:
-            continue  # revoked meanwhile by someone else
-    return revoked
+@dataclass(frozen=True)
+class TokenGrantsUndone:
+    """What grants_undo_made_with did: grants revoked, and grants given back their terms."""
+
+    revoked: list[Grant]
+    restored: list[Grant]
+
+
+def grants_undo_made_with(
+    *, token: OwnerToken, revoke_made: bool = True, restore_changed: bool = True
+) -> TokenGrantsUndone:
+    """Undo what `token` (revoked, perhaps stolen) did to its owner's grants, with the owner's
+    session as the credential: every live grant it made is revoked (`revoke_made`), and every
+    live grant it changed last is given back the terms it had before the token's changes
+    (`restore_changed`), or revoked if those terms have expired meanwhile (docs/grants.md).
+    Grants the token revoked stay revoked: giving access again is the owner's to do."""
+    revoked: list[Grant] = []
+    restored: list[Grant] = []
+    owner = token.owner
+    if restore_changed:
+        for grant, before in grant_list_changed_with(token):
+            terms = GrantTerms.from_json(before)
+            try:
+                if terms.expires_at is not None and terms.expires_at < (
+                    timezone.now() + MIN_GRANT_LIFETIME
+                ):
+                    revoked.append(grant_revoke(owner=owner, grantee=grant.grantee))
+                else:
+                    restored.append(
+                        grant_terms_change(owner=owner, grantee=grant.grantee, terms=terms)
+                    )
+            except NoGrant:
+                continue  # revoked meanwhile by someone else
+    if revoke_made:
+        for grant in grant_list_made_with(token):
+            try:
+                revoked.append(grant_revoke(owner=owner, grantee=grant.grantee))
+            except NoGrant:
+                continue
+    return TokenGrantsUndone(revoked=revoked, restored=restored)
 
 
 # --- on chain (run by the worker) -----------------------------------------------------

@@ -21,7 +21,7 @@ from collections import defaultdict
 from collections.abc import Sequence
 from contextlib import suppress
 from dataclasses import dataclass
-from datetime import datetime
+from datetime import datetime, timedelta
 from typing import Any
 
 from django.conf import settings
@@ -39,6 +39,7 @@ from chainworker.services import chain_client, chain_head
 from core.outbox import dispatch
 from sharing.cache import envelope_cache_evict, envelopes_fetch
 from sharing.errors import (
+    NOT_VISIBLE,
     AccessDenied,
     IntegrityCheckFailed,
     NotAnchoredYet,
@@ -143,6 +144,9 @@ def records_verify(
     reads = _ChainReads(chain_client())
     block = chain_head(reads.client)
     checked = _records_check(records, viewer, reads)
+    again = _refused_again(records, checked, viewer, checked_by_id=checked_by_id, accesses=accesses)
+    if again is not None:  # answered as the refused view before it, not written again
+        return [Verification(again, None)]
     if accesses is None:  # opened once the checks ran: a check that raised leaves no line
         accesses = accesses_open(
             kind=kind or _kind_of(len(records), checked_by_id),
@@ -170,6 +174,40 @@ def records_verify(
         Verification(verdict, data)
         for verdict, (_fields, data) in zip(verdicts, checked, strict=True)
     ]
+
+
+# Refused views of one owner's records by one viewer in a row leave one verdict and access line
+# (in both access logs) per this long: the first; later ones are answered the same and not
+# written, so an owner without a grant cannot fill another owner's access log
+# (docs/security.md). A view that passed in between starts a new line.
+REFUSED_VIEWS_COALESCED = timedelta(hours=1)
+
+
+def _refused_again(
+    records: Sequence[Record],
+    checked: Sequence[tuple[dict[str, object], bytes | None]],
+    viewer: Owner,
+    *,
+    checked_by_id: int | None,
+    accesses: dict[int, int] | None,
+) -> Verdict | None:
+    """For a viewer's own view of one record that is refused: the viewer's last own view of a
+    record of the same owner, if it was refused within REFUSED_VIEWS_COALESCED."""
+    if checked_by_id is not None or accesses is not None or len(records) != 1:
+        return None
+    if checked[0][0]["outcome"] != Verdict.Outcome.NO_ACCESS:
+        return None
+    last = (
+        Verdict.objects.filter(
+            viewer=viewer,
+            record_owner_id=records[0].owner_id,
+            checked_by__isnull=True,
+            created_at__gte=timezone.now() - REFUSED_VIEWS_COALESCED,
+        )
+        .order_by("-created_at", "-pk")
+        .first()
+    )
+    return last if last is not None and last.outcome == Verdict.Outcome.NO_ACCESS else None
 
 
 def _kind_of(count: int, checked_by_id: int | None) -> str:
@@ -338,7 +376,7 @@ def _anchored_check(
     computed = sm3.sm3_hex(data)
     if record.anchor_root_id is not None:
         return _proof_check(record, viewer, reads, data=data, source=source, computed=computed)
-    on_chain = reads.client.data_query(record.id)
+    on_chain = reads.client.data_query(record.id, owner=record.owner.eoa_address)
     if on_chain is None:
         fields = {"computed_digest": computed, "source": source}
         return {"outcome": Verdict.Outcome.NOT_ANCHORED_YET, **fields}, None
@@ -498,7 +536,7 @@ def record_open(
     except ValueError:
         record = None
     if record is None:
-        raise RecordNotFound("no such record")
+        raise RecordNotFound(NOT_VISIBLE)
     (opened,) = records_open(
         records=[record],
         viewer=viewer,
@@ -563,7 +601,7 @@ def records_open(
             answer = by_record.get(str(record.pk))
             try:
                 if answer is None:  # gone meanwhile
-                    raise RecordNotFound("no such record")
+                    raise RecordNotFound(NOT_VISIBLE)
                 verdict = _verdict_of(answer, record, viewer)
                 results.append(_decrypted(record, verdict, _envelope_of(answer), keys))
             except SharingError as exc:
@@ -635,7 +673,7 @@ def _decrypted(
 ) -> OpenedRecord:
     """The record decrypted from the bytes the worker checked, if its verdict allows."""
     if verdict.outcome == Verdict.Outcome.NO_ACCESS:
-        raise AccessDenied("you have no live grant to this record", record=record, verdict=verdict)
+        raise AccessDenied(NOT_VISIBLE, record=record, verdict=verdict)
     if verdict.outcome == Verdict.Outcome.DELETED:
         record.refresh_from_db()
         raise RecordDeleted(record_deletion_text(record), record=record, verdict=verdict)

@@ -38,6 +38,7 @@ from sharing.deletion import (
     records_delete,
 )
 from sharing.errors import (
+    NOT_VISIBLE,
     AccessDenied,
     ExportRefused,
     IntegrityCheckFailed,
@@ -74,6 +75,7 @@ from sharing.selectors import (
     access_log_filter_choices,
     export_list_of,
     export_of,
+    grant_list_changed_with,
     grant_list_given,
     grant_list_made_with,
     grant_list_received,
@@ -91,11 +93,12 @@ from sharing.selectors import (
 )
 from sharing.series import DEFAULT_POINTS
 from sharing.services import (
+    GrantTerms,
     grant_create,
     grant_revoke,
     grant_terms_change,
     grant_terms_make,
-    grants_revoke_made_with,
+    grants_undo_made_with,
     owner_resolve,
 )
 from sharing.verification import OpenedRecord, record_open, records_open
@@ -179,14 +182,12 @@ def _open_or_refuse(request: HttpRequest, record_id: str) -> OpenedRecord | Refu
         return record_open(
             record_id=record_id, viewer=request.owner, credential=Verdict.Credential.SESSION
         )
-    except RecordNotFound as exc:
-        return Refusal("not_found", 404, str(exc))
+    except (RecordNotFound, AccessDenied):
+        # One answer whether it exists or not (the worker kept the refused view's verdict).
+        return Refusal("not_found", 404, NOT_VISIBLE)
     except RecordDeleted as exc:
         # Its metadata stays (a tombstone), never TAMPERED: the ciphertext went on purpose.
         return Refusal("deleted", 410, str(exc), exc.record, exc.verdict)
-    except AccessDenied as exc:
-        # Nothing of a record the viewer may not read is shown, not even its metadata.
-        return Refusal(Verdict.Outcome.NO_ACCESS, 403, str(exc))
     except IntegrityCheckFailed as exc:
         unsigned = (
             exc.verdict is not None and exc.verdict.outcome == Verdict.Outcome.SIGNATURE_REFUSED
@@ -395,7 +396,7 @@ def record_gallery(request: HttpRequest, record_id: str) -> HttpResponse:
     page, oldest first; each one integrity-checked (in one batched run) before it is shown."""
     record = record_get_visible(request.owner, record_id)
     if record is None:
-        raise Http404("no such record, or no access to it")
+        raise Http404(NOT_VISIBLE)
     if record.data_type not in IMAGE_TYPES:
         raise Http404("only image records have a gallery")
     form = _range_of(request, record)
@@ -655,23 +656,36 @@ def _access_log_asked(
 @page_throttle()
 @require_http_methods(["GET", "POST"])
 def api_token_revoke(request: HttpRequest, token_id: int) -> HttpResponse:
-    """GET: what revoking the token does, with the live grants it made; POST: revoke it, and
-    those grants too unless the owner unticked them."""
+    """GET: what revoking the token does, with the live grants it made and those it changed
+    last; POST: revoke it, then revoke the grants it made and give the grants it changed back
+    their former terms, unless the owner unticked either."""
     token = owner_token_of(request.owner, token_id)
     if token is None:
         raise Http404("no such API token")
     if request.method == "GET":
-        context = {"token": token, "grants": list(grant_list_made_with(token))}
+        context = {
+            "token": token,
+            "grants": list(grant_list_made_with(token)),
+            "changed": [
+                {"grant": grant, "before": GrantTerms.from_json(before)}
+                for grant, before in grant_list_changed_with(token)
+            ],
+        }
         return render(request, "accounts/api_token_revoke.html", context)
     was_live = token.revoked_at is None
     owner_token_revoke(token=token, actor=request.user)
-    revoked = []
-    if request.POST.get("revoke_grants") == "yes":
-        revoked = grants_revoke_made_with(token=token)
+    undone = grants_undo_made_with(
+        token=token,
+        revoke_made=request.POST.get("revoke_grants") == "yes",
+        restore_changed=request.POST.get("restore_grants") == "yes",
+    )
     said = [f"The API token {token.name} {'is' if was_live else 'was already'} revoked."]
-    if revoked:
-        names = ", ".join(grant.grantee.username for grant in revoked)
-        said.append(f"The access it gave {names} is revoked too; the chain follows.")
+    if undone.revoked:
+        names = ", ".join(grant.grantee.username for grant in undone.revoked)
+        said.append(f"The access of {names} is revoked too; the chain follows.")
+    if undone.restored:
+        names = ", ".join(grant.grantee.username for grant in undone.restored)
+        said.append(f"Your grants to {names} have their terms from before the token's changes.")
     messages.success(request, " ".join(said))
     return redirect("api-tokens")
 

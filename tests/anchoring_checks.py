@@ -31,7 +31,7 @@ def assert_anchored_exactly_once(client: AuthROSChain) -> None:
     assert set(uploads) == {record_id_to_bytes32(record.pk) for record in by_id}
     assert set(uploads.values()) <= {1}
     for record in by_id:
-        on_chain = client.data_query(record.id)
+        on_chain = client.data_query(record.id, owner=record.owner.eoa_address)
         assert on_chain is not None, f"record {record.pk} is not on the live chain"
         assert on_chain.digest.hex() == record.digest
         assert on_chain.owner.lower() == record.owner.eoa_address.lower()

@@ -62,7 +62,8 @@ def sm4_key_generate() -> bytes:
 # (counting up or down: 000102..., 00112233..., ffeedd...): 1.5e-24; every byte printable
 # ASCII or NUL (a word or phrase, maybe zero-padded): (96/256)**16 = 1.5e-7. So one random key
 # in 6.5 million is refused (sm4_key_generate draws another); a looser text rule, such as 12
-# of 16 bytes printable, would refuse one in 430.
+# of 16 bytes printable, would refuse one in 430. Each 8-byte half a sequence of its own
+# (0123456789abcdef fedcba9876543210): 256**-12, and the published keys below: nothing.
 KEY_MIN_DISTINCT_BYTES = 8
 KEY_MAX_PATTERN_BYTES = 8
 KEY_MAX_EQUAL_STEPS = 11
@@ -71,6 +72,47 @@ _LET_THE_PORTAL_GENERATE = (
     "; let the portal generate your key instead (the registration and key pages do by "
     "default; `manage.py owner_create` does without --sm4-key-hex)"
 )
+
+
+# Keys printed in standards and their test vectors: the first thing anyone copies, so the first
+# thing an attacker tries against a commitment. Each is refused with where it was published.
+PUBLISHED_KEYS: dict[bytes, str] = {
+    bytes.fromhex(hex_key): where
+    for hex_key, where in (
+        (
+            "0123456789abcdeffedcba9876543210",
+            "the SM4 standard's published example key (GB/T 32907, ISO/IEC 18033-3, RFC 8998)",
+        ),
+        (
+            "fedcba98765432100123456789abcdef",
+            "the SM4 test vectors' second example key (draft-ribose-cfrg-sm4, OpenSSL's tests)",
+        ),
+        (
+            "681edf34d206965e86b3e94f536e4246",
+            "the SM4 standard's published example ciphertext (GB/T 32907 example 1)",
+        ),
+        (
+            "595298c7c6fd271f0402f804c33d3f66",
+            "the SM4 standard's published example ciphertext (GB/T 32907 example 2)",
+        ),
+        (
+            "3945208f7b2144b13f36e38ac6d39f95",
+            "the start of the SM2 standard's published example private key (GB/T 32918)",
+        ),
+        (
+            "1649ab77a00637bd5e2efe283fbf3535",
+            "the start of the SM2 standard's published example encryption key (GB/T 32918.4)",
+        ),
+        (
+            "66c7f0f462eeedd9d1f2d46bdc10e4e2",
+            'the start of the SM3 standard\'s published example digest (SM3 of "abc")',
+        ),
+        (
+            "2b7e151628aed2a6abf7158809cf4f3c",
+            "the AES standard's published example key (FIPS 197, NIST SP 800-38A)",
+        ),
+    )
+}
 
 
 def sm4_key_check(sm4_key: bytes) -> None:
@@ -82,8 +124,15 @@ def sm4_key_check(sm4_key: bytes) -> None:
         raise InvalidKeyMaterial(weakness + _LET_THE_PORTAL_GENERATE)
 
 
+def _pairwise_steps(part: bytes) -> list[int]:
+    """The differences (mod 256) between neighbouring bytes of `part`."""
+    return [(b - a) % 256 for a, b in pairwise(part)]
+
+
 def _sm4_key_weakness(key: bytes) -> str | None:
     """Why `key` looks chosen rather than random, or None."""
+    if key in PUBLISHED_KEYS:
+        return f"this is {PUBLISHED_KEYS[key]}, known to everyone"
     if key == bytes(len(key)):
         return "an all-zero SM4 key is not a key"
     if len(set(key)) < KEY_MIN_DISTINCT_BYTES:
@@ -91,9 +140,12 @@ def _sm4_key_weakness(key: bytes) -> str | None:
     for period in range(1, KEY_MAX_PATTERN_BYTES + 1):
         if key[period:] == key[:-period]:
             return f"this key repeats a pattern of {period} bytes"
-    steps = Counter((b - a) % 256 for a, b in pairwise(key))
+    steps = Counter(_pairwise_steps(key))
     if steps.most_common(1)[0][1] > KEY_MAX_EQUAL_STEPS:
         return "this key counts up or down (a sequence of bytes)"
+    half = len(key) // 2
+    if all(len(set(_pairwise_steps(part))) == 1 for part in (key[:half], key[half:])):
+        return "each half of this key counts up or down (a hex pattern such as 0123...cdef)"
     if all(byte in _KEY_TEXT_BYTES for byte in key):
         return "this key is text (printable characters), not random bytes"
     return None

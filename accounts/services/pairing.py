@@ -35,7 +35,7 @@ from accounts.selectors import (
     pairing_code_normalize,
     robot_token_hash,
 )
-from accounts.services.robots import robot_create
+from accounts.services.robots import robot_create, robot_name_problem
 from core.outbox import enqueue
 from smcrypto import InvalidKey, provenance, sm2
 
@@ -65,8 +65,9 @@ def robot_pairing_request(*, name: str, public_key: str) -> tuple[RobotPairing, 
     kept). The robot shows the request's short code to its owner, who approves it with
     robot_pairing_answer; the robot collects the answer with robot_pairing_collect."""
     name = name.strip() if isinstance(name, str) else ""
-    if not name or len(name) > 100 or "\x00" in name:
-        raise InvalidPairingRequest("a robot name has 1 to 100 characters")
+    problem = robot_name_problem(name)
+    if problem is not None:
+        raise InvalidPairingRequest(problem)
     try:
         public_key = sm2.public_key_normalize(public_key)
     except InvalidKey as exc:

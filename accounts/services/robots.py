@@ -2,6 +2,7 @@
 and how long their records are kept. Pairing a robot by its own key is pairing.py."""
 
 import secrets
+import unicodedata
 from collections.abc import Sequence
 
 from django.contrib.auth.base_user import AbstractBaseUser
@@ -24,6 +25,26 @@ from accounts.selectors import robot_token_hash
 from accounts.services.robot_keys import robot_key_revocations_release
 
 ROBOT_TOKEN_BYTES = 32
+ROBOT_NAME_MAX = 100
+# Names are shown to owners (the approval page, lists, logs): control characters (CR/LF, ESC),
+# invisible formatting (bidi overrides U+202A-202E and isolates U+2066-2069, zero-width marks),
+# line separators, surrogates, private-use and unassigned code points could hide or disguise
+# what an owner approves.
+_NOT_PRINTABLE = frozenset({"Cc", "Cf", "Cs", "Co", "Cn", "Zl", "Zp"})
+
+
+def robot_name_problem(name: str) -> str | None:
+    """Why `name` (stripped) cannot name a robot, or None: 1 to 100 printable characters."""
+    if not name or len(name) > ROBOT_NAME_MAX:
+        return f"a robot name has 1 to {ROBOT_NAME_MAX} characters"
+    for position, char in enumerate(name, start=1):
+        if unicodedata.category(char) in _NOT_PRINTABLE:
+            called = unicodedata.name(char, "a control character")
+            return (
+                f"a robot name is printable text: character {position} is U+{ord(char):04X} "
+                f"({called}), a control or invisible formatting character"
+            )
+    return None
 
 
 def robot_create(
@@ -35,8 +56,9 @@ def robot_create(
     are not a valid list of {name, type} raise django.core.exceptions.ValidationError.
     """
     name = name.strip()
-    if not name or len(name) > 100:
-        raise InvalidRobotName("a robot name has 1 to 100 characters")
+    problem = robot_name_problem(name)
+    if problem is not None:
+        raise InvalidRobotName(problem)
     chosen = DEFAULT_TOPICS if topics is None else topics
     topic_list = [{"name": topic.name, "type": topic.type} for topic in chosen]
     validate_robot_topics(topic_list)

@@ -67,6 +67,40 @@ def test_key_rotation_refuses_a_key_that_does_not_look_random(pending_owner, key
     assert OwnerKey.objects.filter(owner=owner).count() == 1
 
 
+PUBLISHED = {
+    "0123456789abcdeffedcba9876543210": "SM4 standard's published example key",
+    "0123456789ABCDEFFEDCBA9876543210": "SM4 standard's published example key",
+    "fedcba98765432100123456789abcdef": "SM4 test vectors' second example key",
+    "681edf34d206965e86b3e94f536e4246": "SM4 standard's published example ciphertext",
+    "3945208f7b2144b13f36e38ac6d39f95": "SM2 standard's published example private key",
+    "66c7f0f462eeedd9d1f2d46bdc10e4e2": "SM3 standard's published example digest",
+    "2b7e151628aed2a6abf7158809cf4f3c": "AES standard's published example key",
+    # Not published as such, but the same hex pattern: each half counts up or down.
+    "0011223344556677ffeeddccbbaa9988": "each half of this key counts",
+}
+
+
+@pytest.mark.parametrize("key_hex", PUBLISHED, ids=PUBLISHED.values())
+def test_published_example_keys_are_refused_with_the_reason(pending_owner, key_hex):
+    owner = pending_owner("dora")
+    with pytest.raises(InvalidKeyMaterial, match=PUBLISHED[key_hex]):
+        key_rotate(owner=owner, sm4_key=bytes.fromhex(key_hex))
+    assert OwnerKey.objects.filter(owner=owner).count() == 1
+
+
+def test_the_register_page_names_the_sm4_example_key(client):
+    form = {
+        "username": "carol",
+        "password1": TEST_PASSWORD,
+        "password2": TEST_PASSWORD,
+        "key_ciphertext": encrypted_key(bytes.fromhex("0123456789abcdeffedcba9876543210")),
+    }
+    page = client.post(reverse("register"), form)
+    assert page.status_code == 400
+    assert "the SM4 standard&#x27;s published example key" in page.content.decode()
+    assert not Owner.objects.exists()
+
+
 def test_ten_thousand_random_keys_pass():
     # A seeded generator: the suite stays deterministic. The rules refuse one key in 6.5
     # million (accounts/services/keys.py), so os.urandom keys pass as well.

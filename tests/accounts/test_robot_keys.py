@@ -326,7 +326,10 @@ def _records_on_chain(records: list[Record]) -> None:
         assert record.status == Record.Status.ANCHORED
         tree = record.anchor_root
         if tree is None:
-            assert client.data_query(record.id).digest.hex() == record.digest
+            assert (
+                client.data_query(record.id, owner=record.owner.eoa_address).digest.hex()
+                == record.digest
+            )
         else:
             assert client.root_of(tree.sender, bytes.fromhex(tree.root)).size == tree.size
         if record.signer:

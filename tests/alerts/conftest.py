@@ -102,6 +102,7 @@ def webhook_receiver(settings) -> Iterator[Receiver]:
             pass
 
     server = ThreadingHTTPServer(("127.0.0.1", 0), Handler)
+    settings.ALERTS_WEBHOOK_PORTS = [server.server_address[1]]
     receiver.url = f"http://127.0.0.1:{server.server_address[1]}/hooks/authros?x=1"
     thread = threading.Thread(target=server.serve_forever, daemon=True)
     thread.start()

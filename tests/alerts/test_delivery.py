@@ -152,6 +152,7 @@ def test_inner_addresses_are_refused(settings):
     settings.ALERTS_WEBHOOK_ALLOW_PRIVATE = False
     assert [url for url in INNER_OR_BAD_URLS if _accepted(url)] == []
     settings.ALERTS_WEBHOOK_ALLOW_PRIVATE = True
+    settings.ALERTS_WEBHOOK_PORTS = [8000]
     assert webhook_url_check("http://127.0.0.1:8000/h?a=b").target == "/h?a=b"
 
 

@@ -235,6 +235,40 @@ def test_bad_pairing_requests_are_refused_and_store_nothing(db, body):
     assert not RobotPairing.objects.exists()
 
 
+@pytest.mark.parametrize(
+    "name",
+    [
+        "arm\u202egnp.exe",  # right-to-left override
+        "arm\u202a",
+        "\u2066arm\u2069",  # isolates
+        "arm\x1b[2J",  # ESC, a terminal escape
+        "arm\r\nApproved: yes",
+        "arm\nsecond line",
+        "arm\u200bx",  # zero-width space
+        "arm\u2028x",  # line separator
+        "arm\x7f",
+    ],
+)
+def test_pairing_names_are_printable_text(db, name):
+    answer = APIClient().post(
+        PAIRINGS, {"name": name, "public_key": sm2.generate_keypair()[1]}, format="json"
+    )
+    assert answer.status_code == 400
+    assert answer.json()["error"] == "invalid_pairing_request"
+    assert "printable text" in answer.json()["detail"]
+    assert not RobotPairing.objects.exists()
+
+
+def test_a_name_in_any_script_is_taken(db):
+    answer = APIClient().post(
+        PAIRINGS,
+        {"name": "Bras robotisé 3 — 机器人 ✓", "public_key": sm2.generate_keypair()[1]},
+        format="json",
+    )
+    assert answer.status_code == 201
+    assert RobotPairing.objects.get().name == "Bras robotisé 3 — 机器人 ✓"
+
+
 def test_collecting_an_unknown_request_is_a_json_404(db):
     answer = APIClient().post(
         f"{PAIRINGS}{uuid.uuid4()}/collect/", {"secret": "x" * 43}, format="json"

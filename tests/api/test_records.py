@@ -199,8 +199,8 @@ def test_a_grantee_sees_and_reads_shared_records_under_its_own_key(
     assert _seqs(reader_api.get(RECORDS)) == []
     assert reader_api.get(f"{RECORDS}{record.id}/").status_code == 404
     refused = reader_api.get(content)
-    assert refused.status_code == 403
-    assert refused.json()["error"] == "access_denied"
+    assert refused.status_code == 404
+    assert refused.json()["error"] == "not_found"
 
     with django_capture_on_commit_callbacks(execute=True):
         grant_create(owner=robot.owner, grantee=reader.owner)
@@ -220,7 +220,7 @@ def test_a_grantee_sees_and_reads_shared_records_under_its_own_key(
         grant_revoke(owner=robot.owner, grantee=reader.owner)
     assert Grant.objects.get().status == Grant.Status.REVOKED
     assert _seqs(reader_api.get(RECORDS)) == []
-    assert reader_api.get(content).status_code == 403
+    assert reader_api.get(content).status_code == 404
 
 
 def test_changed_stored_data_is_refused_with_409(robot, robot_api, owner_api, fleet):

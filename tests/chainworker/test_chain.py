@@ -107,15 +107,17 @@ def test_upload_query_and_check(chain, registered_owner):
     assert result.block_number > 0
     assert result.tx_hash.startswith("0x")
 
-    on_chain = chain.data_query(item.record_id)
+    on_chain = chain.data_query(item.record_id, owner=registered_owner.address)
     assert on_chain is not None
     assert on_chain.owner == registered_owner.address
     assert on_chain.digest == item.digest
     assert on_chain.time == item.time
     assert on_chain.data_type == "nav_msgs/Odometry"
-    assert chain.data_check(item.record_id, item.digest)
-    assert not chain.data_check(item.record_id, sm3.sm3_digest(b"other"))
-    assert chain.data_query(uuid.uuid4()) is None
+    assert chain.data_check(item.record_id, item.digest, owner=registered_owner.address)
+    assert not chain.data_check(
+        item.record_id, sm3.sm3_digest(b"other"), owner=registered_owner.address
+    )
+    assert chain.data_query(uuid.uuid4(), owner=registered_owner.address) is None
 
 
 def test_batch_upload_anchors_every_item(chain, registered_owner):
@@ -124,7 +126,9 @@ def test_batch_upload_anchors_every_item(chain, registered_owner):
     assert [e.args["id"] for e in result.events] == [
         record_id_to_bytes32(i.record_id) for i in items
     ]
-    assert all(chain.data_check(i.record_id, i.digest) for i in items)
+    assert all(
+        chain.data_check(i.record_id, i.digest, owner=registered_owner.address) for i in items
+    )
     assert chain.record_count() == 20
     with pytest.raises(ValueError, match="at least one"):
         chain.data_upload_batch(registered_owner, [])
@@ -336,7 +340,7 @@ def test_unfunded_sender_gets_insufficient_funds(chain):
 def test_no_contract_means_contract_not_deployed(isolated_portal, redis_client):
     client = AuthROSChain(isolated_portal, redis_client=redis_client)
     with pytest.raises(ContractNotDeployed):
-        client.data_query(uuid.uuid4())
+        client.data_query(uuid.uuid4(), owner="0x" + "11" * 20)
 
 
 def test_unreachable_node_raises_chain_unavailable(redis_client):

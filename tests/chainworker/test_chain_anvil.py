@@ -82,7 +82,7 @@ def test_full_contract_flow_over_http(anvil, redis_client):
     item = anchor_item()
     result = client.data_upload(owner, item)
     assert result.events[0].name == "DataUploaded"
-    assert client.data_query(item.record_id).digest == item.digest
+    assert client.data_query(item.record_id, owner=owner.address).digest == item.digest
     client.authority_grant(owner, viewer.address)
     assert client.has_access(owner.address, viewer.address)
     with pytest.raises(TransactionReverted) as refused:
@@ -121,7 +121,9 @@ def test_concurrent_senders_in_several_processes_share_nonces(anvil, redis_clien
     record_ids = [record_id for _, ids, _ in outcomes for record_id in ids]
     assert len(set(record_ids)) == SENDER_PROCESSES * UPLOADS_PER_PROCESS
     assert client.record_count() == SENDER_PROCESSES * UPLOADS_PER_PROCESS
-    assert all(client.data_query(record_id) is not None for record_id in record_ids)
+    assert all(
+        client.data_query(record_id, owner=owner.address) is not None for record_id in record_ids
+    )
     uploads = client.events(names=["DataUploaded"])
     assert sorted(str(e.args["id"][:16].hex()) for e in uploads) == sorted(
         uuid.UUID(r).hex for r in record_ids
@@ -167,7 +169,7 @@ def test_a_transaction_the_node_lost_or_holds_behind_a_nonce_gap_is_not_waited_f
         item = anchor_item()
         receipt = client.wait_for_receipt(client.data_upload(owner, item, wait=False))
         assert client.w3.eth.get_transaction(receipt["transactionHash"])["nonce"] == ready_nonce
-        assert client.data_query(item.record_id) is not None
+        assert client.data_query(item.record_id, owner=owner.address) is not None
 
 
 def test_confirmations_are_awaited(redis_client):
@@ -197,7 +199,9 @@ def test_a_read_is_one_request_to_the_node(anvil, redis_client, monkeypatch):
     item = anchor_item()
     client.data_upload(owner, item)
     client.anchor_root(owner, b"\x02" * 32, 5)
-    client.data_query(item.record_id)  # the connection has asked its chain id by now
+    client.data_query(
+        item.record_id, owner=owner.address
+    )  # the connection has asked its chain id by now
     methods = []
     session_post = requests.Session.post
 
@@ -206,7 +210,7 @@ def test_a_read_is_one_request_to_the_node(anvil, redis_client, monkeypatch):
         return session_post(session, url, *args, **kwargs)
 
     monkeypatch.setattr(requests.Session, "post", post)
-    assert client.data_query(item.record_id).digest == item.digest
+    assert client.data_query(item.record_id, owner=owner.address).digest == item.digest
     assert client.root_of(owner.address, b"\x01" * 32) is None
     anchored = client.root_of(owner.address, b"\x02" * 32)
     assert anchored.size == 5

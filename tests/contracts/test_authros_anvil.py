@@ -52,13 +52,13 @@ def test_enroll_register_upload_query_on_anvil(artifact, record, reverts):
         assert receipt["status"] == 1
         (event,) = authros.events.DataUploaded().process_receipt(receipt)
         assert event["args"]["owner"] == owner.address
-        assert authros.functions.dataQuery(record_id).call() == [
+        assert authros.functions.dataQueryOf(owner.address, record_id).call() == [
             owner.address,
             digest,
             time,
             data_type,
         ]
-        assert authros.functions.dataCheck(record_id, digest).call() is True
+        assert authros.functions.dataCheckOf(owner.address, record_id, digest).call() is True
         assert authros.functions.hasAccess(owner.address, owner.address).call() is True
         with reverts("RecordExists", record_id):
             send_signed(w3, authros.functions.dataUpload(record_id, digest, time, data_type), owner)

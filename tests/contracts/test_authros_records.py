@@ -1,4 +1,5 @@
-"""Anchoring record digests: single and batch uploads, write-once ids, dataQuery/dataCheck."""
+"""Anchoring record digests: single and batch uploads, ids write-once per owner and bound to it
+(issue 38: nobody squats another owner's id), dataQuery/dataCheck and their ...Of forms."""
 
 from eth_utils import keccak
 
@@ -13,6 +14,11 @@ def batch_args(records):
     return ids, digests, times, types
 
 
+def mine(call, sender):
+    """A view of the caller's own records (dataQuery/dataCheck read msg.sender's), as `sender`."""
+    return call.call({"from": sender})
+
+
 def test_upload_anchors_a_record(authros, alice, record, send, emitted):
     record_id, digest, time, data_type = record(0)
 
@@ -21,21 +27,36 @@ def test_upload_anchors_a_record(authros, alice, record, send, emitted):
     assert emitted(receipt, "DataUploaded") == [
         {"id": record_id, "owner": alice, "digest": digest, "time": time, "dataType": data_type}
     ]
-    assert authros.functions.dataQuery(record_id).call() == [alice, digest, time, data_type]
+    assert mine(authros.functions.dataQuery(record_id), alice) == [
+        alice,
+        digest,
+        time,
+        data_type,
+    ]
     assert authros.functions.recordCount().call() == 1
 
 
 def test_upload_accepts_zero_time_and_type(authros, alice, record, send):
     record_id, digest, _, _ = record(0)
     send(authros.functions.dataUpload(record_id, digest, 0, ZERO32), alice)
-    assert authros.functions.dataQuery(record_id).call() == [alice, digest, 0, ZERO32]
+    assert mine(authros.functions.dataQuery(record_id), alice) == [
+        alice,
+        digest,
+        0,
+        ZERO32,
+    ]
 
 
 def test_upload_keeps_full_uint64_time(authros, alice, record, send):
     record_id, digest, _, data_type = record(0)
     latest = 2**64 - 1
     send(authros.functions.dataUpload(record_id, digest, latest, data_type), alice)
-    assert authros.functions.dataQuery(record_id).call() == [alice, digest, latest, data_type]
+    assert mine(authros.functions.dataQuery(record_id), alice) == [
+        alice,
+        digest,
+        latest,
+        data_type,
+    ]
 
 
 def test_upload_refuses_unregistered(authros, enrolled_only, outsider, record, reverts):
@@ -56,17 +77,38 @@ def test_upload_refuses_empty_digest(authros, alice, record, reverts):
         authros.functions.dataUpload(record_id, ZERO32, time, data_type).transact({"from": alice})
 
 
-def test_upload_is_write_once_for_everyone(authros, alice, bob, record, send, reverts):
+def test_upload_is_write_once_per_owner(authros, alice, record, send, reverts):
     record_id, digest, time, data_type = record(0)
     send(authros.functions.dataUpload(record_id, digest, time, data_type), alice)
-    other_digest = keccak(text="forged")
+    with reverts("RecordExists", record_id):
+        authros.functions.dataUpload(record_id, keccak(text="forged"), time, data_type).transact(
+            {"from": alice}
+        )
+    assert mine(authros.functions.dataQuery(record_id), alice) == [
+        alice,
+        digest,
+        time,
+        data_type,
+    ]
 
-    for caller in (alice, bob):
-        with reverts("RecordExists", record_id):
-            authros.functions.dataUpload(record_id, other_digest, time, data_type).transact(
-                {"from": caller}
-            )
-    assert authros.functions.dataQuery(record_id).call() == [alice, digest, time, data_type]
+
+def test_another_owner_cannot_squat_a_record_id(authros, alice, bob, record, send):
+    """Bob anchors first under the id Alice's record will have: Alice's upload still succeeds
+    and her record reads back as hers; Bob's is his own, under his address only."""
+    record_id, digest, time, data_type = record(0)
+    squat = keccak(text="squatted")
+    send(authros.functions.dataUpload(record_id, squat, time, data_type), bob)
+    send(authros.functions.dataUpload(record_id, digest, time, data_type), alice)
+    assert authros.functions.dataQueryOf(alice, record_id).call() == [
+        alice,
+        digest,
+        time,
+        data_type,
+    ]
+    assert authros.functions.dataQueryOf(bob, record_id).call() == [bob, squat, time, data_type]
+    assert authros.functions.dataCheckOf(alice, record_id, digest).call() is True
+    assert authros.functions.dataCheckOf(alice, record_id, squat).call() is False
+    assert mine(authros.functions.dataCheck(record_id, squat), bob) is True
 
 
 def test_batch_anchors_every_record_in_order(authros, alice, record, send, emitted):
@@ -78,7 +120,12 @@ def test_batch_anchors_every_record_in_order(authros, alice, record, send, emitt
         {"id": i, "owner": alice, "digest": d, "time": t, "dataType": k} for i, d, t, k in records
     ]
     for record_id, digest, time, data_type in records:
-        assert authros.functions.dataQuery(record_id).call() == [alice, digest, time, data_type]
+        assert mine(authros.functions.dataQuery(record_id), alice) == [
+            alice,
+            digest,
+            time,
+            data_type,
+        ]
     assert authros.functions.recordCount().call() == 5
 
 
@@ -87,12 +134,11 @@ def test_batch_refuses_unregistered(authros, outsider, record, reverts):
         authros.functions.dataUploadBatch(*batch_args([record(0)])).transact({"from": outsider})
 
 
-def test_batch_refuses_an_id_taken_before(authros, alice, bob, record, send, reverts):
+def test_batch_is_not_refused_for_an_id_another_owner_took(authros, alice, bob, record, send):
     send(authros.functions.dataUpload(*record(2)), bob)
     records = [record(n) for n in range(4)]
-
-    with reverts("RecordExists", record(2)[0]):
-        authros.functions.dataUploadBatch(*batch_args(records)).transact({"from": alice})
+    assert send(authros.functions.dataUploadBatch(*batch_args(records)), alice)["status"] == 1
+    assert authros.functions.recordCount().call() == 5
 
 
 def test_batch_names_the_first_taken_id(authros, alice, record, send, reverts):
@@ -134,7 +180,12 @@ def test_batch_is_all_or_nothing_when_mined(w3, authros, alice, record, send):
 
     assert receipt["status"] == 0
     assert receipt["logs"] == []
-    assert authros.functions.dataQuery(record(0)[0]).call() == [ZERO_ADDRESS, ZERO32, 0, ZERO32]
+    assert mine(authros.functions.dataQuery(record(0)[0]), alice) == [
+        ZERO_ADDRESS,
+        ZERO32,
+        0,
+        ZERO32,
+    ]
     assert authros.functions.recordCount().call() == 1
 
 
@@ -185,12 +236,22 @@ def test_max_batch_fits_in_a_30m_gas_block(authros, alice, record, send, emitted
     assert len(emitted(receipt, "DataUploaded")) == max_batch
     assert authros.functions.recordCount().call() == max_batch
     last_id, last_digest, _, _ = records[-1]
-    assert authros.functions.dataCheck(last_id, last_digest).call() is True
+    assert mine(authros.functions.dataCheck(last_id, last_digest), alice) is True
 
 
-def test_query_of_unknown_id_is_all_zeros(authros, record):
-    assert authros.functions.dataQuery(record(0)[0]).call() == [ZERO_ADDRESS, ZERO32, 0, ZERO32]
-    assert authros.functions.dataQuery(ZERO32).call() == [ZERO_ADDRESS, ZERO32, 0, ZERO32]
+def test_query_of_unknown_id_is_all_zeros(authros, alice, record):
+    assert mine(authros.functions.dataQuery(record(0)[0]), alice) == [
+        ZERO_ADDRESS,
+        ZERO32,
+        0,
+        ZERO32,
+    ]
+    assert mine(authros.functions.dataQuery(ZERO32), alice) == [
+        ZERO_ADDRESS,
+        ZERO32,
+        0,
+        ZERO32,
+    ]
 
 
 def test_check_matches_only_the_anchored_digest(authros, alice, record, send):
@@ -198,11 +259,11 @@ def test_check_matches_only_the_anchored_digest(authros, alice, record, send):
     unknown_id, _, _, _ = record(1)
     send(authros.functions.dataUpload(record_id, digest, time, data_type), alice)
 
-    assert authros.functions.dataCheck(record_id, digest).call() is True
-    assert authros.functions.dataCheck(record_id, keccak(text="tampered")).call() is False
-    assert authros.functions.dataCheck(record_id, ZERO32).call() is False
-    assert authros.functions.dataCheck(unknown_id, digest).call() is False
-    assert authros.functions.dataCheck(unknown_id, ZERO32).call() is False
+    assert mine(authros.functions.dataCheck(record_id, digest), alice) is True
+    assert mine(authros.functions.dataCheck(record_id, keccak(text="tampered")), alice) is False
+    assert mine(authros.functions.dataCheck(record_id, ZERO32), alice) is False
+    assert mine(authros.functions.dataCheck(unknown_id, digest), alice) is False
+    assert mine(authros.functions.dataCheck(unknown_id, ZERO32), alice) is False
 
 
 def test_records_survive_key_rotation(authros, alice, record, send):
@@ -211,5 +272,10 @@ def test_records_survive_key_rotation(authros, alice, record, send):
 
     send(authros.functions.rotateKey(keccak(text="new key")), alice)
 
-    assert authros.functions.dataQuery(record_id).call() == [alice, digest, time, data_type]
-    assert authros.functions.dataCheck(record_id, digest).call() is True
+    assert mine(authros.functions.dataQuery(record_id), alice) == [
+        alice,
+        digest,
+        time,
+        data_type,
+    ]
+    assert mine(authros.functions.dataCheck(record_id, digest), alice) is True

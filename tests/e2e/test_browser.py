@@ -290,18 +290,18 @@ def test_two_owners_share_revoke_and_see_tampering(
     shot(a, "a-grant-revoked")
     refused = b.reload()
     assert refused is not None
-    assert refused.status == 403
-    expect(b.locator("#verdict")).to_have_attribute("data-verdict", "no_access")
+    assert refused.status == 404
+    expect(b.locator("#verdict")).to_have_attribute("data-verdict", "not_found")
     expect_no_content(b)
     shot(b, "b-record-refused-after-revocation")
     raw = bob.request.get(f"{base}/records/{shared_id}/raw.json")
-    assert raw.status == 403
-    assert raw.json()["error"] == "no_access"
+    assert raw.status == 404
+    assert raw.json()["error"] == "not_found"
 
     # B types the URL of another record of A, never shared with a live grant now.
     direct = open_record(b, base, tampered_id)
-    assert direct.status == 403
-    expect(b.locator("#verdict")).to_have_attribute("data-verdict", "no_access")
+    assert direct.status == 404
+    expect(b.locator("#verdict")).to_have_attribute("data-verdict", "not_found")
     expect_no_content(b)
     expect(b.locator("main")).not_to_contain_text(IMAGE_TOPIC)
     shot(b, "b-other-record-by-url-refused")

@@ -62,6 +62,10 @@ BAD_CHOICES = [
 ]
 REFUSED_URLS = [
     "http://127.0.0.1:8000/hook",
+    "http://[::7f00:1]/hook",
+    "http://[64:ff9b::a9fe:a9fe]/",
+    "https://example.org:22/hook",
+    "https://example.org/hook#@127.0.0.1",
     "http://169.254.169.254/",
     "not a url",
     "ftp://x.org/",
@@ -89,6 +93,7 @@ def test_bad_input_is_a_form_error_and_changes_nothing(login, pending_owner, set
 
 def test_a_webhook_secret_is_shown_once(login, pending_owner, settings):
     settings.ALERTS_WEBHOOK_ALLOW_PRIVATE = True
+    settings.ALERTS_WEBHOOK_PORTS = [9]  # the receivers below listen on port 9
     client = login(pending_owner("alice"))
     page = client.post(WEBHOOKS, {"url": "http://127.0.0.1:9/hook"})
     assert page.status_code == 201
@@ -103,6 +108,7 @@ def test_a_webhook_secret_is_shown_once(login, pending_owner, settings):
 
 def test_another_owners_webhooks_are_invisible_and_untouchable(login, pending_owner, settings):
     settings.ALERTS_WEBHOOK_ALLOW_PRIVATE = True
+    settings.ALERTS_WEBHOOK_PORTS = [9]  # the receivers below listen on port 9
     alice, mallory = pending_owner("alice"), pending_owner("mallory")
     endpoint, _secret = webhook_endpoint_create(owner=alice, url="http://127.0.0.1:9/alice")
     client = login(mallory)

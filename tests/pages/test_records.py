@@ -266,20 +266,29 @@ def test_record_whose_anchoring_failed_says_so(
     assert "frame-fx3" in page.content.decode()
 
 
+def _refusal(page) -> str:
+    """What a refused page says: its verdict section, or the whole body of a JSON answer."""
+    text = page.content.decode()
+    found = re.search(r'<section class="verdict.*?</section>', text, re.S)
+    return found.group(0) if found else text
+
+
 def test_records_of_others_are_out_of_reach(client, alice, bob, upload):
     record = upload(alice, 1, plaintext=odometry("alice", 0, 0, marker="private-frame"))
     client.force_login(bob.user)
+    missing_id = uuid.uuid4()
     for name in ("record-detail", "record-raw"):
         page = client.get(reverse(name, args=[record.id]))
-        assert page.status_code == 403, name
+        assert page.status_code == 404, name
         assert b"private-frame" not in page.content
+        # One answer whether the record exists or not (issue 37): the same status and body.
+        missing = client.get(reverse(name, args=[missing_id]))
+        assert missing.status_code == 404, name
+        assert _refusal(missing) == _refusal(page), name
     html = client.get(reverse("record-detail", args=[record.id])).content.decode()
-    assert 'data-verdict="no_access"' in html
+    assert 'data-verdict="not_found"' in html
     assert str(record.digest) not in html
     assert Verdict.objects.filter(record=record, viewer=bob, outcome="no_access").exists()
-    missing = client.get(reverse("record-detail", args=[uuid.uuid4()]))
-    assert missing.status_code == 404
-    assert 'data-verdict="not_found"' in missing.content.decode()
     assert client.get("/records/not-a-uuid/").status_code == 404
 
 
@@ -291,7 +300,7 @@ def test_grantee_sees_until_revoked(client, alice, bob, granted, upload):
     assert "data:image/png;base64," in page.content.decode()
     grant_revoke(owner=alice.owner, grantee=bob)  # its chain call is still pending
     page = client.get(reverse("record-detail", args=[record.id]))
-    assert page.status_code == 403
+    assert page.status_code == 404
     assert "data:image/png" not in page.content.decode()
 
 

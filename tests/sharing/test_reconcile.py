@@ -47,7 +47,9 @@ def test_a_record_the_chain_lost_is_anchored_again_and_verifies(
     record.refresh_from_db()
     assert record.status == Record.Status.ANCHORED
     client = chain_services.chain_client()
-    assert client.data_query(record.id).digest.hex() == record.digest
+    assert (
+        client.data_query(record.id, owner=record.owner.eoa_address).digest.hex() == record.digest
+    )
     assert records_verify(record_ids=[record.id], viewer_id=setup.owner.pk)[0].verdict.outcome == (
         Verdict.Outcome.VERIFIED
     )
@@ -155,7 +157,10 @@ def _assert_recreated(owners, records) -> None:
     for record in records:
         record.refresh_from_db()
         assert record.status == Record.Status.ANCHORED
-        assert client.data_query(record.id).digest.hex() == record.digest
+        assert (
+            client.data_query(record.id, owner=record.owner.eoa_address).digest.hex()
+            == record.digest
+        )
         verdict = records_verify(record_ids=[record.id], viewer_id=record.owner_id)[0].verdict
         assert verdict.outcome == Verdict.Outcome.VERIFIED
 

@@ -48,7 +48,7 @@ def test_upload_is_stored_cached_and_anchored(
     assert record.status == Record.Status.ANCHORED
     assert record.tx_hash.startswith("0x")
     assert record.block_number > 0
-    on_chain = deployed.data_query(record.id)
+    on_chain = deployed.data_query(record.id, owner=record.owner.eoa_address)
     assert on_chain.digest.hex() == record.digest
     assert on_chain.owner == setup.owner.eoa_address
     assert on_chain.time == record.captured_at

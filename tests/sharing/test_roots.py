@@ -69,7 +69,9 @@ def test_records_go_on_chain_under_one_root(make_robot, deployed):
     (tree,) = _assert_anchored_once(deployed, setup.owner)
     assert tree.size == 10
     assert bytes(tree.leaves) == b"".join(r.id.bytes for r in records)
-    assert all(deployed.data_query(r.id) is None for r in records)  # no per-record storage
+    assert all(
+        deployed.data_query(r.id, owner=setup.owner.eoa_address) is None for r in records
+    )  # no per-record storage
     assert deployed.events(names=["DataUploaded"]) == []
     (event,) = deployed.events(names=["RootAnchored"])
     assert event.args["sender"] == setup.owner.eoa_address

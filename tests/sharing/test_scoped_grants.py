@@ -108,11 +108,11 @@ def test_scope_is_on_chain_and_enforced_everywhere(scoped, deployed, client):
     assert api.get(f"{RECORDS}{inside.pk}/").status_code == 200
     for record in outside:
         assert _outcome(record, bob) == Verdict.Outcome.NO_ACCESS
-        assert client.get(reverse("record-detail", args=[record.pk])).status_code == 403
+        assert client.get(reverse("record-detail", args=[record.pk])).status_code == 404
         for suffix in ("content/", "proof/", ""):
             answer = api.get(f"{RECORDS}{record.pk}/{suffix}")
-            assert answer.status_code == 403, (suffix, answer.content)
-            assert answer.json()["error"] == "access_denied"
+            assert answer.status_code == 404, (suffix, answer.content)
+            assert answer.json()["error"] == "not_found"
 
     # --- the terms in the database and on chain must agree ---------------------------------
     # A row changed behind the portal's back: wider in the database than the commitment on

@@ -100,7 +100,9 @@ def test_a_kill_9_keeps_everything_written_before_the_last_second(tmp_path, redi
         )
         assert restarted.has_code(client.address)
         assert restarted.record_count() == len(items)
-        assert all(restarted.data_query(item.record_id) is not None for item in items)
+        assert all(
+            restarted.data_query(item.record_id, owner=owner.address) is not None for item in items
+        )
         assert restarted.balance(owner.address) == balance
         assert restarted.is_registered(owner.address)
 

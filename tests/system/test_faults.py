@@ -186,7 +186,7 @@ def test_anvil_reverted_ten_blocks(fault_stack):
     lost = set(Record.objects.filter(block_number__gt=head - 10).values_list("pk", flat=True))
     stack.anvil_rpc("anvil_rollback", 10)
     assert lost
-    assert all(client.data_query(pk) is None for pk in lost)
+    assert all(client.data_query(pk, owner=alice.owner.eoa_address) is None for pk in lost)
     assert not client.has_access(alice.owner.eoa_address, bob.owner.eoa_address)
     _wait_settled(stack, 20)
     _assert_end_state(20, {(alice.owner, bob.owner): True})
