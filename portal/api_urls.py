@@ -16,6 +16,7 @@ from sharing.apis import (
     RecordDetailApi,
     RecordProofApi,
     RecordsApi,
+    RobotStatusApi,
 )
 
 v1 = [
@@ -41,6 +42,7 @@ v1 = [
     ),
     path("grants/<str:grantee>/", GrantRevokeApi.as_view(), name="grant-revoke"),
     path("access-log/", AccessLogApi.as_view(), name="access-log"),
+    path("robots/<str:robot_id>/status/", RobotStatusApi.as_view(), name="robot-status"),
 ]
 
 urlpatterns = [

@@ -1,0 +1,105 @@
+"""The robot page: is one robot of the owner alive, what it sends, its latest verified pose and
+image, and a plot of its recent trajectory.
+
+Only the robot's owner sees it; anyone else gets the 404 of a robot that does not exist. The
+numbers come from sharing/robot_status.py; the pose and image go through the integrity check
+every record view goes through (`record_open`, in `_latest_verified` only), so they are shown
+only when the chain holds them. The page keeps itself up to date by polling the status API
+(sharing.apis.RobotStatusApi) from static/portal/robot-page.js.
+"""
+
+import uuid
+from dataclasses import dataclass
+from datetime import timedelta
+
+from django.http import Http404, HttpRequest, HttpResponse
+from django.shortcuts import render
+from django.utils import timezone
+from django.views.decorators.http import require_GET
+
+from accounts.decorators import no_store, owner_required, page_throttle
+from accounts.errors import IdentityMismatch
+from accounts.models import Owner
+from sharing.content import ODOMETRY, Content, content_of
+from sharing.errors import IntegrityCheckFailed, SharingError
+from sharing.models import Record, Verdict
+from sharing.robot_status import (
+    RobotActivity,
+    robot_activity,
+    robot_latest_image_record,
+    robot_latest_pose_record,
+    robot_of_owner,
+)
+from sharing.selection import iso_utc
+from sharing.verification import record_open
+
+# The page checks two records (the latest pose and image): what it costs the worker.
+ROBOT_PAGE_COST = 2
+# The trajectory plot shows this much of the recent past, and how often it refreshes.
+PLOT_WINDOW = timedelta(minutes=10)
+PLOT_REFRESH_SECONDS = 5
+# How often the page's script asks the status API while the tab is visible.
+STATUS_POLL_SECONDS = 5
+
+
+@dataclass(frozen=True)
+class LatestShown:
+    """The newest anchored record of a kind, and its content once it passed the check, or why
+    it is not shown."""
+
+    record: Record
+    content: Content | None = None
+    refused: str = ""
+
+
+@owner_required
+@page_throttle("content", cost=ROBOT_PAGE_COST)
+@require_GET
+def robot_page(request: HttpRequest, robot_id: uuid.UUID) -> HttpResponse:
+    owner: Owner = request.owner
+    robot = robot_of_owner(owner, robot_id)
+    if robot is None:
+        raise Http404("no such robot")
+    now = timezone.now()
+    activity = robot_activity(robot, now=now)
+    pose = _latest_verified(robot_latest_pose_record(robot), viewer=owner)
+    image = _latest_verified(robot_latest_image_record(robot), viewer=owner)
+    odometry_topic = pose.record.topic if pose is not None else _topic_of_type(activity, ODOMETRY)
+    context = {
+        "robot": robot,
+        "activity": activity,
+        "pose": pose,
+        "image": image,
+        "odometry_topic": odometry_topic,
+        "plot_since": iso_utc(now - PLOT_WINDOW),
+        "plot_minutes": int(PLOT_WINDOW.total_seconds() // 60),
+        "plot_refresh_seconds": PLOT_REFRESH_SECONDS,
+        "poll_seconds": STATUS_POLL_SECONDS,
+    }
+    return no_store(render(request, "sharing/robot_detail.html", context))
+
+
+def _topic_of_type(activity: RobotActivity, data_type: str) -> str:
+    """The busiest topic of this ROS type in the last hour; "" if none."""
+    for rate in activity.topics:
+        if rate.data_type == data_type:
+            return rate.topic
+    return ""
+
+
+def _latest_verified(record: Record | None, *, viewer: Owner) -> LatestShown | None:
+    """The record opened through the integrity check (a view like any other, in the access
+    log), with its content; or why it is not shown."""
+    if record is None:
+        return None
+    try:
+        opened = record_open(
+            record_id=record.pk, viewer=viewer, credential=Verdict.Credential.SESSION
+        )
+    except IntegrityCheckFailed as exc:
+        return LatestShown(record, refused=f"TAMPERED, not shown: {exc}")
+    except (SharingError, IdentityMismatch) as exc:
+        return LatestShown(record, refused=f"not shown: {exc}")
+    return LatestShown(
+        opened.record, content=content_of(data_type=record.data_type, plaintext=opened.plaintext)
+    )
