@@ -16,8 +16,16 @@ from django.contrib.auth import logout
 from django.core.exceptions import PermissionDenied
 from django.core.paginator import Paginator
 from django.db.models import QuerySet
-from django.http import Http404, HttpRequest, HttpResponse, JsonResponse, StreamingHttpResponse
+from django.http import (
+    Http404,
+    HttpRequest,
+    HttpResponse,
+    JsonResponse,
+    QueryDict,
+    StreamingHttpResponse,
+)
 from django.shortcuts import redirect, render
+from django.urls import reverse
 from django.utils import timezone
 from django.utils.http import urlencode
 from django.views.decorators.cache import never_cache
@@ -84,6 +92,8 @@ from sharing.selectors import (
     record_list_same_topic,
     record_list_shared_with,
     record_list_sorted,
+    record_neighbours,
+    record_position_in,
     record_topic_range,
     robots_visible_to,
     verdict_list_access_log,
@@ -149,6 +159,8 @@ def _record_list(request: HttpRequest, records: QuerySet[Record], *, shared: boo
         "sort": form.sort_order(),
         "total": records.filter(deleted_at__isnull=True).count(),
         "granting": owners_granting(request.owner).select_related("user") if shared else None,
+        # Given to each record's link, so that its page links back to this very list.
+        "list_query": request.GET.urlencode(),
     }
     if form.is_bound and not form.is_valid():
         # Nothing listed under filters that do not hold: the errors say what to change.
@@ -222,12 +234,15 @@ def record_detail(request: HttpRequest, record_id: str) -> HttpResponse:
     opened = _open_or_refuse(request, str(record_id))
     if isinstance(opened, Refusal):
         context = {"refusal": opened, "record": opened.record, "verdict": opened.verdict}
+        if opened.record is not None:
+            context["nav"] = _record_nav(request, opened.record)
         return no_store(
             render(request, "sharing/record_detail.html", context, status=opened.status)
         )
     record = opened.record
     content = content_of(data_type=record.data_type, plaintext=opened.plaintext)
     context = {
+        "nav": _record_nav(request, record),
         "record": record,
         "verdict": opened.verdict,
         "header": opened.header,
@@ -242,6 +257,32 @@ def record_detail(request: HttpRequest, record_id: str) -> HttpResponse:
         if form.is_bound and form.is_valid():
             context["plot_query"] = urlencode(form.data)
     return no_store(render(request, "sharing/record_detail.html", context))
+
+
+@dataclass(frozen=True)
+class RecordNav:
+    """A record page's way around: the previous and next record of its robot and topic, and
+    the list it was opened from, with that list's filters (the `list` parameter)."""
+
+    previous: Record | None
+    next: Record | None
+    list_url: str
+    # Given on to the previous and next records' links, so that "back" stays the same list.
+    suffix: str
+
+
+def _record_nav(request: HttpRequest, record: Record) -> RecordNav:
+    previous, following = record_neighbours(record, viewer=request.owner)
+    is_own = record.owner_id == request.owner.pk
+    # Only a query string is taken from the link, re-encoded: "back" stays on this portal.
+    list_query = QueryDict(request.GET.get("list", "")).urlencode()
+    list_url = reverse("records" if is_own else "shared")
+    return RecordNav(
+        previous,
+        following,
+        f"{list_url}?{list_query}" if list_query else list_url,
+        f"?{urlencode({'list': list_query})}" if list_query else "",
+    )
 
 
 def _range_given(request: HttpRequest) -> dict[str, str]:
@@ -456,13 +497,20 @@ def record_gallery(request: HttpRequest, record_id: str) -> HttpResponse:
     in_range = record_list_same_topic(
         record, since=form.cleaned_data["since"], until=form.cleaned_data["until"]
     )
-    page = Paginator(in_range, GALLERY_PER_PAGE).get_page(request.GET.get("page"))
+    page = Paginator(in_range, GALLERY_PER_PAGE).get_page(
+        request.GET.get("page") or _gallery_page_of(in_range, record)
+    )
     results = record_open_many(records=list(page.object_list), viewer=request.owner)
     context["page"] = page
     context["tiles"] = [
         _gallery_tile(item, result) for item, result in zip(page, results, strict=True)
     ]
     return no_store(render(request, "sharing/gallery.html", context))
+
+
+def _gallery_page_of(in_range: QuerySet[Record], record: Record) -> int:
+    """The page of the gallery that shows the record (where it would be, outside the range)."""
+    return record_position_in(in_range, record) // GALLERY_PER_PAGE + 1
 
 
 @dataclass

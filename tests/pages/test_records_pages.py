@@ -98,7 +98,8 @@ def test_sort_filter_pages_and_bad_parameters(client, fleet, make_robot, upload,
     for record in fleet.values():
         row = html[html.index(f'data-record-id="{record.pk}"') :]
         first_cell = row[: row.index("</td>")]
-        assert f'href="{reverse("record-detail", args=[record.pk])}"' in first_cell
+        # With the list's filters, for the record page's "back to the list" (issue 35).
+        assert f'href="{reverse("record-detail", args=[record.pk])}?list=' in first_cell
         assert 'class="row-link"' in first_cell
     assert ">View<" not in html
     assert html.count('data-label="Upload #"') == 4
