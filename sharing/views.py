@@ -110,6 +110,7 @@ from sharing.services import (
 from sharing.verification import OpenedRecord, record_open, record_open_many
 
 RECORDS_PER_PAGE = 25
+# Minutes of anchoring on one page of the audit trail.
 AUDIT_ENTRIES_PER_PAGE = 50
 ACCESS_LOG_PER_PAGE = 50
 # Poses on a trajectory plot: the record and the ones before it on its topic, each one
@@ -675,10 +676,16 @@ def audit(request: HttpRequest) -> HttpResponse:
     form = AuditFilterForm(request.GET or None, owner=owner)
     if form.is_bound and not form.is_valid():
         return render(request, "sharing/audit.html", {"form": form, "owner": owner}, status=400)
-    page = audit_page_of_owner(
+    trail = audit_page_of_owner(
         owner, page=request.GET.get("page"), per_page=AUDIT_ENTRIES_PER_PAGE, **form.filters()
     )
-    context = {"form": form, "page": page, "owner": owner, "filtered": bool(form.filters())}
+    context = {
+        "form": form,
+        "trail": trail,
+        "page": trail.anchoring,
+        "owner": owner,
+        "filtered": bool(form.filters()),
+    }
     return render(request, "sharing/audit.html", context)
 
 
