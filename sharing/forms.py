@@ -188,6 +188,8 @@ class GrantForm(forms.Form):
     until = _period_field("Captured before (UTC)")
     expires_at = _period_field("Access ends (UTC)")
     change = forms.BooleanField(required=False, widget=forms.HiddenInput)
+    # Set by the confirmation page: the owner read that the grant covers every record, for ever.
+    confirm_all = forms.BooleanField(required=False, widget=forms.HiddenInput)
 
     def __init__(
         self, data: object = None, *, robots: list[Robot], topics: list[str], **kwargs: Any
@@ -209,6 +211,14 @@ class GrantForm(forms.Form):
         if since and until and since >= until:
             self.add_error("until", "“Captured before” must be later than “Captured from”.")
         return cleaned
+
+    @property
+    def needs_confirmation(self) -> bool:
+        """Nothing chosen (every record of every robot, any time, no expiry) and not confirmed
+        yet: the grant waits for the owner to confirm that on a page of its own."""
+        data = self.cleaned_data
+        chosen = ("robots", "topics", "since", "until", "expires_at")
+        return not data.get("confirm_all") and not any(data.get(name) for name in chosen)
 
 
 class GrantRevokeForm(forms.Form):

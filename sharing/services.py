@@ -465,16 +465,7 @@ def grant_create(
         raise ValueError(f"made_with is one of {GRANT_MADE_WITH}, with a token for 'token' only")
     if made_with_token is not None and made_with_token.owner_id != owner.pk:
         raise ValueError("a grant is made with a token of its own owner")
-    if grantee.pk == owner.pk:
-        raise SelfGrant("You always see your own records: name another owner.")
-    if owner.chain_state != ChainState.CONFIRMED:
-        raise NotRegisteredYet(
-            "Your account is not registered on the chain yet: try again in a minute."
-        )
-    if grantee.chain_state != ChainState.CONFIRMED:
-        raise GranteeNotRegistered(
-            f"{grantee}'s account is not registered on the chain yet: try again in a minute."
-        )
+    grant_create_check(owner=owner, grantee=grantee)
     try:
         with transaction.atomic():
             live = Grant.objects.filter(owner=owner, grantee=grantee, status__in=Grant.LIVE)
@@ -491,6 +482,25 @@ def grant_create(
         # A simultaneous grant for the same pair won the race (one live grant per pair).
         raise AlreadyGranted(_ALREADY_GRANTED.format(grantee=grantee)) from None
     return grant
+
+
+def grant_create_check(*, owner: Owner, grantee: Owner) -> None:
+    """Why `grant_create` would refuse this pair, raised before anything is written (the
+    grants page asks it before its confirmation step): a grant to oneself, an owner or grantee
+    not registered on chain yet, or a live grant of the pair (grant_create checks that again
+    in its transaction)."""
+    if grantee.pk == owner.pk:
+        raise SelfGrant("You always see your own records: name another owner.")
+    if owner.chain_state != ChainState.CONFIRMED:
+        raise NotRegisteredYet(
+            "Your account is not registered on the chain yet: try again in a minute."
+        )
+    if grantee.chain_state != ChainState.CONFIRMED:
+        raise GranteeNotRegistered(
+            f"{grantee}'s account is not registered on the chain yet: try again in a minute."
+        )
+    live = Grant.objects.filter(owner=owner, grantee=grantee, status__in=Grant.LIVE)
+    _refuse_second_grant(live.first(), grantee)
 
 
 def _refuse_second_grant(live: Grant | None, grantee: Owner) -> None:

@@ -101,6 +101,7 @@ from sharing.selectors import (
 )
 from sharing.services import (
     grant_create,
+    grant_create_check,
     grant_revoke,
     grant_terms_change,
     grant_terms_make,
@@ -557,12 +558,18 @@ def grants(request: HttpRequest) -> HttpResponse:
             return done
     else:
         form = GrantForm(initial=_grant_change_initial(owner, request.GET.get("change")), **choices)
+    given = grants_described(grant_list_given(owner))
+    received = grants_described(grant_list_received(owner))
     context = {
         "form": form,
         "changing": form.fields["change"].to_python(form["change"].value()),
-        "given": grants_described(grant_list_given(owner)),
-        "received": grants_described(grant_list_received(owner)),
+        "given": given,
+        "received": received,
         "owner": owner,
+        # A grant or revocation still on its way to the chain: the page follows it.
+        "waiting": any(
+            g.status in (Grant.Status.PENDING, Grant.Status.REVOKING) for g in given + received
+        ),
     }
     return render(request, "sharing/grants.html", context, status=400 if form.is_bound else 200)
 
@@ -575,6 +582,17 @@ def _grant_give_or_change(request: HttpRequest, form: GrantForm) -> HttpResponse
     except SharingError as exc:
         form.add_error("grantee", str(exc))
         return None
+    if form.needs_confirmation:
+        # Nothing is granted yet: refusals first, then a page that says what "everything"
+        # means and asks again.
+        if not data["change"]:
+            try:
+                grant_create_check(owner=request.owner, grantee=grantee)
+            except SharingError as exc:
+                form.add_error("grantee", str(exc))
+                return None
+        context = {"form": form, "grantee": grantee, "changing": data["change"]}
+        return render(request, "sharing/grant_confirm_all.html", context)
     try:
         terms = grant_terms_make(
             owner=request.owner,

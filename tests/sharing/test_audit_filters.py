@@ -44,7 +44,7 @@ def two_robots(client, make_robot, make_owner, upload, django_capture_on_commit_
     bob = make_owner("bob")
     client.force_login(a.owner.user)
     with django_capture_on_commit_callbacks(execute=True):
-        client.post(reverse("grants"), {"grantee": "bob"})
+        client.post(reverse("grants"), {"grantee": "bob", "confirm_all": "True"})
     return a, b, bob
 
 

@@ -45,7 +45,7 @@ def history(client, make_robot, make_owner, upload, django_capture_on_commit_cal
         key_rotate(owner=alice.owner, sm4_key=sm4.generate_key())
     client.force_login(alice.owner.user)
     with django_capture_on_commit_callbacks(execute=True):
-        client.post(reverse("grants"), {"grantee": "bob"})
+        client.post(reverse("grants"), {"grantee": "bob", "confirm_all": "True"})
     with django_capture_on_commit_callbacks(execute=True):
         client.post(reverse("grant-revoke"), {"grantee": "bob"})
     assert Grant.objects.get(owner=alice.owner, grantee=bob).status == Grant.Status.REVOKED
