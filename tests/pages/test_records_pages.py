@@ -234,8 +234,8 @@ def test_the_plot_of_a_chosen_range(client, track, make_owner, monkeypatch):
     page = reverse("record-detail", args=[track[2].id])
     html = client.get(page).content.decode()
     assert 'id="plot-range"' in html
-    assert 'name="since" value="2026-03-01T11:55"' in html  # five minutes either side
-    assert 'name="until" value="2026-03-01T12:05"' in html
+    assert 'name="since" value="2026-03-01 11:55"' in html  # five minutes either side, 24-hour
+    assert 'name="until" value="2026-03-01 12:05"' in html
     assert reverse("record-trajectory", args=[track[2].id]) + '"' in html
     html = client.get(page, {"since": "2026-03-01T12:00", "until": "2026-03-01T12:01"}).content
     assert (
