@@ -58,8 +58,8 @@
       tr.setAttribute("data-testid", "topic-rate");
       tr.appendChild(code(rate.topic));
       tr.appendChild(cell("Type", rate.type));
-      tr.appendChild(cell("Last minute", rate.per_second_minute.toFixed(1) + "/s", String(rate.last_minute)));
-      tr.appendChild(cell("Last hour", rate.per_second_hour.toFixed(1) + "/s", String(rate.last_hour)));
+      tr.appendChild(cell("Last minute", rate.per_second_minute.toFixed(2) + "/s", String(rate.last_minute)));
+      tr.appendChild(cell("Last hour", rate.per_second_hour.toFixed(2) + "/s", String(rate.last_hour)));
       return tr;
     });
     if (!rows.length) {

@@ -77,7 +77,7 @@ def test_robot_page_shows_last_seen_and_rates(client, busy):
         html,
         re.S,
     )
-    assert rows == [("/odom", "0.1/s ", "0.0/s "), ("/camera", "0.0/s ", "0.0/s ")]
+    assert rows == [("/odom", "0.10/s ", "0.00/s "), ("/camera", "0.00/s ", "0.00/s ")]
     assert "(6)" in html
     assert "(10)" in html
     # Nothing anchored: no verified pose or image is claimed.
