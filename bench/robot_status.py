@@ -22,6 +22,8 @@ from pathlib import Path
 
 RATES = (("/robot/odom", "nav_msgs/Odometry", 10), ("/camera/image", "sensor_msgs/Image", 2))
 BATCH = 20_000
+# The last seconds of the run are written last, so that they end when the polls start.
+TAIL_SECONDS = 120
 
 
 def main(argv: list[str]) -> int:
@@ -56,11 +58,9 @@ def main(argv: list[str]) -> int:
 def _fleet(count: int) -> tuple[object, object]:
     """An owner and a robot whose `count` records end now, written directly."""
     from django.contrib.auth import get_user_model
-    from django.db.models import F
     from django.utils import timezone
 
     from accounts.models import ChainState, Owner, Robot
-    from sharing.models import Record
 
     user = get_user_model().objects.create_user(f"bench-{uuid.uuid4().hex[:6]}", password=None)
     owner = Owner.objects.create(
@@ -79,9 +79,31 @@ def _fleet(count: int) -> tuple[object, object]:
     )
     per_second = sum(rate for _topic, _type, rate in RATES)
     span = timedelta(seconds=count / per_second)
+    tail = min(count, TAIL_SECONDS * per_second)
     start = time.perf_counter()
+    _write(owner, robot, range(count - tail), end=now, span=span, per_second=per_second)
+    # The last TAIL_SECONDS written last, ending when the polls start, however long the rest
+    # took (the hour then has a gap of that long, before the tail).
+    _write(
+        owner,
+        robot,
+        range(count - tail, count),
+        end=timezone.now(),
+        span=span,
+        per_second=per_second,
+    )
+    print(f"wrote {count:,} records in {time.perf_counter() - start:.0f} s", file=sys.stderr)
+    return robot, user
+
+
+def _write(
+    owner: object, robot: object, indexes: range, *, end: datetime, span: timedelta, per_second: int
+) -> None:
+    """Records number `indexes` of the robot's run of `span` ending at `end`, in batches."""
+    from sharing.models import Record
+
     rows = []
-    for seq, index in enumerate(range(count), start=1):
+    for index in indexes:
         second, slot = divmod(index, per_second)
         topic, data_type = _topic_of(slot)
         rows.append(
@@ -90,12 +112,12 @@ def _fleet(count: int) -> tuple[object, object]:
                 robot=robot,
                 topic=topic,
                 data_type=data_type,
-                seq=seq,
-                captured_at=now - span + timedelta(seconds=second, microseconds=slot * 1000),
+                seq=index + 1,
+                captured_at=end - span + timedelta(seconds=second, microseconds=slot * 1000),
                 key_id="0" * 16,
                 digest="0" * 64,
                 size=100,
-                storage_name=f"bench/{seq}",
+                storage_name=f"bench/{index + 1}",
                 status=Record.Status.ANCHORED,
             )
         )
@@ -103,10 +125,6 @@ def _fleet(count: int) -> tuple[object, object]:
             Record.objects.bulk_create(rows)
             rows = []
     Record.objects.bulk_create(rows)
-    print(f"wrote {count:,} records in {time.perf_counter() - start:.0f} s", file=sys.stderr)
-    # The rows end when the polls start, however long writing them took.
-    Record.objects.filter(robot=robot).update(captured_at=F("captured_at") + (timezone.now() - now))
-    return robot, user
 
 
 def _topic_of(slot: int) -> tuple[str, str]:

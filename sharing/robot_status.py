@@ -100,7 +100,8 @@ def _counts_since(robot: Robot, since: datetime) -> dict[tuple[str, str], int]:
         Record.objects.filter(robot=robot, captured_at__gte=since)
         .order_by()
         .values("topic", "data_type")
-        .annotate(count=Count("pk"))
+        # COUNT(*), not of the id: the id is not in the index, and counting it reads each row.
+        .annotate(count=Count("*"))
     )
     return {(row["topic"], row["data_type"]): row["count"] for row in rows}
 
