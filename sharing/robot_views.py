@@ -38,8 +38,10 @@ ROBOT_PAGE_COST = 2
 # The trajectory plot shows this much of the recent past, and how often it refreshes.
 PLOT_WINDOW = timedelta(minutes=10)
 PLOT_REFRESH_SECONDS = 5
-# How often the page's script asks the status API while the tab is visible.
+# How often the page's script asks the status API while the tab is visible, and how often it
+# loads the page again for a newer verified pose and image (two integrity checks each time).
 STATUS_POLL_SECONDS = 5
+LATEST_REFRESH_SECONDS = 30
 
 
 @dataclass(frozen=True)
@@ -75,6 +77,7 @@ def robot_page(request: HttpRequest, robot_id: uuid.UUID) -> HttpResponse:
         "plot_minutes": int(PLOT_WINDOW.total_seconds() // 60),
         "plot_refresh_seconds": PLOT_REFRESH_SECONDS,
         "poll_seconds": STATUS_POLL_SECONDS,
+        "latest_refresh_seconds": LATEST_REFRESH_SECONDS,
     }
     return no_store(render(request, "sharing/robot_detail.html", context))
 

@@ -2,6 +2,8 @@
  * The robot page's status keeps itself up to date: [data-robot-status] names the status API
  * (GET /api/v1/robots/{id}/status/) and how often to ask it. The answer replaces the "last
  * seen" text (worded by the server) and the table of messages per second per topic.
+ * [data-robot-latest] (the latest verified pose and image) is taken from the page loaded again
+ * every data-refresh-seconds: the server checks them against the chain each time.
  * While the tab is hidden nothing is asked; it asks again at once when it is shown. After a
  * failed answer it waits twice as long each time (at most 2 minutes), then goes back to the
  * usual pace once an answer comes.
@@ -96,8 +98,44 @@
       });
   }
 
+  var latest = document.querySelector("[data-robot-latest]");
+  var latestPace = 1000 * (parseFloat(latest && latest.getAttribute("data-refresh-seconds")) || 30);
+  var latestWait = latestPace;
+  var latestTimer = null;
+
+  function refreshLatest() {
+    fetch(window.location.href, { credentials: "same-origin", headers: { "Accept": "text/html" } })
+      .then(function (response) {
+        if (!response.ok) { throw new Error("HTTP " + response.status); }
+        return response.text();
+      })
+      .then(function (html) {
+        var fresh = new DOMParser().parseFromString(html, "text/html").getElementById(latest.id);
+        var now = document.getElementById(latest.id);
+        if (fresh && now) { now.replaceWith(document.importNode(fresh, true)); }
+        latestWait = latestPace;
+        scheduleLatest(latestWait);
+      })
+      .catch(function () {
+        latestWait = Math.min(latestWait * 2, MAX_WAIT * 5);
+        scheduleLatest(latestWait);
+      });
+  }
+
+  function scheduleLatest(after) {
+    clearTimeout(latestTimer);
+    latestTimer = (document.hidden || !latest) ? null : setTimeout(refreshLatest, after);
+  }
+
   document.addEventListener("visibilitychange", function () {
-    if (document.hidden) { clearTimeout(timer); timer = null; } else { schedule(0); }
+    if (document.hidden) {
+      clearTimeout(timer); timer = null;
+      clearTimeout(latestTimer); latestTimer = null;
+    } else {
+      schedule(0);
+      scheduleLatest(latestPace);
+    }
   });
   schedule(pace);
+  scheduleLatest(latestPace);
 })();

@@ -40,8 +40,9 @@ def _fits(page: Page) -> None:
 
 
 def test_robot_page_and_owner_pages_on_a_desktop_and_a_phone(
-    live_server, make_robot, make_owner, client, browser: Browser, artifacts: Path
+    live_server, make_robot, make_owner, client, browser: Browser, artifacts: Path, monkeypatch
 ):
+    monkeypatch.setattr("sharing.robot_views.LATEST_REFRESH_SECONDS", 2)
     alice = make_robot("alice")
     make_owner("bob")
     poses = [
@@ -60,6 +61,7 @@ def test_robot_page_and_owner_pages_on_a_desktop_and_a_phone(
     session = client.cookies[settings.SESSION_COOKIE_NAME].value
     base = live_server.url
     errors: list[str] = []
+    newest = poses[-1].seq
 
     for name, viewport in (("desktop", (1280, 900)), ("phone", (390, 844))):
         context = browser.new_context(viewport={"width": viewport[0], "height": viewport[1]})
@@ -81,7 +83,7 @@ def test_robot_page_and_owner_pages_on_a_desktop_and_a_phone(
         expect(page.locator("h1")).to_have_text(alice.robot.name)
         odom = page.locator("[data-testid=topic-rate][data-topic='/robot/odom']")
         expect(odom.get_by_test_id("rate-hour")).to_contain_text("(4)")
-        expect(page.get_by_test_id("latest-pose")).to_contain_text(f"#{poses[-1].seq}")
+        expect(page.get_by_test_id("latest-pose-link")).to_have_text(f"/robot/odom #{newest}")
         expect(page.get_by_test_id("latest-pose")).to_contain_text("verified")
         expect(page.get_by_test_id("latest-image-img")).to_be_visible()
         expect(page.get_by_test_id("robot-plot")).to_have_attribute("data-topic", "/robot/odom")
@@ -95,6 +97,12 @@ def test_robot_page_and_owner_pages_on_a_desktop_and_a_phone(
         expect(page.get_by_test_id("robot-last-seen")).to_have_text(
             "last seen 3 h ago", timeout=20_000
         )
+        # And a newer pose, checked against the chain, replaces the one shown.
+        newer = _upload(alice, 6 if name == "desktop" else 7, 1, plaintext=odometry("alice", 9, 9))
+        expect(page.get_by_test_id("latest-pose-link")).to_have_text(
+            f"/robot/odom #{newer.seq}", timeout=20_000
+        )
+        newest = newer.seq
 
         # A record page: previous and next of the same robot and topic, back to the list.
         page.goto(f"{base}/records/?topic=%2Frobot%2Fodom&sort=captured")
