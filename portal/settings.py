@@ -43,6 +43,22 @@ CSRF_COOKIE_SAMESITE = "Lax"
 X_FRAME_OPTIONS = "DENY"
 SECURE_CONTENT_TYPE_NOSNIFF = True
 SECURE_REFERRER_POLICY = "same-origin"
+# Content-Security-Policy of every response (portal.middleware.ContentSecurityPolicyMiddleware):
+# scripts and styles only from the portal's own static files (no inline script, no on*=
+# handler, no style attribute: the pages run SM2 on the owner's key), images also as data:
+# URLs (a record's verified image), no plugins, no <base>, no framing, forms only to the
+# portal. Violations are reported to CSP_REPORT_URL (portal.csp_reports).
+CSP_DIRECTIVES = {
+    "default-src": ["'self'"],
+    "script-src": ["'self'"],
+    "style-src": ["'self'"],
+    "img-src": ["'self'", "data:"],
+    "object-src": ["'none'"],
+    "base-uri": ["'none'"],
+    "frame-ancestors": ["'none'"],
+    "form-action": ["'self'"],
+}
+CSP_REPORT_URL = "/csp-report/"
 
 INSTALLED_APPS = [
     "django.contrib.admin",
@@ -63,6 +79,8 @@ INSTALLED_APPS = [
 
 MIDDLEWARE = [
     "django.middleware.security.SecurityMiddleware",
+    # The Content-Security-Policy header on every answer, the 503s and static files included.
+    "portal.middleware.ContentSecurityPolicyMiddleware",
     # Serves /static/ from the portal itself, so pages work without DEBUG and without a proxy.
     "whitenoise.middleware.WhiteNoiseMiddleware",
     # 503 for everything but /static/ while the portal's own secrets or operator key are wrong.
@@ -264,6 +282,8 @@ REST_FRAMEWORK = {
         "upload": env.str("API_RATE_UPLOAD", default="1200/minute"),
         # per client address: pairing requests and their polls (no credentials yet)
         "pairing": env.str("API_RATE_PAIRING", default="120/minute"),
+        # per client address: Content-Security-Policy violation reports (portal.csp_reports)
+        "csp_report": env.str("CSP_REPORT_RATE", default="30/minute"),
     },
     # Proxies in front of the portal; 0 = rate limits per peer address, ignoring a
     # client-supplied X-Forwarded-For. Behind one reverse proxy, 1.

@@ -69,6 +69,7 @@ from sharing.forms import (
     ExportForm,
     GrantForm,
     GrantRevokeForm,
+    PeriodFilterForm,
     RecordDeleteSelectionForm,
     RecordFilterForm,
     TopicRangeForm,
@@ -164,10 +165,7 @@ def _record_list(request: HttpRequest, records: QuerySet[Record], *, shared: boo
         # Given to each record's link, so that its page links back to this very list.
         "list_query": request.GET.urlencode(),
     }
-    if form.is_bound and not form.is_valid():
-        # Nothing listed under filters that do not hold: the errors say what to change.
-        context["filters_invalid"] = True
-        return render(request, "sharing/records.html", context, status=400)
+    _say_left_out(request, form)
     filtered = record_list_sorted(
         record_list_filtered(records, **form.filters()), form.sort_order()
     )
@@ -176,6 +174,12 @@ def _record_list(request: HttpRequest, records: QuerySet[Record], *, shared: boo
     page = Paginator(filtered, RECORDS_PER_PAGE).get_page(request.GET.get("page"))
     context["page"] = page
     return render(request, "sharing/records.html", context)
+
+
+def _say_left_out(request: HttpRequest, form: PeriodFilterForm) -> None:
+    """A list page answers with the filters that hold; this says which were left out."""
+    if said := form.left_out():
+        messages.warning(request, said)
 
 
 # --- one record ----------------------------------------------------------------------------
@@ -557,7 +561,11 @@ def grants(request: HttpRequest) -> HttpResponse:
         if form.is_valid() and (done := _grant_give_or_change(request, form)) is not None:
             return done
     else:
-        form = GrantForm(initial=_grant_change_initial(owner, request.GET.get("change")), **choices)
+        asked = request.GET.get("change")
+        initial = _grant_change_initial(owner, asked)
+        if asked and not initial:
+            messages.warning(request, "You give that owner no access to change: nothing filled in.")
+        form = GrantForm(initial=initial, **choices)
     given = grants_described(grant_list_given(owner))
     received = grants_described(grant_list_received(owner))
     context = {
@@ -692,8 +700,7 @@ def grant_revoke_view(request: HttpRequest) -> HttpResponse:
 def audit(request: HttpRequest) -> HttpResponse:
     owner: Owner = request.owner
     form = AuditFilterForm(request.GET or None, owner=owner)
-    if form.is_bound and not form.is_valid():
-        return render(request, "sharing/audit.html", {"form": form, "owner": owner}, status=400)
+    _say_left_out(request, form)
     trail = audit_page_of_owner(
         owner, page=request.GET.get("page"), per_page=AUDIT_ENTRIES_PER_PAGE, **form.filters()
     )
@@ -717,8 +724,7 @@ def access_log(request: HttpRequest) -> HttpResponse:
     """Who viewed the owner's records (or, on the other tab, the owner's own views of records
     shared with the owner), filtered, a page at a time."""
     form, direction, verdicts = _access_log_asked(request)
-    if verdicts is None:
-        return _access_log_refused(request, form, direction)
+    _say_left_out(request, form)
     page = access_log_page(
         verdicts, reader=request.owner, page=request.GET.get("page"), per_page=ACCESS_LOG_PER_PAGE
     )
@@ -736,10 +742,13 @@ def access_log(request: HttpRequest) -> HttpResponse:
 @page_throttle()
 @require_GET
 def access_log_download(request: HttpRequest) -> HttpResponse:
-    """The access log with the page's filters, every row, as a streamed CSV download."""
+    """The access log with the page's filters, every row, as a streamed CSV download. With a
+    filter that does not hold, the page that says so (400): a file has no room to say it."""
     form, direction, verdicts = _access_log_asked(request)
-    if verdicts is None:
-        return _access_log_refused(request, form, direction)
+    if form.left_out():
+        context = {"form": form, "direction": direction, "directions": ACCESS_LOG_DIRECTIONS}
+        messages.error(request, f"No download: {form.left_out()}")
+        return render(request, "sharing/access_log.html", context, status=400)
     response = StreamingHttpResponse(
         access_log_csv(verdicts, reader=request.owner), content_type="text/csv; charset=utf-8"
     )
@@ -750,23 +759,13 @@ def access_log_download(request: HttpRequest) -> HttpResponse:
 
 def _access_log_asked(
     request: HttpRequest,
-) -> tuple[AccessLogFilterForm, str, QuerySet[Verdict] | None]:
-    """The filter form, the side of the log, and the views its filters select (None while
-    the form is invalid)."""
+) -> tuple[AccessLogFilterForm, str, QuerySet[Verdict]]:
+    """The filter form, the side of the log, and the views its filters that hold select."""
     direction = AccessLogFilterForm.direction_of(request.GET)
     choices = access_log_filter_choices(request.owner, direction=direction)
     form = AccessLogFilterForm(request.GET or None, choices=choices)
-    if form.is_bound and not form.is_valid():
-        return form, direction, None
     verdicts = verdict_list_access_log(request.owner, direction=direction)
     return form, direction, verdict_list_filtered(verdicts, **form.filters())
-
-
-def _access_log_refused(
-    request: HttpRequest, form: AccessLogFilterForm, direction: str
-) -> HttpResponse:
-    context = {"form": form, "direction": direction, "directions": ACCESS_LOG_DIRECTIONS}
-    return render(request, "sharing/access_log.html", context, status=400)
 
 
 # --- revoking an owner API token, and what it granted ----------------------------------------

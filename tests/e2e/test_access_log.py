@@ -108,6 +108,7 @@ def test_the_access_log_on_a_desktop_and_a_phone(live_server, browser: Browser, 
     expect(page.get_by_text(CAROL_TOPIC)).to_be_visible()
     expect(page.get_by_text(f"owner API token “{FORMULA_TOKEN}”")).to_be_visible()
     page.screenshot(path=shots / "02-phone-outgoing.png", full_page=True)
+    page.click("[data-testid=filters-button]")  # the filters fold on a phone
     page.fill("#id_owner", world.carol.username)
     page.click("#filter-submit")
     expect(rows).to_have_count(1)
