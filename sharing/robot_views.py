@@ -100,7 +100,11 @@ def _latest_verified(record: Record | None, *, viewer: Owner) -> LatestShown | N
             record_id=record.pk, viewer=viewer, credential=Verdict.Credential.SESSION
         )
     except IntegrityCheckFailed as exc:
-        return LatestShown(record, refused=f"TAMPERED, not shown: {exc}")
+        unsigned = (
+            exc.verdict is not None and exc.verdict.outcome == Verdict.Outcome.SIGNATURE_REFUSED
+        )
+        what = "Signature not valid" if unsigned else "TAMPERED"
+        return LatestShown(record, refused=f"{what}, not shown: {exc}")
     except (SharingError, IdentityMismatch) as exc:
         return LatestShown(record, refused=f"not shown: {exc}")
     return LatestShown(
