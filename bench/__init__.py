@@ -37,6 +37,7 @@ BENCHMARKS = (
     "pipeline",
     "report",
     "roots",
+    "series",
     "signing",
     "sustained",
 )

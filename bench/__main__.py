@@ -6,8 +6,9 @@ import sys
 from bench import available
 
 # Run only when named: the soak takes an hour (`make soak`), too long for a run of them all;
-# robot_status writes millions of rows first.
-ON_DEMAND = ("soak", "robot_status")
+# webserver compares two checkouts' web servers (bench/webserver.py); robot_status writes
+# millions of rows first.
+ON_DEMAND = ("soak", "webserver", "robot_status")
 
 
 def main(argv: list[str]) -> int:

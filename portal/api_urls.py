@@ -16,6 +16,7 @@ from sharing.apis import (
     RecordDetailApi,
     RecordProofApi,
     RecordsApi,
+    RecordSeriesApi,
     RobotStatusApi,
 )
 
@@ -29,6 +30,7 @@ v1 = [
     ),
     path("robot-key/", RobotKeyApi.as_view(), name="robot-key"),
     path("records/", RecordsApi.as_view(), name="records"),
+    path("records/series/", RecordSeriesApi.as_view(), name="records-series"),
     path("records/<str:record_id>/", RecordDetailApi.as_view(), name="record-detail"),
     path("records/<str:record_id>/content/", RecordContentApi.as_view(), name="record-content"),
     path("records/<str:record_id>/proof/", RecordProofApi.as_view(), name="record-proof"),

@@ -6,9 +6,10 @@ cd "$(dirname "$0")/.."
 
 APT_PACKAGES=(
   python3-venv python3-dev redis-server postgresql postgresql-client
-  ros-core python3-rospy python3-rosmaster
+  ros-core python3-rospy python3-rosmaster python3-roslaunch
   python3-nav-msgs python3-sensor-msgs python3-std-msgs
   chromium
+  systemd
 )
 VENV=.venv
 STAMP_DIR=$VENV/.stamps
@@ -46,28 +47,16 @@ install_python_packages() {
     /usr/bin/python3 -m venv --system-site-packages $VENV
   fi
   mkdir -p $STAMP_DIR
-  if [ ! -f $STAMP_DIR/requirements ] || [ requirements.txt -nt $STAMP_DIR/requirements ] \
-      || [ constraints.txt -nt $STAMP_DIR/requirements ]; then
-    log "installing Python packages (constraints.txt)"
-    $VENV/bin/python -m pip install -q --disable-pip-version-check -r requirements.txt -c constraints.txt
+  # requirements/dev.txt: what `make run` and `make test` need, every version and hash locked
+  # (`make lock`); pip refuses a download whose hash differs.
+  if [ ! -f $STAMP_DIR/requirements ] || [ requirements/dev.txt -nt $STAMP_DIR/requirements ]; then
+    log "installing Python packages (requirements/dev.txt)"
+    $VENV/bin/python -m pip install -q --disable-pip-version-check --require-hashes \
+      -r requirements/dev.txt
     touch $STAMP_DIR/requirements
-  fi
-}
-
-# The web server (granian, stack/processes.py) replaces its processes on a schedule, each with
-# a listening socket of its own: without this setting (Linux 5.14+) the connections waiting at
-# a process being replaced are reset instead of moving to another one.
-enable_tcp_migrate_req() {
-  local knob=/proc/sys/net/ipv4/tcp_migrate_req
-  [ -f $knob ] && [ "$(cat $knob)" != 1 ] || return 0
-  if [ "$(id -u)" = 0 ] && sysctl -q -w net.ipv4.tcp_migrate_req=1 >/dev/null 2>&1; then
-    log "set net.ipv4.tcp_migrate_req=1 (connections move to another web process when one is replaced)"
-  else
-    log "could not set net.ipv4.tcp_migrate_req=1: a web process being replaced may reset the connections waiting at it"
   fi
 }
 
 install_debian_packages
 install_npm_packages
 install_python_packages
-enable_tcp_migrate_req

@@ -42,7 +42,7 @@ from sharing.errors import (
     SharingError,
 )
 from sharing.mcap_export import McapBuilder
-from sharing.models import Export, Record, Verdict
+from sharing.models import Access, Export, Record, Verdict
 from sharing.selection import (
     MAX_SELECTED_ROBOTS,
     MAX_SELECTED_TOPICS,
@@ -55,7 +55,7 @@ from sharing.selection import (
 )
 from sharing.selectors import export_of, record_list_visible_to, record_proof
 from sharing.storage import envelope_storage, envelopes_save
-from sharing.verification import record_key, records_verify
+from sharing.verification import RecordKeys, accesses_open, records_verify
 from smcrypto import envelope as envelopes
 from smcrypto import provenance, sm2
 from smcrypto.errors import CryptoError
@@ -177,7 +177,15 @@ def _run(export: Export) -> None:
     )
     client = chain_client()
     chain_id, contract = client.chain_id, client.address
-    keys = _Keys()
+    keys = RecordKeys()
+    # The export is one line of the access log per record owner, its batches' verdicts under it.
+    accesses = accesses_open(
+        kind=Access.Kind.EXPORT,
+        viewer_id=export.requester.pk,
+        records=records,
+        credential=Verdict.Credential.UNKNOWN,
+        token_id=None,
+    )
     entries: list[dict] = []
     excluded: list[dict] = []
     with tempfile.TemporaryFile() as output:
@@ -185,7 +193,7 @@ def _run(export: Export) -> None:
         batch_size = settings.EXPORT_BATCH
         for start in range(0, len(records), batch_size):
             batch = records[start : start + batch_size]
-            for record, checked, reason in _verified(batch, export.requester):
+            for record, checked, reason in _verified(batch, export.requester, accesses):
                 if reason:
                     excluded.append(_excluded(record, reason))
                     continue
@@ -244,7 +252,9 @@ def _run(export: Export) -> None:
     )
 
 
-def _verified(batch: Sequence[Record], requester: Owner) -> list[tuple[Record, bytes | None, str]]:
+def _verified(
+    batch: Sequence[Record], requester: Owner, accesses: dict[int, int]
+) -> list[tuple[Record, bytes | None, str]]:
     """Each record of the batch with the envelope the check let through, or why it did not:
     one run of the view's check for the whole batch."""
     unanchored = [record for record in batch if record.status != Record.Status.ANCHORED]
@@ -254,7 +264,9 @@ def _verified(batch: Sequence[Record], requester: Owner) -> list[tuple[Record, b
     }
     if wanted:
         try:
-            checked = records_verify(record_ids=[r.pk for r in wanted], viewer_id=requester.pk)
+            checked = records_verify(
+                record_ids=[r.pk for r in wanted], viewer_id=requester.pk, accesses=accesses
+            )
         except IdentityMismatch:
             checked = []
             answers.update({r.pk: (None, "identity_check_failed") for r in wanted})
@@ -265,21 +277,8 @@ def _verified(batch: Sequence[Record], requester: Owner) -> list[tuple[Record, b
     return [(record, *answers.get(record.pk, (None, "not_found"))) for record in batch]
 
 
-class _Keys:
-    """Owner keys by (owner, key id), unwrapped once per export."""
-
-    def __init__(self) -> None:
-        self._keys: dict[tuple[int, str], bytes] = {}
-
-    def of(self, record: Record) -> bytes:
-        wanted = (record.owner_id, record.key_id)
-        if wanted not in self._keys:
-            self._keys[wanted] = record_key(record)
-        return self._keys[wanted]
-
-
 def _exported(
-    record: Record, data: bytes, keys: _Keys, builder: McapBuilder, sequence: int
+    record: Record, data: bytes, keys: RecordKeys, builder: McapBuilder, sequence: int
 ) -> dict[str, object]:
     """Write the record's message into the MCAP file; its bundle entry but the proof."""
     header, plaintext = envelopes.open(keys.of(record), data)

@@ -3,9 +3,10 @@ image, and a plot of its recent trajectory.
 
 Only the robot's owner sees it; anyone else gets the 404 of a robot that does not exist. The
 numbers come from sharing/robot_status.py; the pose and image go through the integrity check
-every record view goes through (`record_open`, in `_latest_verified` only), so they are shown
-only when the chain holds them. The page keeps itself up to date by polling the status API
-(sharing.apis.RobotStatusApi) from static/portal/robot-page.js.
+every record view goes through (`records_open`, both in one run and one access of the page,
+in `_latest_verified` only), so they are shown only when the chain holds them. The page keeps
+itself up to date by polling the status API (sharing.apis.RobotStatusApi) from
+static/portal/robot-page.js.
 """
 
 import uuid
@@ -21,8 +22,8 @@ from accounts.decorators import no_store, owner_required, page_throttle
 from accounts.errors import IdentityMismatch
 from accounts.models import Owner
 from sharing.content import ODOMETRY, Content, content_of
-from sharing.errors import IntegrityCheckFailed, SharingError
-from sharing.models import Record, Verdict
+from sharing.errors import IntegrityCheckFailed
+from sharing.models import Access, Record, Verdict
 from sharing.robot_status import (
     RobotActivity,
     robot_activity,
@@ -31,7 +32,7 @@ from sharing.robot_status import (
     robot_of_owner,
 )
 from sharing.selection import iso_utc
-from sharing.verification import record_open
+from sharing.verification import OpenedRecord, records_open
 
 # The page checks two records (the latest pose and image): what it costs the worker.
 ROBOT_PAGE_COST = 2
@@ -64,8 +65,9 @@ def robot_page(request: HttpRequest, robot_id: uuid.UUID) -> HttpResponse:
         raise Http404("no such robot")
     now = timezone.now()
     activity = robot_activity(robot, now=now)
-    pose = _latest_verified(robot_latest_pose_record(robot), viewer=owner)
-    image = _latest_verified(robot_latest_image_record(robot), viewer=owner)
+    pose, image = _latest_verified(
+        [robot_latest_pose_record(robot), robot_latest_image_record(robot)], viewer=owner
+    )
     odometry_topic = pose.record.topic if pose is not None else _topic_of_type(activity, ODOMETRY)
     context = {
         "robot": robot,
@@ -90,23 +92,33 @@ def _topic_of_type(activity: RobotActivity, data_type: str) -> str:
     return ""
 
 
-def _latest_verified(record: Record | None, *, viewer: Owner) -> LatestShown | None:
-    """The record opened through the integrity check (a view like any other, in the access
-    log), with its content; or why it is not shown."""
-    if record is None:
-        return None
+def _latest_verified(records: list[Record | None], *, viewer: Owner) -> list[LatestShown | None]:
+    """The records (None: none of that kind) opened through the integrity check in one run,
+    one access of the page in the access log, each with its content or why it is not shown."""
+    present = [record for record in records if record is not None]
     try:
-        opened = record_open(
-            record_id=record.pk, viewer=viewer, credential=Verdict.Credential.SESSION
+        results = iter(
+            records_open(
+                records=present,
+                viewer=viewer,
+                kind=Access.Kind.PAGE,
+                credential=Verdict.Credential.SESSION,
+            )
         )
-    except IntegrityCheckFailed as exc:
+    except IdentityMismatch as exc:
+        results = iter([exc] * len(present))
+    return [None if record is None else _shown(record, next(results)) for record in records]
+
+
+def _shown(record: Record, result: OpenedRecord | Exception) -> LatestShown:
+    if isinstance(result, IntegrityCheckFailed):
         unsigned = (
-            exc.verdict is not None and exc.verdict.outcome == Verdict.Outcome.SIGNATURE_REFUSED
+            result.verdict is not None
+            and result.verdict.outcome == Verdict.Outcome.SIGNATURE_REFUSED
         )
         what = "Signature not valid" if unsigned else "TAMPERED"
-        return LatestShown(record, refused=f"{what}, not shown: {exc}")
-    except (SharingError, IdentityMismatch) as exc:
-        return LatestShown(record, refused=f"not shown: {exc}")
-    return LatestShown(
-        opened.record, content=content_of(data_type=record.data_type, plaintext=opened.plaintext)
-    )
+        return LatestShown(record, refused=f"{what}, not shown: {result}")
+    if isinstance(result, Exception):
+        return LatestShown(record, refused=f"not shown: {result}")
+    content = content_of(data_type=record.data_type, plaintext=result.plaintext)
+    return LatestShown(result.record, content=content)

@@ -149,7 +149,7 @@ def owner_pages(client, make_robot, upload, settings):
             }
             paths.append(_route(pattern, samples))
     assert "/records/" in paths
-    assert f"/records/{pose.pk}/plot.svg" in paths
+    assert f"/records/{pose.pk}/" in paths
     assert f"/records/{shot.pk}/gallery/" in paths
     paths = sorted(set(paths))
     return client, paths + [path for path in paths if FORM_PAGES.match(path)] * 2

@@ -12,7 +12,7 @@ from django.utils import timezone
 
 from accounts.lastseen import seen_ago_text
 from accounts.models import Robot
-from sharing.models import Verdict
+from sharing.models import Access, Verdict
 from sharing.robot_status import robot_activity
 from sharing.services import grant_create
 from tests.conftest import RobotSetup, tamper
@@ -118,9 +118,11 @@ def test_latest_verified_pose_and_image_and_a_tampered_one(client, alice, upload
     assert "-4.5" in pose
     image_part = html.split('data-testid="latest-image"')[1].split("</section>")[0]
     assert 'src="data:image/png;base64,' in image_part
-    # The checks are views like any other, in the access log.
+    # Both checked in one run: one access of the page, of two records, in the access log.
     viewed = Verdict.objects.filter(viewer=alice.owner, credential=Verdict.Credential.SESSION)
     assert viewed.filter(outcome="verified").count() == 2
+    (access,) = Access.objects.filter(viewer=alice.owner)
+    assert (access.kind, access.count, access.credential) == ("page", 2, "session")
 
     tamper(picture)
     html = client.get(url).content.decode()
@@ -193,6 +195,7 @@ def test_status_api_answers_last_seen_and_rates(client, busy):
     assert camera["last_hour"] == 2
     # It checks nothing against the chain: no verdicts, no access-log entries.
     assert not Verdict.objects.exists()
+    assert not Access.objects.exists()
 
 
 def test_robots_table_shows_last_seen_and_links_the_robot_page(client, alice):

@@ -8,7 +8,7 @@ class Migration(migrations.Migration):
 
     dependencies = [
         ('accounts', '0008_robot_signing_keys'),
-        ('sharing', '0011_robot_signatures'),
+        ('sharing', '0012_access'),
         migrations.swappable_dependency(settings.AUTH_USER_MODEL),
     ]
 
