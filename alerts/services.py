@@ -164,7 +164,7 @@ def anchoring_failed_alert(
         owner=owner,
         kind=AlertKind.ANCHORING_FAILED,
         subject=first if count == 1 else f"{first} and {count - 1} more",
-        summary=f"{count} record(s) could not be anchored on chain: {reason}",
+        summary=f"{count} record{'s' if count != 1 else ''} could not be anchored: {reason}",
         detail={
             "count": count,
             "records": [str(pk) for pk in record_ids[:RECORDS_LISTED]],
@@ -251,15 +251,18 @@ def robots_silent_check(*, now: datetime | None = None) -> dict[str, int]:
 
 def gas_low_check() -> dict[str, int]:
     """Alert once while an owner's EOA holds less than the owner's threshold; close it when
-    topped up. A chain that does not answer skips this run."""
+    topped up. A chain that charges nothing for gas (fee 0, as `make run`'s anvil and a private
+    PoA network) never alerts: an EOA there needs no ether, and holds none. A chain that does
+    not answer skips this run."""
     raised = resolved = 0
     watching = owners_watching_gas()
     try:
         client = chain_client() if watching else None
+        zero_gas = watching and client.fee_per_gas() == 0
         for preferences in watching:
             owner = preferences.owner
             balance = client.balance(owner.eoa_address)
-            if balance >= preferences.gas_low_below_wei:
+            if zero_gas or balance >= preferences.gas_low_below_wei:
                 resolved += alert_condition_resolve(
                     owner=owner, kind=AlertKind.GAS_LOW, subject=owner.eoa_address
                 )

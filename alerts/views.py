@@ -163,7 +163,8 @@ def alert_test(request: HttpRequest) -> HttpResponse:
     alert = alert_test_send(owner=request.owner)
     count = alert.deliveries.count()
     if count:
-        messages.success(request, f"A test alert is on its way to {count} channel(s).")
+        channels = "1 channel" if count == 1 else f"{count} channels"
+        messages.success(request, f"A test alert is on its way to {channels}.")
     else:
         messages.warning(request, "Nothing was sent: give an e-mail address or add a webhook.")
     return redirect("alerts")

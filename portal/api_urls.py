@@ -17,6 +17,7 @@ from sharing.apis import (
     RecordProofApi,
     RecordsApi,
     RecordSeriesApi,
+    RobotStatusApi,
 )
 
 v1 = [
@@ -43,6 +44,7 @@ v1 = [
     ),
     path("grants/<str:grantee>/", GrantRevokeApi.as_view(), name="grant-revoke"),
     path("access-log/", AccessLogApi.as_view(), name="access-log"),
+    path("robots/<str:robot_id>/status/", RobotStatusApi.as_view(), name="robot-status"),
 ]
 
 urlpatterns = [

@@ -2,23 +2,31 @@
 owner's transactions (accounts.models.ChainActivity), never from the chain's logs.
 
 The worker writes one row per transaction when it sees the receipt: registration steps, key
-rotations, anchoring batches, grants and revocations (the grantee sees those too). Here the
-rows of one page become entries with titles, and an anchoring entry lists its first records.
+rotations, anchoring batches, grants and revocations (the grantee sees those too). The page
+lists the few that change who may read what first (grants, revocations, keys, registration),
+then the anchoring, grouped per minute: a robot anchoring once a second makes one line a
+minute ("Anchored 720 records in 12:04 (UTC)"), not sixty, each naming its transactions and
+its first records.
 """
 
 import uuid
 from dataclasses import dataclass, field
-from datetime import datetime
+from datetime import datetime, timedelta
 
 from django.core.paginator import Page, Paginator
-from django.db.models import Exists, OuterRef
+from django.db.models import Count, Exists, Max, Min, OuterRef, QuerySet, Sum
+from django.db.models.functions import TruncMinute
 
 from accounts.models import ChainActivity, Owner
 from sharing.models import Record
 from sharing.selectors import chain_activity_of, records_anchored_in
 
-# Records listed under one anchoring transaction; the rest are counted.
+# Records listed under one minute of anchoring; the rest are counted.
 AUDIT_RECORDS_PER_UPLOAD = 10
+# Transactions named under one minute of anchoring; the rest are counted.
+AUDIT_TRANSACTIONS_PER_MINUTE = 3
+# Grants, revocations and key changes listed on top; older ones through the kind filter.
+AUDIT_ACCOUNT_ENTRIES = 50
 
 Kind = ChainActivity.Kind
 _TITLES = {
@@ -39,6 +47,21 @@ class AuditEntry:
     detail: str = ""
     records: list[Record] = field(default_factory=list)
     more_records: int = 0
+    # A minute of anchoring: its transactions (the first few) and how many are not named.
+    transactions: list[str] = field(default_factory=list)
+    more_transactions: int = 0
+    last_block: int | None = None
+
+
+@dataclass
+class AuditTrail:
+    """The page: grants, revocations and key changes first (the newest AUDIT_ACCOUNT_ENTRIES,
+    and how many more), then one page of anchoring, a minute an entry (`anchoring`, a Page
+    of AuditEntry)."""
+
+    account: list[AuditEntry]
+    account_more: int
+    anchoring: Page
 
 
 def audit_page_of_owner(
@@ -50,52 +73,106 @@ def audit_page_of_owner(
     robot: uuid.UUID | str | None = None,
     since: datetime | None = None,
     until: datetime | None = None,
-) -> Page:
-    """One page of the owner's audit trail, newest first; its object_list holds AuditEntry.
+) -> AuditTrail:
+    """The owner's audit trail, newest first, `per_page` minutes of anchoring a page.
 
     Filtered by `kind` (a ChainActivity kind), `robot` (the anchoring transactions holding a
-    record of that robot of the owner's) and the half-open period [since, until) of the
-    receipts, all in the page's one query. A page past the last is the last page, as
+    record of that robot of the owner's; nothing else names a robot) and the half-open period
+    [since, until) of the receipts. A page past the last is the last page, as
     Paginator.get_page gives it.
     """
     activity = chain_activity_of(owner)
     if kind:
         activity = activity.filter(kind=kind)
-    if robot:
-        # An activity row names no robot: its anchoring transaction's records do.
-        of_robot = Record.objects.filter(owner=owner, robot_id=robot, tx_hash=OuterRef("tx_hash"))
-        activity = activity.filter(Exists(of_robot), owner=owner, kind=Kind.ANCHORED)
     if since is not None:
         activity = activity.filter(at__gte=since)
     if until is not None:
         activity = activity.filter(at__lt=until)
-    found = Paginator(activity, per_page).get_page(page)
-    found.object_list = audit_entries(owner, list(found.object_list))
-    return found
+    account_rows = activity.exclude(kind=Kind.ANCHORED)
+    anchored = activity.filter(owner=owner, kind=Kind.ANCHORED)
+    if robot:
+        # An activity row names no robot: its anchoring transaction's records do.
+        of_robot = Record.objects.filter(owner=owner, robot_id=robot, tx_hash=OuterRef("tx_hash"))
+        anchored = anchored.filter(Exists(of_robot))
+        account_rows = account_rows.none()
+    shown = list(account_rows[: AUDIT_ACCOUNT_ENTRIES + 1])
+    account = [_entry(owner, row) for row in shown[:AUDIT_ACCOUNT_ENTRIES]]
+    account_more = account_rows.count() - AUDIT_ACCOUNT_ENTRIES if len(shown) > len(account) else 0
+    minutes = (
+        anchored.annotate(minute=TruncMinute("at"))
+        .order_by()
+        .values("minute")
+        .annotate(
+            records=Sum("record_count"),
+            transactions=Count("id"),
+            first_block=Min("block_number"),
+            last_block=Max("block_number"),
+        )
+        .order_by("-minute")
+    )
+    found = Paginator(minutes, per_page).get_page(page)
+    found.object_list = _anchoring_entries(owner, anchored, list(found.object_list))
+    return AuditTrail(account, account_more, found)
 
 
-def audit_entries(owner: Owner, activity: list[ChainActivity]) -> list[AuditEntry]:
-    """Entries of `activity` as `owner` sees them, in the same order; the records of every
-    anchoring transaction among them are read in one query."""
-    anchored = [row.tx_hash for row in activity if row.kind == Kind.ANCHORED]
+def _anchoring_entries(
+    owner: Owner, anchored: QuerySet[ChainActivity], minutes: list[dict]
+) -> list[AuditEntry]:
+    """One entry per minute of the page, with its transactions (one query for the page) and
+    the first records of its first transactions (one more)."""
+    if not minutes:
+        return []
+    start = minutes[-1]["minute"]
+    end = minutes[0]["minute"] + timedelta(minutes=1)
+    rows = (
+        anchored.filter(at__gte=start, at__lt=end)
+        .select_related(None)
+        .only("tx_hash", "at", "record_count")
+    )
+    per_minute: dict[datetime, list[ChainActivity]] = {}
+    for row in rows.order_by("at", "id"):
+        per_minute.setdefault(_minute_of(row.at), []).append(row)
+    named = {minute: txs[:AUDIT_TRANSACTIONS_PER_MINUTE] for minute, txs in per_minute.items()}
     listed: dict[str, list[Record]] = {}
-    if anchored:
-        for record in records_anchored_in(owner, anchored, per_tx=AUDIT_RECORDS_PER_UPLOAD):
+    hashes = [row.tx_hash for rows_ in named.values() for row in rows_]
+    if hashes:
+        for record in records_anchored_in(owner, hashes, per_tx=AUDIT_RECORDS_PER_UPLOAD):
             listed.setdefault(record.tx_hash, []).append(record)
-    return [_entry(owner, row, listed.get(row.tx_hash, [])) for row in activity]
+    entries = []
+    for group in minutes:
+        txs = named.get(group["minute"], [])
+        records = [r for row in txs for r in listed.get(row.tx_hash, [])]
+        records = records[:AUDIT_RECORDS_PER_UPLOAD]
+        count = group["records"] or 0
+        entries.append(
+            AuditEntry(
+                at=group["minute"],
+                block_number=group["first_block"],
+                tx_hash=txs[0].tx_hash if txs else "",
+                kind="upload",
+                title=(
+                    f"Anchored {count} record{'s' if count != 1 else ''} in "
+                    f"{group['minute']:%H:%M} (UTC)"
+                ),
+                records=records,
+                more_records=max(count - len(records), 0),
+                transactions=[row.tx_hash for row in txs],
+                more_transactions=max(group["transactions"] - len(txs), 0),
+                last_block=group["last_block"],
+            )
+        )
+    return entries
 
 
-def _entry(owner: Owner, row: ChainActivity, records: list[Record]) -> AuditEntry:
+def _minute_of(moment: datetime) -> datetime:
+    return moment.replace(second=0, microsecond=0)
+
+
+def _entry(owner: Owner, row: ChainActivity) -> AuditEntry:
     entry = AuditEntry(row.at, row.block_number, row.tx_hash, row.kind, _TITLES.get(row.kind, ""))
     detail = row.detail if isinstance(row.detail, dict) else {}
     if row.kind in (Kind.REGISTERED, Kind.KEY_ROTATED) and detail.get("key_id"):
         entry.detail = f"key {detail['key_id']}, commitment {detail.get('commitment', '-')}"
-    elif row.kind == Kind.ANCHORED:
-        count = row.record_count
-        entry.kind = "upload"
-        entry.title = f"Anchored {count} record{'s' if count != 1 else ''}"
-        entry.records = records
-        entry.more_records = max(count - len(records), 0)
     elif row.kind in (Kind.GRANTED, Kind.REVOKED):
         granted = row.kind == Kind.GRANTED
         if row.owner_id == owner.pk:

@@ -178,6 +178,13 @@ class ExportNotFound(SharingError):
     http_status = 404
 
 
+class RobotNotFound(SharingError):
+    """No robot of the caller's with that id: another owner's answers the same."""
+
+    code = "not_found"
+    http_status = 404
+
+
 class ExportNotReady(SharingError):
     code = "export_not_ready"
     http_status = 409

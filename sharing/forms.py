@@ -20,11 +20,22 @@ from sharing.selectors import (
 )
 
 
-class DateTimeLocalInput(forms.DateTimeInput):
-    input_type = "datetime-local"
+class UtcDateTimeInput(forms.DateTimeInput):
+    """A UTC time typed as text, "2026-05-01 14:30": 24-hour, whatever the browser's locale
+    (a datetime-local input shows "02:30 PM" in an en-US browser, beside a "(UTC)" label)."""
+
+    input_type = "text"
 
     def __init__(self) -> None:
-        super().__init__(format="%Y-%m-%dT%H:%M")
+        super().__init__(
+            format="%Y-%m-%d %H:%M",
+            attrs={
+                "placeholder": "YYYY-MM-DD HH:MM",
+                "autocomplete": "off",
+                "spellcheck": "false",
+                "size": "16",
+            },
+        )
 
 
 class _PeriodField(forms.DateTimeField):
@@ -47,8 +58,14 @@ def _period_field(label: str) -> forms.DateTimeField:
     return _PeriodField(
         label=label,
         required=False,
-        widget=DateTimeLocalInput(),
-        input_formats=["%Y-%m-%dT%H:%M", "%Y-%m-%dT%H:%M:%S", "%Y-%m-%d"],
+        widget=UtcDateTimeInput(),
+        input_formats=[
+            "%Y-%m-%d %H:%M",
+            "%Y-%m-%d %H:%M:%S",
+            "%Y-%m-%dT%H:%M",
+            "%Y-%m-%dT%H:%M:%S",
+            "%Y-%m-%d",
+        ],
     )
 
 
@@ -206,6 +223,8 @@ class GrantForm(forms.Form):
     until = _period_field("Captured before (UTC)")
     expires_at = _period_field("Access ends (UTC)")
     change = forms.BooleanField(required=False, widget=forms.HiddenInput)
+    # Set by the confirmation page: the owner read that the grant covers every record, for ever.
+    confirm_all = forms.BooleanField(required=False, widget=forms.HiddenInput)
 
     def __init__(
         self, data: object = None, *, robots: list[Robot], topics: list[str], **kwargs: Any
@@ -218,7 +237,7 @@ class GrantForm(forms.Form):
         ].help_text = "Leave empty for access until you revoke it. At least 5 minutes from now."
         for name in ("since", "until", "expires_at"):
             self.fields[name].error_messages["invalid"] = (
-                "Enter a date and time, e.g. 2026-05-01 14:30."
+                "Enter a date and time, e.g. 2026-05-01 14:30 (24-hour, UTC)."
             )
 
     def clean(self) -> dict:
@@ -227,6 +246,14 @@ class GrantForm(forms.Form):
         if since and until and since >= until:
             self.add_error("until", "“Captured before” must be later than “Captured from”.")
         return cleaned
+
+    @property
+    def needs_confirmation(self) -> bool:
+        """Nothing chosen (every record of every robot, any time, no expiry) and not confirmed
+        yet: the grant waits for the owner to confirm that on a page of its own."""
+        data = self.cleaned_data
+        chosen = ("robots", "topics", "since", "until", "expires_at")
+        return not data.get("confirm_all") and not any(data.get(name) for name in chosen)
 
 
 class GrantRevokeForm(forms.Form):

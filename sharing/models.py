@@ -130,8 +130,17 @@ class Record(models.Model):
                 condition=models.Q(tampered_at__isnull=False),
                 name="record_owner_tampered",
             ),
-            # Retention: a robot's oldest records first.
-            models.Index(fields=["robot", "captured_at"], name="record_robot_captured"),
+            # Retention (a robot's oldest records first), and the robot page's messages per
+            # topic over the last hour: the topic and type in the index, so that count reads
+            # the index alone (sharing/robot_status.py).
+            models.Index(
+                fields=["robot", "captured_at", "topic", "data_type"],
+                name="record_robot_captured_topic",
+            ),
+            # The robot page's newest pose and image: one seek per ROS type.
+            models.Index(
+                fields=["robot", "data_type", "captured_at"], name="record_robot_type_captured"
+            ),
             # Tombstones whose ciphertext is still to be removed.
             models.Index(
                 fields=["deleted_at"],

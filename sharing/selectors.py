@@ -241,6 +241,39 @@ def verdict_latest(record: Record, viewer: Owner) -> Verdict | None:
     )
 
 
+def record_neighbours(record: Record, *, viewer: Owner) -> tuple[Record | None, Record | None]:
+    """The records just before and just after it of its robot and topic (by capture time, then
+    sequence number) that `viewer` may see and that are not deleted: a record page's previous
+    and next. Two seeks in the index record_owner_topic_captured."""
+    same = record_list_visible_to(viewer).filter(
+        owner_id=record.owner_id,
+        robot_id=record.robot_id,
+        topic=record.topic,
+        data_type=record.data_type,
+        deleted_at__isnull=True,
+    )
+    at, seq = record.captured_at, record.seq
+    before = (
+        same.filter(captured_at__lte=at)
+        .filter(Q(captured_at__lt=at) | Q(seq__lt=seq))
+        .order_by("-captured_at", "-seq")
+        .first()
+    )
+    after = (
+        same.filter(captured_at__gte=at)
+        .filter(Q(captured_at__gt=at) | Q(seq__gt=seq))
+        .order_by("captured_at", "seq")
+        .first()
+    )
+    return before, after
+
+
+def record_position_in(records: QuerySet[Record], record: Record) -> int:
+    """How many of `records` (oldest first, as record_list_same_topic) come before `record`."""
+    at = record.captured_at
+    return records.filter(Q(captured_at__lt=at) | Q(captured_at=at, seq__lt=record.seq)).count()
+
+
 def record_deletion_text(record: Record) -> str:
     """One line on a deleted record: when, by whom, and what stays."""
     if record.deletion_reason == Record.Deletion.RETENTION:

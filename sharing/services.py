@@ -488,16 +488,7 @@ def grant_create(
     when `made_with` is "token"), so that revoking the token can take its grants back.
     """
     _credential_check(owner, made_with, made_with_token)
-    if grantee.pk == owner.pk:
-        raise SelfGrant("You always see your own records: name another owner.")
-    if owner.chain_state != ChainState.CONFIRMED:
-        raise NotRegisteredYet(
-            "Your account is not registered on the chain yet: try again in a minute."
-        )
-    if grantee.chain_state != ChainState.CONFIRMED:
-        raise GranteeNotRegistered(
-            f"{grantee}'s account is not registered on the chain yet: try again in a minute."
-        )
+    grant_create_check(owner=owner, grantee=grantee)
     try:
         with transaction.atomic():
             live = Grant.objects.filter(owner=owner, grantee=grantee, status__in=Grant.LIVE)
@@ -542,6 +533,25 @@ def _grant_change_record(
         terms_before=None if before is None else before.as_json(),
         terms_after=None if after is None else after.as_json(),
     )
+
+
+def grant_create_check(*, owner: Owner, grantee: Owner) -> None:
+    """Why `grant_create` would refuse this pair, raised before anything is written (the
+    grants page asks it before its confirmation step): a grant to oneself, an owner or grantee
+    not registered on chain yet, or a live grant of the pair (grant_create checks that again
+    in its transaction)."""
+    if grantee.pk == owner.pk:
+        raise SelfGrant("You always see your own records: name another owner.")
+    if owner.chain_state != ChainState.CONFIRMED:
+        raise NotRegisteredYet(
+            "Your account is not registered on the chain yet: try again in a minute."
+        )
+    if grantee.chain_state != ChainState.CONFIRMED:
+        raise GranteeNotRegistered(
+            f"{grantee}'s account is not registered on the chain yet: try again in a minute."
+        )
+    live = Grant.objects.filter(owner=owner, grantee=grantee, status__in=Grant.LIVE)
+    _refuse_second_grant(live.first(), grantee)
 
 
 def _refuse_second_grant(live: Grant | None, grantee: Owner) -> None:

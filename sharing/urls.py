@@ -2,7 +2,7 @@
 
 from django.urls import path
 
-from sharing import views
+from sharing import robot_views, views
 
 urlpatterns = [
     path("records/", views.my_records, name="records"),
@@ -13,6 +13,7 @@ urlpatterns = [
     path("records/<uuid:record_id>/delete/", views.record_delete_view, name="record-delete"),
     path("records/delete/", views.records_delete_view, name="records-delete"),
     path("account/delete/", views.account_delete_view, name="account-delete"),
+    path("robots/<uuid:robot_id>/", robot_views.robot_page, name="robot-detail"),
     path("grants/", views.grants, name="grants"),
     path("grants/revoke/", views.grant_revoke_view, name="grant-revoke"),
     path("grants/revoke/confirm/", views.grant_revoke_confirm, name="grant-revoke-confirm"),

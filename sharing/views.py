@@ -17,9 +17,18 @@ from django.contrib.auth import logout
 from django.core.exceptions import PermissionDenied
 from django.core.paginator import Paginator
 from django.db.models import QuerySet
-from django.http import Http404, HttpRequest, HttpResponse, JsonResponse, StreamingHttpResponse
+from django.http import (
+    Http404,
+    HttpRequest,
+    HttpResponse,
+    JsonResponse,
+    QueryDict,
+    StreamingHttpResponse,
+)
 from django.shortcuts import redirect, render
+from django.urls import reverse
 from django.utils import timezone
+from django.utils.http import urlencode
 from django.views.decorators.cache import never_cache
 from django.views.decorators.http import require_GET, require_http_methods, require_POST
 
@@ -89,12 +98,15 @@ from sharing.selectors import (
     record_list_same_topic,
     record_list_shared_with,
     record_list_sorted,
+    record_neighbours,
+    record_position_in,
     robots_visible_to,
 )
 from sharing.series import DEFAULT_POINTS
 from sharing.services import (
     GrantTerms,
     grant_create,
+    grant_create_check,
     grant_revoke,
     grant_terms_change,
     grant_terms_make,
@@ -104,6 +116,7 @@ from sharing.services import (
 from sharing.verification import OpenedRecord, record_open, records_open
 
 RECORDS_PER_PAGE = 25
+# Minutes of anchoring on one page of the audit trail.
 AUDIT_ENTRIES_PER_PAGE = 50
 ACCESS_LOG_PER_PAGE = 50
 # The trajectory on an odometry record's page: every record of its robot's topic this long
@@ -145,6 +158,8 @@ def _record_list(request: HttpRequest, records: QuerySet[Record], *, shared: boo
         "sort": form.sort_order(),
         "total": records.filter(deleted_at__isnull=True).count(),
         "granting": owners_granting(request.owner).select_related("user") if shared else None,
+        # Given to each record's link, so that its page links back to this very list.
+        "list_query": request.GET.urlencode(),
     }
     _say_left_out(request, form)
     filtered = record_list_sorted(
@@ -214,12 +229,15 @@ def record_detail(request: HttpRequest, record_id: str) -> HttpResponse:
     opened = _open_or_refuse(request, str(record_id))
     if isinstance(opened, Refusal):
         context = {"refusal": opened, "record": opened.record, "verdict": opened.verdict}
+        if opened.record is not None:
+            context["nav"] = _record_nav(request, opened.record)
         return no_store(
             render(request, "sharing/record_detail.html", context, status=opened.status)
         )
     record = opened.record
     content = content_of(data_type=record.data_type, plaintext=opened.plaintext)
     context = {
+        "nav": _record_nav(request, record),
         "record": record,
         "verdict": opened.verdict,
         "header": opened.header,
@@ -230,6 +248,32 @@ def record_detail(request: HttpRequest, record_id: str) -> HttpResponse:
     if content.is_odometry:
         context.update(_plot_of(request, record))
     return no_store(render(request, "sharing/record_detail.html", context))
+
+
+@dataclass(frozen=True)
+class RecordNav:
+    """A record page's way around: the previous and next record of its robot and topic, and
+    the list it was opened from, with that list's filters (the `list` parameter)."""
+
+    previous: Record | None
+    next: Record | None
+    list_url: str
+    # Given on to the previous and next records' links, so that "back" stays the same list.
+    suffix: str
+
+
+def _record_nav(request: HttpRequest, record: Record) -> RecordNav:
+    previous, following = record_neighbours(record, viewer=request.owner)
+    is_own = record.owner_id == request.owner.pk
+    # Only a query string is taken from the link, re-encoded: "back" stays on this portal.
+    list_query = QueryDict(request.GET.get("list", "")).urlencode()
+    list_url = reverse("records" if is_own else "shared")
+    return RecordNav(
+        previous,
+        following,
+        f"{list_url}?{list_query}" if list_query else list_url,
+        f"?{urlencode({'list': list_query})}" if list_query else "",
+    )
 
 
 def _plot_of(request: HttpRequest, record: Record) -> dict[str, object]:
@@ -406,7 +450,9 @@ def record_gallery(request: HttpRequest, record_id: str) -> HttpResponse:
     in_range = record_list_same_topic(
         request.owner, record, since=form.cleaned_data["since"], until=form.cleaned_data["until"]
     )
-    page = Paginator(in_range, GALLERY_PER_PAGE).get_page(request.GET.get("page"))
+    page = Paginator(in_range, GALLERY_PER_PAGE).get_page(
+        request.GET.get("page") or _gallery_page_of(in_range, record)
+    )
     results = records_open(
         records=list(page.object_list),
         viewer=request.owner,
@@ -418,6 +464,11 @@ def record_gallery(request: HttpRequest, record_id: str) -> HttpResponse:
         _gallery_tile(item, result) for item, result in zip(page, results, strict=True)
     ]
     return no_store(render(request, "sharing/gallery.html", context))
+
+
+def _gallery_page_of(in_range: QuerySet[Record], record: Record) -> int:
+    """The page of the gallery that shows the record (where it would be, outside the range)."""
+    return record_position_in(in_range, record) // GALLERY_PER_PAGE + 1
 
 
 @dataclass
@@ -467,12 +518,18 @@ def grants(request: HttpRequest) -> HttpResponse:
         if asked and not initial:
             messages.warning(request, "You give that owner no access to change: nothing filled in.")
         form = GrantForm(initial=initial, **choices)
+    given = grants_described(grant_list_given(owner))
+    received = grants_described(grant_list_received(owner))
     context = {
         "form": form,
         "changing": form.fields["change"].to_python(form["change"].value()),
-        "given": grants_described(grant_list_given(owner)),
-        "received": grants_described(grant_list_received(owner)),
+        "given": given,
+        "received": received,
         "owner": owner,
+        # A grant or revocation still on its way to the chain: the page follows it.
+        "waiting": any(
+            g.status in (Grant.Status.PENDING, Grant.Status.REVOKING) for g in given + received
+        ),
     }
     return render(request, "sharing/grants.html", context, status=400 if form.is_bound else 200)
 
@@ -485,6 +542,17 @@ def _grant_give_or_change(request: HttpRequest, form: GrantForm) -> HttpResponse
     except SharingError as exc:
         form.add_error("grantee", str(exc))
         return None
+    if form.needs_confirmation:
+        # Nothing is granted yet: refusals first, then a page that says what "everything"
+        # means and asks again.
+        if not data["change"]:
+            try:
+                grant_create_check(owner=request.owner, grantee=grantee)
+            except SharingError as exc:
+                form.add_error("grantee", str(exc))
+                return None
+        context = {"form": form, "grantee": grantee, "changing": data["change"]}
+        return render(request, "sharing/grant_confirm_all.html", context)
     try:
         terms = grant_terms_make(
             owner=request.owner,
@@ -585,10 +653,16 @@ def audit(request: HttpRequest) -> HttpResponse:
     owner: Owner = request.owner
     form = AuditFilterForm(request.GET or None, owner=owner)
     _say_left_out(request, form)
-    page = audit_page_of_owner(
+    trail = audit_page_of_owner(
         owner, page=request.GET.get("page"), per_page=AUDIT_ENTRIES_PER_PAGE, **form.filters()
     )
-    context = {"form": form, "page": page, "owner": owner, "filtered": bool(form.filters())}
+    context = {
+        "form": form,
+        "trail": trail,
+        "page": trail.anchoring,
+        "owner": owner,
+        "filtered": bool(form.filters()),
+    }
     return render(request, "sharing/audit.html", context)
 
 

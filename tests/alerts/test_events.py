@@ -8,14 +8,18 @@ from django.core import mail
 from django.utils import timezone
 
 from accounts.models import Robot
+from accounts.services.owners import owner_create
 from alerts.models import Alert, AlertDelivery, AlertKind
 from alerts.services import gas_low_check, robots_silent_check
+from chainworker import services as chain_services
 from sharing.anchoring import record_chain_mismatch, records_anchor
 from sharing.errors import IntegrityCheckFailed
 from sharing.models import Record
 from sharing.services import grant_create, grant_revoke, record_create
 from sharing.verification import record_open
-from tests.conftest import tamper
+from smcrypto import sm4
+from stack.anvil import start_anvil
+from tests.conftest import TEST_PASSWORD, tamper
 
 
 def _alerts(owner, kind: str) -> list[Alert]:
@@ -120,3 +124,24 @@ def test_low_gas_alerts_once_until_topped_up(
     with django_capture_on_commit_callbacks(execute=True):
         assert gas_low_check()["gas_low"] == 1
     assert len(_mails_about(AlertKind.GAS_LOW)) == 2
+
+
+@pytest.mark.process
+def test_no_low_gas_alert_on_a_chain_that_charges_nothing_for_gas(
+    db, settings, alerts_on, django_capture_on_commit_callbacks
+):
+    """`make run`'s anvil charges nothing for gas: EOAs hold no ether there and need none, so
+    a threshold set on the alerts page never alerts (issue 35)."""
+    with start_anvil(zero_gas=True) as node:
+        settings.CHAIN_RPC_URL = node.url
+        chain_services._clients.clear()
+        chain_services.contract_deploy()
+        assert chain_services.chain_client().fee_per_gas() == 0
+        with django_capture_on_commit_callbacks(execute=True):
+            owner = owner_create(username="lea", password=TEST_PASSWORD, sm4_key=sm4.generate_key())
+        assert chain_services.chain_client().balance(owner.eoa_address) == 0
+        alerts_on(owner, email=[AlertKind.GAS_LOW], gas_low_below_wei=10**18)
+        with django_capture_on_commit_callbacks(execute=True):
+            assert gas_low_check() == {"gas_low": 0, "gas_topped_up": 0}
+        assert _mails_about(AlertKind.GAS_LOW) == []
+        chain_services._clients.clear()

@@ -45,6 +45,8 @@ GRANT_TERMS_OPERATIONS = {("/api/v1/grants/{grantee}/", "patch")}
 DELETION_OPERATIONS = {("/api/v1/records/{record_id}/", "delete")}
 # Added by issue 35: numeric fields of a robot's topic over time, every record checked.
 SERIES_OPERATIONS = {("/api/v1/records/series/", "get")}
+# Added by issue 35 (the robot page): a robot's last contact and rates.
+ROBOT_STATUS_OPERATIONS = {("/api/v1/robots/{robot_id}/status/", "get")}
 
 
 def test_the_schema_validates_without_warnings(tmp_path: Path):
@@ -73,6 +75,7 @@ def test_the_served_schema_lists_exactly_the_fixed_endpoints(client):
         | GRANT_TERMS_OPERATIONS
         | DELETION_OPERATIONS
         | SERIES_OPERATIONS
+        | ROBOT_STATUS_OPERATIONS
     )
     assert schema["paths"]["/api/v1/robot-key/"]["get"]["security"] == [{"robotToken": []}]
     for path in ("/api/v1/robot-pairings/", "/api/v1/robot-pairings/{pairing_id}/collect/"):

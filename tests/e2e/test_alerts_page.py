@@ -97,7 +97,7 @@ def test_an_owner_sets_up_alerts_on_desktop_and_phone(
     # A test alert: the e-mail goes out (Django's test mailbox), the webhook cannot be reached
     # (nothing listens on port 9) and the log says so.
     page.get_by_test_id("alert-test").click()
-    expect(page.get_by_test_id("messages")).to_contain_text("on its way to 2 channel(s)")
+    expect(page.get_by_test_id("messages")).to_contain_text("on its way to 2 channels.")
     expect(page.locator("[data-testid=alert-delivery][data-status=sent]")).to_contain_text(
         "dora@example.org"
     )

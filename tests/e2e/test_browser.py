@@ -249,6 +249,7 @@ def test_two_owners_share_revoke_and_see_tampering(
     a.goto(f"{base}/grants/")
     a.fill("#id_grantee", bob_name)
     a.click("#grant-submit")
+    a.click("#grant-confirm-all")  # nothing ticked: all records, no expiry, confirmed
     grant_row = a.locator(f"[data-testid=grant-given-row][data-grantee='{bob_name}']")
     expect(grant_row).to_have_count(1)
     expect(grant_row.get_by_test_id("grant-made-with")).to_have_text("in the portal")

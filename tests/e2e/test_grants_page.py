@@ -13,6 +13,7 @@ from playwright.sync_api import Browser, Page, expect
 
 from sharing.models import Grant
 from sharing.scope import scope_commitment
+from sharing.services import grant_sync_on_chain
 from tests.conftest import TEST_PASSWORD
 from tests.pages.conftest import upload  # noqa: F401  (the fixture)
 
@@ -119,3 +120,39 @@ def test_scoped_grant_and_revoke_confirmation_on_desktop_and_phone(
     expect(phone_row).to_have_attribute("data-status", "revoked")
     # A revoked grant has nothing left to revoke or change.
     expect(phone_row.get_by_test_id("revoke-grant")).to_have_count(0)
+
+
+def test_everything_asks_first_and_the_page_follows_the_chain_by_itself(
+    live_server, browser: Browser, make_robot, make_owner
+):
+    """Nothing ticked asks for a confirmation on a page of its own (no grant before it); a
+    grant pending on chain turns active on the open page without a reload (issue 35)."""
+    alice = make_robot("alice")
+    make_owner("bob")
+    carol = make_owner("carol")
+    base = live_server.url
+    page = sign_in(browser, base, "alice", DESKTOP)
+
+    page.fill("#id_grantee", "bob")
+    page.click("#grant-submit")
+    expect(page.locator("h1")).to_have_text("Share all your records with bob, with no end?")
+    expect(page.get_by_test_id("grant-confirm-all")).to_contain_text("until you revoke it")
+    assert not Grant.objects.exists()
+    page.get_by_test_id("grant-confirm-all-button").click()
+    bob_row = page.locator("[data-testid=grant-given-row][data-grantee=bob]")
+    expect(bob_row).to_have_count(1)
+    assert Grant.objects.get(grantee__user__username="bob").scope.is_all
+
+    # A grant whose chain work has not run yet (its task not delivered): pending on the page.
+    grant = Grant.objects.create(owner=alice.owner, grantee=carol)
+    page.goto(f"{base}/grants/")
+    carol_row = page.locator("[data-testid=grant-given-row][data-grantee=carol]")
+    expect(carol_row).to_have_attribute("data-status", "pending")
+    expect(page.get_by_test_id("grants-waiting")).to_be_visible()
+    page.fill("#id_grantee", "typed, not sent")
+    page.evaluate("() => { window.notReloaded = true; }")
+    grant_sync_on_chain(grant_id=grant.pk)  # the worker's work, run here: the chain confirms it
+    expect(carol_row).to_have_attribute("data-status", "active", timeout=20_000)
+    expect(carol_row.get_by_test_id("grant-status")).to_have_text("active")
+    assert page.evaluate("() => window.notReloaded") is True
+    expect(page.locator("#id_grantee")).to_have_value("typed, not sent")

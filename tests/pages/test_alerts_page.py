@@ -132,6 +132,9 @@ def test_an_address_is_used_once_confirmed_by_its_link(
     [sent] = mail.outbox
     assert sent.to == ["alice@example.org"]
     link = _confirm_link(sent)
+    state = re.search(r'data-testid="email-state">(.*?)</p>', page.content.decode()).group(1)
+    assert "not confirmed</span> We sent a link to alice@example.org: open it to confirm" in state
+    assert "Until you do, no alert is e-mailed to it." in state
     assert not AlertPreferences.objects.get(owner=alice).email_verified_at
     # Not for another account, nor with a changed token: refused, nothing confirmed.
     assert b"not confirmed" in login(mallory).get(link, follow=True).content
@@ -157,7 +160,8 @@ def test_the_test_alert_is_logged_for_its_owner_only(
         client.post(ALERTS, {**GOOD, "email_kinds": [], "webhook_kinds": []})
     client.get(_confirm_link(mail.outbox[0]))
     with django_capture_on_commit_callbacks(execute=True):
-        assert client.post(reverse("alert-test")).status_code == 302
+        sent = client.post(reverse("alert-test"), follow=True)
+    assert "A test alert is on its way to 1 channel." in sent.content.decode()  # not "(s)"
     delivery = AlertDelivery.objects.get()
     assert (delivery.target, delivery.status) == ("alice@example.org", AlertDelivery.Status.SENT)
     assert b'data-testid="alert-delivery"' in client.get(ALERTS).content

@@ -17,8 +17,18 @@ def test_grant_by_username_then_revoke(client, make_owner, django_capture_on_com
     alice, bob = make_owner("alice"), make_owner("bob")
     client.force_login(alice.user)
     assert client.get(reverse("grants")).status_code == 200
+    # Nothing ticked: all records, no expiry. A page says so and asks; nothing is granted yet.
     with django_capture_on_commit_callbacks(execute=True):
-        page = client.post(reverse("grants"), {"grantee": "bob"})
+        asked = client.post(reverse("grants"), {"grantee": "bob"})
+    assert asked.status_code == 200
+    html = asked.content.decode()
+    assert 'data-testid="grant-confirm-all"' in html
+    assert "every record of every robot of yours" in html
+    assert "until you revoke it" in html
+    assert 'name="confirm_all" value="True"' in html
+    assert not Grant.objects.exists()
+    with django_capture_on_commit_callbacks(execute=True):
+        page = client.post(reverse("grants"), {"grantee": "bob", "confirm_all": "True"})
     assert page.status_code == 302
     grant = Grant.objects.get(owner=alice, grantee=bob)
     assert grant.status == Grant.Status.ACTIVE
@@ -54,7 +64,7 @@ def test_grant_by_eoa_address(client, make_owner, django_capture_on_commit_callb
     alice, bob = make_owner("alice"), make_owner("bob")
     client.force_login(alice.user)
     with django_capture_on_commit_callbacks(execute=True):
-        client.post(reverse("grants"), {"grantee": bob.eoa_address.lower()})
+        client.post(reverse("grants"), {"grantee": bob.eoa_address.lower(), "confirm_all": "True"})
     assert Grant.objects.get(owner=alice, grantee=bob).status == Grant.Status.ACTIVE
 
 
@@ -63,7 +73,7 @@ def test_grant_refusals_change_nothing(client, make_owner, pending_owner):
     make_owner("bob")
     pending_owner("newbie")
     client.force_login(alice.user)
-    client.post(reverse("grants"), {"grantee": "bob"})
+    client.post(reverse("grants"), {"grantee": "bob", "confirm_all": "True"})
     for grantee, message in [
         ("", "Enter the username or address of the owner to share with."),
         ("nobody", "There is no owner with the username or address “nobody”: check the spelling"),
@@ -72,7 +82,7 @@ def test_grant_refusals_change_nothing(client, make_owner, pending_owner):
         ("newbie", "newbie&#x27;s account is not registered on the chain yet: try again"),
         ("bob", "bob already has access. To change which records they may read"),
     ]:
-        page = client.post(reverse("grants"), {"grantee": grantee})
+        page = client.post(reverse("grants"), {"grantee": grantee, "confirm_all": "True"})
         assert page.status_code == 400, grantee
         assert message in page.content.decode(), grantee
     assert Grant.objects.count() == 1
@@ -82,7 +92,9 @@ def test_grant_forms_need_csrf(make_owner):
     alice, _bob = make_owner("alice"), make_owner("bob")
     client = Client(enforce_csrf_checks=True)
     client.force_login(alice.user)
-    assert client.post(reverse("grants"), {"grantee": "bob"}).status_code == 403
+    assert (
+        client.post(reverse("grants"), {"grantee": "bob", "confirm_all": "True"}).status_code == 403
+    )
     assert client.post(reverse("grant-revoke"), {"grantee": "bob"}).status_code == 403
     assert client.post(reverse("logout")).status_code == 403
     assert not Grant.objects.exists()
@@ -98,12 +110,12 @@ def test_audit_shows_the_owners_history(
     upload(carol, 1)  # someone else's upload is not in alice's trail
     client.force_login(alice.owner.user)
     with django_capture_on_commit_callbacks(execute=True):
-        client.post(reverse("grants"), {"grantee": "bob"})
+        client.post(reverse("grants"), {"grantee": "bob", "confirm_all": "True"})
     with django_capture_on_commit_callbacks(execute=True):
         client.post(reverse("grant-revoke"), {"grantee": "bob"})
     client.force_login(carol.owner.user)
     with django_capture_on_commit_callbacks(execute=True):
-        client.post(reverse("grants"), {"grantee": "alice"})
+        client.post(reverse("grants"), {"grantee": "alice", "confirm_all": "True"})
 
     client.force_login(alice.owner.user)
     page = client.get(reverse("audit"))
@@ -111,8 +123,9 @@ def test_audit_shows_the_owners_history(
     assert page.status_code == 200
     kinds = re.findall(r'data-kind="([\w-]+)" data-testid="audit-entry"', html)
     # newest first
-    assert kinds[:5] == ["grant-received", "revoke-given", "grant-given", "upload", "upload"]
-    assert kinds[5:7] == ["registered", "enrolled"]
+    # Grants, revocations and keys on top, then the anchoring, a minute a line.
+    assert kinds[:5] == ["grant-received", "revoke-given", "grant-given", "registered", "enrolled"]
+    assert kinds[-1] == "upload"
     owner = alice.owner
     assert owner.register_tx in html
     assert owner.enroll_tx in html
@@ -143,3 +156,30 @@ def test_audit_groups_a_batch_and_caps_its_list(
     assert "and 1 more" in html
     assert tx_hashes.pop() in html
     assert str(records[0].id) in html
+
+
+def test_a_limited_grant_needs_no_confirmation_and_a_change_to_everything_does(
+    client, make_robot, make_owner, django_capture_on_commit_callbacks
+):
+    alice = make_robot("alice")
+    make_owner("bob")
+    client.force_login(alice.owner.user)
+    with django_capture_on_commit_callbacks(execute=True):
+        page = client.post(reverse("grants"), {"grantee": "bob", "topics": ["/robot/odom"]})
+    assert page.status_code == 302
+    grant = Grant.objects.get()
+    assert grant.scope_topics == ["/robot/odom"]
+    # Changing the terms to nothing chosen asks too, and changes nothing until confirmed.
+    asked = client.post(reverse("grants"), {"grantee": "bob", "change": "True"})
+    assert asked.status_code == 200
+    assert 'data-testid="grant-confirm-all"' in asked.content.decode()
+    assert 'name="change" value="True"' in asked.content.decode()
+    grant.refresh_from_db()
+    assert grant.scope_topics == ["/robot/odom"]
+    with django_capture_on_commit_callbacks(execute=True):
+        done = client.post(
+            reverse("grants"), {"grantee": "bob", "change": "True", "confirm_all": "True"}
+        )
+    assert done.status_code == 302
+    grant = Grant.objects.filter(status__in=Grant.LIVE).get()
+    assert grant.scope_topics == []

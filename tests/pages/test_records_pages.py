@@ -98,7 +98,8 @@ def test_sort_filter_pages_and_bad_parameters(client, fleet, make_robot, upload,
     for record in fleet.values():
         row = html[html.index(f'data-record-id="{record.pk}"') :]
         first_cell = row[: row.index("</td>")]
-        assert f'href="{reverse("record-detail", args=[record.pk])}"' in first_cell
+        # With the list's filters, for the record page's "back to the list" (issue 35).
+        assert f'href="{reverse("record-detail", args=[record.pk])}?list=' in first_cell
         assert 'class="row-link"' in first_cell
     assert ">View<" not in html
     assert html.count('data-label="Upload #"') == 4
@@ -231,8 +232,8 @@ def test_the_plot_of_a_chosen_range(client, track, make_owner):
     page = reverse("record-detail", args=[track[2].id])
     html = client.get(page).content.decode()
     assert 'id="plot-range"' in html
-    assert 'name="since" value="2026-03-01T11:55"' in html
-    assert 'name="until" value="2026-03-01T12:05"' in html
+    assert 'name="since" value="2026-03-01 11:55"' in html  # five minutes either side, 24-hour
+    assert 'name="until" value="2026-03-01 12:05"' in html
     assert 'data-since="2026-03-01T11:59:20+00:00"' in html
     assert 'data-until="2026-03-01T12:01:20+00:00"' in html
     html = client.get(page, {"since": "2026-03-01T12:00", "until": "2026-03-01T12:01"}).content

@@ -4,6 +4,7 @@ call to the chain. The backfill migration builds the same index from what the da
 
 import importlib
 import re
+from datetime import UTC, datetime, timedelta
 
 import pytest
 from django.apps import apps
@@ -21,6 +22,9 @@ from smcrypto import sm4
 from stack.anvil import free_port
 
 pytestmark = pytest.mark.django_db
+
+NOON = datetime(2026, 3, 1, 12, 0, tzinfo=UTC)
+TX_HASH = r'transaction <span class="hash">(0x[0-9a-f]{64})</span>'
 
 backfill = importlib.import_module("accounts.migrations.0004_chain_activity_backfill")
 
@@ -41,7 +45,7 @@ def history(client, make_robot, make_owner, upload, django_capture_on_commit_cal
         key_rotate(owner=alice.owner, sm4_key=sm4.generate_key())
     client.force_login(alice.owner.user)
     with django_capture_on_commit_callbacks(execute=True):
-        client.post(reverse("grants"), {"grantee": "bob"})
+        client.post(reverse("grants"), {"grantee": "bob", "confirm_all": "True"})
     with django_capture_on_commit_callbacks(execute=True):
         client.post(reverse("grant-revoke"), {"grantee": "bob"})
     assert Grant.objects.get(owner=alice.owner, grantee=bob).status == Grant.Status.REVOKED
@@ -68,18 +72,16 @@ def test_the_audit_page_lists_the_index_with_times_for_owner_and_grantee(client,
     html = page.content.decode()
     assert page.status_code == 200
     kinds = _kinds(html)
-    assert kinds[:4] == ["revoke-given", "grant-given", "key_rotated", "upload"]
-    assert kinds[4] == "upload"
-    assert kinds[-2:] == ["registered", "enrolled"] or kinds[-3:] == [
-        "registered",
-        "enrolled",
-        "funded",
-    ]
-    assert len(kinds) == ChainActivity.objects.filter(owner=owner).count()
+    # Grants, revocations and key changes first, then the anchoring, a minute a line.
+    assert kinds[:3] == ["revoke-given", "grant-given", "key_rotated"]
+    assert kinds[3:5] == ["registered", "enrolled"]
+    not_anchoring = ChainActivity.objects.filter(owner=owner).exclude(kind="anchored").count()
+    assert kinds[:not_anchoring][-1] in ("enrolled", "funded")
+    assert set(kinds[not_anchoring:]) == {"upload"}
     assert "Revoked access to bob" in html
     assert "Granted access to bob" in html
     times = re.findall(r'data-testid="audit-time">(\d{4}-\d\d-\d\d \d\d:\d\d:\d\d) UTC', html)
-    assert len(times) == len(kinds)
+    assert len(times) == not_anchoring
     assert times == sorted(times, reverse=True)
     owner.refresh_from_db()
     assert owner.register_tx in html
@@ -103,22 +105,34 @@ def test_the_audit_page_lists_the_index_with_times_for_owner_and_grantee(client,
 
 
 def test_the_audit_page_is_paged_in_the_database(client, history, no_chain, monkeypatch):
-    monkeypatch.setattr("sharing.views.AUDIT_ENTRIES_PER_PAGE", 3)
+    """Minutes of anchoring are paged; grants, revocations and keys stay on top of each."""
+    monkeypatch.setattr("sharing.views.AUDIT_ENTRIES_PER_PAGE", 1)
     alice, _bob = history
+    rows = ChainActivity.objects.filter(owner=alice.owner, kind="anchored").order_by("id")
+    for row, minute in zip(rows, (1, 2), strict=True):
+        ChainActivity.objects.filter(pk=row.pk).update(
+            at=datetime(2026, 3, 1, 12, minute, tzinfo=UTC)
+        )
     client.force_login(alice.owner.user)
     first = client.get(reverse("audit")).content.decode()
     second = client.get(reverse("audit"), {"page": 2})
     assert second.status_code == 200
-    total = ChainActivity.objects.filter(owner=alice.owner).count()
-    pages = -(-total // 3)
-    assert f"Page 1 of {pages}" in first
-    assert f"Page 2 of {pages}" in second.content.decode()
-    assert len(_kinds(first)) == 3
-    firsts = set(re.findall(r'class="hash">(0x[0-9a-f]{64})</span>', first))
-    seconds = set(re.findall(r'class="hash">(0x[0-9a-f]{64})</span>', second.content.decode()))
-    assert firsts
-    assert seconds
-    assert firsts.isdisjoint(seconds)
+    assert "Page 1 of 2" in first
+    assert "Page 2 of 2" in second.content.decode()
+    assert "Anchored 1 record in 12:02 (UTC)" in first
+    assert "Anchored 1 record in 12:01 (UTC)" in second.content.decode()
+    assert first.count('data-kind="upload"') == 1
+    firsts = set(re.findall(TX_HASH, first))
+    seconds = set(
+        re.findall(
+            r'transaction <span class="hash">(0x[0-9a-f]{64})</span>', second.content.decode()
+        )
+    )
+    assert "Revoked access to bob" in first
+    assert "Revoked access to bob" in second.content.decode()
+    assert rows[1].tx_hash in firsts
+    assert rows[0].tx_hash not in firsts
+    assert rows[0].tx_hash in seconds
     assert client.get(reverse("audit"), {"page": "junk"}).status_code == 200
     assert client.get(reverse("audit"), {"page": 10**30}).status_code == 200
 
@@ -131,15 +145,19 @@ def test_an_anchoring_entry_lists_its_first_records_read_in_one_query(
     for seqs in ((1, 2, 3), (4,), (5, 6)):
         with django_capture_on_commit_callbacks(execute=True):
             record_create_batch(robot=alice.robot, envelopes=[alice.seal(seq) for seq in seqs])
-    anchored = ChainActivity.objects.filter(owner=alice.owner, kind="anchored")
-    assert sorted(anchored.values_list("record_count", flat=True)) == [1, 2, 3]
+    anchored = ChainActivity.objects.filter(owner=alice.owner, kind="anchored").order_by("id")
+    assert list(anchored.values_list("record_count", flat=True)) == [3, 1, 2]
+    for row, minute in zip(anchored, (1, 2, 3), strict=True):  # three minutes, three lines
+        ChainActivity.objects.filter(pk=row.pk).update(
+            at=datetime(2026, 3, 1, 12, minute, tzinfo=UTC)
+        )
     client.force_login(alice.owner.user)
     with CaptureQueriesContext(connection) as queries:
         html = client.get(reverse("audit")).content.decode()
     record_queries = [q for q in queries.captured_queries if 'FROM "sharing_record"' in q["sql"]]
     assert len(record_queries) == 1
-    assert "Anchored 3 records" in html
-    assert "Anchored 1 record<" in html
+    assert "Anchored 3 records in 12:01 (UTC)" in html
+    assert "Anchored 1 record in 12:02 (UTC)" in html
     assert "and 1 more" in html
     first = Record.objects.get(owner=alice.owner, seq=1)
     assert reverse("record-detail", args=[first.id]) in html
@@ -194,3 +212,49 @@ def test_the_backfill_builds_the_same_index_from_the_database(history):
     backfill.chain_activity_backfill(apps, None)  # run again: nothing doubles
     assert _index() == written
     assert ChainActivity.objects.count() == len(written)
+
+
+def test_anchoring_once_a_second_is_one_line_a_minute_under_the_grants(
+    client, make_robot, make_owner
+):
+    """60 anchoring transactions of 12 records in the minute 12:04 make one line, "Anchored
+    720 records in 12:04 (UTC)"; a grant older than all of them is still listed above."""
+    alice = make_robot("alice")
+    bob = make_owner("bob")
+    ChainActivity.objects.create(
+        owner=alice.owner,
+        counterpart=bob,
+        kind="granted",
+        tx_hash="0x" + "ab" * 32,
+        block_number=5,
+        at=NOON - timedelta(days=1),
+    )
+    for second in range(60):
+        ChainActivity.objects.create(
+            owner=alice.owner,
+            kind="anchored",
+            tx_hash=f"0x{second:064x}",
+            block_number=100 + second,
+            record_count=12,
+            at=NOON.replace(minute=4, second=second),
+        )
+    ChainActivity.objects.create(
+        owner=alice.owner,
+        kind="anchored",
+        tx_hash="0x" + "cd" * 32,
+        block_number=200,
+        record_count=1,
+        at=NOON.replace(minute=5, second=1),
+    )
+    client.force_login(alice.owner.user)
+    html = client.get(reverse("audit")).content.decode()
+    kinds = _kinds(html)
+    assert kinds.index("grant-given") < kinds.index("upload")
+    assert kinds.count("upload") == 2
+    assert html.index("Granted access to bob") < html.index("Anchored 720 records")
+    assert "Anchored 720 records in 12:04 (UTC)" in html
+    assert "Anchored 1 record in 12:05 (UTC)" in html
+    assert "Blocks 100\u2013159" in html
+    assert "60 transactions" in html
+    assert "and 57 more" in html  # three transactions named
+    assert html.index("12:05 (UTC)") < html.index("12:04 (UTC)")  # newest first

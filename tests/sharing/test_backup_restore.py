@@ -59,7 +59,7 @@ def portal_data(client, make_robot, make_owner, upload, django_capture_on_commit
     upload(bob, 1)
     client.force_login(alice.owner.user)
     with django_capture_on_commit_callbacks(execute=True):
-        client.post(reverse("grants"), {"grantee": "bob"})
+        client.post(reverse("grants"), {"grantee": "bob", "confirm_all": "True"})
     assert Grant.objects.get().status == Grant.Status.ACTIVE
     assert set(Record.objects.values_list("status", flat=True)) == {Record.Status.ANCHORED}
     return alice, bob
