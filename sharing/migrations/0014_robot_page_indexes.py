@@ -8,7 +8,7 @@ class Migration(migrations.Migration):
 
     dependencies = [
         ('accounts', '0008_robot_signing_keys'),
-        ('sharing', '0012_access'),
+        ('sharing', '0013_grant_change'),
         migrations.swappable_dependency(settings.AUTH_USER_MODEL),
     ]
 
