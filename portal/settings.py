@@ -462,7 +462,7 @@ RETENTION_LOCK_TTL = env.float("RETENTION_LOCK_TTL", default=900.0)
 VERIFY_TIMEOUT = env.float("VERIFY_TIMEOUT", default=30.0)
 # Exports (sharing/exports.py, docs/export.md): records in one export at most, records checked
 # against the chain per run of the integrity check, and hours its files are kept.
-EXPORT_MAX_RECORDS = env.int("EXPORT_MAX_RECORDS", default=5000)
+EXPORT_MAX_RECORDS = env.int("EXPORT_MAX_RECORDS", default=2_000_000)
 EXPORT_BATCH = env.int("EXPORT_BATCH", default=200)
 EXPORT_TTL_HOURS = env.int("EXPORT_TTL_HOURS", default=24)
 EXPORT_REQUEUE_AFTER = env.int("EXPORT_REQUEUE_AFTER", default=600)
