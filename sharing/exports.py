@@ -193,6 +193,37 @@ def export_create(
     return export
 
 
+def export_selection_described(export: Export) -> dict[str, object]:
+    """The export's selection in words for its page: robots by name, topics, the window, and
+    the command that checks its files against its chain (docs/export.md)."""
+    selection = RecordSelection.from_json(export.selection)
+    robots = Robot.objects.filter(pk__in=selection.robots).select_related("owner__user")
+    names = {robot.pk: f"{robot.name} ({robot.owner.username})" for robot in robots}
+    stem = export_file_stem(export)
+    command = [
+        "python -m authros_verify",
+        f"{stem}.proofs.json",
+        f"--mcap {stem}.mcap",
+        "--rpc RPC_URL",
+    ]
+    if export.contract:
+        command.append(f"--contract {export.contract}")
+    if export.chain_id is not None:
+        command.append(f"--chain-id {export.chain_id}")
+    return {
+        "robots": [names.get(robot, str(robot)) for robot in selection.robots],
+        "topics": list(selection.topics),
+        "since": iso_utc(selection.since),
+        "until": iso_utc(selection.until),
+        "verify_command": " ".join(command),
+    }
+
+
+def export_file_stem(export: Export) -> str:
+    """The files' names as downloaded: `<stem>.mcap` and `<stem>.proofs.json`."""
+    return f"authros-export-{str(export.pk)[:8]}"
+
+
 def export_rebuild(*, requester: Owner, export_id: uuid.UUID | str) -> Export:
     """A new export of an export's selection, made under the requester's access now."""
     export = export_of(requester, export_id)
@@ -607,7 +638,7 @@ def export_download(*, requester: Owner, export_id: uuid.UUID | str, part: str) 
         key = unwrap(bytes(export.key_wrapped), purpose=export_key_purpose(export.pk))
     except UnwrapFailed:
         raise ExportWithdrawn("this export's key is gone; export again") from None
-    stem = f"authros-export-{str(export.pk)[:8]}"
+    stem = export_file_stem(export)
     if part == "mcap":
         return ExportFile(export.mcap_name, f"{stem}.mcap", export.mcap_size, key)
     return ExportFile(export.bundle_name, f"{stem}.proofs.json", export.bundle_size, key)
