@@ -550,6 +550,9 @@ def export_access_lost(export: Export) -> str:
     and none of them is deleted."""
     if export.requester.deleted_at is not None:
         return "your account is closed"
+    if not export.key_wrapped:
+        # Made before exports were sealed: plaintext at rest, which must not stay.
+        return "it was stored before exports were sealed; export again"
     contents = ExportRecord.objects.filter(export=export)
     ids = contents.values("record_id")
     inside = record_list_visible_to(export.requester).filter(pk__in=ids, deleted_at__isnull=True)

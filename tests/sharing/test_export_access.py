@@ -10,6 +10,7 @@ from datetime import timedelta
 from pathlib import Path
 
 import pytest
+from django.core.files.base import ContentFile
 from django.urls import reverse
 from django.utils import timezone
 
@@ -215,3 +216,19 @@ def test_a_closed_account_withdraws_its_exports(
     granted.refresh_from_db()
     assert granted.status == Export.Status.WITHDRAWN
     assert not envelope_storage().exists(granted.mcap_name)
+
+
+def test_an_export_stored_before_sealing_is_withdrawn_and_its_plaintext_removed(
+    alice, shared, django_capture_on_commit_callbacks
+):
+    export = exported(alice.owner, django_capture_on_commit_callbacks)
+    # As an export made by the code before issue 37 left it: plaintext files, no key.
+    storage = envelope_storage()
+    storage.delete(export.mcap_name)
+    storage.save(export.mcap_name, ContentFile(MCAP_MAGIC + SECRET.encode()))
+    Export.objects.filter(pk=export.pk).update(key_wrapped=b"")
+    assert exports_sweep()["withdrawn"] == 1
+    export.refresh_from_db()
+    assert export.status == Export.Status.WITHDRAWN
+    assert "stored before exports were sealed" in export.error
+    assert not storage.exists(export.mcap_name)
