@@ -1,13 +1,20 @@
 """Exports: the verified records of a selection as an MCAP file, with a proof bundle beside it.
 
 `export_create` checks the selection (what the requester may view: their own records and
-those of owners granting them) and queues `export_run` on commit. The worker checks the
-records in batches with the view's own integrity check (`records_verify`: access on chain,
-the stored envelope's SM3 against the chain, a signed record's robot signature and key, a
-Verdict each), leaves out and lists every record that fails, rebuilds the ROS messages of the
-others (authros_verify/messages.py, written by sharing/mcap_export.py), and stores the MCAP
-file and the bundle in the envelope storage (local disk or S3), for the requester only, until
-the export expires.
+those of owners granting them; at most EXPORT_MAX_RECORDS, `export_count` says how many before
+submitting) and queues `export_run` on commit. The worker reads the records EXPORT_BATCH at a
+time and checks each batch with the view's own integrity check (`_verified`, the one use of
+`records_verify`: access on chain, the stored envelope's SM3 against the chain, a signed
+record's robot signature and key, a Verdict each), leaves out and lists every record that
+fails, rebuilds the ROS messages of the others (authros_verify/messages.py, written by
+sharing/mcap_export.py) and writes both files as it goes, in constant memory, sealed
+(smcrypto/stream.py) under a key of the export's own wrapped by the KEK: nothing of an export
+is plaintext at rest, in the envelope storage (local disk or S3) or in its backups.
+
+The files are decrypted only while streamed to the requester, and only while the requester
+may still view every record in them (`ExportRecord` lists them): a revocation, a changed or
+expired grant, a deleted record or a closed account withdraws the export, removing its key and
+its files (`export_access_lost`, checked at every download and look, and by `exports_recheck`).
 
 Each signed record's entry carries its robot's signature, public key and the plaintext it
 signed, so that the verifier checks without the portal that each message is the one the robot
@@ -256,6 +263,9 @@ def export_run(*, export_id: uuid.UUID | str) -> Export:
         logger.exception("export %s failed", export.pk)
         _finish(export, status=Export.Status.FAILED, error="the export failed; this was logged")
         raise
+    finally:
+        if Export.objects.filter(pk=export.pk, status=Export.Status.FAILED).exists():
+            ExportRecord.objects.filter(export=export).delete()
     export.refresh_from_db()
     return export
 
@@ -372,6 +382,8 @@ def _run(export: Export) -> None:
             (f"{folder}/proofs.json.sealed", bundle_file),
         ]
         disk_room_check(mcap.sealed.sealed_size + bundle.sealed.sealed_size)
+        # Wrapped before anything is stored: no file is ever kept without its key.
+        key_wrapped = wrap(key, purpose=export_key_purpose(export.pk))
         storage = envelope_storage()
         names = []
         for name, sealed in files:
@@ -388,7 +400,7 @@ def _run(export: Export) -> None:
         mcap_size=mcap_size,
         bundle_size=bundle_size,
         mcap_sm3=mcap_sm3,
-        key_wrapped=wrap(key, purpose=export_key_purpose(export.pk)),
+        key_wrapped=key_wrapped,
         chain_id=chain_id,
         contract=contract,
     )
