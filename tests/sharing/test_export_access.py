@@ -232,3 +232,15 @@ def test_an_export_stored_before_sealing_is_withdrawn_and_its_plaintext_removed(
     assert export.status == Export.Status.WITHDRAWN
     assert "stored before exports were sealed" in export.error
     assert not storage.exists(export.mcap_name)
+
+
+def test_the_requesters_closed_account_withdraws_their_exports(
+    alice, bob, shared, django_capture_on_commit_callbacks
+):
+    granted = exported(bob, django_capture_on_commit_callbacks)
+    with django_capture_on_commit_callbacks(execute=True):
+        account_delete(owner=bob, password=TEST_PASSWORD)
+    granted.refresh_from_db()
+    assert granted.status == Export.Status.WITHDRAWN
+    assert bytes(granted.key_wrapped) == b""
+    assert not envelope_storage().exists(granted.bundle_name)
