@@ -31,6 +31,7 @@ from accounts.selectors import (
     robot_by_token,
 )
 from accounts.services.api_tokens import owner_token_mark_used
+from core.logging import log_context_add
 from core.redis_client import get_redis, redis_key
 
 if TYPE_CHECKING:  # rest_framework.views imports this module through the settings
@@ -77,6 +78,7 @@ class OwnerTokenAuthentication(authentication.BaseAuthentication):
         if not token.owner.user.is_active:
             raise exceptions.AuthenticationFailed("the token's owner account is disabled")
         owner_token_mark_used(token=token)
+        log_context_add(owner=token.owner_id)
         return token.owner.user, token
 
     def authenticate_header(self, request: Request) -> str:
@@ -97,6 +99,7 @@ class RobotTokenAuthentication(authentication.BaseAuthentication):
             raise exceptions.AuthenticationFailed("unknown or revoked token")
         if not robot.owner.user.is_active:
             raise exceptions.AuthenticationFailed("the robot's owner account is disabled")
+        log_context_add(owner=robot.owner_id, robot=str(robot.pk))
         return robot.owner.user, robot
 
     def authenticate_header(self, request: Request) -> str:

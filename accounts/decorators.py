@@ -60,11 +60,9 @@ def page_throttle(scope: str = "page", *, cost: int = 1) -> Callable[[OwnerView]
     Retry-After.
 
     Every page counts 1 against PAGE_RATE_USER. A page in the "content" scope (one that runs
-    an integrity check: a record, its download, its trajectory) also counts `cost` against
-    PAGE_RATE_CONTENT: what it costs the worker, in single record checks. A trajectory checks
-    up to 20 records in one batched run (one task, one block read, one access check per
-    owner, then a digest read and an SM3 hash per small record), so its views pass a cost
-    between 1 and 20 (sharing.views.TRAJECTORY_COST).
+    an integrity check: a record, its download, a gallery page) also counts `cost` against
+    PAGE_RATE_CONTENT: what it costs the worker, in single record checks (a gallery page
+    checks its images in one batched run, so it passes less than one per image).
 
     Counted per user in fixed windows in Redis, shared by every web process; when Redis is
     down the page is served uncounted, as the API's throttles do. Put it under

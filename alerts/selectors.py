@@ -82,3 +82,8 @@ def owners_watching_gas() -> list[AlertPreferences]:
 def deliveries_stale(*, before: datetime) -> QuerySet[AlertDelivery]:
     """Deliveries still pending whose last attempt (or making) was before `before`."""
     return AlertDelivery.objects.filter(status=AlertDelivery.Status.PENDING, updated_at__lt=before)
+
+
+def alert_deliveries_pending_count() -> int:
+    """Deliveries not sent yet and not given up (the metrics); the (status, updated_at) index."""
+    return AlertDelivery.objects.filter(status=AlertDelivery.Status.PENDING).count()

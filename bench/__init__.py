@@ -38,6 +38,7 @@ BENCHMARKS = (
     "pipeline",
     "report",
     "roots",
+    "series",
     "signing",
     "sustained",
 )

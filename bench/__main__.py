@@ -5,8 +5,9 @@ import sys
 
 from bench import available
 
-# Run only when named: the soak takes an hour (`make soak`), too long for a run of them all.
-ON_DEMAND = ("soak",)
+# Run only when named: the soak takes an hour (`make soak`), too long for a run of them all;
+# webserver compares two checkouts' web servers (bench/webserver.py).
+ON_DEMAND = ("soak", "webserver")
 
 
 def main(argv: list[str]) -> int:

@@ -4,7 +4,7 @@ The paper calls Data_upload 300 times per size "through the simulated process" a
 average time. Here, for each size, one agent (one robot, one requests.Session) POSTs 300
 envelopes of that plaintext size to `/api/v1/records/` in a row, each once the previous one was
 answered, so the size is not hidden behind queueing (bench/rest.py; the stack is `make run`'s:
-anvil with automine, Celery workers, granian). Measured per upload: response time (POST to 201, the
+anvil with automine, Celery workers, gunicorn). Measured per upload: response time (POST to 201, the
 paper's measure) and time to anchored on chain (POST to Record.anchored_at).
 
 Each size runs twice, each time with a fresh stack: ANCHOR_BATCH_MAX 1 (one transaction per

@@ -1,10 +1,10 @@
 """bench/REPORT.md from whatever results exist in bench/results/, beside the paper's figures.
 
 Reads crypto.json, pipeline.json, concurrency.json, message_size.json, block_interval.json,
-sustained.json, roots.json, signing.json and soak.json (any may be missing) and writes one
-Markdown report: per experiment, what the paper says (quoted, with its figure numbers), the
-machine and date of our run, and our measurements. Nothing here is a result: every number
-comes from the JSON files.
+sustained.json, roots.json, signing.json, series.json and soak.json (any may be missing) and
+writes one Markdown report: per experiment, what the paper says (quoted, with its figure
+numbers), the machine and date of our run, and our measurements. Nothing here is a result:
+every number comes from the JSON files.
 
 The concurrency and sustained sections show each configuration on SQLite + disk (`make run`'s
 engines) and, where the run measured it (`--engines`, default both), on PostgreSQL + SeaweedFS
@@ -46,7 +46,9 @@ def main(argv: list[str]) -> int:
         _section_sustained,
         _section_roots,
         _section_signing,
+        _section_series,
         _section_soak,
+        _section_webserver,
     ]
     parts = [
         "# AuthROS benchmarks beside the paper\n",
@@ -68,6 +70,85 @@ def main(argv: list[str]) -> int:
 
 
 # --- sections -------------------------------------------------------------------------------
+
+
+def _section_webserver(results: Path) -> str | None:
+    """gunicorn against granian (issue 36): the 700-upload burst of each in alternation, and
+    the web's memory in a soak of each, run side by side."""
+    report = _load(results, "webserver")
+    if report is None:
+        return None
+    servers = list(report["summary"])
+    base = servers[0]
+    bursts = _table(
+        report["results"],
+        (
+            ("order", lambda r: r["order"]),
+            ("server", lambda r: r["server"]),
+            ("answered 201", lambda r: f"{r['http_201']}/{r['sent']}"),
+            ("first answer s", lambda r: _num(r.get("first_answer_s"), 2)),
+            ("last answer s", lambda r: _num(r.get("total_response_s"), 2)),
+            ("last anchored s", lambda r: _num(r.get("total_to_anchored_s"), 2)),
+            ("web CPU s", lambda r: _num(r.get("web_cpu_s"), 2)),
+            (
+                "load at start",
+                lambda r: (report.get("loads_at_start") or [None] * 99)[r["order"] - 1],
+            ),
+        ),
+    )
+
+    def ratio(server: str, key: str) -> str:
+        ours, theirs = report["summary"][server][key], report["summary"][base][key]
+        return f"{ours / theirs:.2f}x" if server != base and theirs else ""
+
+    summary = _table(
+        [{"server": server, **report["summary"][server]} for server in servers],
+        (
+            ("server (median of its bursts)", lambda r: r["server"]),
+            ("bursts", lambda r: r["bursts"]),
+            ("not 201", lambda r: r["not_201"]),
+            ("last anchored s", lambda r: _num(r["median_total_to_anchored_s"], 2)),
+            (f"x {base}", lambda r: ratio(r["server"], "median_total_to_anchored_s")),
+            ("last answer s", lambda r: _num(r["median_total_response_s"], 2)),
+            ("first answer s", lambda r: _num(r["median_first_answer_s"], 2)),
+            ("web CPU s", lambda r: _num(r["median_web_cpu_s"], 2)),
+            (f"CPU x {base}", lambda r: ratio(r["server"], "median_web_cpu_s")),
+        ),
+    )
+    commands = "\n".join(
+        f"- {server}: `{command}`" for server, command in report["settings"]["web_commands"].items()
+    )
+    lines = [
+        "## Web server: gunicorn against granian (issue 36; no paper figure)\n",
+        f"**Our run:** {_machine(report)}\n",
+        "The paper's 700 concurrent 1 KB uploads as bench/roots.py sends them (each agent its own "
+        "robot token and connection, all opened at once from one selector loop; root mode, "
+        "anvil automine), each burst on a fresh `make run` stack, the two servers in "
+        "alternation, each from a checkout of its own (`python -m bench webserver`). Servers:\n",
+        commands + "\n",
+        summary,
+        bursts,
+    ]
+    soak = report.get("soak")
+    if soak:
+        lines.append(soak["text"] + "\n")
+        lines.append(
+            _table(
+                soak["rows"],
+                (
+                    ("server", lambda r: r["server"]),
+                    ("minutes", lambda r: r["minutes"]),
+                    ("web MiB, first quarter", lambda r: _num(r["first"], 1)),
+                    ("web MiB, last quarter", lambda r: _num(r["last"], 1)),
+                    ("growth", lambda r: f"{r['growth']:+.1%}" if r["growth"] is not None else "-"),
+                    ("records anchored", lambda r: r["anchored"]),
+                ),
+            )
+        )
+    notes = report.get("notes", [])
+    if notes:
+        lines.append("Notes from the run:\n\n" + "\n".join(f"- {note}" for note in notes) + "\n")
+    return "\n".join(lines)
 
 
 def _section_concurrency(results: Path) -> str | None:
@@ -907,6 +988,64 @@ def _signing_machine(unsigned: dict[str, Any], signed: dict[str, Any]) -> str:
         f"server included): {_pct(min(shares))} to {_pct(max(shares))} of the machine's "
         "cores.\n"
     )
+
+
+def _section_series(results: Path) -> str | None:
+    """A series of every record over 30 minutes (issue 35): the one check path against one
+    check per record, same run, with the goal judged."""
+    report = _load(results, "series")
+    if report is None:
+        return None
+    baseline, series = report["results"]
+    settings = report["settings"]
+    answers = series["answers"]
+    lines = [
+        "## A series of every record over 30 minutes: one check path (issue 35; no paper figure)\n",
+        f"One `make run` stack (ANCHOR_MODE=root, anvil automine), one owner, one robot added by "
+        f"hand; {settings['records']:,} odometry records 0.1 s apart (the agent's Fig. 4 JSON of "
+        f"nav_msgs/Odometry, about 1 KB), POSTed {settings.get('per_post', 500)} at a time and "
+        f"anchored ({report['measured'].get('trees', '?')} trees). **Series**: "
+        f"`GET /api/v1/records/series/?fields=position.x,position.y&points=1000` over the whole "
+        f"range with the owner's read token, {series['rounds']} times one after another; every "
+        f"record checked (batches of 1000 sent at once, one rootOf per tree, verdicts in bulk "
+        f"INSERTs), read and downsampled by min/max per slice. **Per record** (the baseline, "
+        f"same run, same records): {baseline['sample']} records spread over the range read one "
+        f"at a time through `GET /api/v1/records/{{id}}/content/` (one task, one verdict, one "
+        f"chain read each); its time for the whole range is the sample's p50 per record "
+        f"({baseline['sample_p50_ms']:.1f} ms) times {settings['records']:,}. CPU is the web "
+        f"processes' and the workers' (the chain worker's pool and the verify worker, which "
+        f"both take verify tasks) over each phase, per record checked.\n",
+        "| path | records | p50 s | p95 s | web CPU ms/record | workers CPU ms/record | "
+        "others' share of the machine |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for row in (baseline, series):
+        p95 = "-" if row["p95_s"] is None else f"{row['p95_s']:.2f}"
+        lines.append(
+            f"| {row['path']} | {row['records']:,} | {row['p50_s']:.2f} | {p95} | "
+            f"{row['web_cpu_ms_per_record']:.3f} | {row['workers_cpu_ms_per_record']:.3f} | "
+            f"{row['others_cpu_share']:.0%} |"
+        )
+    met = "met" if report["goal_met"] else "NOT met"
+    cpu_per_record = series["web_cpu_ms_per_record"] + series["workers_cpu_ms_per_record"]
+    cores = report["machine"]["logical_cores"]
+    floor = cpu_per_record * series["records"] / 1000 / cores
+    lines += [
+        "",
+        f"Series over per record: p50 x{series['p50_ratio_vs_per_record']:.3f}, web CPU per "
+        f"record x{series['web_cpu_ratio_vs_per_record']:.2f}, workers' CPU per record "
+        f"x{series['workers_cpu_ratio_vs_per_record']:.2f}. The goal (p50 at most "
+        f"{report['goal_p50_s']:.0f} s on this 2-core machine) is **{met}**. Every answer "
+        f"counted {answers[0]['source_records']:,} records, {answers[0]['verified']:,} verified, "
+        f"{answers[0]['refused']} refused, in {answers[0]['points']} points. Load average at "
+        f"start {report['load_average_at_start']}, at end {report['load_average_at_end']} "
+        "(other engineers' test runs share the machine: see the others' share).\n",
+        f"The CPU a series spends, {cpu_per_record:.3f} ms per record (web and workers), puts "
+        f"a floor of {floor:.1f} s under its answer on {cores} cores with nothing else running "
+        "(the CPU divided by the cores; not measured here, as the machine was not idle).\n",
+        "![Series against per record](results/series.png)\n",
+    ]
+    return "\n".join(lines)
 
 
 def _section_soak(results: Path) -> str | None:

@@ -2,7 +2,7 @@
 
 One measured run: the stack `make run` starts (bench/stack.py: a fresh anvil, SQLite database,
 Redis DB 13 flushed, a chain worker with W pool processes, a verify worker, beat, and the
-portal under granian with make run's settings), without the ROS side. N robots are created
+portal under gunicorn with make run's settings), without the ROS side. N robots are created
 through the services before the timed part, spread round-robin over K owners (registered on
 chain first), and M envelopes each (seq 1..M, M = uploads_per_agent, 1 unless a benchmark asks
 for more) are sealed in advance. Then N agent threads, each with its own requests.Session, are
@@ -150,7 +150,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--web-workers",
         type=int,
         default=0,
-        help="web (granian) worker processes (default 0: sized as make run sizes them)",
+        help="web (gunicorn) worker processes (default 0: sized as make run sizes them)",
     )
     parser.add_argument(
         "--verifiers", type=int, default=4, help="threads opening anchored records (record_open)"
@@ -262,7 +262,7 @@ def report_header(name: str, args: argparse.Namespace, started: str) -> dict[str
     return {
         "benchmark": name,
         "date": started,
-        "machine": machine_info(("celery", "django", "granian", "requests", "web3", "redis")),
+        "machine": machine_info(("celery", "django", "gunicorn", "requests", "web3", "redis")),
         "anvil": anvil_version(),
         "load_average_at_start": [round(load, 2) for load in psutil.getloadavg()],
         "settings": {

@@ -3,7 +3,7 @@ paper's numbers for scale).
 
 For each ANCHOR_MODE (`records`, the paper's one slot per record and the baseline, and `root`,
 make run's default), each in its own process with a fresh `make run` stack (bench/stack.py,
-granian as make run serves it, anvil with automine):
+gunicorn as make run serves it, anvil with automine):
 
 - ingest: C clients (one robot each, robots round-robin over the owners) POST batches of 100
   sealed 1 KB envelopes to `/api/v1/records/` as fast as they are answered, for D seconds;
@@ -571,7 +571,7 @@ def _profiles(stack: BenchStack, client: Client, token: str, owner: Any) -> dict
     and the worker's check alone."""
     from django.test import Client as DjangoClient
 
-    from sharing.verification import record_verify
+    from sharing.verification import records_verify
 
     web = DjangoClient(HTTP_HOST="127.0.0.1")
     bodies = iter(client.bodies(2, BATCH))  # one to warm up with, one to profile: no replay
@@ -593,7 +593,7 @@ def _profiles(stack: BenchStack, client: Client, token: str, owner: Any) -> dict
                 f"/api/v1/records/{record_id}/content/", HTTP_AUTHORIZATION=f"Token {token}"
             ),
         ),
-        ("worker_check", lambda: record_verify(record_id=record_id, viewer_id=owner.pk)),
+        ("worker_check", lambda: records_verify(record_ids=[record_id], viewer_id=owner.pk)[0]),
     ):
         call()  # warm: the first call of each opens connections
         profiler = cProfile.Profile()

@@ -10,7 +10,7 @@ hold with signatures.
   sensor_msgs/Image (PNG-encoded by the extractor). Unsigned is a robot set up by hand (no
   pairing key), signed a paired one. Envelopes/s; each round measures every kind and variant,
   the order of the variants alternating by round; the figure is the median round's.
-- then one fresh `make run` stack (bench/stack.py: granian as make run serves it, anvil with
+- then one fresh `make run` stack (bench/stack.py: gunicorn as make run serves it, anvil with
   automine, ANCHOR_MODE=root, make run's), K owners registered on chain, each with robots
   added by hand (unsigned) and robots paired through the pairing services (the owner approves
   the request; the workers add each key on chain from the owner's EOA, and the benchmark waits
@@ -547,18 +547,18 @@ def _load_views(
 def _worker_checks(owner: Any, rows: dict[str, dict[str, Any]]) -> None:
     """The worker's check alone (record_verify, in this process), unsigned and signed records
     alternating, WORKER_CHECKS of each: milliseconds, and every verdict verified."""
-    from sharing.verification import record_verify
+    from sharing.verification import records_verify
 
     ids = {variant: _variant_ids(owner, variant, WORKER_CHECKS) for variant in VARIANTS}
     order = interleaved(ids["unsigned"], ids["signed"])
     for record_id in order[:4]:  # warm: the first calls open connections
-        record_verify(record_id=record_id, viewer_id=owner.pk)
+        records_verify(record_ids=[record_id], viewer_id=owner.pk)[0]
     times: list[float] = []
     outcomes: dict[str, set[str]] = {variant: set() for variant in VARIANTS}
     members = {variant: set(ids[variant]) for variant in VARIANTS}
     for record_id in order:
         started = time.perf_counter()
-        verification = record_verify(record_id=record_id, viewer_id=owner.pk)
+        verification = records_verify(record_ids=[record_id], viewer_id=owner.pk)[0]
         times.append((time.perf_counter() - started) * 1000)
         variant = next(name for name, pks in members.items() if record_id in pks)
         outcomes[variant].add(str(verification.verdict.outcome))

@@ -3,14 +3,14 @@
 The stack is `python -m stack run` WITH the ROS side (bench/stack.py, `ros=True`): roscore on a
 free port, `python -m ros_agent.sim` publishing at its real rates (odometry 10 Hz, a 58 KB image
 1 Hz) and the demo owner's agent uploading them, with make run's chain worker (2 processes),
-verify worker, beat, granian and anvil (automine, zero gas), ANCHOR_BATCH_MAX and
+verify worker, beat, gunicorn and anvil (automine, zero gas), ANCHOR_BATCH_MAX and
 ANCHOR_MAX_WAIT at the portal's defaults. Nothing else uploads. Every `--interval` seconds for
 `--minutes` it samples:
 - the records anchored, pending and failed (the stack's database, through this process's Django
   pointed at it by <workdir>/stack.json), and how many were uploaded in the minute before;
 - the anchoring latency p95 (nearest rank) of the records anchored since the previous sample
   (anchored_at - created_at);
-- the resident memory of every process of the stack (each with its children: granian's and
+- the resident memory of every process of the stack (each with its children: gunicorn's and
   Celery's pool workers);
 - the time of the demo owner's audit page and of the page of its latest anchored record (an
   integrity check against the chain), with a logged-in requests session.
@@ -143,7 +143,7 @@ def main(argv: list[str]) -> int:
     report: dict[str, Any] = {
         "benchmark": NAME,
         "date": now_iso(),
-        "machine": machine_info(("celery", "django", "granian", "requests", "web3", "redis")),
+        "machine": machine_info(("celery", "django", "gunicorn", "requests", "web3", "redis")),
         "anvil": anvil_version(),
         "load_average_at_start": [round(load, 2) for load in psutil.getloadavg()],
         "settings": {

@@ -1,7 +1,7 @@
 """One measured run's stack: `python -m stack run`, what `make run` execs, with its settings.
 
 Each run gets a fresh work folder (SQLite database, secrets, logs, anvil state), anvil on a
-free port (automine or a block time), the portal on a free port under granian exactly as
+free port (automine or a block time), the portal on a free port under gunicorn exactly as
 `make run` serves it, a chain worker with W pool processes, a verify worker and beat, all
 sharing a Redis database of the benchmark's own (flushed first); the ROS side only with
 StackOptions.ros (the soak: roscore on a free port, the simulated robot, the demo agent).

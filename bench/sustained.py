@@ -18,7 +18,7 @@ the paper's one transaction per record and the baseline, and 100, batching):
   its owner's API token (scope `read`: a robot token only uploads); the portal has a worker
   hash the stored ciphertext and compare it with the chain before it answers 200
   `{"verified": true}`;
-- CPU (percent of one core) and resident memory of the web (granian main process and workers), the
+- CPU (percent of one core) and resident memory of the web (gunicorn master and workers), the
   Celery workers (with their pool children), beat and anvil, sampled every second.
 
 Every configuration runs on each of `--engines` (default both): sqlite-disk, make run's SQLite

@@ -13,9 +13,11 @@ import json
 import logging
 import os
 import re
+import threading
 import time
 import uuid
 import weakref
+from collections import OrderedDict
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
@@ -46,6 +48,7 @@ from web3.middleware import ExtraDataToPOAMiddleware
 from web3.types import TxReceipt
 
 from chainworker.nonces import NonceLockTimeout, NonceStoreUnavailable, RedisNonceManager
+from core.metrics import chain_transaction_observed
 from smcrypto.sm3 import sm3_digest
 
 logger = logging.getLogger(__name__)
@@ -364,6 +367,7 @@ def connect(url: str, *, timeout: float = 10.0) -> Web3:
     raise ValueError(f"unsupported chain URL {url!r}: use http(s)://host:port")
 
 
+SENT_FUNCTIONS_KEPT = 4096
 # Connections kept to the node per process: a web process's threads and a worker's share them.
 RPC_POOL_SIZE = 32
 
@@ -446,6 +450,10 @@ class AuthROSChain:
         self._address: str | None = None
         self._contract: Any = None
         self._scoped_grants: dict[str, bool] = {}  # contract address -> has grantOf
+        # The contract function of each transaction this client sent lately, for the metrics
+        # of a receipt awaited without naming it (anchoring's).
+        self._sent_functions: OrderedDict[str, str] = OrderedDict()
+        self._sent_lock = threading.Lock()
         if contract_address:
             self.use_contract(contract_address)
 
@@ -990,6 +998,10 @@ class AuthROSChain:
         selector, inputs, _outputs = self._function_types[function]
         call = _Calldata(self.address, selector + abi_encode(inputs, args))
         tx_hash = self._send(sender, call, label=function, gas=gas)
+        with self._sent_lock:
+            self._sent_functions[tx_hash] = function
+            while len(self._sent_functions) > SENT_FUNCTIONS_KEPT:
+                self._sent_functions.popitem(last=False)
         if not wait:
             return tx_hash
         return self._result(self.wait_for_receipt(tx_hash, function=function))
@@ -1198,6 +1210,13 @@ class AuthROSChain:
         deadline = time.monotonic() + timeout
         with _translated_errors(function):
             receipt = self._receipt_poll(tx_hash, deadline, timeout)
+            with self._sent_lock:
+                sent_function = self._sent_functions.pop(tx_hash, None)
+            chain_transaction_observed(
+                function or sent_function,
+                ok=receipt["status"] == 1,
+                gas_used=int(receipt["gasUsed"]),
+            )
             if receipt["status"] != 1:
                 raise self._explain_failure(receipt, tx_hash, function)
             self._await_confirmations(receipt, tx_hash, deadline, timeout)

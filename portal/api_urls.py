@@ -1,7 +1,7 @@
 """Routes of the REST API (`/api/`): v1 for agents and owners, the schema and its docs."""
 
 from django.urls import include, path, re_path
-from drf_spectacular.views import SpectacularAPIView, SpectacularSwaggerView
+from drf_spectacular.views import SpectacularAPIView, SpectacularSwaggerSplitView
 
 from accounts.apis import RobotKeyApi, RobotPairingCollectApi, RobotPairingsApi, Sm2PublicKeyApi
 from core.api_errors import api_not_found
@@ -18,6 +18,7 @@ from sharing.apis import (
     RecordDetailApi,
     RecordProofApi,
     RecordsApi,
+    RecordSeriesApi,
 )
 
 v1 = [
@@ -30,6 +31,7 @@ v1 = [
     ),
     path("robot-key/", RobotKeyApi.as_view(), name="robot-key"),
     path("records/", RecordsApi.as_view(), name="records"),
+    path("records/series/", RecordSeriesApi.as_view(), name="records-series"),
     path("records/<str:record_id>/", RecordDetailApi.as_view(), name="record-detail"),
     path("records/<str:record_id>/content/", RecordContentApi.as_view(), name="record-content"),
     path("records/<str:record_id>/proof/", RecordProofApi.as_view(), name="record-proof"),
@@ -50,7 +52,8 @@ v1 = [
 urlpatterns = [
     path("v1/", include((v1, "api-v1"))),
     path("schema/", SpectacularAPIView.as_view(), name="api-schema"),
-    path("docs/", SpectacularSwaggerView.as_view(url_name="api-schema"), name="api-docs"),
+    # Its script is a file of its own (`?script`): the Content-Security-Policy runs no inline one.
+    path("docs/", SpectacularSwaggerSplitView.as_view(url_name="api-schema"), name="api-docs"),
     # Last: anything else under /api/ answers a JSON 404 (and is not redirected to a slash).
     re_path(r"^.*$", api_not_found),
 ]

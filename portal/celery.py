@@ -1,12 +1,23 @@
-"""The Celery application: broker and results in Redis, tasks in each app's tasks.py."""
+"""The Celery application: broker and results in Redis, tasks in each app's tasks.py.
+
+Its signals carry the web request's id into the tasks it queues (a message header, then the
+log context of the task's run: core/logging.py), count every finished task for /metrics
+(portal/metrics.py), and empty a worker's metrics folder as it starts (core/metrics.py).
+"""
 
 import logging
 import os
 import threading
+from contextlib import suppress
+from contextvars import Token
+from typing import Any
 
 from celery import Celery, signals
 from django.db import close_old_connections, connections
 
+from core.logging import current_request_id, log_context_reset, log_context_set
+from core.metrics import metrics_folder_reset
+from portal.metrics import task_observed
 from portal.middleware import service_checks_run
 
 os.environ.setdefault("DJANGO_SETTINGS_MODULE", "portal.settings")
@@ -16,7 +27,7 @@ logger = logging.getLogger(__name__)
 EXIT_MISCONFIGURED = 78
 
 # Tasks a person is waiting for, answered from the verify queue (see settings).
-VERIFY_TASKS = frozenset({"sharing.tasks.record_verify", "sharing.tasks.records_verify"})
+VERIFY_TASKS = frozenset({"sharing.tasks.records_verify"})
 
 
 def route_task(name, args, kwargs, options, task=None, **kw):
@@ -42,6 +53,51 @@ def task_connections_tidy(**kwargs: object) -> None:
     task = kwargs.get("task")
     if not getattr(getattr(task, "request", None), "is_eager", False):
         close_old_connections()
+
+
+# The message header that carries the id of the request (or task) that queued a task.
+REQUEST_ID_HEADER = "authros_request_id"
+_task_contexts: dict[str, Token] = {}
+
+
+@signals.before_task_publish.connect
+def task_request_id_attach(headers: dict[str, Any] | None = None, **kwargs: object) -> None:
+    """The id of the request (or the task) queueing this task goes with it."""
+    request_id = current_request_id()
+    if request_id is not None and headers is not None:
+        headers[REQUEST_ID_HEADER] = request_id
+
+
+@signals.task_prerun.connect
+def task_log_context_start(task_id: str = "", task: Any = None, **kwargs: object) -> None:
+    """Every line the task logs names it and the request that queued it."""
+    request = getattr(task, "request", None)
+    request_id = (
+        getattr(request, REQUEST_ID_HEADER, None)
+        or (getattr(request, "headers", None) or {}).get(REQUEST_ID_HEADER)
+        or current_request_id()  # a task run inline, in the request's own thread
+    )
+    _task_contexts[task_id] = log_context_set(
+        request_id=request_id, task=getattr(task, "name", None), task_id=task_id
+    )
+
+
+@signals.task_postrun.connect
+def task_finished(
+    task_id: str = "", task: Any = None, retval: Any = None, state: str = "", **kwargs: object
+) -> None:
+    task_observed(getattr(task, "name", "unknown"), state or "UNKNOWN", retval)
+    context = _task_contexts.pop(task_id, None)
+    if context is not None:
+        # A pool that ran the task in another context (threads) has nothing to reset here.
+        with suppress(ValueError):
+            log_context_reset(context)
+
+
+@signals.worker_init.connect
+def worker_metrics_folder_reset(**kwargs: object) -> None:
+    """The worker's main process, before it forks its pool: last run's counts go."""
+    metrics_folder_reset()
 
 
 @signals.worker_init.connect

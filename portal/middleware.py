@@ -1,4 +1,7 @@
-"""Refusing to serve while the portal's own configuration is wrong.
+"""Middleware of the portal: refusing to serve while its own configuration is wrong, and
+the Content-Security-Policy of every answer (portal.csp says what it allows and why).
+
+Refusing to serve while the portal's own configuration is wrong:
 
 The checks registered under accounts.apps.SERVICE_CHECKS (the master key is the one the owner
 keys were wrapped with, the operator key is the contract's admin) run on the first request of
@@ -22,6 +25,7 @@ from django.http import HttpRequest, HttpResponse, JsonResponse
 from django.template.loader import render_to_string
 
 from accounts.apps import SERVICE_CHECKS
+from portal.csp import content_security_policy
 
 logger = logging.getLogger(__name__)
 
@@ -121,3 +125,16 @@ def _refusal(request: HttpRequest, problems: list[str]) -> HttpResponse:
     # The operator message is logged once per check: Django would log each 503 at ERROR.
     response._has_been_logged = True  # type: ignore[attr-defined]
     return response
+
+
+class ContentSecurityPolicyMiddleware:
+    """The Content-Security-Policy (portal.csp) on every answer that sets none of its own."""
+
+    def __init__(self, get_response: Callable[[HttpRequest], HttpResponse]) -> None:
+        self.get_response = get_response
+        self.policy = content_security_policy()
+
+    def __call__(self, request: HttpRequest) -> HttpResponse:
+        response = self.get_response(request)
+        response.headers.setdefault("Content-Security-Policy", self.policy)
+        return response

@@ -6,12 +6,14 @@ are created on first use as 0600 files under AUTHROS_VAR_DIR, never in the datab
 """
 
 import os
+from datetime import timedelta
 from pathlib import Path
 
 import environ
 from django.core.exceptions import ImproperlyConfigured
 from kombu import Queue
 
+from core.logging import logging_config
 from core.redis_url import celery_redis, redis_target
 from core.secrets import load_or_create_secret
 from core.storage_url import envelope_storage_config
@@ -43,6 +45,22 @@ CSRF_COOKIE_SAMESITE = "Lax"
 X_FRAME_OPTIONS = "DENY"
 SECURE_CONTENT_TYPE_NOSNIFF = True
 SECURE_REFERRER_POLICY = "same-origin"
+# Content-Security-Policy of every response (portal.middleware.ContentSecurityPolicyMiddleware):
+# scripts and styles only from the portal's own static files (no inline script, no on*=
+# handler, no style attribute: the pages run SM2 on the owner's key), images also as data:
+# URLs (a record's verified image), no plugins, no <base>, no framing, forms only to the
+# portal. Violations are reported to CSP_REPORT_URL (portal.csp_reports).
+CSP_DIRECTIVES = {
+    "default-src": ["'self'"],
+    "script-src": ["'self'"],
+    "style-src": ["'self'"],
+    "img-src": ["'self'", "data:"],
+    "object-src": ["'none'"],
+    "base-uri": ["'none'"],
+    "frame-ancestors": ["'none'"],
+    "form-action": ["'self'"],
+}
+CSP_REPORT_URL = "/csp-report/"
 
 INSTALLED_APPS = [
     "django.contrib.admin",
@@ -62,7 +80,13 @@ INSTALLED_APPS = [
 ]
 
 MIDDLEWARE = [
+    # First: the probes (/healthz, /readyz, /metrics) are answered here, before any other
+    # middleware (no host check, session, redirect or service check); every other request gets
+    # its id, log context, access line and metrics.
+    "portal.request_context.RequestContextMiddleware",
     "django.middleware.security.SecurityMiddleware",
+    # The Content-Security-Policy header on every answer, the 503s and static files included.
+    "portal.middleware.ContentSecurityPolicyMiddleware",
     # Serves /static/ from the portal itself, so pages work without DEBUG and without a proxy.
     "whitenoise.middleware.WhiteNoiseMiddleware",
     # 503 for everything but /static/ while the portal's own secrets or operator key are wrong.
@@ -233,7 +257,7 @@ AXES_CLIENT_IP_CALLABLE = "accounts.views.client_ip_address"
 # --- Page rate limits (accounts.decorators.page_throttle) ---------------------------------
 # Per signed-in user, counted in Redis across web processes: "<count>/<second|minute|hour|day>"
 # (empty: no limit). Every page counts against PAGE_RATE_USER; pages that run an integrity
-# check (a record, its download, its trajectory) count their cost against PAGE_RATE_CONTENT.
+# check (a record, its download, a gallery page) count their cost against PAGE_RATE_CONTENT.
 PAGE_RATE_USER = env.str("PAGE_RATE_USER", default="600/minute")
 PAGE_RATE_CONTENT = env.str("PAGE_RATE_CONTENT", default="120/minute")
 
@@ -264,6 +288,8 @@ REST_FRAMEWORK = {
         "upload": env.str("API_RATE_UPLOAD", default="1200/minute"),
         # per client address: pairing requests and their polls (no credentials yet)
         "pairing": env.str("API_RATE_PAIRING", default="120/minute"),
+        # per client address: Content-Security-Policy violation reports (portal.csp_reports)
+        "csp_report": env.str("CSP_REPORT_RATE", default="30/minute"),
     },
     # Proxies in front of the portal; 0 = rate limits per peer address, ignoring a
     # client-supplied X-Forwarded-For. Behind one reverse proxy, 1.
@@ -290,19 +316,15 @@ SPECTACULAR_SETTINGS = {
 # Request bodies: the envelope limit plus base64 and JSON overhead.
 DATA_UPLOAD_MAX_MEMORY_SIZE = env.int("DATA_UPLOAD_MAX_MEMORY_SIZE", default=12 * 1024 * 1024)
 
-LOGGING = {
-    "version": 1,
-    "disable_existing_loggers": False,
-    "formatters": {
-        "plain": {"format": "%(asctime)s %(levelname)s %(name)s %(process)d %(message)s"},
-    },
-    "handlers": {"console": {"class": "logging.StreamHandler", "formatter": "plain"}},
-    "root": {"handlers": ["console"], "level": env.str("LOG_LEVEL", default="INFO")},
-    "loggers": {
-        "web3": {"level": "WARNING"},
-        "urllib3": {"level": "WARNING"},
-    },
-}
+# One JSON object per line (LOG_FORMAT=json, the default: production, the systemd units) or a
+# readable line (console: `make run` sets it unless LOG_FORMAT is given); core/logging.py.
+LOG_FORMAT = env.str("LOG_FORMAT", default="json")
+LOGGING = logging_config(log_format=LOG_FORMAT, level=env.str("LOG_LEVEL", default="INFO"))
+
+# --- Metrics (core/metrics.py, portal/probes.py, docs/operations.md) ---------------------
+# GET /metrics is free from this host; from anywhere else it needs `Authorization: Bearer
+# <METRICS_TOKEN>` (empty: refused from anywhere else). "Anywhere else" follows API_NUM_PROXIES.
+METRICS_TOKEN = env.str("METRICS_TOKEN", default="")
 
 # --- Celery (broker and results in Redis) ------------------------------------------------
 # Both in the URL forms of REDIS_URL; a Cluster cannot carry either (kombu has no Cluster
@@ -460,6 +482,10 @@ RETENTION_MAX_BATCHES = env.int("RETENTION_MAX_BATCHES", default=20)
 RETENTION_LOCK_TTL = env.float("RETENTION_LOCK_TTL", default=900.0)
 # How long a web request waits for the worker's integrity verdict.
 VERIFY_TIMEOUT = env.float("VERIFY_TIMEOUT", default=30.0)
+# Series (sharing/series.py, docs/api.md): the longest capture-time range one series covers,
+# and the most records it may check (every record in range is checked, none skipped).
+SERIES_MAX_RANGE = timedelta(seconds=env.int("SERIES_MAX_RANGE_SECONDS", default=6 * 3600))
+SERIES_MAX_RECORDS = env.int("SERIES_MAX_RECORDS", default=100_000)
 # Exports (sharing/exports.py, docs/export.md): records in one export at most, records checked
 # against the chain per run of the integrity check, and hours its files are kept.
 EXPORT_MAX_RECORDS = env.int("EXPORT_MAX_RECORDS", default=2_000_000)

@@ -6,6 +6,7 @@ from django.urls import include, path
 from django.views.generic import RedirectView
 
 from portal import views
+from portal.csp_reports import CspReportView
 
 # The API first: every robot upload and view is matched against these before the pages'.
 urlpatterns = [
@@ -13,6 +14,8 @@ urlpatterns = [
     path("", views.home, name="home"),
     path("dashboard/", views.dashboard, name="dashboard"),
     path("account/security/", views.security, name="security"),
+    # Where browsers report what the Content-Security-Policy blocked (settings.CSP_REPORT_URL).
+    path("csp-report/", CspReportView.as_view(), name="csp-report"),
     path("", include("accounts.urls")),
     path("", include("sharing.urls")),
     path("", include("alerts.urls")),

@@ -1,4 +1,4 @@
-"""WSGI entry point (granian portal.wsgi:application --interface wsgi)."""
+"""WSGI entry point (gunicorn portal.wsgi:application, stack/processes.py web_server)."""
 
 import gc
 import logging
@@ -40,7 +40,8 @@ def without_process_environment(
 ) -> Callable[[dict, Callable], Iterable[bytes]]:
     """app, given each request's environ without the variables of this process's environment.
 
-    granian, like CGI, starts every request's environ from a copy of the process's environment,
+    A server may start every request's environ from a copy of the process's environment (CGI
+    does, granian did; gunicorn does not, and this keeps it so whatever serves the portal),
     secrets included (DJANGO_SECRET_KEY, AUTHROS_MASTER_KEY, database and Redis URLs with their
     passwords). Django keeps the environ as request.META, which error reports print and any
     code can read: what a request carries is what the request and the server set. A process

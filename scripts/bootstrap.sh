@@ -54,20 +54,6 @@ install_python_packages() {
   fi
 }
 
-# The web server (granian, stack/processes.py) replaces its processes on a schedule, each with
-# a listening socket of its own: without this setting (Linux 5.14+) the connections waiting at
-# a process being replaced are reset instead of moving to another one.
-enable_tcp_migrate_req() {
-  local knob=/proc/sys/net/ipv4/tcp_migrate_req
-  [ -f $knob ] && [ "$(cat $knob)" != 1 ] || return 0
-  if [ "$(id -u)" = 0 ] && sysctl -q -w net.ipv4.tcp_migrate_req=1 >/dev/null 2>&1; then
-    log "set net.ipv4.tcp_migrate_req=1 (connections move to another web process when one is replaced)"
-  else
-    log "could not set net.ipv4.tcp_migrate_req=1: a web process being replaced may reset the connections waiting at it"
-  fi
-}
-
 install_debian_packages
 install_npm_packages
 install_python_packages
-enable_tcp_migrate_req

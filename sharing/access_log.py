@@ -1,31 +1,39 @@
-"""The access log as people read it: who viewed which record, when, the verdict, and with
-which credential; one page of it, or all of it as CSV.
+"""The access log as people read it: one line per access (a record page, a page of a gallery,
+a plot, an export, an operator's check), who made it, when, how many records it read, what
+their integrity checks found, and with which credential; one page of it, or all of it as CSV.
 
-The rows are the integrity verdicts every view leaves (sharing.models.Verdict), listed by
-sharing.selectors.verdict_list_access_log and verdict_list_filtered. The CSV is streamed in
-chunks read by keyset (time, id), so its memory does not grow with the log, and no cell can
-start a spreadsheet formula.
+The rows are sharing.models.Access, listed by sharing.selectors.access_list_access_log and
+access_list_filtered; each access's records' verdicts (the integrity trail, one per record and
+check) are summed per access in one query per page or chunk. The CSV is streamed in chunks read
+by keyset (time, id), so its memory does not grow with the log, and no cell can start a
+spreadsheet formula. The REST API (`/api/v1/access-log/`) lists the verdicts themselves.
 """
 
 import csv
+from collections import defaultdict
 from collections.abc import Iterable, Iterator
 from datetime import datetime
+from typing import TypeVar
 
 from django.core.paginator import Page, Paginator
-from django.db.models import Q, QuerySet
+from django.db.models import Count, Q, QuerySet
 
 from accounts.models import Owner
-from sharing.models import Verdict
+from sharing.models import Access, Verdict
 
 # Rows read from the database at a time while the CSV streams.
 CSV_CHUNK = 500
 # Characters a spreadsheet may take as the start of a formula (OWASP "CSV injection"); tab
 # and carriage return too, which some spreadsheets strip before looking.
 _FORMULA_STARTS = ("=", "+", "-", "@", "\t", "\r")
+_OUTCOME_LABELS = dict(Verdict.Outcome.choices)
+_Row = TypeVar("_Row", Access, Verdict)
 
 CSV_COLUMNS = [
     "id",
-    "viewed_at",
+    "accessed_at",
+    "kind",
+    "records",
     "viewer",
     "record_owner",
     "record",
@@ -36,47 +44,94 @@ CSV_COLUMNS = [
     "seq",
     "captured_at",
     "verdict",
+    "verified",
+    "refused",
     "credential",
     "token_name",
     "token_prefix",
     "operator",
-    "block",
 ]
 
 
-def credential_label(verdict: Verdict) -> str:
-    """The credential a view was made with, as the page and the CSV say it."""
-    if verdict.credential == Verdict.Credential.TOKEN:
-        token = verdict.token
+def credential_label(access: Access | Verdict) -> str:
+    """The credential an access (or a view) was made with, as the page and the CSV say it."""
+    if access.credential == Verdict.Credential.TOKEN:
+        token = access.token
         if token is None:  # another owner's token (access_log_redacted)
             return "owner API token"
         return f"owner API token “{token.name}” ({token.token_prefix}…)"
-    if verdict.credential == Verdict.Credential.OPERATOR:
-        operator = verdict.checked_by.get_username() if verdict.checked_by else "a former operator"
+    if access.credential == Verdict.Credential.OPERATOR:
+        operator = access.checked_by.get_username() if access.checked_by else "a former operator"
         return f"operator check in the admin ({operator})"
-    return verdict.get_credential_display()
+    return access.get_credential_display()
 
 
-def access_log_redacted(verdicts: Iterable[Verdict], *, reader: Owner) -> list[Verdict]:
+def access_log_redacted(rows: Iterable[_Row], *, reader: Owner) -> list[_Row]:
     """The rows as `reader` may see them: a grantee's own API token (its name and prefix) is
     the grantee's business; the record's owner learns only that a token was used. Changed
     in memory only."""
-    shown = list(verdicts)
-    for verdict in shown:
-        if verdict.token_id is not None and verdict.viewer_id != reader.pk:
-            verdict.token = None
+    shown = list(rows)
+    for row in shown:
+        if row.token_id is not None and row.viewer_id != reader.pk:
+            row.token = None
+    return shown
+
+
+def access_outcomes(accesses: list[Access]) -> list[Access]:
+    """Each access with `outcomes` (outcome -> how many of its records' checks found it) and
+    `outcome` (the one outcome when all agree, else "mixed"), in one query for all."""
+    counts: dict[int, dict[str, int]] = defaultdict(dict)
+    rows = (
+        Verdict.objects.filter(access_id__in=[access.pk for access in accesses])
+        .values_list("access_id", "outcome")
+        .annotate(n=Count("id"))
+        .order_by()
+    )
+    for access_id, outcome, n in rows:
+        counts[access_id][outcome] = n
+    for access in accesses:
+        access.outcomes = counts.get(access.pk, {})
+        access.outcome = next(iter(access.outcomes)) if len(access.outcomes) == 1 else "mixed"
+        access.verified = access.outcomes.get(Verdict.Outcome.VERIFIED, 0)
+        access.refused = sum(access.outcomes.values()) - access.verified
+    return accesses
+
+
+def access_summary(access: Access) -> str:
+    """What an access read, in words: "view", "page, 12 records", "plot, 18,000 records"."""
+    if access.count == 1 and access.kind in (Access.Kind.VIEW, Access.Kind.CHECK):
+        return access.get_kind_display()
+    return f"{access.get_kind_display()}, {access.count:,} record{'s' if access.count != 1 else ''}"
+
+
+def access_outcome_text(access: Access) -> str:
+    """The checks' outcomes: the one outcome's label, or each outcome with its count."""
+    if not access.outcomes:
+        return "not checked yet"
+    if access.count == 1 and len(access.outcomes) == 1:
+        return _OUTCOME_LABELS.get(access.outcome, access.outcome)
+    return ", ".join(
+        f"{n:,} {_OUTCOME_LABELS.get(outcome, outcome)}"
+        for outcome, n in sorted(access.outcomes.items(), key=lambda item: -item[1])
+    )
+
+
+def _rows(accesses: Iterable[Access], *, reader: Owner) -> list[Access]:
+    shown = access_outcomes(access_log_redacted(accesses, reader=reader))
+    for access in shown:
+        access.credential_text = credential_label(access)
+        access.summary = access_summary(access)
+        access.outcome_text = access_outcome_text(access)
     return shown
 
 
 def access_log_page(
-    verdicts: QuerySet[Verdict], *, reader: Owner, page: object, per_page: int
+    accesses: QuerySet[Access], *, reader: Owner, page: object, per_page: int
 ) -> Page:
     """One page of the log (a page past the last is the last, as Paginator.get_page gives
-    it), each row with its `credential_text`."""
-    found = Paginator(verdicts, per_page).get_page(page)
-    found.object_list = access_log_redacted(found.object_list, reader=reader)
-    for verdict in found.object_list:
-        verdict.credential_text = credential_label(verdict)
+    it), each row with its `credential_text`, `summary` and `outcome_text`."""
+    found = Paginator(accesses, per_page).get_page(page)
+    found.object_list = _rows(found.object_list, reader=reader)
     return found
 
 
@@ -90,46 +145,49 @@ def csv_cell(value: object) -> str:
     return text
 
 
-def access_log_csv_row(verdict: Verdict) -> list[str]:
-    record = verdict.record
+def access_log_csv_row(access: Access) -> list[str]:
+    record = access.record
     values = [
-        verdict.pk,
-        verdict.created_at,
-        verdict.viewer.username,
-        record.owner.username,
-        record.pk,
-        record.robot.name,
-        record.robot_id,
-        record.topic,
-        record.data_type,
-        record.seq,
-        record.captured_at,
-        verdict.outcome,
-        verdict.credential or "not_recorded",
-        verdict.token.name if verdict.token else "",
-        verdict.token.token_prefix if verdict.token else "",
-        verdict.checked_by.get_username() if verdict.checked_by else "",
-        verdict.block_number,
+        access.pk,
+        access.created_at,
+        access.kind,
+        access.count,
+        access.viewer.username,
+        access.record_owner.username,
+        record.pk if record else None,
+        access.robot.name if access.robot else None,
+        access.robot_id,
+        access.topic,
+        record.data_type if record else None,
+        record.seq if record else None,
+        record.captured_at if record else None,
+        access.outcome,
+        access.verified,
+        access.refused,
+        access.credential or "not_recorded",
+        access.token.name if access.token else "",
+        access.token.token_prefix if access.token else "",
+        access.checked_by.get_username() if access.checked_by else "",
     ]
     return [csv_cell(value) for value in values]
 
 
-def access_log_csv(verdicts: QuerySet[Verdict], *, reader: Owner) -> Iterator[str]:
+def access_log_csv(accesses: QuerySet[Access], *, reader: Owner) -> Iterator[str]:
     """The filtered log as CSV lines (a header first), newest first, read CSV_CHUNK rows at a
     time after the last one sent: no cursor held open between chunks, no OFFSET scans."""
     buffer = _Line()
     writer = csv.writer(buffer)
     writer.writerow(CSV_COLUMNS)
     yield buffer.take()
-    ordered = verdicts.order_by("-created_at", "-id")
+    ordered = accesses.order_by("-created_at", "-id")
     after: tuple[datetime, int] | None = None
     while True:
         chunk = ordered
         if after is not None:
             at, pk = after
             chunk = chunk.filter(Q(created_at__lt=at) | Q(created_at=at, id__lt=pk))
-        rows = access_log_redacted(chunk[:CSV_CHUNK], reader=reader)
-        writer.writerows(access_log_csv_row(verdict) for verdict in rows)
+        rows = _rows(chunk[:CSV_CHUNK], reader=reader)
+        writer.writerows(access_log_csv_row(access) for access in rows)
         if rows:
             yield buffer.take()
         if len(rows) < CSV_CHUNK:

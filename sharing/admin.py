@@ -17,8 +17,8 @@ from accounts.admin import ReadOnlyAdmin, admin_action_record
 from accounts.errors import IdentityMismatch
 from chainworker.chain import ChainError
 from sharing.anchoring import records_reanchor
-from sharing.models import Grant, Record, SecurityEvent, Verdict
-from sharing.verification import record_verify
+from sharing.models import Access, Grant, Record, SecurityEvent, Verdict
+from sharing.verification import records_verify
 
 # Re-verification runs in the admin's request: keep a selection small enough to answer.
 REVERIFY_MAX = 200
@@ -127,11 +127,14 @@ class RecordAdmin(ReadOnlyAdmin):
         outcomes: Counter[str] = Counter()
         tampered = []
         checked: list[Record] = []
-        for record in records:
+        # One check per owner (with that owner's rights), all the owner's records at once.
+        for owner_id, owned in _records_by_owner(records).items():
             try:
-                verdict = record_verify(
-                    record_id=record.pk, viewer_id=record.owner_id, checked_by_id=request.user.pk
-                ).verdict
+                verifications = records_verify(
+                    record_ids=[record.pk for record in owned],
+                    viewer_id=owner_id,
+                    checked_by_id=request.user.pk,
+                )
             except ChainError as exc:
                 self.message_user(
                     request,
@@ -142,12 +145,14 @@ class RecordAdmin(ReadOnlyAdmin):
                 break
             except IdentityMismatch as exc:
                 # The owner's commitment on chain differs: an account event is written.
-                self.message_user(request, f"Record {record.pk}: {exc}", messages.ERROR)
+                ids = ", ".join(str(record.pk) for record in owned)
+                self.message_user(request, f"Records {ids}: {exc}", messages.ERROR)
                 continue
-            checked.append(record)
-            outcomes[verdict.outcome] += 1
-            if verdict.outcome == Verdict.Outcome.TAMPERED:
-                tampered.append(str(record.pk))
+            checked += owned
+            for verification in verifications:
+                outcomes[verification.verdict.outcome] += 1
+                if verification.verdict.outcome == Verdict.Outcome.TAMPERED:
+                    tampered.append(str(verification.verdict.record_id))
         # Only verdicts are kept and shown: the envelope checked is never opened here.
         for owner_id, record_ids in _ids_by_owner((r.owner_id, r.pk) for r in checked).items():
             admin_action_record(
@@ -167,6 +172,13 @@ class RecordAdmin(ReadOnlyAdmin):
             )
         if tampered:
             self.message_user(request, f"TAMPERED: {', '.join(tampered)}", messages.ERROR)
+
+
+def _records_by_owner(records: Iterable[Record]) -> dict[int, list[Record]]:
+    grouped: dict[int, list[Record]] = defaultdict(list)
+    for record in records:
+        grouped[record.owner_id].append(record)
+    return grouped
 
 
 def _ids_by_owner(pairs: Iterable[tuple[int, uuid.UUID]]) -> dict[int, list[str]]:
@@ -199,6 +211,17 @@ class GrantAdmin(ReadOnlyAdmin):
     )
     list_select_related = ("owner__user", "grantee__user")
     readonly_fields = [f.name for f in Grant._meta.fields]
+
+
+@admin.register(Access)
+class AccessAdmin(ReadOnlyAdmin):
+    """The access log's lines (a page, a plot, an export...); their verdicts point to them."""
+
+    list_display = ("created_at", "kind", "count", "viewer", "record_owner", "credential")
+    list_filter = ("kind", "credential", "created_at")
+    search_fields = ("viewer__user__username", "record_owner__user__username", "topic")
+    list_select_related = ("viewer__user", "record_owner__user")
+    readonly_fields = [f.name for f in Access._meta.fields]
 
 
 @admin.register(Verdict)

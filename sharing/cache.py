@@ -214,10 +214,38 @@ def envelope_cache_evict(record_id: uuid.UUID | str) -> None:
 
 def envelope_fetch(record: Record) -> tuple[bytes, str]:
     """The record's envelope and where it came from ("cache" or "storage")."""
-    cached = envelope_cache_get(record.id)
-    if cached is not None:
-        return cached, "cache"
-    with envelope_storage().open(record.storage_name, "rb") as handle:
-        data = handle.read()
-    envelope_cache_put(record.id, data)
-    return data, "storage"
+    (fetched,) = envelopes_fetch([record])
+    if isinstance(fetched, FileNotFoundError):
+        raise fetched
+    return fetched
+
+
+def envelopes_fetch(
+    records: Sequence[Record],
+) -> list[tuple[bytes, str] | FileNotFoundError]:
+    """Each record's envelope and where it came from ("cache" or "storage"), or the
+    FileNotFoundError of one whose durable copy is gone: the cached ones in one round trip to
+    Redis (MGET), the others read from storage and cached in one more."""
+    cached: list[bytes | None] = [None] * len(records)
+    if records:
+        try:
+            cached = get_redis().mget([_key(record.id) for record in records])
+        except RedisError as exc:
+            logger.warning("envelope cache unavailable (get %d): %s", len(records), exc)
+    fetched: list[tuple[bytes, str] | FileNotFoundError] = []
+    stored: list[tuple[uuid.UUID, bytes]] = []
+    storage = envelope_storage()
+    for record, data in zip(records, cached, strict=True):
+        if data is not None:
+            fetched.append((data, "cache"))
+            continue
+        try:
+            with storage.open(record.storage_name, "rb") as handle:
+                data = handle.read()
+        except FileNotFoundError as exc:
+            fetched.append(exc)
+            continue
+        fetched.append((data, "storage"))
+        stored.append((record.id, data))
+    envelope_cache_put_many(stored)
+    return fetched

@@ -1,5 +1,5 @@
-"""How a decrypted ROS record is shown: the paper's Fig. 4 JSON, an image, odometry rows, and
-the trajectory plot of a topic's poses.
+"""How a decrypted ROS record is shown: the paper's Fig. 4 JSON, an image, odometry rows (plots
+are sharing/series.py's, drawn by static/portal/series-plot.js).
 
 Pure functions of the plaintext the integrity check let through: no request, no database.
 A verified record is still whatever its robot (or a thief of its key) sealed, so nothing here
@@ -13,9 +13,7 @@ import binascii
 import json
 import logging
 import math
-from collections.abc import Sequence
 from dataclasses import dataclass, field
-from datetime import UTC, datetime
 from typing import Any, TypeGuard
 
 logger = logging.getLogger(__name__)
@@ -34,12 +32,8 @@ MAX_DEPTH = 64
 RAW_SHOWN_BYTES = 64 * 1024
 # Characters of one text value in the odometry table.
 TEXT_SHOWN_CHARS = 200
-# Metres from the origin a plotted position may be: further is no robot's position.
-POSE_LIMIT = 1e9
 # Pixels an image's declared width or height may have to be used as the <img> size.
 IMAGE_SIDE_MAX = 100_000
-
-Pose = tuple[float, float, float | None]
 
 
 class Uninterpretable(ValueError):
@@ -181,103 +175,6 @@ def odometry_rows(data: object) -> list[tuple[str, str]]:
     ]
 
 
-def pose_of(plaintext: bytes) -> Pose | None:
-    """(x, y, yaw) of an odometry record's plaintext, or None if it has no plottable pose."""
-    try:
-        document = document_parse(plaintext)
-    except Uninterpretable:
-        return None
-    data = document.get("K") if isinstance(document, dict) else None
-    position = data.get("position") if isinstance(data, dict) else None
-    if not isinstance(position, dict):
-        return None
-    x, y = _coordinate(position.get("x")), _coordinate(position.get("y"))
-    if x is None or y is None:
-        return None
-    return x, y, _yaw(data.get("orientation"))
-
-
-def trajectory_plot(
-    poses: Sequence[Pose | None], *, times: Sequence[datetime] | None = None
-) -> dict[str, object]:
-    """Screen coordinates of the poses on a square-scaled plot (y up) with axes in metres and
-    the first and last capture times (`times`, one per pose, if given), for trajectory.svg.
-
-    Poses that cannot be plotted (None, a coordinate that is not a finite number within
-    POSE_LIMIT) are left out and counted as `skipped`.
-    """
-    width, height = PLOT_WIDTH, PLOT_HEIGHT
-    left, right, top, bottom = 64, 20, 40, 56
-    kept = [
-        (pose, times[index] if times is not None else None)
-        for index, pose in enumerate(map(_plottable, poses))
-        if pose is not None
-    ]
-    plotted = [pose for pose, _ in kept]
-    skipped = len(poses) - len(plotted)
-    if not plotted:
-        return {"width": width, "height": height, "points": "", "count": 0, "skipped": skipped}
-    xs, ys = [p[0] for p in plotted], [p[1] for p in plotted]
-    area_w, area_h = width - left - right, height - top - bottom
-    span = max(max(xs) - min(xs), max(ys) - min(ys), 0.5) * 1.1
-    scale = min(area_w, area_h) / span
-    cx, cy = (max(xs) + min(xs)) / 2, (max(ys) + min(ys)) / 2
-    mid_x, mid_y = left + area_w / 2, top + area_h / 2
-
-    def screen(x: float, y: float) -> tuple[float, float]:
-        return round(mid_x + (x - cx) * scale, 1), round(mid_y - (y - cy) * scale, 1)
-
-    points = [screen(x, y) for x, y, _ in plotted]
-    last_x, last_y, yaw = plotted[-1]
-    end = points[-1]
-    arrow = None
-    if yaw is not None:
-        arrow = (round(end[0] + 22 * math.cos(yaw), 1), round(end[1] - 22 * math.sin(yaw), 1))
-    shown_x = (cx - (area_w / 2) / scale, cx + (area_w / 2) / scale)
-    shown_y = (cy - (area_h / 2) / scale, cy + (area_h / 2) / scale)
-    plot: dict[str, object] = {
-        "width": width,
-        "height": height,
-        "points": " ".join(f"{x},{y}" for x, y in points),
-        "start": points[0],
-        "end": end,
-        "arrow": arrow,
-        "count": len(plotted),
-        "skipped": skipped,
-        "x_range": f"{min(xs):.2f} … {max(xs):.2f}",
-        "y_range": f"{min(ys):.2f} … {max(ys):.2f}",
-        "last": f"{last_x:.2f}, {last_y:.2f}",
-        "axes": {"left": left, "right": width - right, "top": top, "bottom": height - bottom},
-        "x_ticks": [(screen(t, cy)[0], label) for t, label in _ticks(*shown_x)],
-        "y_ticks": [(screen(cx, t)[1], label) for t, label in _ticks(*shown_y)],
-    }
-    first_time, last_time = kept[0][1], kept[-1][1]
-    if first_time is not None and last_time is not None:
-        plot["first_time"] = _plot_time(first_time)
-        plot["last_time"] = _plot_time(last_time)
-    return plot
-
-
-PLOT_WIDTH, PLOT_HEIGHT = 640, 480
-
-
-def _ticks(low: float, high: float, *, wanted: int = 5) -> list[tuple[float, str]]:
-    """Round axis values (1, 2 or 5 times a power of ten apart) within [low, high]."""
-    raw = (high - low) / wanted
-    power = 10 ** math.floor(math.log10(raw))
-    step = next(m * power for m in (1, 2, 5, 10) if m * power >= raw)
-    decimals = max(0, -math.floor(math.log10(step)))
-    first = math.ceil(low / step)
-    return [
-        (value, f"{value:.{decimals}f}")
-        for value in (n * step for n in range(first, math.floor(high / step) + 1))
-    ]
-
-
-def _plot_time(moment: datetime) -> str:
-    return moment.astimezone(UTC).strftime("%Y-%m-%d %H:%M:%S.%f")[:-3]
-
-
 # --- bounded parsing and formatting ------------------------------------------------------
 
 
@@ -300,19 +197,15 @@ def _no_constant(name: str) -> float:
 
 
 def _depth_exceeds(document: Any, limit: int) -> bool:
-    """Whether lists and dicts nest deeper than `limit` (walked without recursion)."""
-    stack = [(document, 1)]
+    """Whether lists and dicts nest deeper than `limit` (walked without recursion; only
+    containers are visited, so a long list of numbers costs one pass over it)."""
+    stack = [(document, 1)] if isinstance(document, dict | list) else []
     while stack:
         value, depth = stack.pop()
-        if isinstance(value, dict):
-            children = value.values()
-        elif isinstance(value, list):
-            children = value
-        else:
-            continue
         if depth > limit:
             return True
-        stack.extend((child, depth + 1) for child in children)
+        children = value.values() if isinstance(value, dict) else value
+        stack.extend((child, depth + 1) for child in children if isinstance(child, dict | list))
     return False
 
 
@@ -330,20 +223,6 @@ def _finite(value: object) -> float | None:
     except OverflowError:
         return None
     return number if math.isfinite(number) else None
-
-
-def _coordinate(value: object) -> float | None:
-    number = _finite(value)
-    return number if number is not None and abs(number) <= POSE_LIMIT else None
-
-
-def _plottable(pose: object) -> Pose | None:
-    if not isinstance(pose, tuple) or len(pose) != 3:
-        return None
-    x, y = _coordinate(pose[0]), _coordinate(pose[1])
-    if x is None or y is None:
-        return None
-    return x, y, _finite(pose[2])
 
 
 def _text(value: object) -> str:

@@ -122,6 +122,13 @@ class NotAnchoredYet(ViewRefused):
     http_status = 409
 
 
+class SeriesRefused(SharingError):
+    """A series that cannot be asked for (fields, points, a range too long or too full)."""
+
+    code = "invalid_series"
+    http_status = 400
+
+
 class RecordNotFound(SharingError):
     code = "not_found"
     http_status = 404

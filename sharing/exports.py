@@ -53,7 +53,7 @@ from sharing.errors import (
     SharingError,
 )
 from sharing.mcap_export import McapBuilder
-from sharing.models import Export, ExportRecord, Grant, Record, Verdict
+from sharing.models import Access, Export, ExportRecord, Grant, Record, Verdict
 from sharing.selection import (
     MAX_SELECTED_ROBOTS,
     MAX_SELECTED_TOPICS,
@@ -66,7 +66,7 @@ from sharing.selection import (
 )
 from sharing.selectors import export_of, grant_live, record_list_visible_to, record_proof
 from sharing.storage import envelope_storage, file_save
-from sharing.verification import record_key, records_verify
+from sharing.verification import OwnerRead, RecordKeys, accesses_open_for, records_verify
 from smcrypto import envelope as envelopes
 from smcrypto import provenance, sm2, sm4
 from smcrypto.errors import CryptoError
@@ -326,7 +326,15 @@ def _run(export: Export) -> None:
     client = chain_client()
     chain_id, contract = client.chain_id, client.address
     key = sm4.generate_key()
-    keys = _Keys()
+    keys = RecordKeys()
+    # The export is one line of the access log per record owner, its batches' verdicts under it.
+    accesses = accesses_open_for(
+        kind=Access.Kind.EXPORT,
+        viewer_id=export.requester.pk,
+        reads=_owner_reads(records),
+        credential=Verdict.Credential.UNKNOWN,
+        token_id=None,
+    )
     excluded: list[dict] = []
     exported = processed = 0
     mcap_name = f"authros-export-{str(export.pk)[:8]}.mcap"
@@ -339,7 +347,7 @@ def _run(export: Export) -> None:
         builder = McapBuilder(mcap)
         for batch in export_batches(records, settings.EXPORT_BATCH):
             inside: list[ExportRecord] = []
-            for record, checked, reason in _verified(batch, export.requester):
+            for record, checked, reason in _verified(batch, export.requester, accesses):
                 if reason:
                     excluded.append(_excluded(record, reason))
                     continue
@@ -413,11 +421,34 @@ def _lines(spool: IO[str]) -> Iterator[str]:
         yield line.rstrip("\n")
 
 
+def _owner_reads(records: QuerySet[Record]) -> list[OwnerRead]:
+    """What the export reads of each owner's records, counted in the database (the records
+    themselves are read batch by batch, never all at once)."""
+    reads = []
+    for owner_id in records.order_by().values_list("owner_id", flat=True).distinct():
+        theirs = records.filter(owner_id=owner_id).order_by()
+        count = theirs.count()
+        robots = list(theirs.values_list("robot_id", flat=True).distinct()[:2])
+        topics = list(theirs.values_list("topic", flat=True).distinct()[:2])
+        reads.append(
+            OwnerRead(
+                owner_id=owner_id,
+                count=count,
+                record=theirs.first() if count == 1 else None,
+                robot_id=robots[0] if len(robots) == 1 else None,
+                topic=topics[0] if len(topics) == 1 else None,
+            )
+        )
+    return reads
+
+
 def export_key_purpose(export_id: uuid.UUID | str) -> str:
     return f"export-key:{export_id}"
 
 
-def _verified(batch: Sequence[Record], requester: Owner) -> list[tuple[Record, bytes | None, str]]:
+def _verified(
+    batch: Sequence[Record], requester: Owner, accesses: dict[int, int]
+) -> list[tuple[Record, bytes | None, str]]:
     """Each record of the batch with the envelope the check let through, or why it did not:
     one run of the view's check for the whole batch."""
     unanchored = [record for record in batch if record.status != Record.Status.ANCHORED]
@@ -427,7 +458,9 @@ def _verified(batch: Sequence[Record], requester: Owner) -> list[tuple[Record, b
     }
     if wanted:
         try:
-            checked = records_verify(record_ids=[r.pk for r in wanted], viewer_id=requester.pk)
+            checked = records_verify(
+                record_ids=[r.pk for r in wanted], viewer_id=requester.pk, accesses=accesses
+            )
         except IdentityMismatch:
             checked = []
             answers.update({r.pk: (None, "identity_check_failed") for r in wanted})
@@ -438,21 +471,8 @@ def _verified(batch: Sequence[Record], requester: Owner) -> list[tuple[Record, b
     return [(record, *answers.get(record.pk, (None, "not_found"))) for record in batch]
 
 
-class _Keys:
-    """Owner keys by (owner, key id), unwrapped once per export."""
-
-    def __init__(self) -> None:
-        self._keys: dict[tuple[int, str], bytes] = {}
-
-    def of(self, record: Record) -> bytes:
-        wanted = (record.owner_id, record.key_id)
-        if wanted not in self._keys:
-            self._keys[wanted] = record_key(record)
-        return self._keys[wanted]
-
-
 def _exported(
-    record: Record, data: bytes, keys: _Keys, builder: McapBuilder, sequence: int
+    record: Record, data: bytes, keys: RecordKeys, builder: McapBuilder, sequence: int
 ) -> dict[str, object]:
     """Write the record's message into the MCAP file; its bundle entry but the proof."""
     header, plaintext = envelopes.open(keys.of(record), data)

@@ -54,7 +54,12 @@ def _period_field(label: str) -> forms.DateTimeField:
 
 class PeriodFilterForm(forms.Form):
     """A GET filter with a period: times are UTC, the range half-open, from `since`, before
-    `until` (as in the API). `filters()` gives the values given to the page's selector."""
+    `until` (as in the API). `filters()` gives the values given to the page's selector.
+
+    A filter that does not hold (a date the API refuses, a robot that is not the reader's, an
+    unknown sort key, an end before the start) is an error of its own field, and left out of
+    `filters()`: a list page shows what the other filters select, with `left_out()` saying
+    what was dropped and why."""
 
     since = _period_field("From (UTC)")
     until = _period_field("Before (UTC)")
@@ -63,14 +68,26 @@ class PeriodFilterForm(forms.Form):
         cleaned = super().clean()
         since, until = cleaned.get("since"), cleaned.get("until")
         if since and until and since > until:
-            raise ValidationError("The start of the time range is after its end.")
+            self.add_error("until", "The start of the time range is after its end.")
         return cleaned
 
     def filters(self) -> dict[str, Any]:
-        """The filters given, as the page's selector takes them; none while invalid."""
-        if not self.is_bound or not self.is_valid():
+        """The filters given that hold, as the page's selector takes them."""
+        if not self.is_bound:
             return {}
+        self.is_valid()
         return {name: value for name, value in self.cleaned_data.items() if value}
+
+    def left_out(self) -> str:
+        """What `filters()` dropped and why, for the page to say; empty when nothing was."""
+        if not self.is_bound or self.is_valid():
+            return ""
+        said = []
+        for name, errors in self.errors.items():
+            field = self.fields.get(name)
+            label = field.label or name.replace("_", " ").capitalize() if field else ""
+            said.append(f"{label}: {' '.join(errors)}" if label else " ".join(errors))
+        return "Left out of the filters, as they do not hold: " + "; ".join(said)
 
 
 def _sort_choices() -> list[tuple[str, str]]:
@@ -131,10 +148,11 @@ class RecordFilterForm(PeriodFilterForm):
         return {name: value for name, value in super().filters().items() if name != "sort"}
 
     def sort_order(self) -> str:
-        """The sort order asked for; the default while the form is invalid or says none."""
-        if self.is_bound and self.is_valid():
-            return self.cleaned_data["sort"] or RECORD_SORT_DEFAULT
-        return RECORD_SORT_DEFAULT
+        """The sort order asked for; the default when it is none or not one of RECORD_SORTS."""
+        if not self.is_bound:
+            return RECORD_SORT_DEFAULT
+        self.is_valid()
+        return self.cleaned_data.get("sort") or RECORD_SORT_DEFAULT
 
 
 class TopicRangeForm(PeriodFilterForm):

@@ -236,6 +236,70 @@ class Grant(models.Model):
         return "expired" if self.shown_status == "expired" else self.get_status_display()
 
 
+class Credential(models.TextChoices):
+    """Which credential of the viewer asked: the access log's "from which credential"."""
+
+    UNKNOWN = "", "not recorded"
+    SESSION = "session", "browser session"
+    TOKEN = "token", "owner API token"
+    OPERATOR = "operator", "operator check in the admin"
+
+
+class Access(models.Model):
+    """One access to records, as the owner's access log lists it: a record page or a content
+    answer (one record), a page of a gallery, a plot, an export, an operator's check; how many
+    records it read, and with which credential. Its records' integrity verdicts point to it:
+    they stay the trail of every check, this is the line a person reads. One row per record
+    owner the access read records of, so that each owner's log is one indexed range."""
+
+    class Kind(models.TextChoices):
+        VIEW = "view", "view"
+        PAGE = "page", "page"
+        PLOT = "plot", "plot"
+        EXPORT = "export", "export"
+        CHECK = "check", "operator check"
+
+    kind = models.CharField(max_length=16, choices=Kind.choices)
+    viewer = models.ForeignKey(Owner, on_delete=models.CASCADE, related_name="accesses")
+    record_owner = models.ForeignKey(
+        Owner, on_delete=models.CASCADE, related_name="accesses_received"
+    )
+    checked_by = models.ForeignKey(
+        settings.AUTH_USER_MODEL,
+        on_delete=models.SET_NULL,
+        null=True,
+        blank=True,
+        related_name="+",
+        help_text="the operator who ran this check; empty when the viewer viewed the records",
+    )
+    credential = models.CharField(
+        max_length=16, choices=Credential.choices, blank=True, default=Credential.UNKNOWN
+    )
+    token = models.ForeignKey(
+        OwnerToken, on_delete=models.SET_NULL, null=True, blank=True, related_name="accesses"
+    )
+    count = models.PositiveIntegerField(help_text="records of the owner this access read")
+    # The record when it read one; the robot and topic when all its records share them.
+    record = models.ForeignKey(
+        Record, on_delete=models.SET_NULL, null=True, blank=True, related_name="+"
+    )
+    robot = models.ForeignKey(
+        Robot, on_delete=models.SET_NULL, null=True, blank=True, related_name="+"
+    )
+    topic = models.CharField(max_length=255, blank=True)
+    created_at = models.DateTimeField(auto_now_add=True)
+
+    class Meta:
+        ordering = ["-created_at"]
+        indexes = [
+            models.Index(fields=["record_owner", "-created_at", "-id"], name="access_owner_time"),
+            models.Index(fields=["viewer", "-created_at", "-id"], name="access_viewer_time"),
+        ]
+
+    def __str__(self) -> str:
+        return f"{self.kind} of {self.count} record(s) of {self.record_owner} by {self.viewer}"
+
+
 class Verdict(models.Model):
     """The outcome of one integrity check at view time: the audit trail of who viewed what."""
 
@@ -250,11 +314,7 @@ class Verdict(models.Model):
         # registered key on chain at its anchoring (or was revoked before it): not genuine.
         SIGNATURE_REFUSED = "signature_refused", "signature not valid"
 
-    class Credential(models.TextChoices):
-        UNKNOWN = "", "not recorded"
-        SESSION = "session", "browser session"
-        TOKEN = "token", "owner API token"
-        OPERATOR = "operator", "operator check in the admin"
+    Credential = Credential
 
     record = models.ForeignKey(Record, on_delete=models.CASCADE, related_name="verdicts")
     viewer = models.ForeignKey(Owner, on_delete=models.CASCADE, related_name="verdicts")
@@ -283,6 +343,10 @@ class Verdict(models.Model):
     )
     record_owner = models.ForeignKey(
         Owner, on_delete=models.CASCADE, null=True, blank=True, related_name="verdicts_received"
+    )
+    # The access (a page, a plot...) the check was made for; empty on verdicts from before.
+    access = models.ForeignKey(
+        Access, on_delete=models.CASCADE, null=True, blank=True, related_name="verdicts"
     )
     computed_digest = models.CharField(max_length=64, blank=True)
     chain_digest = models.CharField(max_length=64, blank=True)

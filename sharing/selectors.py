@@ -4,13 +4,13 @@ import uuid
 from collections.abc import Iterable
 from datetime import datetime
 
-from django.db.models import F, Q, QuerySet, Window
+from django.db.models import Count, Exists, F, OuterRef, Q, QuerySet, Window
 from django.db.models.functions import RowNumber
 from django.utils import timezone
 
 from accounts.models import ChainActivity, Owner, OwnerToken, Robot
 from core.rows import FixedSelect
-from sharing.models import Export, Grant, Record, SecurityEvent, Verdict
+from sharing.models import Access, Export, Grant, Record, SecurityEvent, Verdict
 from sharing.selection import RecordSelection
 from smcrypto.merkle import path_split
 
@@ -154,47 +154,20 @@ def record_counts_of(owner: Owner) -> dict[str, int]:
     }
 
 
-def record_list_same_topic(record: Record, *, since: datetime, until: datetime) -> QuerySet[Record]:
-    """The records of the record's owner, topic and type captured in [since, until), oldest
-    first (over the index record_owner_topic_captured)."""
+def record_list_same_topic(
+    viewer: Owner, record: Record, *, since: datetime, until: datetime
+) -> QuerySet[Record]:
+    """The records of the record's robot, topic and type captured in [since, until) that
+    `viewer` may see (their own, or within a live grant's scope: nothing of another robot or
+    outside the grant's window), not deleted, oldest first (a gallery's images)."""
+    around = RecordSelection(
+        robots=(record.robot_id,), topics=(record.topic,), since=since, until=until
+    )
     return (
-        Record.objects.filter(
-            owner_id=record.owner_id,
-            topic=record.topic,
-            data_type=record.data_type,
-            captured_at__gte=since,
-            captured_at__lt=until,
-        )
-        .select_related("owner__user", "robot")
+        around.apply(record_list_visible_to(viewer))
+        .filter(data_type=record.data_type, deleted_at__isnull=True)
         .order_by("captured_at", "seq")
     )
-
-
-def record_topic_range(
-    record: Record, *, since: datetime, until: datetime, limit: int
-) -> tuple[list[Record], int]:
-    """The records of the record's owner and topic captured in [since, until), oldest first,
-    at most `limit` of them: when the range holds more, the first record of each of `limit`
-    equal slices of the range (a plot over time shows the time evenly). And how many the
-    range holds.
-
-    Bounded whatever the range holds: one count, then at most `limit` single-row reads, each
-    a seek in the index record_owner_topic_captured (measured: a window function numbering
-    25,000 rows took 0.8 s on SQLite, this about as many milliseconds as it reads rows).
-    """
-    in_range = record_list_same_topic(record, since=since, until=until)
-    total = in_range.count()
-    if total <= limit:
-        return list(in_range), total
-    span = (until - since) / limit
-    picked: dict[uuid.UUID, Record] = {}
-    for index in range(limit):
-        start = since + span * index
-        end = until if index == limit - 1 else start + span
-        first = record_list_same_topic(record, since=start, until=end).first()
-        if first is not None:
-            picked[first.pk] = first
-    return list(picked.values()), total
 
 
 def record_get_visible(viewer: Owner, record_id: uuid.UUID | str) -> Record | None:
@@ -268,25 +241,6 @@ def verdict_latest(record: Record, viewer: Owner) -> Verdict | None:
         .order_by("-created_at", "-pk")
         .first()
     )
-
-
-def record_topic_history(record: Record, *, limit: int, viewer: Owner) -> list[Record]:
-    """Up to `limit` records of the record's owner and topic, up to and with it, oldest first;
-    of those before it, only the ones `viewer` may see (record_list_visible_to)."""
-    earlier = (
-        record_list_visible_to(viewer)
-        .filter(
-            owner_id=record.owner_id,
-            topic=record.topic,
-            data_type=record.data_type,
-            captured_at__lte=record.captured_at,
-            deleted_at__isnull=True,
-        )
-        .exclude(pk=record.pk)
-        .select_related("owner")
-        .order_by("-captured_at", "-seq")[: max(limit - 1, 0)]
-    )
-    return [*reversed(list(earlier)), record]
 
 
 def record_deletion_text(record: Record) -> str:
@@ -461,6 +415,68 @@ def verdict_list_filtered(
     return verdicts
 
 
+def access_list_access_log(owner: Owner, *, direction: str) -> QuerySet[Access]:
+    """The owner's access log as people read it: one row per access (a record page, a gallery
+    page, a plot, an export, an operator's check), newest first, with everything a row shows
+    in the same query.
+
+    Incoming: every access to the owner's records (Access.record_owner, indexed with the time),
+    refused ones included. Outgoing: the owner's own accesses to other owners' records that
+    at least one record was granted for (one refused whole would show what a record the viewer
+    may not read is; an operator's checks are made with the record owner's rights, so they are
+    only ever incoming).
+    """
+    if direction == ACCESS_LOG_INCOMING:
+        accesses = Access.objects.filter(record_owner=owner)
+    elif direction == ACCESS_LOG_OUTGOING:
+        granted = Verdict.objects.filter(access=OuterRef("pk")).exclude(
+            outcome=Verdict.Outcome.NO_ACCESS
+        )
+        accesses = Access.objects.filter(
+            Exists(granted), viewer=owner, checked_by__isnull=True
+        ).exclude(record_owner=owner)
+    else:
+        raise ValueError(f"unknown access log direction {direction!r}")
+    return accesses.select_related(
+        "viewer__user", "record_owner__user", "record", "robot", "token", "checked_by"
+    ).order_by("-created_at", "-id")
+
+
+def access_list_filtered(
+    accesses: QuerySet[Access],
+    *,
+    viewer: str | None = None,
+    owner: str | None = None,
+    robot: uuid.UUID | str | None = None,
+    topic: str | None = None,
+    verdict: str | None = None,
+    credential: str | None = None,
+    since: datetime | None = None,
+    until: datetime | None = None,
+) -> QuerySet[Access]:
+    """The accesses that match every filter given (None or empty: not filtered), as
+    verdict_list_filtered for views: `robot` and `topic` those all its records share,
+    `verdict` an outcome of any of its records; access times half-open, [since, until)."""
+    if viewer:
+        accesses = accesses.filter(viewer__user__username=viewer)
+    if owner:
+        accesses = accesses.filter(record_owner__user__username=owner)
+    if robot:
+        accesses = accesses.filter(robot_id=robot)
+    if topic:
+        accesses = accesses.filter(topic=topic)
+    if verdict:
+        found = Verdict.objects.filter(access=OuterRef("pk"), outcome=verdict)
+        accesses = accesses.filter(Exists(found))
+    if credential:
+        accesses = accesses.filter(credential=credential)
+    if since is not None:
+        accesses = accesses.filter(created_at__gte=since)
+    if until is not None:
+        accesses = accesses.filter(created_at__lt=until)
+    return accesses
+
+
 def access_log_filter_choices(owner: Owner, *, direction: str) -> dict[str, QuerySet]:
     """What the access log's filters offer, each a small query run only when read: robots
     (id, name, owner's username), topics, and the usernames of the other side (the owner and
@@ -503,10 +519,6 @@ def export_of(owner: Owner, export_id: uuid.UUID | str) -> Export | None:
 _RECORD_TO_OPEN = FixedSelect(
     Record, related=("owner__user", "deleted_by"), where="t0.id = %s", params_of=("id",)
 )
-_RECORD_TO_CHECK = FixedSelect(
-    Record, related=("owner", "anchor_root"), where="t0.id = %s", params_of=("id",)
-)
-_VERDICT = FixedSelect(Verdict, where="t0.id = %s", params_of=("id",))
 
 
 def record_to_open(record_id: uuid.UUID) -> Record | None:
@@ -514,12 +526,23 @@ def record_to_open(record_id: uuid.UUID) -> Record | None:
     return _RECORD_TO_OPEN.fetch_one(record_id)
 
 
-def record_to_check(record_id: uuid.UUID | str) -> Record:
-    """The record the worker checks, with its owner and its Merkle root, if it has one;
-    Record.DoesNotExist if there is none."""
-    return _RECORD_TO_CHECK.get(uuid.UUID(str(record_id)))
+def record_oldest_pending_since() -> datetime | None:
+    """When the oldest record still waiting for anchoring was stored (the metrics' backlog
+    age); one row of the (status, created_at) index."""
+    return (
+        Record.objects.filter(status=Record.Status.PENDING)
+        .order_by("created_at")
+        .values_list("created_at", flat=True)
+        .first()
+    )
 
 
-def verdict_by_id(verdict_id: int) -> Verdict:
-    """A verdict the worker just wrote; Verdict.DoesNotExist if it is not there."""
-    return _VERDICT.get(verdict_id)
+def export_counts_unfinished() -> dict[str, int]:
+    """Exports queued and running, by status (the metrics)."""
+    unfinished = [Export.Status.QUEUED, Export.Status.RUNNING]
+    counts = dict.fromkeys(unfinished, 0)
+    rows = (
+        Export.objects.filter(status__in=unfinished).values_list("status").annotate(n=Count("id"))
+    )
+    counts.update(dict(rows))
+    return {str(status): count for status, count in counts.items()}

@@ -65,23 +65,22 @@ VERIFY_TASK = {
 }
 
 
-# `credential` and `token_id` came later: messages queued without them still run.
-@shared_task(name="sharing.tasks.record_verify", **VERIFY_TASK)
-def record_verify(
-    record_id: str, viewer_id: int, credential: str = "", token_id: int | None = None
-) -> dict[str, Any]:
-    checked = verification.record_verify(
-        record_id=record_id, viewer_id=viewer_id, credential=credential, token_id=token_id
-    )
-    return verification.verification_answer(checked)
-
-
+# One task for any number of records (a record page is one); `accesses` maps record owner ids
+# (as text: JSON) to the Access the web process opened for a read sent in several batches.
 @shared_task(name="sharing.tasks.records_verify", **VERIFY_TASK)
 def records_verify(
-    record_ids: list[str], viewer_id: int, credential: str = "", token_id: int | None = None
+    record_ids: list[str],
+    viewer_id: int,
+    credential: str = "",
+    token_id: int | None = None,
+    accesses: dict[str, int] | None = None,
 ) -> list[dict[str, Any]]:
     checked = verification.records_verify(
-        record_ids=record_ids, viewer_id=viewer_id, credential=credential, token_id=token_id
+        record_ids=record_ids,
+        viewer_id=viewer_id,
+        credential=credential,
+        token_id=token_id,
+        accesses=None if accesses is None else {int(k): v for k, v in accesses.items()},
     )
     return [verification.verification_answer(one) for one in checked]
 

@@ -9,16 +9,6 @@ urlpatterns = [
     path("shared/", views.shared_records, name="shared"),
     path("records/<uuid:record_id>/", views.record_detail, name="record-detail"),
     path("records/<uuid:record_id>/raw.json", views.record_raw, name="record-raw"),
-    path(
-        "records/<uuid:record_id>/trajectory.svg",
-        views.record_trajectory,
-        name="record-trajectory",
-    ),
-    path(
-        "records/<uuid:record_id>/plot.svg",
-        views.record_trajectory_range,
-        name="record-trajectory-range",
-    ),
     path("records/<uuid:record_id>/gallery/", views.record_gallery, name="record-gallery"),
     path("records/<uuid:record_id>/delete/", views.record_delete_view, name="record-delete"),
     path("records/delete/", views.records_delete_view, name="records-delete"),

@@ -1,22 +1,31 @@
-"""The integrity check at view time, and reading a record's content through it.
+"""The integrity check at view time, and reading records' content through it: one path for
+any number of records, the single record being N = 1.
 
-The worker runs `record_verify`: access on chain, one fetch of the stored envelope (Redis
-cache, else durable storage), one SM3 hash, compared with the digest on chain; it leaves a
-Verdict and hands back the bytes it checked. The web process (`record_open`) decrypts those
-very bytes, and only when the verdict is `verified`; a refusal carries its record and verdict.
-Several records for one viewer (a trajectory) are checked in one run, `records_verify`.
+The worker runs `records_verify` for a batch of records of one viewer: one chain head, one grant
+check per record owner (access first, so that a viewer without access learns nothing, not
+even that a record was deleted), the owner's identity check once, then per record one fetch of
+the stored envelope (Redis cache, else durable storage) and one SM3 hash, compared with the
+chain: one `rootOf` per distinct Merkle root (the records of one tree share it), `robotKeyOf`
+once per signer; every verdict is written in one bulk INSERT and points to its Access (the line
+the owner's access log shows: a page, a plot, an export...). It hands back the bytes it
+checked. The web process (`records_open`, and `record_open` for one record) writes the Access,
+sends the records in batches of VERIFY_BATCH (so that a plot of 18,000 records is checked by
+every verify worker side by side) and decrypts those very bytes, only where the verdict is
+`verified`; a refusal carries its record and verdict.
 """
 
 import base64
-import dataclasses
 import logging
 import uuid
+from collections import defaultdict
 from collections.abc import Sequence
 from contextlib import suppress
 from dataclasses import dataclass
+from datetime import datetime
 from typing import Any
 
 from django.conf import settings
+from django.db.models import Prefetch
 from django.utils import timezone
 from redis.exceptions import RedisError
 
@@ -25,10 +34,10 @@ from accounts.identity import owner_identity_check
 from accounts.models import Owner, OwnerKey, OwnerToken
 from accounts.selectors import owner_key_by_id, owner_key_bytes, owner_key_current
 from alerts.services import record_tampered_alert
-from chainworker.chain import AuthROSChain, RobotKeyOnChain
+from chainworker.chain import AuthROSChain, OnChainRoot, RobotKeyOnChain
 from chainworker.services import chain_client, chain_head
 from core.outbox import dispatch
-from sharing.cache import envelope_cache_evict, envelope_fetch
+from sharing.cache import envelope_cache_evict, envelopes_fetch
 from sharing.errors import (
     AccessDenied,
     IntegrityCheckFailed,
@@ -38,25 +47,20 @@ from sharing.errors import (
     SharingError,
     VerificationUnavailable,
 )
-from sharing.models import Grant, Record, SecurityEvent, Verdict
+from sharing.models import Access, AnchorRoot, Grant, Record, SecurityEvent, Verdict
 from sharing.roots import record_path
 from sharing.scope import scope_commitment
-from sharing.selectors import (
-    grant_live,
-    record_deletion_text,
-    record_to_check,
-    record_to_open,
-    record_topic_history,
-    verdict_by_id,
-)
+from sharing.selectors import grant_live, record_deletion_text, record_to_open
 from smcrypto import envelope, provenance, sm3
 from smcrypto.merkle import leaf_hash, proof_holds
 
 logger = logging.getLogger(__name__)
 security_log = logging.getLogger("authros.security")
 
-VERIFY_TASK = "sharing.tasks.record_verify"
-VERIFY_MANY_TASK = "sharing.tasks.records_verify"
+VERIFY_TASK = "sharing.tasks.records_verify"
+# Records per task: a bigger read is sent as several tasks at once, which the verify workers
+# take side by side; each answer holds its batch's envelopes (about 1 KB each for odometry).
+VERIFY_BATCH = 1000
 
 
 # --- the check, in the worker ------------------------------------------------------------------
@@ -68,50 +72,37 @@ class Verification:
     envelope: bytes | None  # the bytes that were checked; only when verified
 
 
-def record_verify(
-    *,
-    record_id: uuid.UUID | str,
-    viewer_id: int,
-    checked_by_id: int | None = None,
-    credential: str = Verdict.Credential.UNKNOWN,
-    token_id: int | None = None,
-) -> Verification:
-    """Check access on chain and the stored envelope's SM3 digest against the chain.
+class _ChainReads:
+    """What one run of checks reads from the chain, each asked once in the run: the grant per
+    record owner, the owner's identity, `rootOf` per tree and `robotKeyOf` per signer."""
 
-    Every check leaves a Verdict: the audit trail of who viewed what, when, and the chain's
-    head then (as last seen by the portal, at most IDENTITY_BLOCK_CACHE_SECONDS old).
-    `checked_by_id` names the operator running the check with the viewer's rights (the admin
-    console's re-verify), so that it is not recorded as the viewer's own view. `credential`
-    and `token_id` say which credential of the viewer asked (the access log's "from which
-    credential"); an operator's check is always `operator`.
-    """
-    if checked_by_id is not None:
-        credential, token_id = Verdict.Credential.OPERATOR, None
-    _credential_check(credential, token_id)
-    record = record_to_check(record_id)
-    viewer = Owner.objects.get(pk=viewer_id)
-    client = chain_client()
-    block = chain_head(client)
+    def __init__(self, client: AuthROSChain) -> None:
+        self.client = client
+        self.grants: dict[int, Grant | None] = {}
+        self.identified: set[int] = set()
+        self.roots: dict[tuple[str, str], OnChainRoot | None] = {}
+        self.robot_keys: dict[str, RobotKeyOnChain] = {}
 
-    def verdict(outcome: str, **fields: object) -> Verdict:
-        return Verdict.objects.create(
-            record=record,
-            viewer=viewer,
-            checked_by_id=checked_by_id,
-            record_owner_id=record.owner_id,
-            credential=credential,
-            token_id=token_id,
-            outcome=outcome,
-            block_number=_verdict_block(block, record),
-            **fields,
-        )
+    def grant(self, record: Record, viewer: Owner) -> Grant | None:
+        if record.owner_id not in self.grants:
+            self.grants[record.owner_id] = _grant_checked(record, viewer, self.client)
+        return self.grants[record.owner_id]
 
-    if not _may_view_identified(record, viewer, client):
-        return Verification(verdict(Verdict.Outcome.NO_ACCESS), None)
-    if record.is_deleted:
-        return Verification(verdict(Verdict.Outcome.DELETED), None)
-    fields, data = _digest_check(record, viewer, client)
-    return Verification(verdict(**fields), data)
+    def identify(self, owner: Owner) -> None:
+        """The owner's identity check (IdentityMismatch if it fails), once per run."""
+        if owner.pk not in self.identified:
+            owner_identity_check(owner=owner)
+            self.identified.add(owner.pk)
+
+    def root_of(self, sender: str, root: str) -> OnChainRoot | None:
+        if (sender, root) not in self.roots:
+            self.roots[sender, root] = self.client.root_of(sender, bytes.fromhex(root))
+        return self.roots[sender, root]
+
+    def robot_key_of(self, signer: str) -> RobotKeyOnChain:
+        if signer not in self.robot_keys:
+            self.robot_keys[signer] = self.client.robot_key_of(bytes.fromhex(signer))
+        return self.robot_keys[signer]
 
 
 def records_verify(
@@ -120,43 +111,54 @@ def records_verify(
     viewer_id: int,
     credential: str = Verdict.Credential.UNKNOWN,
     token_id: int | None = None,
+    checked_by_id: int | None = None,
+    kind: str | None = None,
+    accesses: dict[int, int] | None = None,
 ) -> list[Verification]:
-    """record_verify for several records of one viewer in one run (a trajectory's poses).
+    """Check access on chain and each stored envelope's SM3 digest against the chain, for the
+    records of one viewer; one Verification per record that exists, in the order asked.
 
-    One chain head, one access check per record owner, one digest read on chain per record,
-    and every verdict written in one INSERT. One Verification per record that exists, in the
-    order asked.
+    Per record, in this order: access (the owner, or a grant live in the portal and on chain
+    that covers it: otherwise `no_access`, whatever else holds), deleted, the owner's identity
+    (IdentityMismatch), then the stored envelope against the chain and its robot signature.
+    Every check leaves a Verdict (the trail of who viewed what, when, and the chain's head
+    then, as last seen by the portal), all in one INSERT, each pointing to its Access:
+    `accesses` (record owner id -> Access id) when the web process opened them for a read it
+    split into batches, else opened here, of `kind` (by default a view of one record, a page
+    of several, an operator's check). `checked_by_id` names the operator running the check with
+    the viewer's rights (the admin console's re-verify), recorded as `operator`, never as the
+    viewer's own view; `credential` and `token_id` say which credential of the viewer asked.
     """
+    if checked_by_id is not None:
+        credential, token_id = Verdict.Credential.OPERATOR, None
     _credential_check(credential, token_id)
     wanted = [uuid.UUID(str(record_id)) for record_id in record_ids]
-    # The robot too: a signed record's check reads its public key.
-    found = Record.objects.select_related("owner", "anchor_root", "robot").in_bulk(wanted)
+    # Owners, robots (a signed record's check reads its key) and trees read once each, not
+    # once per record: the records of one tree share them (a tree's leaves are not read).
+    found = Record.objects.prefetch_related(
+        "owner", "robot", Prefetch("anchor_root", AnchorRoot.objects.defer("leaves"))
+    ).in_bulk(wanted)
     records = [found[record_id] for record_id in wanted if record_id in found]
     viewer = Owner.objects.get(pk=viewer_id)
-    client = chain_client()
-    block = chain_head(client)
-    grants: dict[int, Grant | None] = {}  # per owner: the grant checked on chain, if it holds
-    robot_keys: dict[str, RobotKeyOnChain] = {}  # per signer: robotKeyOf, asked once
-    identified: set[int] = set()
-    checked: list[tuple[dict[str, object], bytes | None]] = []
-    for record in records:
-        if record.owner_id not in grants:
-            grants[record.owner_id] = _grant_checked(record, viewer, client)
-        grant = grants[record.owner_id]
-        if grant is not None and _in_scope(grant, record) and record.is_deleted:
-            checked.append(({"outcome": Verdict.Outcome.DELETED}, None))
-        elif grant is not None and _in_scope(grant, record):
-            if record.owner_id not in identified:
-                owner_identity_check(owner=record.owner)
-                identified.add(record.owner_id)
-            checked.append(_digest_check(record, viewer, client, robot_keys))
-        else:
-            checked.append(({"outcome": Verdict.Outcome.NO_ACCESS}, None))
+    reads = _ChainReads(chain_client())
+    block = chain_head(reads.client)
+    checked = _records_check(records, viewer, reads)
+    if accesses is None:  # opened once the checks ran: a check that raised leaves no line
+        accesses = accesses_open(
+            kind=kind or _kind_of(len(records), checked_by_id),
+            viewer_id=viewer_id,
+            records=records,
+            credential=credential,
+            token_id=token_id,
+            checked_by_id=checked_by_id,
+        )
     verdicts = Verdict.objects.bulk_create(
         Verdict(
             record=record,
             viewer=viewer,
+            checked_by_id=checked_by_id,
             record_owner_id=record.owner_id,
+            access_id=accesses.get(record.owner_id),
             credential=credential,
             token_id=token_id,
             block_number=_verdict_block(block, record),
@@ -167,6 +169,115 @@ def records_verify(
     return [
         Verification(verdict, data)
         for verdict, (_fields, data) in zip(verdicts, checked, strict=True)
+    ]
+
+
+def _kind_of(count: int, checked_by_id: int | None) -> str:
+    if checked_by_id is not None:
+        return Access.Kind.CHECK
+    return Access.Kind.VIEW if count == 1 else Access.Kind.PAGE
+
+
+def accesses_open(
+    *,
+    kind: str,
+    viewer_id: int,
+    records: Sequence[Record],
+    credential: str,
+    token_id: int | None,
+    checked_by_id: int | None = None,
+) -> dict[int, int]:
+    """The access log's line for a read of these records: one Access per record owner (so that
+    each owner's log is one range), naming how many of the owner's records it read, the record
+    when it is one, the robot and topic when they all share them. Record owner id -> Access id."""
+    by_owner: dict[int, list[Record]] = defaultdict(list)
+    for record in records:
+        by_owner[record.owner_id].append(record)
+    reads = [
+        OwnerRead(
+            owner_id=owner_id,
+            count=len(owned),
+            record=owned[0] if len(owned) == 1 else None,
+            robot_id=_shared({record.robot_id for record in owned}),
+            topic=_shared({record.topic for record in owned}),
+        )
+        for owner_id, owned in by_owner.items()
+    ]
+    return accesses_open_for(
+        kind=kind,
+        viewer_id=viewer_id,
+        reads=reads,
+        credential=credential,
+        token_id=token_id,
+        checked_by_id=checked_by_id,
+    )
+
+
+@dataclass(frozen=True)
+class OwnerRead:
+    """What one read takes of one owner's records: how many, the record when it is one, the
+    robot and the topic when they all share them (an export counts them in the database)."""
+
+    owner_id: int
+    count: int
+    record: Record | None
+    robot_id: uuid.UUID | None
+    topic: str | None
+
+
+def accesses_open_for(
+    *,
+    kind: str,
+    viewer_id: int,
+    reads: Sequence[OwnerRead],
+    credential: str,
+    token_id: int | None,
+    checked_by_id: int | None = None,
+) -> dict[int, int]:
+    """accesses_open for reads already summed up per owner. Record owner id -> Access id."""
+    rows = [
+        Access(
+            kind=kind,
+            viewer_id=viewer_id,
+            record_owner_id=read.owner_id,
+            checked_by_id=checked_by_id,
+            credential=credential,
+            token_id=token_id,
+            count=read.count,
+            record=read.record,
+            robot_id=read.robot_id,
+            topic=read.topic or "",
+        )
+        for read in reads
+    ]
+    return {row.record_owner_id: row.pk for row in Access.objects.bulk_create(rows)}
+
+
+def _shared(values: set[Any]) -> Any:
+    return next(iter(values)) if len(values) == 1 else None
+
+
+def _records_check(
+    records: Sequence[Record], viewer: Owner, reads: _ChainReads
+) -> list[tuple[dict[str, object], bytes | None]]:
+    """Each record's verdict fields, and the bytes checked when it is verified: access, then
+    deleted, then the owner's identity; the envelopes of those left fetched at once, then
+    each checked against the chain."""
+    checked: list[tuple[dict[str, object], bytes | None] | None] = []
+    for record in records:
+        grant = reads.grant(record, viewer)
+        if grant is None or not _in_scope(grant, record):
+            checked.append(({"outcome": Verdict.Outcome.NO_ACCESS}, None))
+        elif record.is_deleted:
+            checked.append(({"outcome": Verdict.Outcome.DELETED}, None))
+        else:
+            reads.identify(record.owner)
+            checked.append(None)
+    to_fetch = [record for record, done in zip(records, checked, strict=True) if done is None]
+    fetched = iter(envelopes_fetch(to_fetch))
+    return [
+        done if done is not None else _digest_check(record, viewer, reads, next(fetched))
+        for record, done in zip(records, checked, strict=True)
     ]
 
 
@@ -187,16 +298,13 @@ def _verdict_block(head: int, record: Record) -> int:
 def _digest_check(
     record: Record,
     viewer: Owner,
-    client: AuthROSChain,
-    robot_keys: dict[str, RobotKeyOnChain] | None = None,
+    reads: _ChainReads,
+    fetched: tuple[bytes, str] | FileNotFoundError,
 ) -> tuple[dict[str, object], bytes | None]:
-    """The stored envelope's SM3 digest against the chain's, then its robot signature: the
-    verdict's fields, and the bytes checked when both hold. `robot_keys` keeps the chain's
-    answer per signer across the records of one run."""
-    fields, data = _anchored_check(record, viewer, client)
-    if data is None or _provenance_holds(
-        record, data, client, {} if robot_keys is None else robot_keys
-    ):
+    """The stored envelope (as envelopes_fetch found it)'s SM3 digest against the chain's, then
+    its robot signature: the verdict's fields, and the bytes checked when both hold."""
+    fields, data = _anchored_check(record, viewer, reads, fetched)
+    if data is None or _provenance_holds(record, data, reads):
         return fields, data
     security_log.error(
         "record %s is anchored but its robot signature does not hold (signer %r)",
@@ -206,9 +314,7 @@ def _digest_check(
     return {**fields, "outcome": Verdict.Outcome.SIGNATURE_REFUSED}, None
 
 
-def _provenance_holds(
-    record: Record, data: bytes, client: AuthROSChain, robot_keys: dict[str, RobotKeyOnChain]
-) -> bool:
+def _provenance_holds(record: Record, data: bytes, reads: _ChainReads) -> bool:
     """DESIGN.md "Provenance": the anchored envelope names the signer the record was stored
     with; a signed record's key is its owner's on chain (robotKeyOf), added at or before the
     record's anchoring block and not revoked by then, hashes to `signer`, and its signature
@@ -220,9 +326,7 @@ def _provenance_holds(
         return False
     if not signer:
         return True
-    if signer not in robot_keys:
-        robot_keys[signer] = client.robot_key_of(bytes.fromhex(signer))
-    on_chain = robot_keys[signer]
+    on_chain = reads.robot_key_of(signer)
     public_key = record.robot.public_key
     return (
         on_chain.owner is not None
@@ -257,13 +361,14 @@ def record_signature(record: Record, data: bytes, client: AuthROSChain) -> dict[
 
 
 def _anchored_check(
-    record: Record, viewer: Owner, client: AuthROSChain
+    record: Record,
+    viewer: Owner,
+    reads: _ChainReads,
+    fetched: tuple[bytes, str] | FileNotFoundError,
 ) -> tuple[dict[str, object], bytes | None]:
     """The stored envelope's SM3 digest against the chain's: the verdict's fields, and the
     bytes checked when they match."""
-    try:
-        data, source = envelope_fetch(record)
-    except FileNotFoundError:
+    if isinstance(fetched, FileNotFoundError):
         if Record.objects.filter(pk=record.pk, deleted_at__isnull=False).exists():
             # Deleted while this check ran: its ciphertext was removed on purpose.
             return {"outcome": Verdict.Outcome.DELETED, "source": "storage"}, None
@@ -271,10 +376,11 @@ def _anchored_check(
         # hashes to the digest the chain holds.
         _record_tampered(record, viewer, source="storage", computed="missing", chain="")
         return {"outcome": Verdict.Outcome.TAMPERED, "source": "storage"}, None
+    data, source = fetched
     computed = sm3.sm3_hex(data)
     if record.anchor_root_id is not None:
-        return _proof_check(record, viewer, client, data=data, source=source, computed=computed)
-    on_chain = client.data_query(record.id)
+        return _proof_check(record, viewer, reads, data=data, source=source, computed=computed)
+    on_chain = reads.client.data_query(record.id)
     if on_chain is None:
         fields = {"computed_digest": computed, "source": source}
         return {"outcome": Verdict.Outcome.NOT_ANCHORED_YET, **fields}, None
@@ -289,7 +395,7 @@ def _anchored_check(
 def _proof_check(
     record: Record,
     viewer: Owner,
-    client: AuthROSChain,
+    reads: _ChainReads,
     *,
     data: bytes,
     source: str,
@@ -297,10 +403,10 @@ def _proof_check(
 ) -> tuple[dict[str, object], bytes | None]:
     """Root mode: the record's leaf (owner, id, the stored envelope's SM3) folded up its audit
     path must give its tree's root, which the owner's account anchored with the same size:
-    one eth_call (rootOf), no per-record storage on chain."""
+    one eth_call (rootOf) per tree in a run, no per-record storage on chain."""
     tree = record.anchor_root
     fields = {"computed_digest": computed, "source": source}
-    on_chain = client.root_of(tree.sender, bytes.fromhex(tree.root))
+    on_chain = reads.root_of(tree.sender, tree.root)
     if on_chain is None:
         return {"outcome": Verdict.Outcome.NOT_ANCHORED_YET, **fields}, None
     # The digest the portal stored is the one its tree holds iff the stored proof folds to
@@ -324,31 +430,20 @@ def _proof_check(
     return {"outcome": Verdict.Outcome.VERIFIED, **fields}, data
 
 
+# The verdict's fields the worker hands back, so that the web process needs no read of them.
+_ANSWERED = ("outcome", "computed_digest", "chain_digest", "source", "block_number")
+
+
 def verification_answer(verification: Verification) -> dict[str, Any]:
     """What the worker hands back to the view (JSON through the result backend)."""
-    data = verification.envelope
+    verdict, data = verification.verdict, verification.envelope
     return {
-        "record_id": str(verification.verdict.record_id),
-        "verdict_id": verification.verdict.pk,
-        "outcome": verification.verdict.outcome,
+        "record_id": str(verdict.record_id),
+        "verdict_id": verdict.pk,
+        **{name: getattr(verdict, name) for name in _ANSWERED},
+        "created_at": verdict.created_at.isoformat(),
         "envelope": base64.b64encode(data).decode("ascii") if data is not None else None,
     }
-
-
-def _may_view_identified(record: Record, viewer: Owner, client: AuthROSChain) -> bool:
-    """_may_view, and for a viewer who may, the identity check of the record's owner: a
-    commitment on chain that is not the key the portal holds raises IdentityMismatch."""
-    if not _may_view(record, viewer, client):
-        return False
-    owner_identity_check(owner=record.owner)
-    return True
-
-
-def _may_view(record: Record, viewer: Owner, client: AuthROSChain) -> bool:
-    """The owner, or a grantee whose grant is live in the portal and on chain, with the same
-    terms in both, and covers the record."""
-    grant = _grant_checked(record, viewer, client)
-    return grant is not None and _in_scope(grant, record)
 
 
 # The owner's own records need no grant: _grant_checked answers this for the owner.
@@ -426,84 +521,95 @@ class OpenedRecord:
     header: dict
     plaintext: bytes
     envelope: bytes  # the bytes the worker checked against the chain
-    # With record_open(earlier=n): the earlier records of its topic, oldest first.
-    earlier: list["OpenedRecord | SharingError"] = dataclasses.field(default_factory=list)
 
 
 def record_open(
     *,
     record_id: uuid.UUID | str,
     viewer: Owner,
-    earlier: int = 0,
     credential: str = Verdict.Credential.UNKNOWN,
     token: OwnerToken | None = None,
 ) -> OpenedRecord:
-    """Have the worker check the record, then decrypt what it checked.
+    """records_open of one record (a record page, a content answer), by its id.
 
-    With `earlier`, up to that many earlier records of its topic (record_topic_history) are
-    checked in the same run and opened into `OpenedRecord.earlier`: a trajectory is one
-    check, not one per pose. `credential` (and `token`, an owner API token's) is the
-    viewer's credential that asked, kept on the verdicts for the access log.
-
-    Raises RecordNotFound, VerificationUnavailable, RecordDeleted (with the record: its
-    ciphertext is gone, nothing is checked), or (with the record and the verdict attached)
-    AccessDenied, IntegrityCheckFailed or NotAnchoredYet.
+    Raises RecordNotFound, VerificationUnavailable, or (with the record and the verdict
+    attached) AccessDenied, RecordDeleted, IntegrityCheckFailed or NotAnchoredYet.
     """
-    _credential_check(credential, _token_id(token))
     try:
         record = record_to_open(uuid.UUID(str(record_id)))
     except ValueError:
         record = None
     if record is None:
         raise RecordNotFound("no such record")
-    if record.is_deleted:
-        raise _deleted(record)
-    if earlier <= 0:
-        pending = _send(VERIFY_TASK, str(record.pk), viewer.pk, credential, _token_id(token))
-        # While the worker checks: the record's key, looked up and unwrapped meanwhile.
-        key = _record_key_early(record)
-        return _opened(record, viewer, pending, key)
-    *before, own = record_open_many(
-        records=record_topic_history(record, limit=earlier + 1, viewer=viewer),
+    (opened,) = records_open(
+        records=[record],
         viewer=viewer,
+        kind=Access.Kind.VIEW,
         credential=credential,
         token=token,
     )
-    if isinstance(own, SharingError):
-        raise own
-    return dataclasses.replace(own, earlier=before)
+    if isinstance(opened, SharingError):
+        raise opened
+    return opened
 
 
-def record_open_many(
+def records_open(
     *,
     records: Sequence[Record],
     viewer: Owner,
-    credential: str = Verdict.Credential.UNKNOWN,
+    kind: str,
+    credential: str,
     token: OwnerToken | None = None,
 ) -> list[OpenedRecord | SharingError]:
-    """record_open for several records at once, in one check on the worker
-    (`records_verify`). One result per record, in order: the opened record, or the
-    SharingError record_open would have raised."""
-    _credential_check(credential, _token_id(token))
+    """Have the worker check the records, then decrypt what it checked: one Access of `kind`
+    (per record owner) in the access log, the records sent in batches of VERIFY_BATCH all at
+    once, the keys unwrapped while the worker checks. One result per record, in order: the
+    opened record, or the SharingError that refuses it (VerificationUnavailable for each of a
+    batch the worker could not answer). `credential` (and `token`, an owner API token's) is
+    the viewer's credential that asked. IdentityMismatch is raised as the worker raised it."""
+    token_id = _token_id(token)
+    _credential_check(credential, token_id)
     if not records:
         return []
-    ids = [str(record.pk) for record in records]
-    pending = _send(VERIFY_MANY_TASK, ids, viewer.pk, credential, _token_id(token))
-    try:
-        answers = _await_answer(pending, f"{len(records)} records", viewer)
-    except VerificationUnavailable as exc:
-        return [VerificationUnavailable(str(exc)) for _ in records]
-    by_record = {answer["record_id"]: answer for answer in answers}
-    verdicts = Verdict.objects.in_bulk([answer["verdict_id"] for answer in answers])
+    accesses = accesses_open(
+        kind=kind,
+        viewer_id=viewer.pk,
+        records=records,
+        credential=credential,
+        token_id=token_id,
+    )
+    sent_accesses = {str(owner_id): access_id for owner_id, access_id in accesses.items()}
+    batches = [records[at : at + VERIFY_BATCH] for at in range(0, len(records), VERIFY_BATCH)]
+    pending = [
+        _send(
+            VERIFY_TASK,
+            [str(record.pk) for record in batch],
+            viewer.pk,
+            credential,
+            token_id,
+            sent_accesses,
+        )
+        for batch in batches
+    ]
+    keys = RecordKeys()
+    keys.warm(records)  # while the worker checks
     results: list[OpenedRecord | SharingError] = []
-    for record in records:
-        answer = by_record.get(str(record.pk))
+    for batch, sent in zip(batches, pending, strict=True):
         try:
-            if answer is None:  # deleted meanwhile
-                raise RecordNotFound("no such record")
-            results.append(_decrypted(record, verdicts[answer["verdict_id"]], _envelope_of(answer)))
-        except SharingError as exc:
-            results.append(exc)
+            answers = _await_answer(sent, f"{len(batch)} records", viewer)
+        except VerificationUnavailable as exc:
+            results += [VerificationUnavailable(str(exc)) for _ in batch]
+            continue
+        by_record = {answer["record_id"]: answer for answer in answers}
+        for record in batch:
+            answer = by_record.get(str(record.pk))
+            try:
+                if answer is None:  # gone meanwhile
+                    raise RecordNotFound("no such record")
+                verdict = _verdict_of(answer, record, viewer)
+                results.append(_decrypted(record, verdict, _envelope_of(answer), keys))
+            except SharingError as exc:
+                results.append(exc)
     return results
 
 
@@ -526,9 +632,16 @@ def _send(task_name: str, *args: Any) -> Any:
         return exc
 
 
-def _opened(record: Record, viewer: Owner, pending: Any, key: bytes | None) -> OpenedRecord:
-    answer = _await_answer(pending, str(record.pk), viewer)
-    return _decrypted(record, verdict_by_id(answer["verdict_id"]), _envelope_of(answer), key=key)
+def _verdict_of(answer: dict[str, Any], record: Record, viewer: Owner) -> Verdict:
+    """The verdict the worker wrote, as it answered it (not read back)."""
+    return Verdict(
+        pk=answer["verdict_id"],
+        record=record,
+        viewer=viewer,
+        record_owner_id=record.owner_id,
+        created_at=datetime.fromisoformat(answer["created_at"]),
+        **{name: answer[name] for name in _ANSWERED},
+    )
 
 
 def record_key(record: Record) -> bytes:
@@ -539,24 +652,35 @@ def record_key(record: Record) -> bytes:
     return owner_key_bytes(key)
 
 
-def _record_key_early(record: Record) -> bytes | None:
-    """record_key while the worker checks; None if it fails now (the check's verdict
-    comes first: _decrypted asks again only for a record it may show)."""
-    try:
-        return record_key(record)
-    except OwnerKey.DoesNotExist:  # reported where the record is opened, as before
-        return None
+class RecordKeys:
+    """The SM4 keys of records, unwrapped once per (owner, key id) for a read or an export."""
+
+    def __init__(self) -> None:
+        self._keys: dict[tuple[int, str], bytes] = {}
+
+    def of(self, record: Record) -> bytes:
+        wanted = (record.owner_id, record.key_id)
+        if wanted not in self._keys:
+            self._keys[wanted] = record_key(record)
+        return self._keys[wanted]
+
+    def warm(self, records: Sequence[Record]) -> None:
+        """Unwrap the records' keys now; one that fails is reported where a record that may
+        be shown is opened (the check's verdict comes first)."""
+        for record in records:
+            with suppress(OwnerKey.DoesNotExist):
+                self.of(record)
 
 
 def _decrypted(
-    record: Record, verdict: Verdict, data: bytes | None, *, key: bytes | None = None
+    record: Record, verdict: Verdict, data: bytes | None, keys: RecordKeys
 ) -> OpenedRecord:
     """The record decrypted from the bytes the worker checked, if its verdict allows."""
     if verdict.outcome == Verdict.Outcome.NO_ACCESS:
         raise AccessDenied("you have no live grant to this record", record=record, verdict=verdict)
     if verdict.outcome == Verdict.Outcome.DELETED:
         record.refresh_from_db()
-        raise _deleted(record, verdict)
+        raise RecordDeleted(record_deletion_text(record), record=record, verdict=verdict)
     if verdict.outcome == Verdict.Outcome.TAMPERED:
         raise IntegrityCheckFailed(
             "the stored data differs from the digest on chain", record=record, verdict=verdict
@@ -572,12 +696,8 @@ def _decrypted(
         raise NotAnchoredYet(
             "the record is not anchored on chain yet", record=record, verdict=verdict
         )
-    header, plaintext = envelope.open(key if key is not None else record_key(record), data)
+    header, plaintext = envelope.open(keys.of(record), data)
     return OpenedRecord(record, verdict, header, plaintext, data)
-
-
-def _deleted(record: Record, verdict: Verdict | None = None) -> RecordDeleted:
-    return RecordDeleted(record_deletion_text(record), record=record, verdict=verdict)
 
 
 def _await_answer(pending: Any, what: str, viewer: Owner) -> Any:

@@ -1,9 +1,10 @@
 """Owner pages of the sharing app: my data, shared with me, a record, grants, audit.
 
-A record's content is only ever shown through `record_open`: the worker checks access and
-the stored ciphertext's SM3 digest against the chain, and the content is decrypted only
-when the verdict is `verified`. The verdict is shown first, with its HTTP status. How the
-content is shown is sharing/content.py; the audit trail's entries are sharing/audit.py.
+A record's content is only ever shown through `records_open` (`record_open` for one): the
+worker checks access and the stored ciphertext's SM3 digest against the chain, and the
+content is decrypted only when the verdict is `verified`. The verdict is shown first, with
+its HTTP status. How the content is shown is sharing/content.py; the audit trail's entries
+are sharing/audit.py.
 """
 
 import re
@@ -19,7 +20,6 @@ from django.db.models import QuerySet
 from django.http import Http404, HttpRequest, HttpResponse, JsonResponse, StreamingHttpResponse
 from django.shortcuts import redirect, render
 from django.utils import timezone
-from django.utils.http import urlencode
 from django.views.decorators.cache import never_cache
 from django.views.decorators.http import require_GET, require_http_methods, require_POST
 
@@ -30,7 +30,7 @@ from accounts.selectors import owner_by_identifier, owner_token_of, robot_list_o
 from accounts.services.api_tokens import owner_token_revoke
 from sharing.access_log import access_log_csv, access_log_page
 from sharing.audit import audit_page_of_owner
-from sharing.content import IMAGE_TYPES, ODOMETRY, content_of, pose_of, trajectory_plot
+from sharing.content import IMAGE_TYPES, content_of
 from sharing.deletion import (
     account_delete,
     record_delete,
@@ -66,13 +66,16 @@ from sharing.forms import (
     ExportForm,
     GrantForm,
     GrantRevokeForm,
+    PeriodFilterForm,
     RecordDeleteSelectionForm,
     RecordFilterForm,
     TopicRangeForm,
 )
-from sharing.models import Grant, Record, Verdict
+from sharing.models import Access, Grant, Record, Verdict
 from sharing.selectors import (
     ACCESS_LOG_DIRECTIONS,
+    access_list_access_log,
+    access_list_filtered,
     access_log_filter_choices,
     export_list_of,
     grant_list_given,
@@ -88,11 +91,9 @@ from sharing.selectors import (
     record_list_same_topic,
     record_list_shared_with,
     record_list_sorted,
-    record_topic_range,
     robots_visible_to,
-    verdict_list_access_log,
-    verdict_list_filtered,
 )
+from sharing.series import DEFAULT_POINTS
 from sharing.services import (
     grant_create,
     grant_revoke,
@@ -101,22 +102,14 @@ from sharing.services import (
     grants_revoke_made_with,
     owner_resolve,
 )
-from sharing.verification import OpenedRecord, record_open, record_open_many
+from sharing.verification import OpenedRecord, record_open, records_open
 
 RECORDS_PER_PAGE = 25
 AUDIT_ENTRIES_PER_PAGE = 50
 ACCESS_LOG_PER_PAGE = 50
-# Poses on a trajectory plot: the record and the ones before it on its topic, each one
-# integrity-checked like any other view.
-TRAJECTORY_POINTS = 20
-# What a trajectory counts against PAGE_RATE_CONTENT, in single record checks: its poses are
-# checked in one batched run (one task, one block, one access check per owner), so it costs
-# the worker less than TRAJECTORY_POINTS single views but more than one.
-TRAJECTORY_COST = 5
-# Poses on the plot of a chosen time range: a longer range is thinned out evenly to this many
-# (each one integrity-checked), so that a plot costs the worker a bounded amount.
-RANGE_PLOT_POINTS = 100
-RANGE_PLOT_COST = 20
+# The trajectory on an odometry record's page: every record of its robot's topic this long
+# before and after it (the range form chooses another), each checked (sharing/series.py).
+PLOT_AROUND = timedelta(minutes=1)
 # Images on one page of a topic's gallery, each integrity-checked in one batched run.
 GALLERY_PER_PAGE = 12
 GALLERY_COST = 6
@@ -154,10 +147,7 @@ def _record_list(request: HttpRequest, records: QuerySet[Record], *, shared: boo
         "total": records.filter(deleted_at__isnull=True).count(),
         "granting": owners_granting(request.owner).select_related("user") if shared else None,
     }
-    if form.is_bound and not form.is_valid():
-        # Nothing listed under filters that do not hold: the errors say what to change.
-        context["filters_invalid"] = True
-        return render(request, "sharing/records.html", context, status=400)
+    _say_left_out(request, form)
     filtered = record_list_sorted(
         record_list_filtered(records, **form.filters()), form.sort_order()
     )
@@ -166,6 +156,12 @@ def _record_list(request: HttpRequest, records: QuerySet[Record], *, shared: boo
     page = Paginator(filtered, RECORDS_PER_PAGE).get_page(request.GET.get("page"))
     context["page"] = page
     return render(request, "sharing/records.html", context)
+
+
+def _say_left_out(request: HttpRequest, form: PeriodFilterForm) -> None:
+    """A list page answers with the filters that hold; this says which were left out."""
+    if said := form.left_out():
+        messages.warning(request, said)
 
 
 # --- one record ----------------------------------------------------------------------------
@@ -182,15 +178,10 @@ class Refusal:
     verdict: Verdict | None = None
 
 
-def _open_or_refuse(
-    request: HttpRequest, record_id: str, *, earlier: int = 0
-) -> OpenedRecord | Refusal:
+def _open_or_refuse(request: HttpRequest, record_id: str) -> OpenedRecord | Refusal:
     try:
         return record_open(
-            record_id=record_id,
-            viewer=request.owner,
-            earlier=earlier,
-            credential=Verdict.Credential.SESSION,
+            record_id=record_id, viewer=request.owner, credential=Verdict.Credential.SESSION
         )
     except RecordNotFound as exc:
         return Refusal("not_found", 404, str(exc))
@@ -238,14 +229,28 @@ def record_detail(request: HttpRequest, record_id: str) -> HttpResponse:
         "content": content,
         "ros_seq": content.ros_seq,
         "is_own": record.owner_id == request.owner.pk,
-        "range_points": RANGE_PLOT_POINTS,
     }
     if content.is_odometry:
-        form = TopicRangeForm(_range_given(request) or None)
-        context["range_form"] = form if form.is_bound else _range_form_around(record)
-        if form.is_bound and form.is_valid():
-            context["plot_query"] = urlencode(form.data)
+        context.update(_plot_of(request, record))
     return no_store(render(request, "sharing/record_detail.html", context))
+
+
+def _plot_of(request: HttpRequest, record: Record) -> dict[str, object]:
+    """The range form and the range the page's trajectory plot (static/portal/series-plot.js,
+    from the series API) covers: the one asked for, else PLOT_AROUND either side."""
+    form = TopicRangeForm(_range_given(request) or None)
+    if form.is_bound and form.is_valid():
+        since, until = form.cleaned_data["since"], form.cleaned_data["until"]
+    else:
+        since, until = record.captured_at - PLOT_AROUND, record.captured_at + PLOT_AROUND
+    if not form.is_bound:
+        form = _range_form_around(record)
+    return {
+        "range_form": form,
+        "plot_since": since,
+        "plot_until": until,
+        "plot_points": DEFAULT_POINTS,
+    }
 
 
 def _range_given(request: HttpRequest) -> dict[str, str]:
@@ -382,62 +387,6 @@ def record_raw(request: HttpRequest, record_id: str) -> HttpResponse:
     return no_store(response)
 
 
-@owner_required
-@page_throttle("content", cost=TRAJECTORY_COST)
-@require_GET
-def record_trajectory(request: HttpRequest, record_id: str) -> HttpResponse:
-    """An SVG plot of the poses on an odometry record's topic, the last TRAJECTORY_POINTS up
-    to this record (record_trajectory_range: over a chosen time range)."""
-    # Every earlier pose is checked against the chain too, in the same one check.
-    opened = _open_or_refuse(request, str(record_id), earlier=TRAJECTORY_POINTS - 1)
-    if isinstance(opened, Refusal):
-        return _plain_refusal(opened.message, opened.status)
-    if opened.record.data_type != ODOMETRY:
-        raise Http404("only odometry records have a trajectory")
-    return _trajectory_svg(request, opened.record, [*opened.earlier, opened], in_range=None)
-
-
-@owner_required
-@page_throttle("content", cost=RANGE_PLOT_COST)
-@require_GET
-def record_trajectory_range(request: HttpRequest, record_id: str) -> HttpResponse:
-    """An SVG plot, with axes and times, of the poses on an odometry record's topic captured
-    in [since, until): at most RANGE_PLOT_POINTS, evenly spread, each integrity-checked."""
-    record = record_get_visible(request.owner, record_id)
-    if record is None:
-        return _plain_refusal("no such record, or no access to it", 404)
-    if record.data_type != ODOMETRY:
-        raise Http404("only odometry records have a trajectory")
-    form = TopicRangeForm(_range_given(request))
-    if not form.is_valid():
-        errors = "; ".join(error for errors in form.errors.values() for error in errors)
-        return _plain_refusal(f"bad time range: {errors}", 400)
-    since, until = form.cleaned_data["since"], form.cleaned_data["until"]
-    records, total = record_topic_range(record, since=since, until=until, limit=RANGE_PLOT_POINTS)
-    results = record_open_many(records=records, viewer=request.owner)
-    return _trajectory_svg(request, record, results, in_range=(since, until, total))
-
-
-def _trajectory_svg(
-    request: HttpRequest,
-    record: Record,
-    results: list[OpenedRecord | SharingError],
-    *,
-    in_range: tuple[datetime, datetime, int] | None,
-) -> HttpResponse:
-    passed = [result for result in results if not isinstance(result, SharingError)]
-    plot = trajectory_plot(
-        [pose_of(result.plaintext) for result in passed],
-        times=[result.record.captured_at for result in passed],
-    )
-    plot["refused"] = len(results) - len(passed)
-    plot["topic"] = record.topic
-    if in_range is not None:
-        plot["range_since"], plot["range_until"], plot["range_total"] = in_range
-    response = render(request, "sharing/trajectory.svg", plot, content_type="image/svg+xml")
-    return no_store(response)
-
-
 def _plain_refusal(message: str, status: int) -> HttpResponse:
     return no_store(HttpResponse(message, status=status, content_type="text/plain"))
 
@@ -458,10 +407,15 @@ def record_gallery(request: HttpRequest, record_id: str) -> HttpResponse:
     if not form.is_valid():
         return no_store(render(request, "sharing/gallery.html", context, status=400))
     in_range = record_list_same_topic(
-        record, since=form.cleaned_data["since"], until=form.cleaned_data["until"]
+        request.owner, record, since=form.cleaned_data["since"], until=form.cleaned_data["until"]
     )
     page = Paginator(in_range, GALLERY_PER_PAGE).get_page(request.GET.get("page"))
-    results = record_open_many(records=list(page.object_list), viewer=request.owner)
+    results = records_open(
+        records=list(page.object_list),
+        viewer=request.owner,
+        kind=Access.Kind.PAGE,
+        credential=Verdict.Credential.SESSION,
+    )
     context["page"] = page
     context["tiles"] = [
         _gallery_tile(item, result) for item, result in zip(page, results, strict=True)
@@ -511,7 +465,11 @@ def grants(request: HttpRequest) -> HttpResponse:
         if form.is_valid() and (done := _grant_give_or_change(request, form)) is not None:
             return done
     else:
-        form = GrantForm(initial=_grant_change_initial(owner, request.GET.get("change")), **choices)
+        asked = request.GET.get("change")
+        initial = _grant_change_initial(owner, asked)
+        if asked and not initial:
+            messages.warning(request, "You give that owner no access to change: nothing filled in.")
+        form = GrantForm(initial=initial, **choices)
     context = {
         "form": form,
         "changing": form.fields["change"].to_python(form["change"].value()),
@@ -629,8 +587,7 @@ def grant_revoke_view(request: HttpRequest) -> HttpResponse:
 def audit(request: HttpRequest) -> HttpResponse:
     owner: Owner = request.owner
     form = AuditFilterForm(request.GET or None, owner=owner)
-    if form.is_bound and not form.is_valid():
-        return render(request, "sharing/audit.html", {"form": form, "owner": owner}, status=400)
+    _say_left_out(request, form)
     page = audit_page_of_owner(
         owner, page=request.GET.get("page"), per_page=AUDIT_ENTRIES_PER_PAGE, **form.filters()
     )
@@ -645,13 +602,13 @@ def audit(request: HttpRequest) -> HttpResponse:
 @page_throttle()
 @require_GET
 def access_log(request: HttpRequest) -> HttpResponse:
-    """Who viewed the owner's records (or, on the other tab, the owner's own views of records
-    shared with the owner), filtered, a page at a time."""
-    form, direction, verdicts = _access_log_asked(request)
-    if verdicts is None:
-        return _access_log_refused(request, form, direction)
+    """Who read the owner's records (or, on the other tab, the owner's own reads of records
+    shared with the owner), one line per access (a page, a plot...), filtered, a page at a
+    time."""
+    form, direction, accesses = _access_log_asked(request)
+    _say_left_out(request, form)
     page = access_log_page(
-        verdicts, reader=request.owner, page=request.GET.get("page"), per_page=ACCESS_LOG_PER_PAGE
+        accesses, reader=request.owner, page=request.GET.get("page"), per_page=ACCESS_LOG_PER_PAGE
     )
     context = {
         "form": form,
@@ -667,12 +624,15 @@ def access_log(request: HttpRequest) -> HttpResponse:
 @page_throttle()
 @require_GET
 def access_log_download(request: HttpRequest) -> HttpResponse:
-    """The access log with the page's filters, every row, as a streamed CSV download."""
-    form, direction, verdicts = _access_log_asked(request)
-    if verdicts is None:
-        return _access_log_refused(request, form, direction)
+    """The access log with the page's filters, every access, as a streamed CSV download. With
+    a filter that does not hold, the page that says so (400): a file has no room to say it."""
+    form, direction, accesses = _access_log_asked(request)
+    if form.left_out():
+        context = {"form": form, "direction": direction, "directions": ACCESS_LOG_DIRECTIONS}
+        messages.error(request, f"No download: {form.left_out()}")
+        return render(request, "sharing/access_log.html", context, status=400)
     response = StreamingHttpResponse(
-        access_log_csv(verdicts, reader=request.owner), content_type="text/csv; charset=utf-8"
+        access_log_csv(accesses, reader=request.owner), content_type="text/csv; charset=utf-8"
     )
     name = f"access-log-{direction}-{timezone.now():%Y%m%dT%H%M%SZ}.csv"
     response["Content-Disposition"] = f'attachment; filename="{name}"'
@@ -681,23 +641,13 @@ def access_log_download(request: HttpRequest) -> HttpResponse:
 
 def _access_log_asked(
     request: HttpRequest,
-) -> tuple[AccessLogFilterForm, str, QuerySet[Verdict] | None]:
-    """The filter form, the side of the log, and the views its filters select (None while
-    the form is invalid)."""
+) -> tuple[AccessLogFilterForm, str, QuerySet[Access]]:
+    """The filter form, the side of the log, and the accesses its filters that hold select."""
     direction = AccessLogFilterForm.direction_of(request.GET)
     choices = access_log_filter_choices(request.owner, direction=direction)
     form = AccessLogFilterForm(request.GET or None, choices=choices)
-    if form.is_bound and not form.is_valid():
-        return form, direction, None
-    verdicts = verdict_list_access_log(request.owner, direction=direction)
-    return form, direction, verdict_list_filtered(verdicts, **form.filters())
-
-
-def _access_log_refused(
-    request: HttpRequest, form: AccessLogFilterForm, direction: str
-) -> HttpResponse:
-    context = {"form": form, "direction": direction, "directions": ACCESS_LOG_DIRECTIONS}
-    return render(request, "sharing/access_log.html", context, status=400)
+    accesses = access_list_access_log(request.owner, direction=direction)
+    return form, direction, access_list_filtered(accesses, **form.filters())
 
 
 # --- revoking an owner API token, and what it granted ----------------------------------------

@@ -1,7 +1,7 @@
 """Child processes of the stack, the command lines that start them, and probes that they answer.
 
-One place for how the portal's processes are run: the web server (granian), Celery workers and beat,
-`manage.py` steps, a Redis of our own. `make run` (stack/run.py), the worker tests and the
+One place for how the portal's processes are run: the web server (gunicorn), Celery workers and
+beat, `manage.py` steps, a Redis of our own. `make run` (stack/run.py), the worker tests and the
 benchmarks all start their processes through this module.
 """
 
@@ -45,22 +45,21 @@ WEB_MAX_WORKERS = 8
 # 3.10 s: more processes than cores only add switching between them and their memory (about
 # 190 MiB each). The one beyond the cores serves while another is being replaced.
 WEB_MAX_THREADS = 4
-# Each web process is replaced by a fresh one after WEB_WORKER_LIFETIME seconds, or sooner once
-# it holds more than WEB_WORKER_MAX_RSS_MIB of memory (checked every 30 s), one at a time, the new
-# one serving before the old one stops: a process that serves for weeks keeps its memory near
-# where it started (the one-hour soak saw +11% without recycling). The old one finishes what it
-# serves first, for WEB_GRACEFUL_TIMEOUT seconds at most.
-WEB_WORKER_LIFETIME = 900
-WEB_WORKER_MAX_RSS_MIB = 400
+# The web server is gunicorn, whose master process holds the listening socket: the worker
+# processes accept from it, so a worker being replaced (or one that crashed) never makes a
+# connection be refused, and the connections waiting in the listen queue are taken by the
+# others (granian, before, had each process open a socket of its own and needed a private
+# patch and a kernel sysctl for that: bench/REPORT.md, "Web server"). Each worker is replaced
+# by a fresh one after WEB_MAX_REQUESTS requests, give or take WEB_MAX_REQUESTS_JITTER (so
+# that they do not all go at once): a process that serves for weeks keeps its memory near
+# where it started (the one-hour soak saw +11% without recycling). The one going finishes what
+# it serves first, for WEB_GRACEFUL_TIMEOUT seconds at most.
+WEB_MAX_REQUESTS = 20_000
+WEB_MAX_REQUESTS_JITTER = 2_000
 WEB_GRACEFUL_TIMEOUT = 10
-# A replacement loads the portal, then opens a listening socket of its own (SO_REUSEPORT); the
-# process it replaces is told to stop once it listens (stack/webserver.py), or after this many
-# seconds at most: 2-3 s on an idle 2-core machine, longer on a loaded one (a full test run
-# refused connections when granian's fixed 10 s were not enough). The
-# connections waiting at one that stops move to the others only with the kernel's
-# net.ipv4.tcp_migrate_req=1, which scripts/bootstrap.sh sets where it runs as root; without
-# it they are reset (granian says so in the web log at start).
-WEB_REPLACEMENT_TIMEOUT = 60
+# A worker whose main loop has not checked in for this long (a hung C call) is killed and
+# replaced; a view waiting for its integrity check holds a thread, not the loop.
+WEB_WORKER_TIMEOUT = 120
 _PR_SET_PDEATHSIG = 1
 
 
@@ -190,10 +189,12 @@ def celery_worker(
         str(concurrency),
         "--pool",
         "prefork",
-        # No worker-to-worker chatter: nothing here uses remote control or events.
+        # No worker-to-worker chatter (gossip: every worker following every other's events;
+        # mingle: a second of start-up asking the others for their state): nothing here needs
+        # it. Heartbeats stay on: Flower and `celery inspect` tell a live worker by them, and
+        # remote control (`celery -A portal inspect ping`) answers.
         "--without-gossip",
         "--without-mingle",
-        "--without-heartbeat",
         "-l",
         log_level,
         *(["-Q", ",".join(queues)] if queues else []),
@@ -225,40 +226,41 @@ def web_server(
     sizing: WebSizing,
     *,
     backlog: int = WEB_BACKLOG,
-    max_rss_mib: int = WEB_WORKER_MAX_RSS_MIB,
-    access_log: bool = True,
+    max_requests: int = WEB_MAX_REQUESTS,
+    max_requests_jitter: int = WEB_MAX_REQUESTS_JITTER,
+    app: str = "portal.wsgi:application",
 ) -> list[str]:
-    """The portal under granian (a WSGI server written in Rust), as `make run` serves it:
-    sizing.workers processes, each running the portal in sizing.threads threads, each replaced
-    once its successor listens (stack/webserver.py)."""
+    """The portal under gunicorn, as `make run` serves it: sizing.workers processes (gthread),
+    each running the portal in sizing.threads threads, each replaced after about max_requests
+    requests. No access log of its own: the portal writes one line per request, with its id
+    (portal/request_context.py)."""
     return [
         PYTHON,
         "-m",
-        "stack.webserver",
-        "portal.wsgi:application",
-        "--interface",
-        "wsgi",
-        "--host",
-        host,
-        "--port",
-        str(port),
+        "gunicorn",
+        app,
+        "--config",
+        "python:stack.gunicorn_config",
+        "--bind",
+        f"{host}:{port}",
+        "--worker-class",
+        "gthread",
         "--workers",
         str(sizing.workers),
-        "--blocking-threads",
+        "--threads",
         str(sizing.threads),
         "--backlog",
         str(backlog),
-        "--no-ws",
-        "--respawn-failed-workers",
-        "--workers-lifetime",
-        str(WEB_WORKER_LIFETIME),
-        "--workers-max-rss",
-        str(max_rss_mib),
-        "--workers-kill-timeout",
+        "--max-requests",
+        str(max_requests),
+        "--max-requests-jitter",
+        str(max_requests_jitter),
+        "--graceful-timeout",
         str(WEB_GRACEFUL_TIMEOUT),
-        "--respawn-interval",
-        str(WEB_REPLACEMENT_TIMEOUT),
-        *(["--access-log"] if access_log else []),
+        "--timeout",
+        str(WEB_WORKER_TIMEOUT),
+        # Several servers on one host (tests, a second portal) must not share one socket file.
+        "--no-control-socket",
     ]
 
 

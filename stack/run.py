@@ -2,7 +2,7 @@
 
 Redis (reused if one answers at REDIS_URL), anvil with its state file (reused if a node
 answers at CHAIN_RPC_URL), `manage.py migrate` and `chain_deploy`, a Celery worker for chain
-work, one for the verify queue alone, beat, the portal under granian, and on the ROS side a
+work, one for the verify queue alone, beat, the portal under gunicorn, and on the ROS side a
 roscore (reused if one answers), the simulated robot and an agent for a demo owner (with
 --ros2 / STACK_ROS2=true: no roscore, the simulated ROS 2 robot and the agent in ROS 2 mode,
 over Cyclone DDS on loopback, <workdir>/cyclonedds.xml, domain ROS_DOMAIN_ID). It prints
@@ -18,6 +18,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -66,6 +67,8 @@ ANVIL_STATE_INTERVAL = 1.0
 # (about 17 minutes of make run's traffic): the portal reads the chain's state and recent
 # receipts, never old logs, and the state written every second stays a few MiB.
 ANVIL_TRANSACTION_BLOCKS = 1024
+# The processes that count for /metrics (core/metrics.py), each in its own folder.
+METRICS_SERVICES = ("web", "worker", "verify")
 # Stopped one at a time in this order (anvil and Redis after them): nothing new is
 # scheduled while workers finish, and the chain outlives everything that writes to it.
 STOP_ORDER = (("beat",), ("web",), ("worker", "verify"), ("agent",), ("sim",), ("roscore",))
@@ -174,6 +177,7 @@ class Stack:
         self.out = out or sys.stdout
         self.workdir = self.config.workdir
         self.logs = self.workdir / "log"
+        self.metrics_dir = self.workdir / "metrics"
         self.children = Children(self.logs, die_with_parent=True)
         self.anvil: AnvilProcess | None = None
         self.redis_started = False
@@ -198,6 +202,8 @@ class Stack:
             "CELERY_QUEUE": config.queue,
             "CHAIN_RPC_URL": config.chain_rpc_url,
             "DJANGO_DEBUG": "true" if config.debug else "false",
+            # Readable lines in the terminal's logs; LOG_FORMAT=json for what production writes.
+            "LOG_FORMAT": os.environ.get("LOG_FORMAT") or "console",
         }
         if config.ros and config.ros2:
             env |= {
@@ -227,6 +233,8 @@ class Stack:
         config = self.config
         for folder in (self.logs, self.workdir / "anvil"):
             folder.mkdir(parents=True, exist_ok=True)
+        # What the last run counted goes, the folders of services no longer run too.
+        shutil.rmtree(self.metrics_dir, ignore_errors=True)
         self._start_redis()
         self._start_chain()
         self._manage("migrate", "--noinput")
@@ -284,7 +292,7 @@ class Stack:
         config = self.config
         sizing = config.sizing()
         self._say(
-            f"starting the portal on {self.web_url}/ (granian, {sizing.workers} workers x "
+            f"starting the portal on {self.web_url}/ (gunicorn, {sizing.workers} workers x "
             f"{sizing.threads} threads, DEBUG {'on' if config.debug else 'off'})"
         )
         self._web_command = web_server(config.host, config.port, sizing)
@@ -384,9 +392,12 @@ class Stack:
 
     def _spawn(self, name: str, argv: list[str]) -> None:
         stop_signal, stop_timeout = _STOP[name]
-        self.children.spawn(
-            name, argv, env=self._child_env(), stop_signal=stop_signal, stop_timeout=stop_timeout
-        )
+        env = self._child_env()
+        if name in METRICS_SERVICES:
+            # Each service counts in a folder of its own, which it empties as it starts; the
+            # web's /metrics adds up every folder of the host (core/metrics.py).
+            env["PROMETHEUS_MULTIPROC_DIR"] = str(self.metrics_dir / name)
+        self.children.spawn(name, argv, env=env, stop_signal=stop_signal, stop_timeout=stop_timeout)
 
     def _manage(self, *args: str) -> str:
         """A `manage.py` step; its stdout (output in log/manage.log), StackError if it fails."""

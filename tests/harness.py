@@ -1,5 +1,5 @@
 """Real Celery worker and beat processes, sharing the test's database, Redis and anvil,
-and the portal itself (granian) for clients that talk to it over HTTP.
+and the portal itself (gunicorn) for clients that talk to it over HTTP.
 
 The tests that use this are about the queue, so nothing runs eagerly: the test process only
 writes rows and queues messages, exactly like the web processes do in production. The
@@ -24,7 +24,7 @@ from portal.celery import app as celery_app
 from stack.anvil import AnvilProcess, free_port, start_anvil
 from stack.processes import (
     REPO_ROOT,
-    WEB_WORKER_MAX_RSS_MIB,
+    WEB_MAX_REQUESTS,
     Children,
     StackError,
     WebSizing,
@@ -33,7 +33,6 @@ from stack.processes import (
     web_server,
 )
 from stack.processes import wait_until as _wait_until
-from stack.webserver import listening
 
 __all__ = ["REPO_ROOT", "WorkerStack", "database_url", "wait_for"]
 
@@ -61,7 +60,7 @@ def wait_for(
 
 
 class WorkerStack:
-    """anvil + N Celery workers (+ beat, + the portal under granian), configured like the
+    """anvil + N Celery workers (+ beat, + the portal under gunicorn), configured like the
     test process."""
 
     def __init__(
@@ -166,42 +165,39 @@ class WorkerStack:
         timeout: float = 60,
         name: str = "web",
         env: dict[str, str] | None = None,
-        max_rss_mib: int = WEB_WORKER_MAX_RSS_MIB,
+        max_requests: int = WEB_MAX_REQUESTS,
+        max_requests_jitter: int = 0,
     ) -> str:
-        """The portal under granian on 127.0.0.1 (the same port again after a stop_web);
-        returns its URL once it answers. Another `name` is another portal, on its own port."""
+        """The portal under gunicorn on 127.0.0.1 (the same port again after a stop_web);
+        returns its URL once it answers and all its worker processes run. Another `name` is
+        another portal, on its own port."""
         if name == "web":
             self.web_port = self.web_port or free_port()
         port = self.web_port if name == "web" else self._web_ports.setdefault(name, free_port())
         command = web_server(
-            "127.0.0.1", port, WebSizing(workers, WEB_THREADS), max_rss_mib=max_rss_mib
+            "127.0.0.1",
+            port,
+            WebSizing(workers, WEB_THREADS),
+            max_requests=max_requests,
+            max_requests_jitter=max_requests_jitter,
         )
         self.children.spawn(name, command, env=env or self.env(), stop_timeout=15)
         url = f"http://127.0.0.1:{port}"
         wait_for(
             lambda: self._web_answers(name, url),
             timeout=timeout,
-            what=f"the portal {name} (granian) to answer",
+            what=f"the portal {name} (gunicorn) to answer",
         )
-        # Each process loads the portal and only then opens its own listening socket: the
-        # first answer says one of them is up, not all (on a busy machine the last one takes
-        # seconds longer). A test that kills or replaces one expects the others to serve.
         wait_for(
-            lambda: len(self.web_listening(name)) == workers,
+            lambda: len(self.web_processes(name)) == workers,
             timeout=timeout,
-            what=f"all {workers} processes of the portal {name} to listen",
+            what=f"all {workers} worker processes of the portal {name}",
         )
         return url
 
     def web_processes(self, name: str = "web") -> set[int]:
-        """The pids of the web server's worker processes (the children of its main one)."""
+        """The pids of the web server's worker processes (the children of its master)."""
         return {child.pid for child in psutil.Process(self.children[name].pid).children()}
-
-    def web_listening(self, name: str = "web") -> set[int]:
-        """The web server's worker processes that listen on its port (each has a socket of
-        its own, SO_REUSEPORT), so a new connection may reach any of them."""
-        port = self.web_port if name == "web" else self._web_ports[name]
-        return {pid for pid in self.web_processes(name) if listening(pid, port)}
 
     @property
     def web_url(self) -> str:

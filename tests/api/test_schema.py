@@ -46,6 +46,8 @@ EXPORT_OPERATIONS = {
 GRANT_TERMS_OPERATIONS = {("/api/v1/grants/{grantee}/", "patch")}
 # Added by issue 16 (deletion): the owner deletes a record.
 DELETION_OPERATIONS = {("/api/v1/records/{record_id}/", "delete")}
+# Added by issue 35: numeric fields of a robot's topic over time, every record checked.
+SERIES_OPERATIONS = {("/api/v1/records/series/", "get")}
 
 
 def test_the_schema_validates_without_warnings(tmp_path: Path):
@@ -73,6 +75,7 @@ def test_the_served_schema_lists_exactly_the_fixed_endpoints(client):
         | EXPORT_OPERATIONS
         | GRANT_TERMS_OPERATIONS
         | DELETION_OPERATIONS
+        | SERIES_OPERATIONS
     )
     assert schema["paths"]["/api/v1/robot-key/"]["get"]["security"] == [{"robotToken": []}]
     for path in ("/api/v1/robot-pairings/", "/api/v1/robot-pairings/{pairing_id}/collect/"):
@@ -100,6 +103,7 @@ def test_the_served_schema_lists_exactly_the_fixed_endpoints(client):
         ("/api/v1/grants/{grantee}/", "delete"),
         ("/api/v1/access-log/", "get"),
         ("/api/v1/records/{record_id}/", "delete"),
+        ("/api/v1/records/series/", "get"),
     ]:
         assert schema["paths"][path][method]["security"] == owner_only, (path, method)
     for path in ("/api/v1/records/", "/api/v1/records/{record_id}/"):

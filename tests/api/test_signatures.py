@@ -15,7 +15,7 @@ from sharing import services as sharing_services
 from sharing.errors import IntegrityCheckFailed
 from sharing.models import Record, SecurityEvent, Verdict
 from sharing.services import grant_create, record_create
-from sharing.verification import record_open, record_verify, records_verify
+from sharing.verification import record_open, records_verify
 from smcrypto import envelope, provenance, sm2
 from tests.api.conftest import RECORDS, Snapshot, token_client
 
@@ -50,7 +50,7 @@ def _signed_by_another_key_naming_the_robots(setup, seq: int) -> bytes:
 
 
 def _outcome(record: Record, viewer) -> str:
-    return record_verify(record_id=record.id, viewer_id=viewer.pk).verdict.outcome
+    return records_verify(record_ids=[record.id], viewer_id=viewer.pk)[0].verdict.outcome
 
 
 def test_a_paired_robots_key_is_its_owners_on_chain(make_paired_robot, deployed):

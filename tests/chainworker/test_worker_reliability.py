@@ -20,7 +20,7 @@ from sharing.cache import _key as cache_key
 from sharing.models import Grant, Record
 from sharing.services import grant_create, grant_revoke, record_create, record_create_batch
 from sharing.storage import envelope_storage
-from sharing.tasks import record_verify
+from sharing.tasks import records_verify
 from smcrypto import sm4
 from tests.anchoring_checks import assert_anchored_exactly_once, records_on_chain
 from tests.harness import WorkerStack, wait_for
@@ -134,7 +134,7 @@ def test_tampered_cache_and_durable_copy_are_refused(worker_stack):
     _all_anchored(2, timeout=60)
 
     def verdict(record: Record) -> str:
-        return record_verify.delay(str(record.pk), setup.owner.pk).get(timeout=60)["outcome"]
+        return records_verify.delay([str(record.pk)], setup.owner.pk).get(timeout=60)[0]["outcome"]
 
     assert verdict(first) == "verified"
     cache = redis.Redis.from_url(stack.redis_url)
@@ -164,11 +164,11 @@ def test_views_are_checked_on_their_own_queue_with_no_chain_worker_left(worker_s
     stack.kill_worker("w0")  # the only worker for chain work
 
     later = record_create(robot=setup.robot, data=setup.seal(2))
-    view = record_verify.delay(str(record.pk), setup.owner.pk).get(timeout=60)
+    view = records_verify.delay([str(record.pk)], setup.owner.pk).get(timeout=60)[0]
 
     assert view["outcome"] == "verified"
     verifier_log = (stack.logs / "verifier.log").read_text()
-    assert "Task sharing.tasks.record_verify[" in verifier_log
+    assert "Task sharing.tasks.records_verify[" in verifier_log
     assert "Task sharing.tasks.records_anchor[" not in verifier_log
     assert "Task accounts.tasks.owner_register[" not in verifier_log
     assert Record.objects.get(pk=later.pk).status == Record.Status.PENDING
@@ -185,10 +185,10 @@ def test_revoked_viewer_is_refused_at_the_next_view(worker_stack):
         timeout=60,
         what="the grant on chain",
     )
-    view = record_verify.delay(str(record.pk), bob.owner.pk).get(timeout=60)
+    view = records_verify.delay([str(record.pk)], bob.owner.pk).get(timeout=60)[0]
     assert view["outcome"] == "verified"
     grant_revoke(owner=alice.owner, grantee=bob.owner)
-    view = record_verify.delay(str(record.pk), bob.owner.pk).get(timeout=60)
+    view = records_verify.delay([str(record.pk)], bob.owner.pk).get(timeout=60)[0]
     assert view["outcome"] == "no_access"
     wait_for(
         lambda: Grant.objects.get(pk=grant.pk).status == Grant.Status.REVOKED,

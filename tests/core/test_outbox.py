@@ -28,5 +28,5 @@ def test_a_queued_task_keeps_no_result(sent):
 
 
 def test_a_dispatched_task_keeps_its_result_for_who_waits(sent):
-    dispatch("sharing.tasks.record_verify", "id", 1)
+    dispatch("sharing.tasks.records_verify", ["id"], 1)
     assert sent[0]["ignore_result"] is False

@@ -16,7 +16,7 @@ from core.rows import FixedInsert
 from sharing.anchoring import records_anchor
 from sharing.deletion import record_delete
 from sharing.models import Record
-from sharing.selectors import record_to_check, record_to_open
+from sharing.selectors import record_to_open
 from sharing.services import _ROBOT_SEQ_MOVE, record_create, record_create_batch
 from smcrypto import sm4
 
@@ -73,9 +73,7 @@ def test_an_owners_keys_are_the_orms_newest_first_with_the_owner_cached(make_rob
     assert owners == {setup.owner.pk}
 
 
-def test_a_record_to_open_and_to_check_are_the_orms_with_nullable_keys_left_joined(
-    make_robot, deployed
-):
+def test_a_record_to_open_is_the_orms_with_nullable_keys_left_joined(make_robot, deployed):
     setup = make_robot("alice")
     first, second = (record_create(robot=setup.robot, data=setup.seal(seq)) for seq in (1, 2))
 
@@ -84,26 +82,20 @@ def test_a_record_to_open_and_to_check_are_the_orms_with_nullable_keys_left_join
         opened = record_to_open(first.pk)
         assert opened.deleted_by is None
         assert opened.owner.user.username == "alice"
-        checked = record_to_check(first.pk)
-        assert checked.anchor_root is None
-    assert len(queries) == 2
+    assert len(queries) == 1
     assert fields_of(opened) == fields_of(Record.objects.get(pk=first.pk))
 
     assert records_anchor(owner_id=setup.owner.pk) == 2
     record_delete(owner=setup.owner, record_id=second.pk, actor=setup.owner.user)
     for record_id in (first.pk, second.pk):
-        expected = Record.objects.select_related("anchor_root", "deleted_by").get(pk=record_id)
-        checked = record_to_check(str(record_id))
-        assert fields_of(checked) == fields_of(expected)
-        assert fields_of(checked.anchor_root) == fields_of(expected.anchor_root)
+        expected = Record.objects.select_related("deleted_by").get(pk=record_id)
         opened = record_to_open(record_id)
+        assert fields_of(opened) == fields_of(expected)
         assert opened.deleted_by_id == expected.deleted_by_id
         if expected.deleted_by is not None:
             assert fields_of(opened.deleted_by) == fields_of(expected.deleted_by)
     assert record_to_open(second.pk).deleted_by.username == "alice"
     assert record_to_open(uuid.uuid4()) is None
-    with pytest.raises(Record.DoesNotExist):
-        record_to_check(uuid.uuid4())
 
 
 def test_an_uploads_rows_are_those_the_orm_writes(make_robot):

@@ -1,5 +1,6 @@
-"""The access log in Chromium, at 1280x900 and on a 390x844 phone: an owner filters the views
-of their data and downloads them as CSV; a grantee reads their own views of shared data as
+"""The access log in Chromium, at 1280x900 and on a 390x844 phone, one line per access (a plot
+of five records is one line): an owner filters the accesses to their data and downloads them as
+CSV; a grantee reads their own views of shared data as
 cards, every field inside the screen.
 
 No worker, no anvil: the log only reads verdicts, made here straight in the database
@@ -13,10 +14,17 @@ from pathlib import Path
 import pytest
 from playwright.sync_api import Browser, BrowserContext, Page, expect
 
+from sharing.models import Record
 from tests.conftest import TEST_PASSWORD
 from tests.e2e.conftest import ARTIFACTS
 from tests.e2e.layout import cells_off_screen
-from tests.sharing.access_log_data import CAROL_TOPIC, FORMULA_TOKEN, access_log_world
+from tests.sharing.access_log_data import (
+    CAROL_TOPIC,
+    FORMULA_TOKEN,
+    access_log_world,
+    plot,
+    stored_record,
+)
 
 pytestmark = pytest.mark.django_db(transaction=True)
 
@@ -53,17 +61,29 @@ def _csv_of(path: Path) -> list[dict[str, str]]:
     return list(csv.DictReader(io.StringIO(Path(path).read_text(encoding="utf-8"))))
 
 
+def _odometry(world, seq: int) -> Record:
+    return stored_record(world.arm, seq, "/odom", "nav_msgs/Odometry")
+
+
 def test_the_access_log_on_a_desktop_and_a_phone(live_server, browser: Browser, world):
     base = live_server.url
     shots = ARTIFACTS / "access-log"
     shots.mkdir(parents=True, exist_ok=True)
 
     # --- alice, desktop: every view of her data, filtered, and the CSV of the filtered set ----
+    # Bob's plot of alice's odometry: one line naming its records, not one per record.
+    plot(
+        [world.records["odom"], *(_odometry(world, seq) for seq in range(2, 6))],
+        world.bob,
+        9,
+    )
     desktop = _signed_in(browser, base, world.alice.username, {"width": 1280, "height": 900})
     page = desktop.pages[0]
     page.click("[data-testid=nav-access-log]")
     rows = page.locator("[data-testid=access-log-row]")
-    expect(rows).to_have_count(5)
+    expect(rows).to_have_count(6)
+    expect(rows.first.locator("[data-testid=access-log-kind]")).to_have_text("plot, 5 records")
+    expect(rows.first.locator("[data-testid=access-log-verdict]")).to_have_text("5 verified")
     expect(page.locator("#access-log-table thead")).to_be_visible()
     expect(page.locator("[data-testid=access-log-credential]")).to_contain_text(
         ["operator check in the admin", "browser session", "owner API token"]
@@ -72,11 +92,12 @@ def test_the_access_log_on_a_desktop_and_a_phone(live_server, browser: Browser, 
     page.screenshot(path=shots / "01-desktop.png", full_page=True)
     page.fill("#id_viewer", world.bob.username)
     page.select_option("#id_credential", "session")
+    page.select_option("#id_verdict", "tampered")  # not his plot's: every record verified
     page.click("#filter-submit")
     expect(rows).to_have_count(1)
     expect(rows.first.locator("[data-testid=access-log-verdict]")).to_have_text("TAMPERED")
     expect(page.locator("[data-testid=access-log-count]")).to_have_text(
-        "1 view matches these filters."
+        "1 access matches these filters."
     )
     with page.expect_download() as download:
         page.click("[data-testid=access-log-csv]")
@@ -95,19 +116,21 @@ def test_the_access_log_on_a_desktop_and_a_phone(live_server, browser: Browser, 
     expect(page.locator("[data-testid=access-log-none]")).to_be_visible()  # nobody viewed his
     page.click("[data-testid=access-log-tab-outgoing]")
     rows = page.locator("[data-testid=access-log-row]")
-    expect(rows).to_have_count(3)
-    # A card per view: the table head is hidden, each field labelled in its card.
+    expect(rows).to_have_count(4)
+    # A card per access: the table head is hidden, each field labelled in its card.
     head = page.evaluate("document.querySelector('#access-log-table thead').offsetHeight")
     assert head <= 1
     label = page.evaluate(
         """getComputedStyle(document.querySelector('#access-log-table td'), '::before')
             .content"""
     )
-    assert label == '"Viewed (UTC)"'
+    assert label == '"When (UTC)"'
     _nothing_overflows(page)
     expect(page.get_by_text(CAROL_TOPIC)).to_be_visible()
+    expect(page.get_by_text("plot, 5 records")).to_be_visible()
     expect(page.get_by_text(f"owner API token “{FORMULA_TOKEN}”")).to_be_visible()
     page.screenshot(path=shots / "02-phone-outgoing.png", full_page=True)
+    page.click("[data-testid=filters-button]")  # the filters fold on a phone
     page.fill("#id_owner", world.carol.username)
     page.click("#filter-submit")
     expect(rows).to_have_count(1)

@@ -1,7 +1,7 @@
 """Issue 14 end to end: robots get their key by SM2, and a rotation loses nothing.
 
 Real parts only: a ROS master, the agent process (`python -m ros_agent pair`, then the node),
-the simulated robot, the portal under granian for the robot, the same portal (live server,
+the simulated robot, the portal under gunicorn for the robot, the same portal (live server,
 same database) in Chromium for its owner, Celery workers and anvil.
 
 1. Two robots ask to be paired; the owner types each one's code on the robots page, checks
@@ -61,7 +61,7 @@ CLOCK_SKEW = "1"
 
 @pytest.fixture
 def robot_stack(tmp_path, settings):
-    """anvil, two workers, beat, and granian for the robot (stopped to take it offline)."""
+    """anvil, two workers, beat, and gunicorn for the robot (stopped to take it offline)."""
     stack = WorkerStack(tmp_path, env_overrides={"KEY_ROTATION_CLOCK_SKEW": CLOCK_SKEW})
     try:
         stack.configure_test_process(settings)

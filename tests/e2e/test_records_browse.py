@@ -1,6 +1,7 @@
 """The record pages in Chromium, as people use them (issue 16), on a desktop (1280x900) and a
 phone (390x844): a click anywhere on a row opens the record, nothing overflows, the page
-numbers lead through the list, the odometry plot over a chosen range has its axes, and the
+numbers lead through the list, the odometry plot over a chosen range (drawn from the series
+API) has its axes and a title that fits, and the
 gallery shows the checked images of a range.
 
 The portal runs in pytest-django's live server with chain work and integrity checks run
@@ -115,22 +116,49 @@ def test_records_on_a_desktop_and_a_phone(
         expect(page.get_by_test_id("verdict")).to_have_attribute("data-verdict", "verified")
         expect(page.get_by_test_id("upload-seq")).to_contain_text("1")
 
-        # The plot over a chosen range, with its axes in metres and the times.
+        # The plot over a chosen range (every record in it checked, from the series API),
+        # with its axes in metres and a title that fits.
         page.fill("#plot-range [name=since]", "2026-03-01T12:00")
         page.fill("#plot-range [name=until]", "2026-03-01T12:01")
         page.click("#plot-submit")
         plot = page.get_by_test_id("trajectory-plot")
-        expect(plot).to_have_attribute(
-            "src",
-            f"/records/{track[0].pk}/plot.svg?since=2026-03-01T12%3A00&until=2026-03-01T12%3A01",
+        expect(plot).to_have_attribute("data-state", "ready", timeout=30_000)
+        expect(plot).to_have_attribute("data-verified", "4")
+        expect(plot).to_have_attribute("data-refused", "0")
+        expect(plot.locator(".series-plot-status")).to_contain_text(
+            "4 records in range, 4 verified against the chain"
         )
+        svg = plot.locator("svg")
+        expect(svg).to_contain_text("position.x (m)")
+        expect(svg).to_contain_text("position.y (m)")
         plot.scroll_into_view_if_needed()
-        page.wait_for_function("document.getElementById('trajectory-plot').naturalWidth > 0")
-        svg = page.request.get(base + plot.get_attribute("src")).text()
-        assert "4 positions of 4 records" in svg
-        assert ">x (m)<" in svg
-        assert ">y (m)<" in svg
-        assert "2026-03-01 12:00:10.000 → 2026-03-01 12:00:40.000 UTC" in svg
+        box = svg.bounding_box()
+        title = plot.locator(".series-plot-title").bounding_box()
+        assert box is not None
+        assert title is not None
+        assert box["x"] <= title["x"]
+        assert title["x"] + title["width"] <= box["x"] + box["width"]
+        assert box["x"] + box["width"] <= viewport[0]
+        assert plot.locator(".series-plot-line").count() == 1
+        # Each field over time, in an element added to the page later (the robot page's way).
+        page.evaluate(
+            """([robot]) => {
+                const element = document.createElement("div");
+                element.id = "speed-plot";
+                Object.assign(element.dataset, {
+                    seriesPlot: "", robot, topic: "/robot/odom", mode: "time",
+                    fields: "linear_velocity.x,angular_velocity.z",
+                    since: "2026-03-01T12:00:00Z", until: "2026-03-01T12:01:00Z",
+                });
+                document.querySelector("figure.plot").appendChild(element);
+                window.AuthROSSeriesPlot.start(element);
+            }""",
+            [str(track[0].robot_id)],
+        )
+        speed = page.locator("#speed-plot")
+        expect(speed).to_have_attribute("data-state", "ready", timeout=30_000)
+        expect(speed.locator("svg")).to_contain_text("capture time (UTC)")
+        assert speed.locator(".series-plot-line").count() == 2
         _no_horizontal_overflow(page)
         page.screenshot(path=artifacts / f"plot-{name}.png", full_page=True)
 

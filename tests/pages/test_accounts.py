@@ -28,7 +28,7 @@ OWNER_PAGES = [
     ("shared", {}),
     ("record-detail", {"record_id": "7c9e6679-7425-40de-944b-e07fc1f90ae7"}),
     ("record-raw", {"record_id": "7c9e6679-7425-40de-944b-e07fc1f90ae7"}),
-    ("record-trajectory", {"record_id": "7c9e6679-7425-40de-944b-e07fc1f90ae7"}),
+    ("record-gallery", {"record_id": "7c9e6679-7425-40de-944b-e07fc1f90ae7"}),
     ("grants", {}),
     ("audit", {}),
     ("record-delete", {"record_id": "7c9e6679-7425-40de-944b-e07fc1f90ae7"}),

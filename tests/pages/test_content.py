@@ -2,7 +2,6 @@
 
 import base64
 import json
-import math
 
 import pytest
 
@@ -11,8 +10,6 @@ from sharing.content import (
     content_of,
     image_data_url,
     odometry_rows,
-    pose_of,
-    trajectory_plot,
 )
 from tests.pages.conftest import image, odometry, tiny_png
 
@@ -67,28 +64,3 @@ def test_odometry_rows_of_partial_or_odd_data_say_what_is_missing():
     assert rows["Position (m)"] == f"x {MISSING}, y {MISSING}, z 2.0000"
     assert rows["Heading (yaw)"] == MISSING
     assert rows["Stamp"] == MISSING
-
-
-def test_pose_of_an_odometry_record_and_of_anything_else():
-    x, y, yaw = pose_of(odometry("alice", 3.0, 4.0))
-    assert (x, y) == (3.0, 4.0)
-    assert math.isclose(yaw, math.pi / 4, abs_tol=1e-6)
-    assert pose_of(b"[1, 2]") is None
-    assert pose_of(json.dumps({"K": {"position": {"x": True, "y": 1}}}).encode()) is None
-    assert pose_of(b"not json") is None
-
-
-def test_trajectory_plot_is_square_scaled_with_y_up():
-    plot = trajectory_plot([(0.0, 0.0, None), (1.0, 1.0, 0.0)])
-    assert plot["count"] == 2
-    (x0, y0), (x1, y1) = plot["start"], plot["end"]
-    assert x1 - x0 == pytest.approx(y0 - y1)  # same scale on both axes, y grows upwards
-    assert plot["arrow"] == (round(x1 + 22, 1), y1)  # heading 0 points right
-    assert plot["last"] == "1.00, 1.00"
-    assert trajectory_plot([]) == {
-        "width": 640,
-        "height": 480,
-        "points": "",
-        "count": 0,
-        "skipped": 0,
-    }

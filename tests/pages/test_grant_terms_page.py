@@ -28,6 +28,11 @@ def test_change_a_grant_through_the_page(
     assert "Change bob's access" in form
     assert re.search(r'value="/robot/odom"[^>]*checked', form)
     assert not re.search(rf'value="{alice.robot.pk}"[^>]*checked', form)
+    # Someone given no access, or no one: the empty form, saying so.
+    for nobody in ("carol", "0x" + "00" * 20, "\u202e" * 500):
+        other = client.get(reverse("grants"), {"change": nobody}).content.decode()
+        assert "You give that owner no access to change" in other
+        assert "Change bob" not in other
 
     with django_capture_on_commit_callbacks(execute=True):
         page = client.post(

@@ -153,7 +153,7 @@ def test_a_time_outside_the_years_utc_can_hold_is_a_form_error_on_every_page(
         reverse("access-log"),
         reverse("access-log-csv"),
         reverse("records-delete"),
-        reverse("record-trajectory-range", args=[record.id]),
+        reverse("record-gallery", args=[record.id]),
     ]
     for page in pages:
         for name in ("since", "until"):

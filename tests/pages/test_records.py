@@ -132,19 +132,15 @@ def test_verified_odometry_record(client, alice, upload):
     assert "odometry-table" in html
     assert "x 3.0000, y 1.5000, z 0.0000" in html
     assert "45.0°" in html  # yaw of the quaternion
-    assert reverse("record-trajectory", args=[record.id]) in html
     assert reverse("record-raw", args=[record.id]) in html
+    # The trajectory is the series plot of the record's robot and topic, around it.
+    assert "data-series-plot" in html
+    assert f'data-robot="{record.robot_id}"' in html
+    assert 'data-fields="position.x,position.y" data-mode="xy" data-units="m"' in html
 
-    plot = client.get(reverse("record-trajectory", args=[record.id]))
-    assert plot.status_code == 200
-    assert plot["Content-Type"] == "image/svg+xml"
-    svg = plot.content.decode()
-    assert "<polyline" in svg
-    assert "3 positions" in svg
-    # Axes in metres, and the capture times of the first and last pose.
-    assert ">x (m)<" in svg
-    assert ">y (m)<" in svg
-    assert re.search(r"\d{4}-\d\d-\d\d \d\d:\d\d:\d\d\.\d{3} → ", svg)
+    body = client.get(SERIES, _around(record)).json()
+    assert (body["source_records"], body["verified"], body["refused"]) == (3, 3, 0)
+    assert [point[1:] for point in body["points"]] == [[1.0, 0.5], [2.0, 1.0], [3.0, 1.5]]
     # Each plotted neighbour went through its own integrity check.
     assert all(Verdict.objects.filter(record=r, outcome="verified").exists() for r in earlier)
 
@@ -154,9 +150,22 @@ def test_trajectory_leaves_out_records_that_fail_their_check(client, alice, uplo
     record = upload(alice, 2, plaintext=odometry("alice", 1, 1))
     tamper(first)
     client.force_login(alice.owner.user)
-    svg = client.get(reverse("record-trajectory", args=[record.id])).content.decode()
-    assert "1 position," in svg
-    assert "1 record left out (not verified)" in svg
+    body = client.get(SERIES, _around(record)).json()
+    assert [point[1:] for point in body["points"]] == [[1.0, 1.0]]
+    assert body["refused"] == 1
+
+
+SERIES = "/api/v1/records/series/"
+
+
+def _around(record: Record) -> dict[str, str]:
+    return {
+        "robot": str(record.robot_id),
+        "topic": record.topic,
+        "fields": "position.x,position.y",
+        "since": (record.captured_at - timedelta(minutes=1)).isoformat(),
+        "until": (record.captured_at + timedelta(minutes=1)).isoformat(),
+    }
 
 
 def test_verified_image_record_shows_the_image(client, alice, upload):
@@ -167,9 +176,7 @@ def test_verified_image_record_shows_the_image(client, alice, upload):
     assert re.search(r'<img src="data:image/png;base64,iVBORw0KGgo[A-Za-z0-9+/=]+"', html)
     assert 'width="4" height="3"' in html
     assert "base64 characters, above" in html
-    assert "record-trajectory" not in html
-    plot = client.get(reverse("record-trajectory", args=[record.id]))
-    assert plot.status_code == 404
+    assert "data-series-plot" not in html
 
 
 def test_raw_json_download(client, alice, upload):
@@ -205,7 +212,8 @@ def test_tampered_record_says_so_and_shows_nothing(client, alice, bob, granted, 
         assert raw.status_code == 409
         assert raw.json()["error"] == "tampered"
         assert b"secret-frame" not in raw.content
-        assert client.get(reverse("record-trajectory", args=[record.id])).status_code == 409
+        body = client.get(SERIES, _around(record)).json()
+        assert (body["refused"], body["points"]) == (1, [])
     client.force_login(alice.owner.user)
     assert "TAMPERED" in client.get(reverse("records")).content.decode()
     assert "TAMPERED" in client.get(reverse("records"), {"status": "tampered"}).content.decode()
@@ -261,7 +269,7 @@ def test_record_whose_anchoring_failed_says_so(
 def test_records_of_others_are_out_of_reach(client, alice, bob, upload):
     record = upload(alice, 1, plaintext=odometry("alice", 0, 0, marker="private-frame"))
     client.force_login(bob.user)
-    for name in ("record-detail", "record-raw", "record-trajectory"):
+    for name in ("record-detail", "record-raw"):
         page = client.get(reverse(name, args=[record.id]))
         assert page.status_code == 403, name
         assert b"private-frame" not in page.content

@@ -103,9 +103,10 @@ def test_sort_filter_pages_and_bad_parameters(client, fleet, make_robot, upload,
     assert ">View<" not in html
     assert html.count('data-label="Upload #"') == 4
 
-    # Bad parameters: a 400 that says what is wrong, nothing listed, never a 500.
+    # Bad parameters: the page without them, saying what was left out and why; never a 500.
     zed = make_robot("zed")
     upload(zed, 1, anchor=False)
+    everything = _rows(client.get(url).content.decode())
     for params in (
         {"sort": "owner__user__password"},
         {"sort": "-captured; DROP TABLE"},
@@ -115,12 +116,16 @@ def test_sort_filter_pages_and_bad_parameters(client, fleet, make_robot, upload,
         {"since": "yesterday"},
     ):
         page = client.get(url, params)
-        assert page.status_code == 400, params
+        assert page.status_code == 200, params
         html = page.content.decode()
         assert "Select a valid choice" in html or "Enter a valid date/time" in html, params
-        assert 'data-testid="filters-invalid"' in html
-        assert _rows(html) == []
+        assert "Left out of the filters, as they do not hold:" in html
+        assert _rows(html) == everything, params
         assert zed.robot.name not in html
+    # The filters that hold still apply beside one that does not.
+    page = client.get(url, {"robot": str(fleet["scan"].robot.pk), "status": "lost"})
+    assert _rows(page.content.decode()) == _ids(fleet, "cam", "scan")
+    assert "Status: Select a valid choice" in page.content.decode()
     # A page number that is no page: the first or the last page, as Django's paginator does.
     for page_number in ("abc", "-1", "0", "99999999999999999999"):
         page = client.get(url, {"page": page_number})
@@ -204,61 +209,54 @@ def _minute(seconds: float) -> str:
     return (NOON + timedelta(seconds=seconds)).strftime("%Y-%m-%dT%H:%M:%S")
 
 
-def test_the_plot_of_a_chosen_range(client, track, make_owner, monkeypatch):
+def test_the_plot_of_a_chosen_range(client, track, make_owner):
     client.force_login(track[0].owner.user)
-    url = reverse("record-trajectory-range", args=[track[0].id])
-    svg = client.get(url, {"since": _minute(10), "until": _minute(50)}).content.decode()
-    assert "4 positions of 4 records captured from 2026-03-01 12:00" in svg
-    assert 'id="x-axis-label"' in svg
-    assert ">x (m)<" in svg
-    assert 'id="y-axis-label"' in svg
-    assert ">y (m)<" in svg
-    x_ticks = re.findall(r'class="x-tick"[^>]*>([-0-9.]+)<', svg)
-    assert len(x_ticks) >= 3
-    assert all(float(tick) >= 0 for tick in x_ticks)
-    assert "2026-03-01 12:00:10.000 → 2026-03-01 12:00:40.000 UTC" in svg
+    series = "/api/v1/records/series/"
+    query = {
+        "robot": str(track[0].robot_id),
+        "topic": track[0].topic,
+        "fields": "position.x,position.y",
+        "since": (NOON + timedelta(seconds=10)).isoformat(),
+        "until": (NOON + timedelta(seconds=50)).isoformat(),
+    }
+    body = client.get(series, query).json()
+    assert (body["source_records"], body["verified"], body["refused"]) == (4, 4, 0)
+    assert [point[1:] for point in body["points"]] == [[s, s / 2] for s in (1.0, 2.0, 3.0, 4.0)]
     # Only the records in the range were checked (and each was).
     checked = set(Verdict.objects.values_list("record_id", flat=True))
     assert checked == {record.pk for record in track[1:5]}
 
-    # A long range is thinned out to a bounded number of evenly spread poses.
-    monkeypatch.setattr("sharing.views.RANGE_PLOT_POINTS", 3)
-    Verdict.objects.all().delete()
-    svg = client.get(url, {"since": _minute(0), "until": _minute(60)}).content.decode()
-    assert "3 positions of 6 records" in svg
-    assert "evenly spread over 6 in range" in svg
-    assert Verdict.objects.count() == 3
-
-    # The record page offers a range, five minutes either side, and plots the one chosen.
+    # The record page offers a range (five minutes either side), and its plot element asks the
+    # series API for a minute either side of the record, or for the range chosen.
     page = reverse("record-detail", args=[track[2].id])
     html = client.get(page).content.decode()
     assert 'id="plot-range"' in html
-    assert 'name="since" value="2026-03-01T11:55"' in html  # five minutes either side
+    assert 'name="since" value="2026-03-01T11:55"' in html
     assert 'name="until" value="2026-03-01T12:05"' in html
-    assert reverse("record-trajectory", args=[track[2].id]) + '"' in html
+    assert 'data-since="2026-03-01T11:59:20+00:00"' in html
+    assert 'data-until="2026-03-01T12:01:20+00:00"' in html
     html = client.get(page, {"since": "2026-03-01T12:00", "until": "2026-03-01T12:01"}).content
-    assert (
-        reverse("record-trajectory-range", args=[track[2].id])
-        + "?since=2026-03-01T12%3A00&amp;until=2026-03-01T12%3A01"
-    ) in html.decode()
+    assert 'data-since="2026-03-01T12:00:00+00:00"' in html.decode()
+    assert 'data-until="2026-03-01T12:01:00+00:00"' in html.decode()
 
     # A bad range is a 400 that says so, and checks nothing.
     Verdict.objects.all().delete()
     for params in (
-        {"since": _minute(50), "until": _minute(10)},
-        {"since": _minute(0)},
-        {"since": "soon", "until": _minute(10)},
+        {**query, "since": query["until"], "until": query["since"]},
+        {key: value for key, value in query.items() if key != "until"},
+        {**query, "since": "soon"},
     ):
-        answer = client.get(url, params)
+        answer = client.get(series, params)
         assert answer.status_code == 400, params
-        assert answer.content.startswith(b"bad time range"), params
+        assert answer.json()["detail"], params
     assert not Verdict.objects.exists()
 
-    # Nobody else plots alice's topic.
+    # Nobody else plots alice's topic: nothing of it is counted or checked.
     client.force_login(make_owner("mallory").user)
-    answer = client.get(url, {"since": _minute(0), "until": _minute(60)})
-    assert answer.status_code == 404
-    assert b"position" not in answer.content
+    answer = client.get(series, query)
+    assert answer.status_code == 200
+    assert (answer.json()["source_records"], answer.json()["points"]) == (0, [])
+    assert not Verdict.objects.exists()
 
 
 # --- the gallery ----------------------------------------------------------------------------

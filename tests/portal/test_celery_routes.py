@@ -11,7 +11,6 @@ def _queue(task_name: str) -> str:
 
 def test_integrity_checks_go_to_the_verify_queue_and_chain_work_to_the_default_one():
     default = app.conf.task_default_queue
-    assert _queue("sharing.tasks.record_verify") == f"{default}-verify"
     assert _queue("sharing.tasks.records_verify") == f"{default}-verify"
     for chain_work in (
         "sharing.tasks.records_anchor",
@@ -25,7 +24,7 @@ def test_the_route_follows_the_default_queue_chosen_at_run_time():
     before = app.conf.task_default_queue
     app.conf.task_default_queue = "elsewhere"
     try:
-        assert _queue("sharing.tasks.record_verify") == "elsewhere-verify"
+        assert _queue("sharing.tasks.records_verify") == "elsewhere-verify"
         assert _queue("sharing.tasks.records_anchor") == "elsewhere"
     finally:
         app.conf.task_default_queue = before
@@ -40,6 +39,6 @@ def test_a_worker_started_without_queues_consumes_both():
 
 
 def test_the_routed_names_are_the_tasks_names():
-    from sharing.tasks import record_verify, records_verify
+    from sharing.tasks import records_verify
 
-    assert {record_verify.name, records_verify.name} == VERIFY_TASKS
+    assert {records_verify.name} == VERIFY_TASKS

@@ -7,8 +7,8 @@ from pathlib import Path
 
 import yaml
 
-from sharing.models import Record
-from sharing.verification import record_open_many
+from sharing.models import Access, Record
+from sharing.verification import records_open
 from tests.harness import wait_for
 from tests.ros_agent.conftest import write_key_file
 from tests.ros_agent.recordings import TOPICS
@@ -65,7 +65,9 @@ def opened_records(robot, *, expected: int, timeout: float = 60) -> list[tuple[R
         timeout=timeout,
         what="the records anchored",
     )
-    opened = record_open_many(records=records, viewer=records[0].owner)
+    opened = records_open(
+        records=records, viewer=records[0].owner, kind=Access.Kind.PAGE, credential="session"
+    )
     result = []
     for record, item in zip(records, opened, strict=True):
         assert not isinstance(item, Exception), f"{record}: {item!r}"

@@ -1,4 +1,4 @@
-"""The agent against the real portal: a ROS master, granian, a Celery worker and beat, anvil.
+"""The agent against the real portal: a ROS master, gunicorn, a Celery worker and beat, anvil.
 
 Messages published by `rostopic pub` and by the simulated robot reach the portal, are anchored
 on chain, and open (through the worker's integrity check) to exactly what was published. Then
@@ -180,7 +180,7 @@ def test_the_agent_delivers_to_the_real_portal_exactly_once_across_an_outage(
     assert kinds[sim.IMAGE_TOPIC] >= 2
     assert kinds[CHATTER] >= 20
 
-    # A body above the limit gets the API's JSON 413 through granian too, and changes nothing.
+    # A body above the limit gets the API's JSON 413 through gunicorn too, and changes nothing.
     token = (tmp_path / "robot.token").read_text()
     oversized = requests.post(
         f"{stack.web_url}/api/v1/records/",

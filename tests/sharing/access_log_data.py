@@ -23,7 +23,7 @@ from accounts.models import Owner, OwnerToken, Robot
 from accounts.services.api_tokens import owner_token_create
 from accounts.services.owners import owner_create
 from accounts.services.robots import robot_create
-from sharing.models import Grant, Record, Verdict
+from sharing.models import Access, Grant, Record, Verdict
 from smcrypto import sm4
 from tests.conftest import TEST_PASSWORD
 
@@ -53,6 +53,9 @@ class World:
     def ids(self, *names: str) -> list[int]:
         return [self.views[name].pk for name in names]
 
+    def access_ids(self, *names: str) -> list[int]:
+        return [self.views[name].access_id for name in names]
+
 
 def _owner(name: str, *, signed_up: bool) -> Owner:
     return owner_create(
@@ -60,7 +63,7 @@ def _owner(name: str, *, signed_up: bool) -> Owner:
     )
 
 
-def _record(robot: Robot, seq: int, topic: str, data_type: str) -> Record:
+def stored_record(robot: Robot, seq: int, topic: str, data_type: str) -> Record:
     return Record.objects.create(
         owner=robot.owner,
         robot=robot,
@@ -86,8 +89,23 @@ def view(
     token: OwnerToken | None = None,
     checked_by: object = None,
 ) -> Verdict:
-    """A verdict as the worker writes it, at NOON + minutes."""
+    """A view of one record as the worker writes it, at NOON + minutes: its access and its
+    verdict."""
+    access = Access.objects.create(
+        kind=Access.Kind.CHECK if checked_by else Access.Kind.VIEW,
+        viewer=viewer,
+        record_owner_id=record.owner_id,
+        credential=credential,
+        token=token,
+        checked_by=checked_by,
+        count=1,
+        record=record,
+        robot_id=record.robot_id,
+        topic=record.topic,
+    )
+    Access.objects.filter(pk=access.pk).update(created_at=at(minutes))
     verdict = Verdict.objects.create(
+        access=access,
         record=record,
         viewer=viewer,
         record_owner_id=record.owner_id,
@@ -100,6 +118,36 @@ def view(
     Verdict.objects.filter(pk=verdict.pk).update(created_at=at(minutes))
     verdict.refresh_from_db()
     return verdict
+
+
+def plot(records: list[Record], viewer: Owner, minutes: float) -> Access:
+    """A plot of `viewer`'s over the records (all of one owner), at NOON + minutes: one access
+    of kind plot naming how many, a verified verdict per record under it."""
+    owner_id = records[0].owner_id
+    access = Access.objects.create(
+        kind=Access.Kind.PLOT,
+        viewer=viewer,
+        record_owner_id=owner_id,
+        credential=Verdict.Credential.SESSION,
+        count=len(records),
+        topic=records[0].topic,
+        robot_id=records[0].robot_id,
+    )
+    Access.objects.filter(pk=access.pk).update(created_at=at(minutes))
+    Verdict.objects.bulk_create(
+        Verdict(
+            access=access,
+            record=record,
+            viewer=viewer,
+            record_owner_id=owner_id,
+            outcome=Verdict.Outcome.VERIFIED,
+            credential=Verdict.Credential.SESSION,
+            block_number=7,
+        )
+        for record in records
+    )
+    access.refresh_from_db()
+    return access
 
 
 def access_log_world(*, signed_up: bool = False) -> World:
@@ -119,9 +167,9 @@ def access_log_world(*, signed_up: bool = False) -> World:
         username="operator", password=TEST_PASSWORD, is_staff=True
     )
     world = World(alice, bob, carol, arm, rover, token)
-    odom = _record(arm, 1, "/odom", "nav_msgs/Odometry")
-    camera = _record(rover, 2, FORMULA_TOPIC, "sensor_msgs/Image")
-    private = _record(carols, 1, CAROL_TOPIC, "std_msgs/String")
+    odom = stored_record(arm, 1, "/odom", "nav_msgs/Odometry")
+    camera = stored_record(rover, 2, FORMULA_TOPIC, "sensor_msgs/Image")
+    private = stored_record(carols, 1, CAROL_TOPIC, "std_msgs/String")
     world.records = {"odom": odom, "camera": camera, "private": private}
     world.views = {
         "old": view(odom, alice, -24 * 60, credential=Verdict.Credential.UNKNOWN),

@@ -98,9 +98,9 @@ def _manage(folder: Path, chain_url: str, *args: str) -> subprocess.CompletedPro
 VERIFY_ALL = """
 import json
 from sharing.models import Grant, Record
-from sharing.verification import record_verify
+from sharing.verification import records_verify
 def outcome(record, viewer_id):
-    return record_verify(record_id=record.id, viewer_id=viewer_id).verdict.outcome
+    return records_verify(record_ids=[record.id], viewer_id=viewer_id)[0].verdict.outcome
 outcomes = {str(record.id): outcome(record, record.owner_id) for record in Record.objects.all()}
 for grant in Grant.objects.all():
     for record in Record.objects.filter(owner=grant.owner):

@@ -1,7 +1,9 @@
-"""Bounded work on pages (F8): a trajectory is one batched integrity check with its verdicts
-written in one INSERT, and every owner page has a rate limit per user (429 past it)."""
+"""Bounded work on pages (F8): a plot is one batched integrity check (batches sent side by side
+for a long one) with its verdicts written in one INSERT, and every owner page has a rate limit
+per user (429 past it)."""
 
 import re
+from datetime import timedelta
 
 import pytest
 import redis
@@ -10,13 +12,14 @@ from django.test.utils import CaptureQueriesContext
 from django.urls import reverse
 
 from sharing import verification
-from sharing.models import Verdict
-from sharing.views import TRAJECTORY_COST
+from sharing.models import Access, Verdict
 from stack.anvil import free_port
 from tests.conftest import tamper
 from tests.pages.conftest import odometry
 
 pytestmark = pytest.mark.django_db
+
+SERIES = "/api/v1/records/series/"
 
 
 @pytest.fixture
@@ -38,10 +41,21 @@ def _verdict_inserts(queries: CaptureQueriesContext) -> int:
     return sum(1 for query in queries.captured_queries if insert.match(query["sql"]))
 
 
-# --- one batched check per trajectory -------------------------------------------------------
+# --- one batched check per plot -------------------------------------------------------------
 
 
-def test_a_trajectory_is_one_check_and_one_insert(client, alice, bob, upload, sent):
+def _series(record, **extra: object) -> dict[str, object]:
+    return {
+        "robot": str(record.robot_id),
+        "topic": record.topic,
+        "fields": "position.x,position.y",
+        "since": (record.captured_at - timedelta(minutes=1)).isoformat(),
+        "until": (record.captured_at + timedelta(minutes=1)).isoformat(),
+        **extra,
+    }
+
+
+def test_a_plot_is_one_check_and_one_insert(client, alice, bob, upload, sent):
     records = [upload(alice, seq, plaintext=odometry("alice", seq, seq)) for seq in range(1, 7)]
     tamper(records[2])
     for viewer in (alice.owner, bob):
@@ -49,15 +63,15 @@ def test_a_trajectory_is_one_check_and_one_insert(client, alice, bob, upload, se
         sent.clear()
         before = Verdict.objects.count()
         with CaptureQueriesContext(connection) as queries:
-            plot = client.get(reverse("record-trajectory", args=[records[-1].id]))
-        svg = plot.content.decode()
+            plot = client.get(SERIES, _series(records[-1]))
+        body = plot.json()
         assert plot.status_code == 200
         assert sent == ["sharing.tasks.records_verify"]
         assert _verdict_inserts(queries) == 1
         assert Verdict.objects.count() == before + len(records)
         # The tampered pose is refused and left out; the others are plotted.
-        assert "5 positions," in svg
-        assert "1 record left out (not verified)" in svg
+        assert (body["verified"], body["refused"]) == (5, 1)
+        assert [point[1] for point in body["points"]] == [1.0, 2.0, 4.0, 5.0, 6.0]
         verdicts = Verdict.objects.filter(viewer=viewer).order_by("-pk")[: len(records)]
         assert {v.outcome for v in verdicts} == {"verified", "tampered"}
         # One chain head for the batch; a verdict never says a block before its record's.
@@ -66,32 +80,43 @@ def test_a_trajectory_is_one_check_and_one_insert(client, alice, bob, upload, se
         assert len(heads) <= 1
 
 
-def test_a_trajectory_of_a_record_without_access_is_refused_in_its_one_check(
+def test_a_long_plot_is_sent_in_batches_side_by_side(client, alice, upload, sent, monkeypatch):
+    records = [upload(alice, seq, plaintext=odometry("alice", seq, 0)) for seq in range(1, 6)]
+    monkeypatch.setattr(verification, "VERIFY_BATCH", 2)
+    client.force_login(alice.owner.user)
+    body = client.get(SERIES, _series(records[-1])).json()
+    assert sent == ["sharing.tasks.records_verify"] * 3
+    assert body["verified"] == 5
+    # Still one line of the access log for the whole plot.
+    assert list(Access.objects.values_list("kind", "count")) == [("plot", 5)]
+
+
+def test_a_strangers_plot_checks_nothing_and_learns_nothing(
     client, alice, make_owner, upload, sent
 ):
     record = upload(alice, 1, plaintext=odometry("alice", 0, 0))
     upload(alice, 2, plaintext=odometry("alice", 1, 1))
     stranger = make_owner("mallory")
     client.force_login(stranger.user)
-    answer = client.get(reverse("record-trajectory", args=[record.id]))
-    assert answer.status_code == 403
-    assert sent == ["sharing.tasks.records_verify"]
-    assert not Verdict.objects.filter(viewer=stranger).exclude(outcome="no_access").exists()
+    body = client.get(SERIES, _series(record)).json()
+    assert (body["source_records"], body["points"]) == (0, [])
+    assert sent == []
+    assert not Verdict.objects.filter(viewer=stranger).exists()
 
 
 def test_a_record_page_keeps_its_single_check(client, alice, upload, sent):
     record = upload(alice, 1, plaintext=odometry("alice", 0, 0))
     client.force_login(alice.owner.user)
     assert client.get(reverse("record-detail", args=[record.id])).status_code == 200
-    assert sent == ["sharing.tasks.record_verify"]
+    assert sent == ["sharing.tasks.records_verify"]
 
 
-def test_an_unavailable_batch_refuses_every_pose(client, alice, upload, settings):
+def test_an_unavailable_check_answers_503_for_the_plot(client, alice, upload, settings):
     record = upload(alice, 1, plaintext=odometry("alice", 0, 0))
     settings.CHAIN_RPC_URL = f"http://127.0.0.1:{free_port()}"
     settings.VERIFY_TIMEOUT = 5
     client.force_login(alice.owner.user)
-    answer = client.get(reverse("record-trajectory", args=[record.id]))
+    answer = client.get(SERIES, _series(record))
     assert answer.status_code == 503
 
 
@@ -114,17 +139,6 @@ def test_pages_that_check_content_have_a_rate_per_user(client, alice, bob, uploa
     assert client.get(reverse("records")).status_code == 200
     client.force_login(bob.user)
     assert client.get(reverse("record-detail", args=[record.id])).status_code == 200
-
-
-def test_a_trajectory_costs_more_than_one_view(client, alice, upload, settings):
-    settings.PAGE_RATE_CONTENT = f"{2 * TRAJECTORY_COST}/day"
-    record = upload(alice, 1, plaintext=odometry("alice", 0, 0))
-    client.force_login(alice.owner.user)
-    url = reverse("record-trajectory", args=[record.id])
-    assert client.get(url).status_code == 200
-    assert client.get(url).status_code == 200
-    assert client.get(url).status_code == 429
-    assert client.get(reverse("record-detail", args=[record.id])).status_code == 429
 
 
 def test_every_owner_page_has_a_rate_per_user(client, alice, settings):

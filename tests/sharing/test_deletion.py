@@ -31,7 +31,7 @@ from sharing.errors import (
 from sharing.models import Grant, Record, Verdict
 from sharing.services import grant_create, owner_resolve
 from sharing.storage import envelope_storage
-from sharing.verification import record_open, record_verify
+from sharing.verification import record_open, records_verify
 from smcrypto import sm4
 from tests.api.conftest import RECORDS, token_client
 from tests.conftest import TEST_PASSWORD, RobotSetup
@@ -269,7 +269,7 @@ def _crash_between_tombstone_and_purge(alice: RobotSetup, bob, upload, monkeypat
         assert f"deleted on {crashed.deleted_at:%Y-%m-%d}" in str(refused.value)
         assert f"by {alice.owner.username}" in str(refused.value)
     # The worker's check says "deleted", never TAMPERED, and raises no alarm.
-    verdict = record_verify(record_id=crashed.id, viewer_id=bob.pk).verdict
+    verdict = records_verify(record_ids=[crashed.id], viewer_id=bob.pk)[0].verdict
     assert verdict.outcome == Verdict.Outcome.DELETED
     # The storage fails once (an S3 server away): the record stays to purge.
     storage_class = type(envelope_storage())

@@ -52,9 +52,9 @@ def test_an_export_beyond_5000_records_streams_in_batches_and_verifies(
     batches: list[int] = []
     checked = exports._verified
 
-    def counting(batch, requester):
+    def counting(batch, *args):
         batches.append(len(batch))
-        return checked(batch, requester)
+        return checked(batch, *args)
 
     monkeypatch.setattr(exports, "_verified", counting)
     buffered: list[int] = []

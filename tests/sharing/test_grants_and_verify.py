@@ -18,7 +18,7 @@ from sharing.services import (
     record_create,
 )
 from sharing.storage import envelope_storage
-from sharing.verification import record_verify
+from sharing.verification import records_verify
 from tests.conftest import tamper
 
 pytestmark = pytest.mark.django_db
@@ -129,7 +129,7 @@ def test_grantee_by_username_or_address(make_owner):
 
 def test_owner_view_is_verified_and_audited(anchored):
     setup, record = anchored
-    verification = record_verify(record_id=record.id, viewer_id=setup.owner.pk)
+    verification = records_verify(record_ids=[record.id], viewer_id=setup.owner.pk)[0]
     verdict = verification.verdict
     assert verdict.outcome == Verdict.Outcome.VERIFIED
     assert verdict.computed_digest == record.digest == verdict.chain_digest
@@ -144,7 +144,7 @@ def test_cache_miss_reads_storage_and_rewarms(anchored, settings):
     # What a FLUSHDB would do to this test, leaving other runs sharing the Redis alone.
     redis = get_redis()
     redis.delete(*redis.scan_iter(f"{settings.REDIS_KEY_PREFIX}:*"))
-    verification = record_verify(record_id=record.id, viewer_id=setup.owner.pk)
+    verification = records_verify(record_ids=[record.id], viewer_id=setup.owner.pk)[0]
     assert verification.verdict.outcome == Verdict.Outcome.VERIFIED
     assert verification.verdict.source == "storage"
     assert envelope_cache_get(record.id) == verification.envelope
@@ -153,12 +153,14 @@ def test_cache_miss_reads_storage_and_rewarms(anchored, settings):
 def test_grantee_sees_until_revoked(anchored, make_owner, django_capture_on_commit_callbacks):
     setup, record = anchored
     bob = make_owner("bob")
-    assert record_verify(record_id=record.id, viewer_id=bob.pk).verdict.outcome == "no_access"
+    assert (
+        records_verify(record_ids=[record.id], viewer_id=bob.pk)[0].verdict.outcome == "no_access"
+    )
     _grant(setup.owner, bob, django_capture_on_commit_callbacks)
-    assert record_verify(record_id=record.id, viewer_id=bob.pk).verdict.outcome == "verified"
+    assert records_verify(record_ids=[record.id], viewer_id=bob.pk)[0].verdict.outcome == "verified"
     # Revoked in the portal: refused at the next view, before the chain has confirmed it.
     grant_revoke(owner=setup.owner, grantee=bob)
-    refused = record_verify(record_id=record.id, viewer_id=bob.pk)
+    refused = records_verify(record_ids=[record.id], viewer_id=bob.pk)[0]
     assert refused.verdict.outcome == "no_access"
     assert refused.envelope is None
     assert Verdict.objects.filter(viewer=bob).count() == 3
@@ -169,7 +171,9 @@ def test_grant_only_in_the_portal_is_not_enough(anchored, make_owner):
     setup, record = anchored
     bob = make_owner("bob")
     Grant.objects.create(owner=setup.owner, grantee=bob, status=Grant.Status.ACTIVE)
-    assert record_verify(record_id=record.id, viewer_id=bob.pk).verdict.outcome == "no_access"
+    assert (
+        records_verify(record_ids=[record.id], viewer_id=bob.pk)[0].verdict.outcome == "no_access"
+    )
 
 
 def test_changed_cache_is_tampered(anchored):
@@ -177,7 +181,7 @@ def test_changed_cache_is_tampered(anchored):
     cached = bytearray(envelope_cache_get(record.id))
     cached[-5] ^= 0xFF
     get_redis().set(cache_key(record.id), bytes(cached))
-    verification = record_verify(record_id=record.id, viewer_id=setup.owner.pk)
+    verification = records_verify(record_ids=[record.id], viewer_id=setup.owner.pk)[0]
     assert verification.verdict.outcome == Verdict.Outcome.TAMPERED
     assert verification.verdict.source == "cache"
     assert verification.envelope is None
@@ -188,25 +192,26 @@ def test_changed_cache_is_tampered(anchored):
     # The bad cached copy is dropped; durable storage still holds the anchored bytes.
     assert envelope_cache_get(record.id) is None
     assert (
-        record_verify(record_id=record.id, viewer_id=setup.owner.pk).verdict.outcome == "verified"
+        records_verify(record_ids=[record.id], viewer_id=setup.owner.pk)[0].verdict.outcome
+        == "verified"
     )
 
 
 def test_changed_durable_copy_is_tampered(anchored):
     setup, record = anchored
     tamper(record)
-    verification = record_verify(record_id=record.id, viewer_id=setup.owner.pk)
+    verification = records_verify(record_ids=[record.id], viewer_id=setup.owner.pk)[0]
     assert verification.verdict.outcome == Verdict.Outcome.TAMPERED
     assert verification.verdict.source == "storage"
     assert verification.envelope is None
-    again = record_verify(record_id=record.id, viewer_id=setup.owner.pk)
+    again = records_verify(record_ids=[record.id], viewer_id=setup.owner.pk)[0]
     assert again.verdict.outcome == Verdict.Outcome.TAMPERED
 
 
 def test_not_anchored_yet(make_robot, deployed):
     setup = make_robot()
     record = record_create(robot=setup.robot, data=setup.seal(1))  # on-commit work not run
-    verification = record_verify(record_id=record.id, viewer_id=setup.owner.pk)
+    verification = records_verify(record_ids=[record.id], viewer_id=setup.owner.pk)[0]
     assert verification.verdict.outcome == Verdict.Outcome.NOT_ANCHORED_YET
     assert verification.envelope is None
 
@@ -268,6 +273,6 @@ def test_a_deleted_envelope_file_is_tampered_not_an_error(anchored, settings):
     redis = get_redis()
     redis.delete(*redis.scan_iter(f"{settings.REDIS_KEY_PREFIX}:*"))
     envelope_storage().delete(record.storage_name)
-    verdict = record_verify(record_id=record.id, viewer_id=setup.owner.pk).verdict
+    verdict = records_verify(record_ids=[record.id], viewer_id=setup.owner.pk)[0].verdict
     assert (verdict.outcome, verdict.source) == (Verdict.Outcome.TAMPERED, "storage")
     assert SecurityEvent.objects.filter(record=record).exists()

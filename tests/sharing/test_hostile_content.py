@@ -1,9 +1,10 @@
 """Hostile content (F7): a verified record is still whatever its robot sealed. A record the
 pages cannot interpret is shown as raw text with a note, never a 500, for its owner and its
-grantees; the trajectory skips the poses it cannot interpret and says how many."""
+grantees; a series reads no value from it."""
 
 import json
 import math
+from datetime import timedelta
 
 import pytest
 from django.urls import reverse
@@ -17,9 +18,8 @@ from sharing.content import (
     content_of,
     image_size,
     odometry_rows,
-    pose_of,
-    trajectory_plot,
 )
+from sharing.series import record_values
 from tests.pages.conftest import image, odometry
 
 
@@ -96,7 +96,7 @@ def test_a_record_that_cannot_be_interpreted_is_shown_raw_with_the_reason(
     assert content.raw_shown_bytes == min(len(plaintext), RAW_SHOWN_BYTES)
     assert content.raw_truncated == (len(plaintext) > RAW_SHOWN_BYTES)
     assert _encodable(content.raw)
-    assert pose_of(plaintext) is None
+    assert record_values(plaintext, ["position.x"]) == [None]
 
 
 @pytest.mark.parametrize("data_type", [ODOMETRY, *sorted(IMAGE_TYPES)])
@@ -181,38 +181,10 @@ def test_an_image_with_an_implausible_size_is_shown_without_one():
     assert content.image_size == (None, None)
 
 
-def test_the_trajectory_skips_what_it_cannot_plot_and_counts_it():
-    poses = [
-        (0.0, 0.0, None),
-        None,
-        (float("nan"), 0.0, None),
-        (float("inf"), 1.0, None),
-        (1e308, -1e308, None),  # finite, but no robot's position
-        ("1", 2.0, None),
-        (10**400, 1.0, None),
-        (1, 2),
-        (1.0, 1.0, float("nan")),  # plotted, without a heading
-    ]
-    plot = trajectory_plot(poses)
-    assert plot["count"] == 2
-    assert plot["skipped"] == 7
-    assert plot["arrow"] is None
-    text = " ".join(str(value) for value in plot.values())
-    assert "nan" not in text
-    assert "inf" not in text
-    assert trajectory_plot([None, None]) == {
-        "width": 640,
-        "height": 480,
-        "points": "",
-        "count": 0,
-        "skipped": 2,
-    }
-
-
 @pytest.mark.parametrize("plaintext", ODD_SHAPES.values(), ids=ODD_SHAPES)
-def test_a_pose_is_finite_or_none(plaintext):
-    pose = pose_of(plaintext)
-    assert pose is None or all(v is None or math.isfinite(v) for v in pose)
+def test_a_series_value_is_finite_or_none(plaintext):
+    values = record_values(plaintext, ["position.x", "position.y", "orientation.w"])
+    assert all(value is None or math.isfinite(value) for value in values)
 
 
 # --- through the pages, for the owner and a grantee ------------------------------------------
@@ -250,19 +222,12 @@ def test_pages_of_a_hostile_record_and_of_its_topic_answer_200(case, client, ali
         assert raw.status_code == 200
         assert raw.content == plaintext
 
-        own = client.get(reverse("record-trajectory", args=[hostile.id]))
-        assert own.status_code == 200
-        assert "1 position," in own.content.decode()
-        assert "1 record skipped (content could not be interpreted)" in own.content.decode()
-
-        plot = client.get(reverse("record-trajectory", args=[later.id]))
-        svg = plot.content.decode()
-        assert plot.status_code == 200, (case, viewer)
-        assert plot["Content-Type"] == "image/svg+xml"
-        assert "2 positions," in svg
-        assert "1 record skipped (content could not be interpreted)" in svg
-        assert "left out (not verified)" not in svg
-        assert "nan" not in svg.lower()
+        series = client.get("/api/v1/records/series/", _series_around(later))
+        assert series.status_code == 200, (case, viewer)
+        body = series.json()
+        assert (body["source_records"], body["verified"], body["refused"]) == (3, 3, 0)
+        assert body["without_values"] == 1
+        assert [point[1:] for point in body["points"]] == [[0.0, 0.0], [1.0, 1.0]]
 
 
 @pytest.mark.django_db
@@ -276,5 +241,16 @@ def test_a_record_page_of_odd_json_answers_200(client, alice, upload):
     page = client.get(reverse("record-detail", args=[wrong.id]))
     assert page.status_code == 200
     assert 'data-testid="odometry-table"' in page.content.decode()
-    svg = client.get(reverse("record-trajectory", args=[wrong.id])).content.decode()
-    assert "No positions to plot. 2 records skipped" in svg
+    body = client.get("/api/v1/records/series/", _series_around(wrong)).json()
+    assert (body["verified"], body["without_values"], body["points"]) == (2, 2, [])
+
+
+def _series_around(record) -> dict[str, str]:
+    """The series API's query of x and y on the record's topic, a minute either side."""
+    return {
+        "robot": str(record.robot_id),
+        "topic": record.topic,
+        "fields": "position.x,position.y",
+        "since": (record.captured_at - timedelta(minutes=1)).isoformat(),
+        "until": (record.captured_at + timedelta(minutes=1)).isoformat(),
+    }

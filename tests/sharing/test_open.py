@@ -6,9 +6,10 @@ from accounts.selectors import owner_key_bytes, owner_key_current
 from core.redis_client import get_redis
 from sharing import errors, verification
 from sharing.cache import _key as cache_key
+from sharing.models import Access
 from sharing.selectors import record_get_visible, record_list_visible_to
 from sharing.services import grant_create, grant_revoke, record_create
-from sharing.verification import record_open, record_open_many, record_reseal_for
+from sharing.verification import record_open, record_reseal_for, records_open
 from smcrypto import CryptoError, envelope, sm3
 
 pytestmark = pytest.mark.django_db
@@ -80,8 +81,11 @@ def test_opening_many_gives_each_record_its_own_outcome(
     cached[-1] ^= 1
     get_redis().set(cache_key(tampered.pk), bytes(cached))
 
-    opened, not_yet, refused = record_open_many(
-        records=[anchored, pending, tampered], viewer=alice.owner
+    opened, not_yet, refused = records_open(
+        records=[anchored, pending, tampered],
+        viewer=alice.owner,
+        kind=Access.Kind.PAGE,
+        credential="session",
     )
     assert opened.plaintext == b'{"K": "odom"}'
     assert isinstance(not_yet, errors.NotAnchoredYet)
@@ -89,7 +93,9 @@ def test_opening_many_gives_each_record_its_own_outcome(
     # Someone without a grant gets a refusal for each, and nothing else.
     assert all(
         isinstance(result, errors.AccessDenied)
-        for result in record_open_many(records=[anchored, tampered], viewer=bob)
+        for result in records_open(
+            records=[anchored, tampered], viewer=bob, kind="page", credential="session"
+        )
     )
 
 
@@ -97,17 +103,17 @@ def test_a_view_fetches_and_hashes_the_envelope_once(shared, monkeypatch):
     """The worker fetches and hashes; the view decrypts the bytes the worker checked."""
     alice, _bob, record = shared
     fetches, hashes = [], []
-    real_fetch, real_hash = verification.envelope_fetch, sm3.sm3_hex
+    real_fetch, real_hash = verification.envelopes_fetch, sm3.sm3_hex
 
-    def counting_fetch(fetched):
-        fetches.append(fetched.pk)
-        return real_fetch(fetched)
+    def counting_fetch(records):
+        fetches.extend(record.pk for record in records)
+        return real_fetch(records)
 
     def counting_hash(data):
         hashes.append(len(data))
         return real_hash(data)
 
-    monkeypatch.setattr(verification, "envelope_fetch", counting_fetch)
+    monkeypatch.setattr(verification, "envelopes_fetch", counting_fetch)
     monkeypatch.setattr(sm3, "sm3_hex", counting_hash)
     opened = record_open(record_id=record.pk, viewer=alice.owner)
     assert opened.plaintext == b'{"K": "odom"}'
@@ -120,7 +126,7 @@ def test_the_view_decrypts_what_the_worker_checked_not_a_later_copy(shared, monk
     """Stored bytes that change after the check are never what is shown."""
     alice, _bob, record = shared
     checked = get_redis().get(cache_key(record.pk))
-    real_verify = verification.record_verify
+    real_verify = verification.records_verify
 
     def verify_then_tamper(**kwargs):
         result = real_verify(**kwargs)
@@ -129,7 +135,7 @@ def test_the_view_decrypts_what_the_worker_checked_not_a_later_copy(shared, monk
         get_redis().set(cache_key(record.pk), bytes(changed))
         return result
 
-    monkeypatch.setattr(verification, "record_verify", verify_then_tamper)
+    monkeypatch.setattr(verification, "records_verify", verify_then_tamper)
     opened = record_open(record_id=record.pk, viewer=alice.owner)
     assert opened.envelope == checked
     assert opened.plaintext == b'{"K": "odom"}'

@@ -17,7 +17,7 @@ from chainworker import services as chain_services
 from chainworker.chain import AnchorItem, bytes32_to_record_id
 from sharing.models import Grant, Record, SecurityEvent, Verdict
 from sharing.services import grant_create, grant_revoke
-from sharing.verification import record_verify
+from sharing.verification import records_verify
 from smcrypto import sm4
 
 # Records mode: what the chain holds per record id. Roots: tests/sharing/test_roots.py.
@@ -38,7 +38,7 @@ def test_a_record_the_chain_lost_is_anchored_again_and_verifies(
         record = upload(setup, 1)
         assert record.status == Record.Status.ANCHORED
     # The node lost the block with the record.
-    lost = record_verify(record_id=record.id, viewer_id=setup.owner.pk)
+    lost = records_verify(record_ids=[record.id], viewer_id=setup.owner.pk)[0]
     assert lost.verdict.outcome == Verdict.Outcome.NOT_ANCHORED_YET
 
     counts = reconcile()
@@ -48,7 +48,7 @@ def test_a_record_the_chain_lost_is_anchored_again_and_verifies(
     assert record.status == Record.Status.ANCHORED
     client = chain_services.chain_client()
     assert client.data_query(record.id).digest.hex() == record.digest
-    assert record_verify(record_id=record.id, viewer_id=setup.owner.pk).verdict.outcome == (
+    assert records_verify(record_ids=[record.id], viewer_id=setup.owner.pk)[0].verdict.outcome == (
         Verdict.Outcome.VERIFIED
     )
     assert _uploaded_ids(client) == {record.id: 1}
@@ -156,7 +156,7 @@ def _assert_recreated(owners, records) -> None:
         record.refresh_from_db()
         assert record.status == Record.Status.ANCHORED
         assert client.data_query(record.id).digest.hex() == record.digest
-        verdict = record_verify(record_id=record.id, viewer_id=record.owner_id).verdict
+        verdict = records_verify(record_ids=[record.id], viewer_id=record.owner_id)[0].verdict
         assert verdict.outcome == Verdict.Outcome.VERIFIED
 
 

@@ -14,7 +14,7 @@ from sharing.models import AnchorRoot, Grant, Record, Verdict
 from sharing.roots import record_path, tree_build
 from sharing.services import grant_create, record_create
 from sharing.storage import envelope_storage
-from sharing.verification import record_verify
+from sharing.verification import records_verify
 from smcrypto import sm3
 from smcrypto.merkle import leaf_hash, root_from_path
 from tests.api.conftest import session_client, token_client
@@ -213,14 +213,14 @@ def test_a_view_folds_the_proof_and_asks_the_chain_once(anchored, deployed, monk
     costs one eth_call (rootOf) and nothing else on chain."""
     settings.IDENTITY_BLOCK_CACHE_SECONDS = 3600
     setup, record = anchored
-    record_verify(record_id=record.id, viewer_id=setup.owner.pk)  # warms head and identity
+    records_verify(record_ids=[record.id], viewer_id=setup.owner.pk)[0]  # warms head and identity
     calls = []
     real_call, real_head = deployed._call_lean, deployed.latest_block
     monkeypatch.setattr(
         deployed, "_call_lean", lambda name, *a: calls.append(name) or real_call(name, *a)
     )
     monkeypatch.setattr(deployed, "latest_block", lambda: calls.append("head") or real_head())
-    verification = record_verify(record_id=record.id, viewer_id=setup.owner.pk)
+    verification = records_verify(record_ids=[record.id], viewer_id=setup.owner.pk)[0]
     assert verification.verdict.outcome == Verdict.Outcome.VERIFIED
     assert verification.verdict.chain_digest == record.digest
     assert verification.verdict.block_number >= record.block_number
@@ -231,7 +231,7 @@ def test_a_view_folds_the_proof_and_asks_the_chain_once(anchored, deployed, monk
 def test_a_changed_envelope_is_tampered(anchored):
     setup, record = anchored
     tamper(record)
-    verification = record_verify(record_id=record.id, viewer_id=setup.owner.pk)
+    verification = records_verify(record_ids=[record.id], viewer_id=setup.owner.pk)[0]
     assert verification.verdict.outcome == Verdict.Outcome.TAMPERED
     assert verification.envelope is None
 
@@ -252,7 +252,7 @@ def test_a_changed_digest_index_or_path_in_the_database_is_tampered(anchored, ch
     if "merkle_path" in change:
         change = {"merkle_path": change["merkle_path"] + bytes(record.merkle_path)[32:]}
     Record.objects.filter(pk=record.pk).update(**change)
-    verification = record_verify(record_id=record.id, viewer_id=setup.owner.pk)
+    verification = records_verify(record_ids=[record.id], viewer_id=setup.owner.pk)[0]
     assert verification.verdict.outcome == Verdict.Outcome.TAMPERED
 
 
@@ -260,7 +260,7 @@ def test_a_changed_digest_index_or_path_in_the_database_is_tampered(anchored, ch
 def test_a_changed_tree_size_or_root_is_refused(anchored, change):
     setup, record = anchored
     AnchorRoot.objects.filter(pk=record.anchor_root_id).update(**change)
-    verification = record_verify(record_id=record.id, viewer_id=setup.owner.pk)
+    verification = records_verify(record_ids=[record.id], viewer_id=setup.owner.pk)[0]
     assert verification.verdict.outcome in (
         Verdict.Outcome.TAMPERED,
         Verdict.Outcome.NOT_ANCHORED_YET,  # a root the owner never anchored
@@ -352,7 +352,7 @@ def test_roots_the_chain_lost_are_sent_again_as_they_were(
     assert _assert_anchored_once(deployed, setup.owner) == trees  # the same trees
     assert set(_root_events(deployed).values()) == {1}
     for record in Record.objects.all():
-        verdict = record_verify(record_id=record.id, viewer_id=setup.owner.pk).verdict
+        verdict = records_verify(record_ids=[record.id], viewer_id=setup.owner.pk)[0].verdict
         assert verdict.outcome == Verdict.Outcome.VERIFIED
     assert reconcile()["roots_lost"] == 0
 
@@ -374,5 +374,5 @@ def test_a_reset_chain_gets_every_root_again(
     client = chain_services.chain_client()
     assert _assert_anchored_once(client, setup.owner) == trees
     record = Record.objects.first()
-    verdict = record_verify(record_id=record.id, viewer_id=setup.owner.pk).verdict
+    verdict = records_verify(record_ids=[record.id], viewer_id=setup.owner.pk)[0].verdict
     assert verdict.outcome == Verdict.Outcome.VERIFIED

@@ -17,7 +17,7 @@ from sharing.exports import export_create
 from sharing.models import Record, Verdict
 from sharing.services import record_create_batch
 from sharing.storage import DurableS3Storage, envelope_storage
-from sharing.verification import record_verify
+from sharing.verification import records_verify
 from smcrypto.sm3 import sm3_hex
 from stack.seaweedfs import SeaweedProcess, start_seaweedfs
 from tests.api.conftest import RECORDS, Snapshot, b64, session_client, token_client
@@ -60,7 +60,7 @@ def _object(seaweedfs, bucket: str, record: Record) -> bytes:
 
 def _verdict(setup, record: Record, redis_client) -> Verdict:
     redis_client.delete(cache_key(record.id))  # read from the bucket, not the cache
-    return record_verify(record_id=record.id, viewer_id=setup.owner.pk).verdict
+    return records_verify(record_ids=[record.id], viewer_id=setup.owner.pk)[0].verdict
 
 
 def test_an_upload_lands_in_the_bucket_and_verifies_from_it(

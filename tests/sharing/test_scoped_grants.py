@@ -20,7 +20,7 @@ from sharing.selectors import (
     record_list_visible_to,
 )
 from sharing.services import grant_create, grant_revoke, grant_terms_change, grant_terms_make
-from sharing.verification import record_verify
+from sharing.verification import records_verify
 from tests.api.conftest import RECORDS, session_client
 from tests.conftest import RobotSetup, chain_time_travel
 
@@ -72,7 +72,7 @@ def scoped(make_robot, make_owner, upload, django_capture_on_commit_callbacks):
 
 
 def _outcome(record, viewer) -> str:
-    return record_verify(record_id=record.pk, viewer_id=viewer.pk).verdict.outcome
+    return records_verify(record_ids=[record.pk], viewer_id=viewer.pk)[0].verdict.outcome
 
 
 def test_scope_is_on_chain_and_enforced_everywhere(scoped, deployed, client):

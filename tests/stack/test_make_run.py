@@ -4,7 +4,8 @@ Started in a temporary work folder, on free ports, with a Redis key prefix and a
 its own and the ROS side on a free master port. Once it prints its banner, the simulated
 robot's data reaches the portal through the demo owner's agent; the owner logs in as a browser
 does and reads an anchored record back, integrity-checked against the chain. DEBUG is off
-(plain 404, static files still served). SIGINT then stops every process it started.
+(plain 404, static files still served). /healthz, /readyz and /metrics answer, and the logs are
+readable lines with request ids. SIGINT then stops every process it started.
 """
 
 import json
@@ -149,6 +150,23 @@ def test_make_run_serves_the_robots_data_verified_and_stops_everything(tmp_path)
         wait_for(verified, timeout=60, what="the record's content, checked", interval=1)
         assert content["verified"] is True
         assert _hex(content["digest"]) == _hex(record["digest"])
+
+        # What a load balancer and a monitor ask (issue 36).
+        assert requests.get(f"{url}/healthz", timeout=10).status_code == 200
+        ready = requests.get(f"{url}/readyz", timeout=30)
+        assert ready.status_code == 200, ready.text
+        scraped = requests.get(f"{url}/metrics", timeout=30).text
+        assert 'authros_uploads_total{result="stored"}' in scraped
+        # counted by the verify worker, read through the web's /metrics
+        assert 'authros_verdicts_total{outcome="verified"}' in scraped
+        # make run's logs are readable lines, each request's with its id
+        access = [
+            line
+            for line in (workdir / "log" / "web.log").read_text().splitlines()
+            if " portal.access " in line
+        ]
+        assert access
+        assert all(" request_id=" in line for line in access)
     finally:
         if process.poll() is None:
             process.send_signal(signal.SIGINT)

@@ -66,7 +66,7 @@ def _upload(setups: list[RobotSetup], *, rounds: range, per_batch: int) -> None:
 def _upload_http(
     stack: WorkerStack, setups: list[RobotSetup], *, rounds: range, per_batch: int
 ) -> None:
-    """As `_upload`, but as the robots' agents do it: batch POSTs to the portal (granian)."""
+    """As `_upload`, but as the robots' agents do it: batch POSTs to the portal (gunicorn)."""
     for round_number in rounds:
         for setup in setups:
             first = round_number * per_batch + 1
@@ -148,7 +148,7 @@ def _assert_end_state(records: int, grants: dict[tuple[Owner, Owner], bool]) -> 
 def test_anvil_killed_and_restarted_empty_during_a_thousand_uploads(fault_stack):
     """A development chain lost everything mid-run: the portal sees the reset, deploys again
     and re-creates owners, grants and records from the database, while the robots' uploads
-    go on through the portal (granian)."""
+    go on through the portal (gunicorn)."""
     stack = fault_stack(workers=2)
     stack.start_web()
     setups = registered_robots(4)

@@ -7,7 +7,7 @@ from django.db import migrations, models
 class Migration(migrations.Migration):
 
     dependencies = [
-        ('sharing', '0011_robot_signatures'),
+        ('sharing', '0012_access'),
     ]
 
     operations = [

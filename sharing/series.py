@@ -1,0 +1,229 @@
+"""Series: any numeric field of one robot's topic over a time range, from every record in it,
+each one integrity-checked, downsampled for display without skipping records.
+
+`series_of` reads the records the caller may see in the range (their own, or a grant's within
+its scope: record_list_visible_to and RecordSelection, so that nothing outside the scope is
+counted), has the worker check every one of them (verification.records_open: one access-log
+line of kind "plot", batches checked side by side), reads the fields (dotted paths into the
+record's decoded message, `K` of the paper's Fig. 4 JSON) of the verified ones, and keeps the
+shape for display by min/max per bucket: in each of `points / (2 * fields)` equal slices of the
+verified rows, the rows holding each field's lowest and highest value. A refused record
+(tampered, signature not valid, not anchored, no access on chain) is counted in `refused` and
+never plotted.
+"""
+
+import math
+import uuid
+from collections.abc import Sequence
+from dataclasses import dataclass
+from datetime import datetime
+
+from django.conf import settings
+
+from accounts.models import Owner, OwnerToken
+from sharing.content import Uninterpretable, document_parse
+from sharing.errors import SeriesRefused, SharingError, VerificationUnavailable
+from sharing.models import Access, Record
+from sharing.selection import RecordSelection
+from sharing.selectors import record_list_visible_to
+from sharing.verification import OpenedRecord, records_open
+
+# Fields of one series, and characters of one field's dotted path.
+MAX_FIELDS = 8
+MAX_FIELD_LENGTH = 200
+# Points a series answers at most, and by default.
+MAX_POINTS = 10_000
+DEFAULT_POINTS = 1_000
+# A field's path: names of at most this many levels (a list index is a number).
+MAX_FIELD_DEPTH = 16
+# A value further from zero than this is no measurement (and would overflow a plot's scale).
+VALUE_LIMIT = 1e15
+
+
+@dataclass(frozen=True)
+class SeriesQuery:
+    """What a series plots: one robot's topic, some fields, a capture-time range [since, until),
+    at most `points` points."""
+
+    robot: uuid.UUID
+    topic: str
+    fields: tuple[str, ...]
+    since: datetime
+    until: datetime
+    points: int = DEFAULT_POINTS
+
+
+@dataclass(frozen=True)
+class Series:
+    fields: tuple[str, ...]
+    points: list[list[float | None]]  # [t (Unix seconds), v1, v2...], oldest first
+    source_records: int  # records in the range the caller may see
+    verified: int  # of them, checked and verified
+    refused: int  # of them, refused by the check: never plotted
+    without_values: int  # verified, but holding none of the fields as a number
+
+    def as_json(self) -> dict[str, object]:
+        return {
+            "fields": list(self.fields),
+            "points": self.points,
+            "source_records": self.source_records,
+            "verified": self.verified,
+            "refused": self.refused,
+            "without_values": self.without_values,
+        }
+
+
+def series_query_make(
+    *,
+    robot: uuid.UUID,
+    topic: str,
+    fields: list[str],
+    since: datetime,
+    until: datetime,
+    points: int = DEFAULT_POINTS,
+) -> SeriesQuery:
+    """The query, checked: SeriesRefused (400) for no field or too many, a field that is not a
+    dotted path of names and indexes, a window that is not ordered or longer than
+    SERIES_MAX_RANGE, or points out of 2..MAX_POINTS."""
+    if len(fields) > MAX_FIELDS:
+        raise SeriesRefused(f"a series plots at most {MAX_FIELDS} fields")
+    fields = [field.strip() for field in fields if field.strip()]
+    if not fields:
+        raise SeriesRefused("name at least one field, e.g. fields=position.x,position.y")
+    if len(fields) > MAX_FIELDS:
+        raise SeriesRefused(f"a series plots at most {MAX_FIELDS} fields")
+    for field in fields:
+        if len(field) > MAX_FIELD_LENGTH or not _is_path(field):
+            raise SeriesRefused(
+                f"a field is a dotted path of at most {MAX_FIELD_LENGTH} characters and "
+                f"{MAX_FIELD_DEPTH} names (letters, digits, _ and -), e.g. position.x"
+            )
+    if not 2 <= points <= MAX_POINTS:
+        raise SeriesRefused(f"points must be 2..{MAX_POINTS}")
+    if since.tzinfo is None or until.tzinfo is None:
+        raise SeriesRefused("since and until need a time zone (e.g. 2026-11-29T02:00:00Z)")
+    if since >= until:
+        raise SeriesRefused("since must be before until")
+    longest = settings.SERIES_MAX_RANGE
+    if until - since > longest:
+        raise SeriesRefused(f"a series covers at most {longest}; choose a shorter range")
+    return SeriesQuery(
+        robot=robot, topic=topic, fields=tuple(fields), since=since, until=until, points=points
+    )
+
+
+def _is_path(field: str) -> bool:
+    names = field.split(".")
+    return len(names) <= MAX_FIELD_DEPTH and all(
+        name and all(c.isascii() and (c.isalnum() or c in "_-") for c in name) for name in names
+    )
+
+
+def series_records(viewer: Owner, query: SeriesQuery) -> list[Record]:
+    """Every record of the range the viewer may see (own, or in a live grant's scope), oldest
+    first. SeriesRefused when they are more than SERIES_MAX_RECORDS."""
+    selection = RecordSelection.of(
+        robots=[query.robot], topics=[query.topic], since=query.since, until=query.until
+    )
+    in_range = (
+        selection.apply(record_list_visible_to(viewer))
+        .filter(deleted_at__isnull=True)
+        # One owner instance for all its records (its key is looked up per owner), no joins.
+        .select_related(None)
+        .prefetch_related("owner")
+        .defer("merkle_path")
+        .order_by("captured_at", "seq")
+    )
+    most = settings.SERIES_MAX_RECORDS
+    records = list(in_range[: most + 1])
+    if len(records) > most:
+        raise SeriesRefused(f"the range holds more than {most} records; choose a shorter range")
+    return records
+
+
+def series_of(
+    *, viewer: Owner, query: SeriesQuery, credential: str, token: OwnerToken | None = None
+) -> Series:
+    """The series of the query for the viewer: every record in range checked (one access of
+    kind "plot"), the verified ones' fields, downsampled to at most `query.points` rows.
+    VerificationUnavailable if the worker could not check them all."""
+    records = series_records(viewer, query)
+    results = records_open(
+        records=records,
+        viewer=viewer,
+        kind=Access.Kind.PLOT,
+        credential=credential,
+        token=token,
+    )
+    unavailable = next((r for r in results if isinstance(r, VerificationUnavailable)), None)
+    if unavailable is not None:
+        raise unavailable
+    opened = [result for result in results if not isinstance(result, SharingError)]
+    rows = [_row(result, query.fields) for result in opened]
+    plotted = [row for row in rows if any(value is not None for value in row[1:])]
+    return Series(
+        fields=query.fields,
+        points=series_downsample(plotted, query.points),
+        source_records=len(records),
+        verified=len(opened),
+        refused=len(results) - len(opened),
+        without_values=len(rows) - len(plotted),
+    )
+
+
+def _row(opened: OpenedRecord, fields: tuple[str, ...]) -> list[float | None]:
+    moment = round(opened.record.captured_at.timestamp(), 6)
+    return [moment, *record_values(opened.plaintext, fields)]
+
+
+def record_values(plaintext: bytes, fields: Sequence[str]) -> list[float | None]:
+    """The fields' numbers in a record's plaintext (document_parse's bounds hold: a record that
+    is not JSON it takes has none); paths start in the message (`K`) when the record has one."""
+    try:
+        document = document_parse(plaintext)
+    except Uninterpretable:
+        return [None for _ in fields]
+    message = document.get("K") if isinstance(document, dict) else None
+    base = message if isinstance(message, dict | list) else document
+    return [field_value(base, field) for field in fields]
+
+
+def field_value(document: object, field: str) -> float | None:
+    """The number at a dotted path (names of objects, indexes of lists) of a decoded message;
+    None when there is none, or it is not a finite number within VALUE_LIMIT (a bool is not)."""
+    value = document
+    for name in field.split("."):
+        if isinstance(value, dict):
+            value = value.get(name)
+        elif isinstance(value, list) and name.isdigit() and int(name) < len(value):
+            value = value[int(name)]
+        else:
+            return None
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        return None
+    try:
+        number = float(value)
+    except OverflowError:
+        return None
+    return number if math.isfinite(number) and abs(number) <= VALUE_LIMIT else None
+
+
+def series_downsample(rows: list[list[float | None]], points: int) -> list[list[float | None]]:
+    """At most `points` of the rows ([t, v1, v2...], oldest first), keeping the shape: the rows
+    are cut into equal slices, and of each slice the rows holding each field's lowest and
+    highest value are kept (whole rows, so that an x/y pair stays a pair), the first and last
+    row always. All the rows when they are `points` or fewer."""
+    if len(rows) <= points:
+        return rows
+    width = max(len(rows[0]) - 1, 1)
+    buckets = max((points - 2) // (2 * width), 1)
+    kept = {0, len(rows) - 1}
+    size = len(rows) / buckets
+    for bucket in range(buckets):
+        start, end = int(bucket * size), int((bucket + 1) * size)
+        for column in range(1, width + 1):
+            valued = [at for at in range(start, end) if rows[at][column] is not None]
+            if valued:
+                kept.add(min(valued, key=lambda at: rows[at][column]))
+                kept.add(max(valued, key=lambda at: rows[at][column]))
+    return [rows[at] for at in sorted(kept)]

@@ -1,0 +1,312 @@
+/*
+ * series-plot.js: plots of verified records from the series API (GET /api/v1/records/series/),
+ * with no library. Every record in the range is checked against the chain by the portal; the
+ * plot draws the verified ones and says how many were refused (never drawn).
+ *
+ * Put an element on a page and load this file (<script src=".../series-plot.js" defer>):
+ *
+ *   <div data-series-plot
+ *        data-robot="ROBOT-UUID"            required: the robot's id
+ *        data-topic="/odom"                 required: the topic
+ *        data-fields="position.x,position.y" required: dotted paths into the record's message
+ *        data-mode="xy"                     "xy": first field against the second (a trajectory);
+ *                                           "time" (default): each field over time
+ *        data-since="ISO 8601" data-until="ISO 8601"   the capture-time range; without them,
+ *        data-minutes="10"                  the last N minutes (default 10) up to now
+ *        data-points="1000"                 points asked for at most (default 1000)
+ *        data-refresh-seconds="5"           optional: plot again every N seconds (a moving
+ *                                           window when the range is data-minutes)
+ *        data-title="..." data-units="m"    optional: the title, and the values' unit
+ *        data-mark="1764380000.5"           optional: a capture time (Unix seconds) to ring
+ *        data-url="/api/v1/records/series/" optional: another address of the series API
+ *   ></div>
+ *
+ * An element added later is plotted by window.AuthROSSeriesPlot.start(element).
+ * The browser's session authenticates the call (a GET: no CSRF token needed). The element gets
+ * an <svg> that scales to its width (readable from 390 px up) and a status line; its
+ * data-state becomes "loading", "ready" or "error", and data-verified / data-refused the counts.
+ */
+(function () {
+  "use strict";
+
+  var SVG = "http://www.w3.org/2000/svg";
+  var COLOURS = ["#0969da", "#cf222e", "#1a7f37", "#8250df", "#bf8700", "#1b7c83", "#953800", "#57606a"];
+  var MARGIN = { left: 64, right: 16, top: 40, bottom: 48 };
+
+  function node(name, attributes, text) {
+    var element = document.createElementNS(SVG, name);
+    Object.keys(attributes || {}).forEach(function (key) {
+      element.setAttribute(key, attributes[key]);
+    });
+    if (text !== undefined) {
+      element.textContent = text;
+    }
+    return element;
+  }
+
+  /* Round axis values (1, 2 or 5 times a power of ten apart) within [low, high]. */
+  function ticks(low, high, wanted) {
+    if (!(high > low)) {
+      return [low];
+    }
+    var raw = (high - low) / wanted;
+    var power = Math.pow(10, Math.floor(Math.log10(raw)));
+    var step = [1, 2, 5, 10].map(function (m) { return m * power; })
+      .filter(function (s) { return s >= raw; })[0];
+    var decimals = Math.max(0, -Math.floor(Math.log10(step)));
+    var values = [];
+    for (var n = Math.ceil(low / step); n * step <= high + step * 1e-9; n++) {
+      values.push({ value: n * step, label: (n * step).toFixed(decimals) });
+    }
+    return values;
+  }
+
+  /* Time ticks: round seconds, minutes or hours within [low, high] (Unix seconds), as UTC. */
+  function timeTicks(low, high, wanted) {
+    var steps = [1, 2, 5, 10, 15, 30, 60, 120, 300, 600, 900, 1800, 3600, 7200, 10800, 21600, 43200, 86400];
+    var raw = (high - low) / wanted;
+    var step = steps.filter(function (s) { return s >= raw; })[0] || 86400;
+    var values = [];
+    for (var t = Math.ceil(low / step) * step; t <= high; t += step) {
+      var iso = new Date(t * 1000).toISOString();
+      values.push({ value: t, label: step >= 60 ? iso.slice(11, 16) : iso.slice(11, 19) });
+    }
+    return values;
+  }
+
+  function extent(values) {
+    var low = Infinity;
+    var high = -Infinity;
+    values.forEach(function (v) {
+      if (v !== null && v !== undefined) {
+        low = Math.min(low, v);
+        high = Math.max(high, v);
+      }
+    });
+    if (low === Infinity) {
+      return null;
+    }
+    if (high - low < 1e-9) {
+      var pad = Math.abs(low) * 0.05 || 0.5;
+      return [low - pad, high + pad];
+    }
+    var margin = (high - low) * 0.05;
+    return [low - margin, high + margin];
+  }
+
+  function utc(seconds) {
+    return new Date(seconds * 1000).toISOString().replace("T", " ").slice(0, 19);
+  }
+
+  function query(element) {
+    var data = element.dataset;
+    var until = data.until ? new Date(data.until) : new Date();
+    var since = data.since ? new Date(data.since) : new Date(until.getTime() - (Number(data.minutes) || 10) * 60000);
+    var parameters = new URLSearchParams({
+      robot: data.robot || "",
+      topic: data.topic || "",
+      fields: data.fields || "",
+      since: since.toISOString(),
+      until: until.toISOString(),
+      points: data.points || "1000"
+    });
+    return (data.url || "/api/v1/records/series/") + "?" + parameters.toString();
+  }
+
+  /* The title, cut with an ellipsis to the characters that fit the plot's width. */
+  function fitted(text, width, size) {
+    var most = Math.floor(width / (size * 0.56));
+    return text.length > most ? text.slice(0, Math.max(most - 1, 1)) + "\u2026" : text;
+  }
+
+  function draw(element, answer) {
+    var data = element.dataset;
+    // Drawn at the element's own width, so that 12 px text stays 12 px on a phone.
+    var WIDTH = Math.max(240, Math.min(element.clientWidth || 640, 960));
+    var HEIGHT = Math.round(Math.min(Math.max(WIDTH * 0.75, 280), 480));
+    var xy = data.mode === "xy" && answer.fields.length >= 2;
+    var units = data.units ? " (" + data.units + ")" : "";
+    var points = answer.points;
+    var svg = node("svg", {
+      viewBox: "0 0 " + WIDTH + " " + HEIGHT,
+      width: "100%",
+      role: "img",
+      "class": "series-plot-svg",
+      preserveAspectRatio: "xMidYMid meet"
+    });
+    var title = data.title || answer.fields.join(", ");
+    var titleText = node("text", {
+      x: MARGIN.left, y: 22, "font-size": 15, "font-weight": "bold", fill: "#24292f", "class": "series-plot-title"
+    }, fitted(title, WIDTH - MARGIN.left - MARGIN.right, 15));
+    titleText.appendChild(node("title", {}, title));
+    svg.appendChild(titleText);
+    var area = {
+      left: MARGIN.left, right: WIDTH - MARGIN.right, top: MARGIN.top, bottom: HEIGHT - MARGIN.bottom
+    };
+    svg.appendChild(node("rect", {
+      x: area.left, y: area.top, width: area.right - area.left, height: area.bottom - area.top,
+      fill: "#ffffff", stroke: "#d0d7de"
+    }));
+    var xs;
+    var series;
+    if (xy) {
+      xs = points.map(function (p) { return p[1]; });
+      series = [points.map(function (p) { return p[2]; })];
+    } else {
+      xs = points.map(function (p) { return p[0]; });
+      series = answer.fields.map(function (_f, i) { return points.map(function (p) { return p[i + 1]; }); });
+    }
+    var xRange = extent(xs);
+    var yRange = extent([].concat.apply([], series));
+    if (!xRange || !yRange) {
+      svg.appendChild(node("text", { x: area.left + 12, y: area.top + 28, "font-size": 14, fill: "#57606a" },
+        "No verified values to plot in this range."));
+      return svg;
+    }
+    if (xy) {
+      // Same scale on both axes: a trajectory keeps its shape.
+      var perX = (xRange[1] - xRange[0]) / (area.right - area.left);
+      var perY = (yRange[1] - yRange[0]) / (area.bottom - area.top);
+      var per = Math.max(perX, perY);
+      var cx = (xRange[0] + xRange[1]) / 2;
+      var cy = (yRange[0] + yRange[1]) / 2;
+      xRange = [cx - per * (area.right - area.left) / 2, cx + per * (area.right - area.left) / 2];
+      yRange = [cy - per * (area.bottom - area.top) / 2, cy + per * (area.bottom - area.top) / 2];
+    }
+    function sx(v) { return area.left + (v - xRange[0]) / (xRange[1] - xRange[0]) * (area.right - area.left); }
+    function sy(v) { return area.bottom - (v - yRange[0]) / (yRange[1] - yRange[0]) * (area.bottom - area.top); }
+    var wantedX = WIDTH < 480 ? 3 : 6;
+    var xTicks = xy ? ticks(xRange[0], xRange[1], wantedX) : timeTicks(xRange[0], xRange[1], wantedX);
+    xTicks.forEach(function (tick) {
+      var x = sx(tick.value).toFixed(1);
+      svg.appendChild(node("line", { x1: x, x2: x, y1: area.top, y2: area.bottom, stroke: "#eaeef2" }));
+      svg.appendChild(node("text", { x: x, y: area.bottom + 16, "font-size": 12, "text-anchor": "middle", fill: "#57606a" }, tick.label));
+    });
+    ticks(yRange[0], yRange[1], WIDTH < 480 ? 4 : 6).forEach(function (tick) {
+      var y = sy(tick.value).toFixed(1);
+      svg.appendChild(node("line", { x1: area.left, x2: area.right, y1: y, y2: y, stroke: "#eaeef2" }));
+      svg.appendChild(node("text", { x: area.left - 6, y: Number(y) + 4, "font-size": 12, "text-anchor": "end", fill: "#57606a" }, tick.label));
+    });
+    var xLabel = xy ? answer.fields[0] + units : "capture time (UTC)";
+    var yLabel = xy ? answer.fields[1] + units : (answer.fields.length === 1 ? answer.fields[0] : "value") + units;
+    svg.appendChild(node("text", { x: (area.left + area.right) / 2, y: HEIGHT - 8, "font-size": 12, "text-anchor": "middle", fill: "#24292f" }, xLabel));
+    svg.appendChild(node("text", {
+      x: 14, y: (area.top + area.bottom) / 2, "font-size": 12, "text-anchor": "middle", fill: "#24292f",
+      transform: "rotate(-90 14 " + (area.top + area.bottom) / 2 + ")"
+    }, yLabel));
+    series.forEach(function (values, index) {
+      var path = [];
+      values.forEach(function (v, at) {
+        if (v !== null && xs[at] !== null) {
+          path.push((path.length ? "L" : "M") + sx(xs[at]).toFixed(1) + " " + sy(v).toFixed(1));
+        }
+      });
+      svg.appendChild(node("path", {
+        d: path.join(" "), fill: "none", stroke: COLOURS[index % COLOURS.length], "stroke-width": 1.5,
+        "class": "series-plot-line", "data-field": xy ? answer.fields.slice(0, 2).join(",") : answer.fields[index]
+      }));
+    });
+    if (!xy && answer.fields.length > 1) {
+      var legendX = area.left + 8;
+      answer.fields.forEach(function (field, index) {
+        var label = node("text", { x: legendX, y: area.top + 16 + index * 15, "font-size": 12, fill: COLOURS[index % COLOURS.length] }, field);
+        svg.appendChild(label);
+      });
+    }
+    if (xy && points.length) {
+      var first = points[0];
+      var last = points[points.length - 1];
+      svg.appendChild(node("circle", { cx: sx(first[1]), cy: sy(first[2]), r: 4, fill: "#1a7f37" }));
+      svg.appendChild(node("circle", { cx: sx(last[1]), cy: sy(last[2]), r: 4, fill: "#cf222e" }));
+    }
+    var mark = Number(data.mark);
+    if (data.mark && points.length) {
+      var nearest = points.reduce(function (best, p) { return Math.abs(p[0] - mark) < Math.abs(best[0] - mark) ? p : best; });
+      var mx = xy ? nearest[1] : nearest[0];
+      var my = xy ? nearest[2] : nearest[1];
+      if (mx !== null && my !== null) {
+        svg.appendChild(node("circle", { cx: sx(mx), cy: sy(my), r: 7, fill: "none", stroke: "#24292f", "stroke-width": 2, "class": "series-plot-mark" }));
+      }
+    }
+    var description = title + ": " + answer.verified + " verified records" +
+      (points.length ? ", " + utc(points[0][0]) + " to " + utc(points[points.length - 1][0]) + " UTC" : "");
+    svg.setAttribute("aria-label", description);
+    return svg;
+  }
+
+  function status(element, answer) {
+    var text = answer.source_records + " record" + (answer.source_records === 1 ? "" : "s") +
+      " in range, " + answer.verified + " verified against the chain";
+    if (answer.refused) {
+      text += ", " + answer.refused + " refused (not drawn)";
+    }
+    if (answer.without_values) {
+      text += ", " + answer.without_values + " without these fields";
+    }
+    if (answer.points.length < answer.verified - answer.without_values) {
+      text += "; " + answer.points.length + " points keep each slice's lowest and highest values";
+    }
+    return text + ".";
+  }
+
+  function load(element) {
+    var statusLine = element.querySelector(".series-plot-status");
+    element.dataset.state = "loading";
+    statusLine.textContent = "Checking the records of this range against the chain\u2026";
+    return fetch(query(element), { credentials: "same-origin", headers: { Accept: "application/json" } })
+      .then(function (response) {
+        return response.json().then(function (body) {
+          if (!response.ok) {
+            throw new Error(body.detail || body.error || "the series could not be read (" + response.status + ")");
+          }
+          return body;
+        });
+      })
+      .then(function (answer) {
+        var old = element.querySelector("svg");
+        var svg = draw(element, answer);
+        if (old) {
+          element.replaceChild(svg, old);
+        } else {
+          element.insertBefore(svg, statusLine);
+        }
+        element.dataset.verified = answer.verified;
+        element.dataset.refused = answer.refused;
+        element.dataset.state = "ready";
+        statusLine.textContent = status(element, answer);
+      })
+      .catch(function (error) {
+        element.dataset.state = "error";
+        statusLine.textContent = "No plot: " + (typeof error.message === "string" ? error.message : "the series could not be read") + ".";
+      });
+  }
+
+  function start(element) {
+    var statusLine = document.createElement("p");
+    statusLine.className = "series-plot-status help";
+    statusLine.setAttribute("role", "status");
+    element.appendChild(statusLine);
+    load(element);
+    var every = Number(element.dataset.refreshSeconds);
+    if (every > 0) {
+      window.setInterval(function () {
+        if (!document.hidden && element.dataset.state !== "loading") {
+          load(element);
+        }
+      }, Math.max(every, 1) * 1000);
+    }
+  }
+
+  function startAll() {
+    Array.prototype.forEach.call(document.querySelectorAll("[data-series-plot]"), start);
+  }
+
+  // For elements added after the page loaded: window.AuthROSSeriesPlot.start(element).
+  window.AuthROSSeriesPlot = { start: start };
+
+  if (document.readyState === "loading") {
+    document.addEventListener("DOMContentLoaded", startAll);
+  } else {
+    startAll();
+  }
+})();
