@@ -46,7 +46,14 @@ from ros_agent import LOGGER_NAME
 from ros_agent.config import AgentConfig, ConfigError, TopicConfig, load_config
 from ros_agent.extractors import iso_utc
 from ros_agent.pipeline import CLEAR_TEXT_WARNING, pipeline_build, token_in_clear
-from ros_agent.ros2msg import default_typestore, ros1_name, ros1_view
+from ros_agent.ros2msg import (
+    MessageTypeUnknown,
+    default_typestore,
+    learn_message_types,
+    ros1_name,
+    ros1_view,
+    ros2_name,
+)
 from ros_agent.salvage import salvage_reader
 from ros_agent.spool import SpoolError
 from ros_agent.spool import _write_durably as write_durably
@@ -181,7 +188,12 @@ class BagImporter:
         self.progress = progress
         self.stall_timeout = stall_timeout
         self.stopping = threading.Event()
-        self._typestore = default_typestore()
+        self._typestore = default_typestore(config.ros2_distro)
+        for topic in config.topics:  # a type the file does not define may be in a .msg file
+            with contextlib.suppress(MessageTypeUnknown):
+                learn_message_types(
+                    self._typestore, [ros2_name(topic.type)], config.msg_search_dirs
+                )
         self._spooled: set[tuple[str, str]] | None = None  # (topic, time) of queued envelopes
         self._lookup = requests.Session()
         self._lookup.headers["Authorization"] = f"Token {config.token}"

@@ -24,6 +24,10 @@ Both sources are one flat mapping with the same names and go through the same ch
     backoff_max: 30.0                         # longest wait between retries, seconds
     stats_interval: 60.0                      # seconds between counter log lines
     shutdown_flush: 5.0                       # seconds spent sending at shutdown
+    # ROS 2 (--ros2, and the import of recordings):
+    ros2_distro: humble                       # or jazzy: the type store messages are read with
+    msg_dirs: [msgs]                          # folders of <package>/msg/<Name>.msg: custom types
+                                              # (then $AMENT_PREFIX_PATH/*/share is searched)
 
 Relative paths are taken from the yaml's folder, or from the working directory for ROS
 parameters. Prefer token_file over token with ROS parameters: anyone who can reach the ROS
@@ -43,6 +47,10 @@ import yaml
 
 from ros_agent.keyring import Keyring, KeyringError
 from smcrypto import CryptoError, sm2, sm4
+
+# The ROS 2 distributions whose interfaces the agent knows (rosbags' type stores).
+ROS2_DISTROS = ("humble", "jazzy")
+DEFAULT_ROS2_DISTRO = "humble"
 
 _ROS_TYPE = re.compile(r"[A-Za-z][A-Za-z0-9_]*/[A-Za-z][A-Za-z0-9_]*")
 _TOPIC_NAME = re.compile(r"~?/?[A-Za-z][A-Za-z0-9_]*(/[A-Za-z][A-Za-z0-9_]*)*")
@@ -81,6 +89,8 @@ class AgentConfig:
     sm2_key_file: Path | None = None
     sm2_private_key: str = field(default="", repr=False)
     keyring: Keyring | None = field(default=None, repr=False, compare=False)
+    ros2_distro: str = DEFAULT_ROS2_DISTRO
+    msg_dirs: tuple[Path, ...] = ()
 
     @property
     def records_url(self) -> str:
@@ -89,6 +99,13 @@ class AgentConfig:
     @property
     def robot_key_url(self) -> str:
         return self.portal_url.rstrip("/") + "/api/v1/robot-key/"
+
+    @property
+    def msg_search_dirs(self) -> list[Path]:
+        """Where custom ROS 2 message definitions are looked for: `msg_dirs`, then the share
+        folders of the ROS 2 installs this process has sourced (AMENT_PREFIX_PATH)."""
+        prefixes = os.environ.get("AMENT_PREFIX_PATH", "").split(os.pathsep)
+        return [*self.msg_dirs, *(Path(prefix) / "share" for prefix in prefixes if prefix)]
 
     @property
     def paired(self) -> bool:
@@ -109,7 +126,17 @@ _NUMBERS: dict[str, tuple[type, float]] = {
 }
 _REQUIRED = ("portal_url", "robot", "owner", "topics")
 _KEY_SETTINGS = ("key_file", "keys_file", "sm2_key_file")
-_KNOWN = {*_REQUIRED, *_NUMBERS, *_KEY_SETTINGS, "token", "token_file", "spool_dir", "tls_verify"}
+_KNOWN = {
+    *_REQUIRED,
+    *_NUMBERS,
+    *_KEY_SETTINGS,
+    "token",
+    "token_file",
+    "spool_dir",
+    "tls_verify",
+    "ros2_distro",
+    "msg_dirs",
+}
 
 
 def load_config(path: str | os.PathLike[str]) -> AgentConfig:
@@ -195,6 +222,8 @@ def config_from_mapping(data: Any, *, source: str, base_dir: Path) -> AgentConfi
         sm2_key_file=sm2_key_file,
         sm2_private_key=sm2_private_key,
         keyring=keyring,
+        ros2_distro=_ros2_distro(data.get("ros2_distro", DEFAULT_ROS2_DISTRO), source),
+        msg_dirs=_msg_dirs(data.get("msg_dirs", []), base_dir, source),
         **numbers,
     )
 
@@ -307,6 +336,24 @@ def _tls_verify(value: Any, base_dir: Path, source: str) -> bool | str:
             )
         return str(bundle)
     raise ConfigError(f"{source}: tls_verify must be true, false or a CA bundle path")
+
+
+def _ros2_distro(value: Any, source: str) -> str:
+    if value not in ROS2_DISTROS:
+        raise ConfigError(
+            f"{source}: ros2_distro must be one of {', '.join(ROS2_DISTROS)}, got {value!r}"
+        )
+    return value
+
+
+def _msg_dirs(value: Any, base_dir: Path, source: str) -> tuple[Path, ...]:
+    if not isinstance(value, list) or not all(isinstance(v, str) and v.strip() for v in value):
+        raise ConfigError(f"{source}: msg_dirs must be a list of folders")
+    folders = tuple(_resolve(v.strip(), base_dir) for v in value)
+    for folder in folders:
+        if not folder.is_dir():
+            raise ConfigError(f"{source}: msg_dirs names a folder that does not exist: {folder}")
+    return folders
 
 
 def _resolve(value: str, base_dir: Path) -> Path:

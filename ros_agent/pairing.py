@@ -208,7 +208,7 @@ def _write_config(
     header = (
         f"# AuthROS agent settings for robot {answer.get('name')!r} of {answer['owner']}, paired "
         f"{datetime.now(UTC):%Y-%m-%d %H:%M} UTC.\n"
-        "# Run it with: python -m ros_agent --config agent.yaml. The token, the SM2 key and\n"
+        "# Run it with: authros-agent --config agent.yaml. The token, the SM2 key and\n"
         "# the owner's keys are in the 0600 files named below; a rotated key is fetched by\n"
         "# the agent itself.\n"
     )
@@ -254,7 +254,7 @@ def _say(out: TextIO, machine: bool, event: str, data: dict[str, Any]) -> None:
     else:
         out.write(
             f"Paired: robot {data['robot']} of {data['owner']}.\n"
-            f"Run the agent with: python -m ros_agent --config {data['config']}\n"
+            f"Run the agent with: authros-agent --config {data['config']} (--ros2 on ROS 2)\n"
         )
     out.flush()
 

@@ -5,8 +5,9 @@
 Each configured topic (`/robot/odom`, type `nav_msgs/Odometry`) is read as the DDS topic
 `rt/robot/odom` of type `nav_msgs::msg::dds_::Odometry_` in the domain ROS_DOMAIN_ID, with a QoS
 that matches ROS 2 publishers (ros_agent.dds). Samples come as CDR, rosbags decodes them
-(any type of its ROS 2 type store; Odometry, Image, CompressedImage, Imu have the ROS 1
-extractors, everything else the generic walk), and from there it is the ROS 1 agent's path:
+(any type of the ROS 2 type store of `ros2_distro`, or a custom one learned from its `.msg`
+files, ros_agent.ros2msg; Odometry, Image, CompressedImage, Imu have the ROS 1 extractors,
+everything else the generic walk), and from there it is the ROS 1 agent's path:
 Recorder (seal into the spool), Uploader (to the portal). CYCLONEDDS_URI chooses the network;
 ros_agent.dds writes one for this machine only. SIGINT/SIGTERM stop it like the ROS 1 agent.
 """
@@ -35,7 +36,13 @@ from ros_agent.dds import (
     reader_qos,
 )
 from ros_agent.pipeline import CLEAR_TEXT_WARNING, pipeline_build, token_in_clear
-from ros_agent.ros2msg import default_typestore, ros1_view, ros2_name
+from ros_agent.ros2msg import (
+    MessageTypeUnknown,
+    default_typestore,
+    learn_message_types,
+    ros1_view,
+    ros2_name,
+)
 from ros_agent.spool import SpoolError
 
 logger = logging.getLogger(f"{LOGGER_NAME}.ros2")
@@ -66,7 +73,7 @@ class Ros2Agent:
         self.pipeline = pipeline_build(config)
         self.counters, self.spool = self.pipeline.counters, self.pipeline.spool
         self.uploader, self.recorder = self.pipeline.uploader, self.pipeline.recorder
-        self.typestore = default_typestore()
+        self.typestore = default_typestore(config.ros2_distro)
         self.stopping = threading.Event()
         self._readers: list[TopicReader] = []
         self._publications: Any = None  # the DCPSPublication builtin topic: who publishes what
@@ -84,9 +91,14 @@ class Ros2Agent:
         for topic in self.config.topics:
             ros2_type = ros2_name(topic.type)
             try:
+                learned = learn_message_types(
+                    self.typestore, [ros2_type], self.config.msg_search_dirs
+                )
                 types[topic.name] = idl_type(self.typestore, ros2_type, raw=True)
-            except DdsError as exc:
+            except (MessageTypeUnknown, DdsError) as exc:
                 raise DdsError(f"topic {topic.name}: {exc}") from None
+            if learned:
+                logger.info("learned %s from .msg files", ", ".join(learned))
         try:
             self._participant = DomainParticipant(self.domain_id)
         except Exception as exc:  # cyclonedds raises DDSException for a bad CYCLONEDDS_URI

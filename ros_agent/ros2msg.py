@@ -6,17 +6,28 @@ type store's classes: `nav_msgs/msg/Odometry`, stamps as `builtin_interfaces/msg
 ros_agent.extractors read it unchanged (`header.seq`, `stamp.secs`/`nsecs`), so a ROS 2 or
 recorded message becomes the very record a rospy message of the same type becomes; any other
 type is walked field by field (`as_record`) with the generic walk's conventions.
+
+The type store is ROS 2 Humble's or Jazzy's (`ros2_distro` in agent.yaml). A type it does not
+hold, a robot's custom message, is learned from its `.msg` definition (`learn_message_types`):
+`<folder>/<package>/msg/<Name>.msg` in the folders agent.yaml's `msg_dirs` names, then in the
+robot's installed share folders (AgentConfig.msg_search_dirs), with every type its fields
+name in turn, through rosbags' own parser and registration; from there it is read like any
+other type (DDS, CDR, the generic walk).
 """
 
 import base64
 import dataclasses
 import math
+from collections.abc import Iterable, Iterator, Sequence
+from pathlib import Path
 from typing import Any
 
 import numpy as np
-from rosbags.typesys import Stores, get_typestore
+from rosbags.typesys import Stores, TypesysError, get_types_from_msg, get_typestore
+from rosbags.typesys.base import Nodetype
 from rosbags.typesys.store import Typestore
 
+from ros_agent.config import DEFAULT_ROS2_DISTRO
 from ros_agent.extractors import JsonDict, extract, header, iso_utc, stamp_datetime
 
 _TIME_TYPES = ("builtin_interfaces/msg/Time", "std_msgs/msg/Time")
@@ -24,9 +35,66 @@ _DURATION_TYPES = ("builtin_interfaces/msg/Duration", "std_msgs/msg/Duration")
 _HEADER_TYPE = "std_msgs/msg/Header"
 
 
-def default_typestore() -> Typestore:
-    """rosbags' type store of ROS 2 Humble: the common interfaces, with the CDR codecs."""
-    return get_typestore(Stores.ROS2_HUMBLE)
+class MessageTypeUnknown(ValueError):
+    """A message type is neither in the type store nor defined by a readable `.msg` file."""
+
+
+def default_typestore(distro: str = DEFAULT_ROS2_DISTRO) -> Typestore:
+    """rosbags' type store of a ROS 2 distribution (`humble`, `jazzy`): the common interfaces,
+    with the CDR codecs."""
+    return get_typestore(Stores(f"ros2_{distro}"))
+
+
+def learn_message_types(
+    typestore: Typestore, ros2_types: Iterable[str], msg_dirs: Sequence[Path]
+) -> list[str]:
+    """Register in `typestore` each of `ros2_types` it does not know, and every type their
+    fields name that it does not know either, from `.msg` files in `msg_dirs`: the names
+    learned (none when it knew them all)."""
+    learned: dict[str, Any] = {}
+    pending = list(ros2_types)
+    while pending:
+        name = pending.pop()
+        if name in typestore.fielddefs or name in learned:
+            continue
+        path = _definition_file(name, msg_dirs)
+        try:
+            types = get_types_from_msg(path.read_text(encoding="utf-8"), name)
+        except (OSError, UnicodeDecodeError, TypesysError) as exc:
+            raise MessageTypeUnknown(
+                f"cannot read the definition of {name} in {path}: {exc}"
+            ) from None
+        learned.update(types)
+        pending.extend(
+            named for _, fields in types.values() for _, desc in fields for named in _names(desc)
+        )
+    if learned:
+        typestore.register(learned)
+    return sorted(learned)
+
+
+def _definition_file(ros2_type: str, msg_dirs: Sequence[Path]) -> Path:
+    parts = ros2_type.split("/")
+    if len(parts) != 3 or parts[1] != "msg" or not parts[0] or not parts[2]:
+        raise MessageTypeUnknown(f"unknown message type {ros2_type}")
+    package, _, name = parts
+    for folder in msg_dirs:
+        for candidate in (folder / package / "msg" / f"{name}.msg", folder / "msg" / f"{name}.msg"):
+            if candidate.parent.parent.name == package and candidate.is_file():
+                return candidate
+    where = ", ".join(str(folder) for folder in msg_dirs) or "no folder (set msg_dirs)"
+    raise MessageTypeUnknown(
+        f"unknown message type {ros2_type}: no {package}/msg/{name}.msg in {where}"
+    )
+
+
+def _names(desc: tuple[Any, Any]) -> Iterator[str]:
+    """The message types a rosbags field description names, at any depth of arrays."""
+    node, detail = desc
+    if node == Nodetype.NAME:
+        yield detail
+    elif node in (Nodetype.ARRAY, Nodetype.SEQUENCE):
+        yield from _names(detail[0])
 
 
 def ros1_name(ros2_type: str) -> str:

@@ -19,6 +19,7 @@ from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
+from rosbags.typesys.store import Typestore
 
 from ros_agent.dds import (
     dds_topic_name,
@@ -95,12 +96,13 @@ def image_message(typestore: Any, pixels: np.ndarray, nanoseconds: int) -> Any:
 
 
 class Ros2Publisher:
-    """Writers for ROS 2 topics in one DDS domain, taking rosbags messages."""
+    """Writers for ROS 2 topics in one DDS domain, taking rosbags messages (of `typestore`'s
+    types: ROS 2 Humble's by default)."""
 
-    def __init__(self, domain_id: int) -> None:
+    def __init__(self, domain_id: int, typestore: Typestore | None = None) -> None:
         from cyclonedds.domain import DomainParticipant
 
-        self.typestore = default_typestore()
+        self.typestore = typestore or default_typestore()
         self.participant = DomainParticipant(domain_id)
         self._writers: dict[str, tuple[Any, type]] = {}
 

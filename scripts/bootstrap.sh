@@ -6,9 +6,10 @@ cd "$(dirname "$0")/.."
 
 APT_PACKAGES=(
   python3-venv python3-dev redis-server postgresql postgresql-client
-  ros-core python3-rospy python3-rosmaster
+  ros-core python3-rospy python3-rosmaster python3-roslaunch
   python3-nav-msgs python3-sensor-msgs python3-std-msgs
   chromium
+  systemd
 )
 VENV=.venv
 STAMP_DIR=$VENV/.stamps
@@ -46,10 +47,12 @@ install_python_packages() {
     /usr/bin/python3 -m venv --system-site-packages $VENV
   fi
   mkdir -p $STAMP_DIR
-  if [ ! -f $STAMP_DIR/requirements ] || [ requirements.txt -nt $STAMP_DIR/requirements ] \
-      || [ constraints.txt -nt $STAMP_DIR/requirements ]; then
-    log "installing Python packages (constraints.txt)"
-    $VENV/bin/python -m pip install -q --disable-pip-version-check -r requirements.txt -c constraints.txt
+  # requirements/dev.txt: what `make run` and `make test` need, every version and hash locked
+  # (`make lock`); pip refuses a download whose hash differs.
+  if [ ! -f $STAMP_DIR/requirements ] || [ requirements/dev.txt -nt $STAMP_DIR/requirements ]; then
+    log "installing Python packages (requirements/dev.txt)"
+    $VENV/bin/python -m pip install -q --disable-pip-version-check --require-hashes \
+      -r requirements/dev.txt
     touch $STAMP_DIR/requirements
   fi
 }

@@ -317,6 +317,8 @@ _NO_DATABASE = (
     "tests/ros_agent/test_wrapping.py",
     "tests/stack/test_stack_ros2.py",
     "tests/stack/test_webserver.py",
+    "tests/packaging/test_deploy.py",
+    "tests/packaging/test_imports.py",
 )
 
 

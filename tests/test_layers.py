@@ -13,9 +13,10 @@ from pathlib import Path
 
 import pytest
 
+from tests.source_imports import REPO_ROOT, imports, source_files
+
 pytestmark = pytest.mark.nodb
 
-REPO_ROOT = Path(__file__).resolve().parent.parent
 PACKAGES = (
     "portal",
     "accounts",
@@ -42,17 +43,12 @@ ALLOWED = {
     "authros_verify": {"smcrypto"},
 }
 # Where a function-level import of the project's own modules is the rule, not a dodge:
-# AppConfig.ready runs once models can be imported.
-LOCAL_IMPORTS_ALLOWED = {"apps.py"}
+# AppConfig.ready runs once models can be imported; a command (`authros-agent`) loads only the
+# subcommand it runs: the ROS 1 node needs rospy, which a ROS 2 robot does not have.
+LOCAL_IMPORTS_ALLOWED = {"apps.py", "__main__.py"}
 # core.outbox's functions that send a task by its registered name, "<module>.tasks.<name>".
 SENDS_A_TASK = {"enqueue", "dispatch"}
 TASK_NAME = re.compile(r"\w+(\.\w+)*\.tasks\.\w+")
-
-
-def _source_files(package: str) -> Iterator[Path]:
-    for path in sorted((REPO_ROOT / package).rglob("*.py")):
-        if "migrations" not in path.parts:
-            yield path
 
 
 def _module_name(path: Path) -> str:
@@ -60,26 +56,6 @@ def _module_name(path: Path) -> str:
     if parts[-1] == "__init__":
         parts.pop()
     return ".".join(parts)
-
-
-def _imports(path: Path) -> Iterator[tuple[str, bool, int]]:
-    """(imported module, imported inside a function, line) for each import of the file."""
-    tree = ast.parse(path.read_text(), filename=str(path))
-    local_lines = {
-        node.lineno
-        for function in ast.walk(tree)
-        if isinstance(function, ast.FunctionDef | ast.AsyncFunctionDef)
-        for node in ast.walk(function)
-        if isinstance(node, ast.Import | ast.ImportFrom)
-    }
-    for node in ast.walk(tree):
-        if isinstance(node, ast.Import):
-            for alias in node.names:
-                yield alias.name, node.lineno in local_lines, node.lineno
-        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
-            for alias in node.names:
-                # `from sharing import services` imports the module sharing.services.
-                yield f"{node.module}.{alias.name}", node.lineno in local_lines, node.lineno
 
 
 def _tasks_sent(path: Path) -> Iterator[tuple[str, int]]:
@@ -111,12 +87,12 @@ def _project_module(name: str, modules: set[str]) -> str | None:
 
 
 def _graph() -> tuple[dict[str, set[str]], list[str]]:
-    files = {_module_name(path): path for package in PACKAGES for path in _source_files(package)}
+    files = {_module_name(path): path for package in PACKAGES for path in source_files(package)}
     modules = set(files)
     edges: dict[str, set[str]] = {module: set() for module in modules}
     local: list[str] = []
     for module, path in files.items():
-        for name, is_local, line in _imports(path):
+        for name, is_local, line in imports(path):
             target = _project_module(name, modules)
             if target is None or target == module:
                 continue
@@ -128,7 +104,7 @@ def _graph() -> tuple[dict[str, set[str]], list[str]]:
 
 def _task_graph() -> dict[str, set[str]]:
     """Which project modules each module sends tasks of, by name."""
-    files = {_module_name(path): path for package in PACKAGES for path in _source_files(package)}
+    files = {_module_name(path): path for package in PACKAGES for path in source_files(package)}
     modules = set(files)
     sent: dict[str, set[str]] = {module: set() for module in modules}
     for module, path in files.items():
@@ -191,7 +167,7 @@ def test_the_check_sees_a_forbidden_import(tmp_path):
     """The reading above finds imports at any depth, so the rules cannot pass vacuously."""
     source = tmp_path / "probe.py"
     source.write_text("import os\n\ndef f():\n    from sharing import services\n")
-    assert list(_imports(source)) == [("os", False, 1), ("sharing.services", True, 4)]
+    assert list(imports(source)) == [("os", False, 1), ("sharing.services", True, 4)]
     edges, _local = _graph()
     assert "chainworker.chain" in edges["sharing.anchoring"]
 
@@ -234,7 +210,7 @@ def test_the_export_verifier_needs_neither_django_nor_the_portal():
     third_party = {
         name.split(".")[0]
         for package in ("authros_verify", "smcrypto")
-        for path in _source_files(package)
-        for name, _is_local, _line in _imports(path)
+        for path in source_files(package)
+        for name, _is_local, _line in imports(path)
     }
     assert not third_party & NOT_FOR_THE_VERIFIER

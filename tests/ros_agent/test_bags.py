@@ -21,11 +21,18 @@ from rosbags.rosbag2 import Writer as Ros2Writer
 from rosbags.typesys import get_types_from_msg
 
 from accounts.models import Robot
-from ros_agent import bags
+from ros_agent import bags, ros2msg
 from ros_agent.spool import Spool
 from sharing.models import Record
 from stack.anvil import free_port
 from tests.ros_agent.conftest import REPO_ROOT, write_key_file
+from tests.ros_agent.custom_msgs import (
+    INSPECTION,
+    INSPECTION_TOPIC,
+    MSG_DIR,
+    inspection,
+    inspection_record,
+)
 from tests.ros_agent.portal_checks import opened_records, robot_config, stamp_time
 from tests.ros_agent.recordings import (
     ODOM,
@@ -488,3 +495,38 @@ def test_a_full_spool_with_the_portal_away_stops_the_import_until_the_next_run(
     assert code == 0, output
     assert f"total: {len(samples) - report.imported} message(s) sealed" in output
     _check_stored(setup.robot, [(s, False) for s in samples])
+
+
+def test_a_custom_type_the_recording_does_not_define_is_learned_from_msg_files(
+    live_server, make_robot, tmp_path, capsys
+):
+    """A .db3 of a robot's own nested type without its definitions (as Humble's recorder
+    writes them): the import learns the type from the `.msg` folder agent.yaml names, and
+    each record opens to every field."""
+    setup = make_robot()
+    config = robot_config(
+        tmp_path / "robot",
+        url=live_server.url,
+        setup=setup,
+        topics=[(INSPECTION_TOPIC, INSPECTION)],
+        msg_dirs=[str(MSG_DIR)],
+    )
+    ts = ros2msg.default_typestore()
+    inspection_type = ros2msg.ros2_name(INSPECTION)
+    ros2msg.learn_message_types(ts, [inspection_type], [MSG_DIR])
+    with Ros2Writer(tmp_path / "inspections", version=9) as writer:
+        connection = writer.add_connection(INSPECTION_TOPIC, inspection_type, typestore=ts)
+        for index in range(PER_TOPIC):
+            data = ts.serialize_cdr(inspection(ts, index), inspection_type)
+            writer.write(connection, (1_767_225_600 + index) * SECOND, data)
+    (db3,) = (tmp_path / "inspections").glob("*.db3")
+    with sqlite3.connect(db3) as db:
+        db.execute("DELETE FROM message_definitions WHERE topic_type LIKE 'authros_test_msgs/%'")
+
+    code, output = _import(config, db3, capsys=capsys)
+    assert code == 0, output
+    assert f"total: {PER_TOPIC} message(s) sealed" in output
+    documents = [document for _, document in opened_records(setup.robot, expected=PER_TOPIC)]
+    assert sorted((d["K"] for d in documents), key=lambda k: k["round"]) == [
+        inspection_record(index) for index in range(PER_TOPIC)
+    ]

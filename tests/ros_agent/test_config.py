@@ -89,6 +89,23 @@ def test_optional_settings_are_checked_and_converted(tmp_path, key_file):
     assert config.tls_verify == str(bundle)
 
 
+def test_custom_message_folders_then_the_installed_share_folders(tmp_path, key_file, monkeypatch):
+    (tmp_path / "msgs").mkdir()
+    monkeypatch.setenv("AMENT_PREFIX_PATH", "/opt/ros/jazzy:/home/robot/ws/install/my_pkg")
+    config = config_from_mapping(
+        _settings(ros2_distro="jazzy", msg_dirs=["msgs"]), source="test", base_dir=tmp_path
+    )
+    assert config.ros2_distro == "jazzy"
+    assert config.msg_search_dirs == [
+        tmp_path / "msgs",
+        Path("/opt/ros/jazzy/share"),
+        Path("/home/robot/ws/install/my_pkg/share"),
+    ]
+    monkeypatch.delenv("AMENT_PREFIX_PATH")
+    default = config_from_mapping(_settings(), source="test", base_dir=tmp_path)
+    assert (default.ros2_distro, default.msg_search_dirs) == ("humble", [])
+
+
 def test_default_spool_is_under_ros_home_per_robot(tmp_path, key_file, monkeypatch):
     monkeypatch.setenv("ROS_HOME", str(tmp_path / "ros"))
     config = config_from_mapping(_settings(), source="test", base_dir=tmp_path)
@@ -160,6 +177,9 @@ def test_missing_key_file(tmp_path):
         ({"flush_interval": True}, "flush_interval must be a number"),
         ({"tls_verify": "missing.pem"}, "CA bundle that does not exist"),
         ({"robot": 42}, "robot must be a non-empty string"),
+        ({"ros2_distro": "rolling"}, "ros2_distro must be one of humble, jazzy"),
+        ({"msg_dirs": "msgs"}, "msg_dirs must be a list of folders"),
+        ({"msg_dirs": ["missing"]}, "msg_dirs names a folder that does not exist"),
     ],
 )
 def test_bad_settings_are_refused_with_a_clear_message(tmp_path, key_file, overrides, message):

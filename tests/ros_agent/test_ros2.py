@@ -19,7 +19,7 @@ import cv2
 import numpy as np
 import pytest
 
-from ros_agent import dds, sim
+from ros_agent import dds, ros2msg, sim
 from ros_agent.sim2 import Ros2Publisher
 from tests.ros_agent.conftest import (
     REPO_ROOT,
@@ -28,6 +28,14 @@ from tests.ros_agent.conftest import (
     running,
     stop_process,
     wait_until,
+)
+from tests.ros_agent.custom_msgs import (
+    INSPECTION,
+    INSPECTION_TOPIC,
+    LEARNED,
+    MSG_DIR,
+    inspection,
+    inspection_record,
 )
 from tests.ros_agent.portal_checks import opened_records, robot_config, stamp_time
 from tests.ros_agent.recordings import (
@@ -183,7 +191,10 @@ def test_the_ros2_agent_refuses_a_type_it_does_not_know_with_a_clear_message(ros
         timeout=60,
     )
     assert answer.returncode == 2
-    assert "topic /secret: unknown message type my_pkg/msg/Secret" in answer.stderr
+    assert (
+        "topic /secret: unknown message type my_pkg/msg/Secret: no my_pkg/msg/Secret.msg in "
+        "no folder (set msg_dirs)" in answer.stderr
+    )
     assert "Traceback" not in answer.stderr
 
 
@@ -218,3 +229,47 @@ def test_a_best_effort_publisher_of_a_reliable_type_is_recorded_too(
             by_stamp.pop(record.captured_at), ros1=False
         )
     assert not by_stamp
+
+
+def test_a_custom_nested_type_is_learned_from_msg_files_and_every_field_reaches_the_portal(
+    live_server, make_robot, ros2_env, tmp_path
+):
+    """The robot publishes authros_test_msgs/Inspection (three levels of its own types), which
+    no type store holds: the agent (Jazzy's store) learns it from the `.msg` folder its
+    agent.yaml names, reads it over Cyclone DDS, and each record opens to every field."""
+    domain, env = ros2_env
+    setup = make_robot()
+    config = robot_config(
+        tmp_path / "robot",
+        url=live_server.url,
+        setup=setup,
+        topics=[(INSPECTION_TOPIC, INSPECTION)],
+        ros2_distro="jazzy",
+        msg_dirs=[str(MSG_DIR)],
+    )
+    typestore = ros2msg.default_typestore("jazzy")
+    ros2msg.learn_message_types(typestore, [ros2_type(INSPECTION)], [MSG_DIR])
+    publisher = Ros2Publisher(domain, typestore)
+    publisher.writer(INSPECTION_TOPIC, ros2_type(INSPECTION))
+    agent_log = tmp_path / "agent.log"
+    with running(
+        python_module("ros_agent", "--ros2", "--config", str(config)), env=env, log=agent_log
+    ) as agent:
+        wait_until(
+            lambda: publisher.matched(INSPECTION_TOPIC) or agent.poll() is not None,
+            60,
+            "the agent's DDS reader of the custom type",
+        )
+        assert agent.poll() is None, agent_log.read_text()
+        for index in range(PER_TOPIC):
+            publisher.publish(INSPECTION_TOPIC, inspection(typestore, index))
+        stored = opened_records(setup.robot, expected=PER_TOPIC)
+        assert stop_process(agent, signal.SIGINT) == 0
+    log = agent_log.read_text()
+    assert f"learned {', '.join(LEARNED)} from .msg files" in log
+    assert "Traceback" not in log
+    documents = sorted((document for _, document in stored), key=lambda d: d["K"]["round"])
+    assert [document["Type"] for document in documents] == [INSPECTION] * PER_TOPIC
+    assert [document["K"] for document in documents] == [
+        inspection_record(index) for index in range(PER_TOPIC)
+    ]

@@ -11,6 +11,13 @@ import roslib.message
 from ros_agent import ros2msg
 from ros_agent.extractors import extract
 from ros_agent.ros2msg import message_data, ros1_name, ros2_name
+from tests.ros_agent.custom_msgs import (
+    INSPECTION,
+    LEARNED,
+    MSG_DIR,
+    inspection,
+    inspection_record,
+)
 from tests.ros_agent.recordings import TOPICS, make_samples, ros1_store, ros2_store
 
 
@@ -77,3 +84,56 @@ def test_names_and_a_type_only_the_generic_walk_knows():
     )
     assert ros2msg.message_data(goal, "std_msgs/Float64MultiArray")["data"] == [1.5, None]
     assert ros2msg._field(duration) == {"secs": 3, "nsecs": 5}
+
+
+# --- custom types, learned from .msg files --------------------------------------------------
+
+
+@pytest.mark.parametrize("distro", ["humble", "jazzy"])
+def test_a_custom_nested_type_is_learned_from_its_msg_files_and_read_like_any(distro):
+    typestore = ros2msg.default_typestore(distro)
+    inspection_type = ros2_name(INSPECTION)
+    assert inspection_type not in typestore.fielddefs
+    learned = ros2msg.learn_message_types(typestore, [inspection_type], [MSG_DIR])
+    assert learned == LEARNED  # and the Header, Point and Time the distribution has already
+    assert ros2msg.learn_message_types(typestore, [inspection_type], [MSG_DIR]) == []
+    sent = inspection(typestore, 3)
+    # The CDR a ROS 2 publisher sends, read back: every field, through the generic walk.
+    received = typestore.deserialize_cdr(
+        typestore.serialize_cdr(sent, inspection_type), inspection_type
+    )
+    assert message_data(received, INSPECTION) == inspection_record(3)
+    assert received.MODE_AUTO == 1
+
+
+def test_the_distribution_chooses_the_type_store():
+    humble = ros2msg.default_typestore("humble").fielddefs
+    jazzy = ros2msg.default_typestore("jazzy").fielddefs
+    # Jazzy added type descriptions (type_description_interfaces) that Humble has not.
+    added = set(jazzy) - set(humble)
+    assert added
+    assert all(name not in humble for name in added)
+
+
+def test_a_type_found_in_no_folder_is_refused_naming_where_it_looked(tmp_path):
+    typestore = ros2msg.default_typestore()
+    with pytest.raises(
+        ros2msg.MessageTypeUnknown, match=rf"no my_pkg/msg/Secret\.msg in {tmp_path}"
+    ):
+        ros2msg.learn_message_types(typestore, ["my_pkg/msg/Secret"], [tmp_path])
+    # A definition naming a type that is nowhere: nothing is registered.
+    folder = tmp_path / "my_pkg" / "msg"
+    folder.mkdir(parents=True)
+    (folder / "Secret.msg").write_text("Missing inner\nint32 x\n")
+    with pytest.raises(ros2msg.MessageTypeUnknown, match=r"no my_pkg/msg/Missing\.msg"):
+        ros2msg.learn_message_types(typestore, ["my_pkg/msg/Secret"], [tmp_path])
+    assert "my_pkg/msg/Secret" not in typestore.fielddefs
+    (folder / "Secret.msg").write_text("int32[ x\n")
+    with pytest.raises(ros2msg.MessageTypeUnknown, match="cannot read the definition of"):
+        ros2msg.learn_message_types(typestore, ["my_pkg/msg/Secret"], [tmp_path])
+
+
+def test_a_package_folder_itself_may_be_named(tmp_path):
+    typestore = ros2msg.default_typestore()
+    package = MSG_DIR / "authros_test_msgs"
+    assert ros2msg.learn_message_types(typestore, [ros2_name(INSPECTION)], [package]) == LEARNED
