@@ -13,9 +13,10 @@ line. `bundle_sm3` is the SM3 of the compact JSON of the bundle without that fie
 """
 
 import json
-from typing import Any
+from collections.abc import Callable, Iterable
+from typing import IO, Any
 
-from smcrypto.sm3 import sm3_hex
+from smcrypto.sm3 import sm3_hasher, sm3_hex
 
 # v2: each record also carries its robot's signature and the plaintext it signed (v1: not).
 BUNDLE_FORMAT = "authros-export-proofs/v2"
@@ -46,6 +47,39 @@ def bundle_serialise(document: dict[str, Any]) -> bytes:
     )
     lines.append("]}")
     return ("\n".join(lines) + "\n").encode("ascii")
+
+
+def bundle_entry_line(entry: dict[str, Any]) -> str:
+    """A record entry as its line of the bundle holds it (without the line's comma)."""
+    return _compact(entry)
+
+
+def bundle_write(
+    head: dict[str, Any], entries: Callable[[], Iterable[str]], output: IO[bytes]
+) -> str:
+    """Write the bundle of `head` (every top-level field but `records` and `bundle_sm3`) and
+    the entries' lines (`bundle_entry_line`) to `output`, byte for byte what bundle_serialise
+    makes of the whole document, holding one entry at a time: `entries()` is read twice, for
+    `bundle_sm3` and to write. Answers `bundle_sm3`."""
+    hasher = sm3_hasher()
+    names = sorted([*head, "records"])
+    hasher.update(b"{")
+    for position, name in enumerate(names):
+        hasher.update((("," if position else "") + _compact(name) + ":").encode("ascii"))
+        if name != "records":
+            hasher.update(_compact(head[name]).encode("ascii"))
+            continue
+        hasher.update(b"[")
+        for index, line in enumerate(entries()):
+            hasher.update(("," if index else "").encode("ascii") + line.encode("ascii"))
+        hasher.update(b"]")
+    hasher.update(b"}")
+    digest = "0x" + hasher.finalize().hex()
+    output.write((_compact({**head, "bundle_sm3": digest})[:-1] + ',\n"records":[').encode())
+    for index, line in enumerate(entries()):
+        output.write((",\n" if index else "\n").encode("ascii") + line.encode("ascii"))
+    output.write(b"\n]}\n")
+    return digest
 
 
 def record_line_index(data: bytes, offset: int, records: int) -> int | None:

@@ -20,6 +20,7 @@ import binascii
 import json
 import math
 import re
+import struct
 from dataclasses import dataclass
 from functools import cache
 from typing import Any
@@ -49,6 +50,18 @@ _NUMPY_TYPES = {
     "float32": np.float32,
     "float64": np.float64,
 }
+# The range of each ROS integer type: a value outside it does not fit the type (issue 38).
+_INTEGER_RANGES = {
+    name: (int(np.iinfo(kind).min), int(np.iinfo(kind).max))
+    for name, kind in _NUMPY_TYPES.items()
+    if name not in ("bool", "float32", "float64")
+}
+_FLOAT32_MAX = float(np.finfo(np.float32).max)
+# An image decoded back into pixels holds at most this many bytes; a larger one (or a PNG
+# whose own size is not the record's) goes on a JSON channel, so that a small PNG that
+# inflates to gigabytes cannot take the worker's memory.
+MAX_IMAGE_BYTES = 64 * 1024 * 1024
+_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 # ROS image encoding -> (element type, channels, OpenCV conversion from the decoded PNG)
 _IMAGE_ENCODINGS: dict[str, tuple[type, int, str | None]] = {
     "rgb8": (np.uint8, 3, "COLOR_BGR2RGB"),
@@ -102,7 +115,17 @@ def message_encode(*, data_type: str, plaintext: bytes) -> EncodedMessage:
         builder = _BUILDERS.get(msgtype, _generic)
         message = builder(msgtype, data)
         encoded = typestore().serialize_cdr(message, msgtype)
-    except (Unbuildable, TypeError, ValueError, OverflowError, KeyError, AttributeError):
+    except (
+        Unbuildable,
+        TypeError,
+        ValueError,
+        OverflowError,
+        KeyError,
+        AttributeError,
+        IndexError,
+        struct.error,
+    ):
+        # What does not fit its type (issue 38: one hostile record must not fail an export).
         return _json_message(data_type, document, plaintext)
     return EncodedMessage(
         msgtype, "ros2msg", _ros2_schema(msgtype), "cdr", bytes(encoded), _stamp_ns(data)
@@ -257,8 +280,16 @@ def _image(msgtype: str, data: Any) -> Any:
     import cv2
 
     element, channels, conversion = _IMAGE_ENCODINGS[encoding]
+    width, height = _integer(data.get("width")), _integer(data.get("height"))
+    if width <= 0 or height <= 0:
+        raise Unbuildable("an image of no pixels")
+    if width * height * channels * np.dtype(element).itemsize > MAX_IMAGE_BYTES:
+        raise Unbuildable(f"an image of more than {MAX_IMAGE_BYTES} bytes")
+    encoded = _base64(data.get("data"))
+    if _png_size(encoded) != (width, height):
+        raise Unbuildable("the PNG's own size is not the record's")
     try:
-        png = np.frombuffer(_base64(data.get("data")), np.uint8)
+        png = np.frombuffer(encoded, np.uint8)
         pixels = cv2.imdecode(png, cv2.IMREAD_UNCHANGED)
         if pixels is None:
             raise Unbuildable("the image is not a PNG")
@@ -266,7 +297,6 @@ def _image(msgtype: str, data: Any) -> Any:
             pixels = cv2.cvtColor(pixels, getattr(cv2, conversion))
     except cv2.error as exc:  # a PNG of other channels than its encoding states, say
         raise Unbuildable(f"the image cannot be decoded as {encoding}") from exc
-    width, height = _integer(data.get("width")), _integer(data.get("height"))
     expected = (height, width) if channels == 1 else (height, width, channels)
     if pixels.shape != expected or pixels.dtype != element:
         raise Unbuildable(f"the PNG is {pixels.shape} {pixels.dtype}, not {expected} {encoding}")
@@ -280,6 +310,14 @@ def _image(msgtype: str, data: Any) -> Any:
         step=width * channels * np.dtype(element).itemsize,
         data=np.frombuffer(raw, dtype=np.uint8),
     )
+
+
+def _png_size(png: bytes) -> tuple[int, int] | None:
+    """(width, height) its IHDR chunk states, read before anything is decoded."""
+    if len(png) < 24 or not png.startswith(_PNG_SIGNATURE) or png[12:16] != b"IHDR":
+        return None
+    width, height = struct.unpack(">II", png[16:24])
+    return width, height
 
 
 # --- any other type, from its definition -----------------------------------------------------
@@ -323,12 +361,19 @@ def _primitive(name: str, value: Any) -> Any:
     if name in ("string", "wstring"):
         return _text(value)
     if name in ("float32", "float64"):
-        return _float(value)
+        number = _float(value)
+        if name == "float32" and math.isfinite(number) and abs(number) > _FLOAT32_MAX:
+            raise Unbuildable("a float32 field holds a number beyond its range")
+        return number
     if name == "bool":
         if not isinstance(value, bool):
             raise Unbuildable("a bool field holds something else")
         return value
-    return _integer(value)
+    number = _integer(value)
+    low, high = _INTEGER_RANGES[name]
+    if not low <= number <= high:
+        raise Unbuildable(f"an {name} field holds {number}, outside its range")
+    return number
 
 
 # --- shared pieces ---------------------------------------------------------------------------

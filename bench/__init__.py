@@ -33,6 +33,7 @@ BENCHMARKS = (
     "block_interval",
     "concurrency",
     "crypto",
+    "exports",
     "message_size",
     "pipeline",
     "report",

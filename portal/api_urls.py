@@ -7,8 +7,10 @@ from accounts.apis import RobotKeyApi, RobotPairingCollectApi, RobotPairingsApi,
 from core.api_errors import api_not_found
 from sharing.apis import (
     AccessLogApi,
+    ExportCountApi,
     ExportDetailApi,
     ExportFileApi,
+    ExportRebuildApi,
     ExportsApi,
     GrantRevokeApi,
     GrantsApi,
@@ -36,7 +38,9 @@ v1 = [
     path("records/<str:record_id>/proof/", RecordProofApi.as_view(), name="record-proof"),
     path("grants/", GrantsApi.as_view(), name="grants"),
     path("exports/", ExportsApi.as_view(), name="exports"),
+    path("exports/count/", ExportCountApi.as_view(), name="export-count"),
     path("exports/<str:export_id>/", ExportDetailApi.as_view(), name="export-detail"),
+    path("exports/<str:export_id>/rebuild/", ExportRebuildApi.as_view(), name="export-rebuild"),
     path(
         "exports/<str:export_id>/<str:part>/",
         ExportFileApi.as_view(),

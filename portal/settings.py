@@ -488,7 +488,7 @@ SERIES_MAX_RANGE = timedelta(seconds=env.int("SERIES_MAX_RANGE_SECONDS", default
 SERIES_MAX_RECORDS = env.int("SERIES_MAX_RECORDS", default=100_000)
 # Exports (sharing/exports.py, docs/export.md): records in one export at most, records checked
 # against the chain per run of the integrity check, and hours its files are kept.
-EXPORT_MAX_RECORDS = env.int("EXPORT_MAX_RECORDS", default=5000)
+EXPORT_MAX_RECORDS = env.int("EXPORT_MAX_RECORDS", default=2_000_000)
 EXPORT_BATCH = env.int("EXPORT_BATCH", default=200)
 EXPORT_TTL_HOURS = env.int("EXPORT_TTL_HOURS", default=24)
 EXPORT_REQUEUE_AFTER = env.int("EXPORT_REQUEUE_AFTER", default=600)

@@ -15,7 +15,7 @@ from typing import Any
 
 from django.core.validators import ProhibitNullCharactersValidator, RegexValidator
 from django.db.models import QuerySet
-from django.http import FileResponse
+from django.http import StreamingHttpResponse
 from django.urls import reverse
 from django.utils import timezone
 from drf_spectacular.types import OpenApiTypes
@@ -56,7 +56,13 @@ from sharing.errors import (
     RecordNotFound,
     RobotNotFound,
 )
-from sharing.exports import export_create, export_download
+from sharing.exports import (
+    export_count,
+    export_create,
+    export_current,
+    export_download,
+    export_rebuild,
+)
 from sharing.models import Export, Grant, Record, Verdict
 from sharing.robot_status import RobotActivity, robot_activity, robot_of_owner
 from sharing.selection import MAX_SELECTED_ROBOTS, MAX_SELECTED_TOPICS, MAX_TOPIC_LENGTH
@@ -65,7 +71,6 @@ from sharing.selectors import (
     ACCESS_LOG_INCOMING,
     RECORD_FILTER_STATUSES,
     export_list_of,
-    export_of,
     grant_list_given,
     grant_list_received,
     record_list_filtered,
@@ -92,7 +97,6 @@ from sharing.services import (
     owner_resolve,
     record_create_batch,
 )
-from sharing.storage import envelope_storage
 from sharing.verification import record_open, record_reseal_for, record_signature
 
 # Envelopes in one upload at most; the body size limit (413) bounds the bytes.
@@ -1238,7 +1242,8 @@ class ExportOutputSerializer(serializers.Serializer):
 
     id = serializers.UUIDField()
     status = serializers.ChoiceField(
-        choices=Export.Status.choices, help_text="queued, running, done, failed or expired"
+        choices=Export.Status.choices,
+        help_text="queued, running, done, failed, expired or withdrawn",
     )
     selection = serializers.DictField(help_text="robots, topics, since, until as asked")
     total = serializers.IntegerField(help_text="records in the selection")
@@ -1250,7 +1255,10 @@ class ExportOutputSerializer(serializers.Serializer):
         "(`integrity_check_failed`, `access_denied`, `not_anchored_yet`, ...)",
     )
     percent = serializers.IntegerField(help_text="records checked, in percent")
-    error = NullIfBlankCharField()
+    error = NullIfBlankCharField(
+        help_text="why it failed, or why it was withdrawn (status `withdrawn`: the requester "
+        "may no longer view every record in it; its files are removed)"
+    )
     mcap_size = serializers.IntegerField()
     mcap_sm3 = NullIfBlankCharField(help_text="SM3 of the MCAP file, hex")
     bundle_size = serializers.IntegerField()
@@ -1273,27 +1281,41 @@ def _export_file_url(export: Export, part: str) -> str | None:
     return reverse("api-v1:export-file", args=[export.pk, part])
 
 
+class ExportSelectionSerializer(serializers.Serializer):
+    """What to export: robots and topics (empty: all) and a capture-time window."""
+
+    class Meta:
+        ref_name = "ExportRequest"
+
+    robots = serializers.ListField(
+        child=serializers.UUIDField(),
+        required=False,
+        max_length=MAX_SELECTED_ROBOTS,
+        help_text="robot ids (empty or absent: every robot you may view)",
+    )
+    topics = serializers.ListField(
+        child=TextField(max_length=MAX_TOPIC_LENGTH),
+        required=False,
+        max_length=MAX_SELECTED_TOPICS,
+        help_text="topics (empty or absent: every topic)",
+    )
+    since = serializers.DateTimeField(required=False, help_text="captured at or after")
+    until = serializers.DateTimeField(required=False, help_text="captured before")
+
+
+def _selection_of(data: dict[str, Any]) -> dict[str, Any]:
+    return {
+        "robots": data.get("robots", ()),
+        "topics": data.get("topics", ()),
+        "since": data.get("since"),
+        "until": data.get("until"),
+    }
+
+
 class ExportsApi(APIView):
     """`GET /api/v1/exports/`: the caller's exports; `POST`: export a selection."""
 
-    class InputSerializer(serializers.Serializer):
-        class Meta:
-            ref_name = "ExportRequest"
-
-        robots = serializers.ListField(
-            child=serializers.UUIDField(),
-            required=False,
-            max_length=MAX_SELECTED_ROBOTS,
-            help_text="robot ids (empty or absent: every robot you may view)",
-        )
-        topics = serializers.ListField(
-            child=TextField(max_length=MAX_TOPIC_LENGTH),
-            required=False,
-            max_length=MAX_SELECTED_TOPICS,
-            help_text="topics (empty or absent: every topic)",
-        )
-        since = serializers.DateTimeField(required=False, help_text="captured at or after")
-        until = serializers.DateTimeField(required=False, help_text="captured before")
+    InputSerializer = ExportSelectionSerializer
 
     def get_permissions(self) -> list[BasePermission]:
         return [IsAuthenticated(), OwnerCredential(READ, "export records")]
@@ -1338,14 +1360,91 @@ class ExportsApi(APIView):
     def post(self, request: Request) -> Response:
         payload = self.InputSerializer(data=request.data)
         payload.is_valid(raise_exception=True)
-        data = payload.validated_data
         export = export_create(
-            requester=caller_owner(request),
-            robots=data.get("robots", ()),
-            topics=data.get("topics", ()),
-            since=data.get("since"),
-            until=data.get("until"),
+            requester=caller_owner(request), **_selection_of(payload.validated_data)
         )
+        export.refresh_from_db()
+        return Response(ExportOutputSerializer(export).data, status=status.HTTP_202_ACCEPTED)
+
+
+class ExportCountApi(APIView):
+    """`GET /api/v1/exports/count/?robots=..&topics=..&since=..&until=..`: how many records a
+    selection holds that the caller may view, before exporting it."""
+
+    class OutputSerializer(serializers.Serializer):
+        class Meta:
+            ref_name = "ExportCount"
+
+        count = serializers.IntegerField(help_text="records of the selection you may view")
+        limit = serializers.IntegerField(help_text="EXPORT_MAX_RECORDS: an export takes at most")
+        exportable = serializers.BooleanField()
+        refusal = NullIfBlankCharField(help_text="why it would be refused, if it would")
+
+    def get_permissions(self) -> list[BasePermission]:
+        return [IsAuthenticated(), OwnerCredential(READ, "count records to export")]
+
+    @extend_schema(
+        operation_id="exports_count",
+        summary="Count the records of a selection before exporting it",
+        auth=OWNER_ONLY,
+        parameters=[ExportSelectionSerializer],
+        responses={
+            200: OutputSerializer,
+            **error_responses(
+                400,
+                401,
+                403,
+                e400="`invalid_request`, or `invalid_selection`: a robot you may not view",
+                e403=ROBOT_REFUSED.format(scope="read"),
+            ),
+        },
+    )
+    def get(self, request: Request) -> Response:
+        payload = ExportSelectionSerializer(data=request.query_params)
+        payload.is_valid(raise_exception=True)
+        counted = export_count(
+            requester=caller_owner(request), **_selection_of(payload.validated_data)
+        )
+        answer = {
+            "count": counted.count,
+            "limit": counted.limit,
+            "exportable": not counted.refusal,
+            "refusal": counted.refusal,
+        }
+        return Response(self.OutputSerializer(answer).data)
+
+
+class ExportRebuildApi(APIView):
+    """`POST /api/v1/exports/{id}/rebuild/`: export an export's selection again, under the
+    caller's access now (after it was withdrawn or expired)."""
+
+    def get_permissions(self) -> list[BasePermission]:
+        return [IsAuthenticated(), OwnerCredential(READ, "export records")]
+
+    @extend_schema(
+        operation_id="exports_rebuild",
+        summary="Export an export's selection again, under your access now",
+        auth=OWNER_ONLY,
+        request=None,
+        parameters=[
+            OpenApiParameter(
+                "export_id", OpenApiTypes.UUID, OpenApiParameter.PATH, description="the export"
+            )
+        ],
+        responses={
+            202: ExportOutputSerializer,
+            **error_responses(
+                400,
+                401,
+                403,
+                404,
+                e400="`invalid_selection`: nothing you may view is in it any more, or too much",
+                e404="`not_found`: no export of yours",
+            ),
+        },
+    )
+    def post(self, request: Request, export_id: str) -> Response:
+        export = export_rebuild(requester=caller_owner(request), export_id=export_id)
         export.refresh_from_db()
         return Response(ExportOutputSerializer(export).data, status=status.HTTP_202_ACCEPTED)
 
@@ -1372,9 +1471,7 @@ class ExportDetailApi(APIView):
         },
     )
     def get(self, request: Request, export_id: str) -> Response:
-        export = export_of(caller_owner(request), export_id)
-        if export is None:
-            raise ExportNotFound("no such export of yours")
+        export = export_current(requester=caller_owner(request), export_id=export_id)
         return Response(ExportOutputSerializer(export).data)
 
 
@@ -1405,23 +1502,22 @@ class ExportFileApi(APIView):
                 e409="`export_not_ready`: still running, or failed",
             ),
             410: OpenApiResponse(
-                ErrorSerializer, description="`export_expired`: its files are removed"
+                ErrorSerializer,
+                description="`export_expired`: its files are removed; `export_withdrawn`: you "
+                "may no longer view every record in it (a grant revoked, expired or narrowed, a "
+                "record deleted, an account closed), its files are removed, nothing is sent",
             ),
         },
     )
-    def get(self, request: Request, export_id: str, part: str) -> FileResponse:
+    def get(self, request: Request, export_id: str, part: str) -> StreamingHttpResponse:
         if part not in ("mcap", "bundle"):
             raise ExportNotFound("an export has two files: mcap and bundle")
-        name, filename = export_download(
-            requester=caller_owner(request), export_id=export_id, part=part
-        )
+        file = export_download(requester=caller_owner(request), export_id=export_id, part=part)
         content_type = "application/json" if part == "bundle" else "application/octet-stream"
-        response = FileResponse(
-            envelope_storage().open(name, "rb"),
-            as_attachment=True,
-            filename=filename,
-            content_type=content_type,
-        )
+        # Decrypted segment by segment as it is sent: never whole in memory, never at rest.
+        response = StreamingHttpResponse(file.chunks(), content_type=content_type)
+        response["Content-Length"] = str(file.size)
+        response["Content-Disposition"] = f'attachment; filename="{file.filename}"'
         response["Cache-Control"] = "no-store, private"
         return response
 

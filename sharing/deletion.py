@@ -47,7 +47,7 @@ from sharing.errors import NoGrant, NotDeletableYet, NotRecordOwner, RecordNotFo
 from sharing.models import Grant, Record
 from sharing.selection import RecordSelection
 from sharing.selectors import record_get_visible
-from sharing.services import grant_revoke
+from sharing.services import EXPORTS_RECHECK_TASK, grant_revoke
 from sharing.storage import envelope_storage
 
 logger = logging.getLogger(__name__)
@@ -138,10 +138,14 @@ def record_selection(
 
 
 def _tombstone(records: QuerySet[Record], *, reason: str, actor: AbstractBaseUser | None) -> int:
-    """Step 1: mark the records deleted (those not deleted already); how many were."""
-    return records.filter(deleted_at__isnull=True).update(
+    """Step 1: mark the records deleted (those not deleted already); how many were. Exports
+    that hold any of them are withdrawn after commit, their files removed with the data."""
+    deleted = records.filter(deleted_at__isnull=True).update(
         deleted_at=timezone.now(), deleted_by=actor, deletion_reason=reason
     )
+    if deleted:
+        transaction.on_commit(lambda: enqueue(EXPORTS_RECHECK_TASK))
+    return deleted
 
 
 # --- step 2: the ciphertext leaves storage and cache ---------------------------------------

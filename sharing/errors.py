@@ -195,6 +195,15 @@ class ExportExpired(SharingError):
     http_status = 410
 
 
+class ExportWithdrawn(SharingError):
+    """The requester may no longer view every record in the export (a grant revoked, expired
+    or narrowed, a record deleted, an account closed): its files are removed, nothing is
+    streamed; exporting the selection again takes what they may view now."""
+
+    code = "export_withdrawn"
+    http_status = 410
+
+
 class InvalidGrantTerms(SharingError):
     """A grant's scope or expiry that cannot be granted (a robot not the owner's, a window
     that ends before it starts, an expiry too soon)."""

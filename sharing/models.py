@@ -439,7 +439,9 @@ class SecurityEvent(models.Model):
 
 class Export(models.Model):
     """An export of the verified records of a selection: an MCAP file and its proof bundle,
-    made by a worker, kept in the envelope storage until `expires_at`, for its requester only."""
+    made by a worker, kept sealed in the envelope storage (SM4-GCM under `key_wrapped`, a key
+    of its own wrapped under the KEK) until `expires_at`, for its requester only, and only
+    while the requester may still view every record in it (else `withdrawn`, with why)."""
 
     class Status(models.TextChoices):
         QUEUED = "queued", "queued"
@@ -447,6 +449,7 @@ class Export(models.Model):
         DONE = "done", "ready"
         FAILED = "failed", "failed"
         EXPIRED = "expired", "expired"
+        WITHDRAWN = "withdrawn", "withdrawn"
 
     id = models.UUIDField(primary_key=True, default=uuid.uuid4, editable=False)
     requester = models.ForeignKey(Owner, on_delete=models.CASCADE, related_name="exports")
@@ -463,6 +466,12 @@ class Export(models.Model):
     mcap_size = models.PositiveBigIntegerField(default=0)
     bundle_size = models.PositiveBigIntegerField(default=0)
     mcap_sm3 = models.CharField(max_length=64, blank=True)
+    # The files' key (SM4), wrapped under the KEK for this export only; emptied when its
+    # files are removed, so that a copy of them (a backup) no longer opens either.
+    key_wrapped = models.BinaryField(default=b"", blank=True)
+    # The chain the bundle's records are anchored on, for the verify command shown.
+    chain_id = models.BigIntegerField(null=True, blank=True)
+    contract = models.CharField(max_length=42, blank=True)
     error = models.CharField(max_length=300, blank=True)
     created_at = models.DateTimeField(auto_now_add=True)
     finished_at = models.DateTimeField(null=True, blank=True)
@@ -485,3 +494,19 @@ class Export(models.Model):
     @property
     def finished(self) -> bool:
         return self.status not in (self.Status.QUEUED, self.Status.RUNNING)
+
+
+class ExportRecord(models.Model):
+    """A record inside a done export's files: what its download checks access and deletion
+    against. Removed with the export's files."""
+
+    export = models.ForeignKey(Export, on_delete=models.CASCADE, related_name="contents")
+    record = models.ForeignKey(Record, on_delete=models.CASCADE, related_name="exported_in")
+
+    class Meta:
+        constraints = [
+            models.UniqueConstraint(fields=["export", "record"], name="one_export_record"),
+        ]
+
+    def __str__(self) -> str:
+        return f"record {self.record_id} in export {self.export_id}"

@@ -74,6 +74,8 @@ from sharing.storage import envelope_storage, envelopes_save
 from smcrypto import CryptoError, envelope, provenance, sm3
 
 logger = logging.getLogger(__name__)
+# Withdraws the exports whose requester may no longer view every record in them.
+EXPORTS_RECHECK_TASK = "sharing.tasks.exports_recheck"
 security_log = logging.getLogger("authros.security")
 
 # An envelope sealed under a key retired less than this long ago is still accepted from a robot
@@ -610,6 +612,8 @@ def grant_terms_change(
             grant, GrantChange.Kind.CHANGED, made_with, made_with_token, before, terms
         )
         transaction.on_commit(lambda: enqueue("sharing.tasks.grant_sync", grant.pk))
+        # The grantee's exports may hold records outside the new terms (sharing/exports.py).
+        transaction.on_commit(lambda: enqueue(EXPORTS_RECHECK_TASK, grant.grantee_id))
     return grant
 
 
@@ -655,6 +659,7 @@ def grant_revoke(
         )
         grant_revoked_alert(grantee=grant.grantee, owner=owner)
         transaction.on_commit(lambda: enqueue("sharing.tasks.grant_sync", grant.pk))
+        transaction.on_commit(lambda: enqueue(EXPORTS_RECHECK_TASK, grant.grantee_id))
     return grant
 
 

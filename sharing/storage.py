@@ -8,10 +8,11 @@ from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor, wait
 from contextlib import suppress
 from pathlib import Path
-from typing import Any
+from typing import IO, Any
 
+from boto3.s3.transfer import TransferConfig
 from botocore.exceptions import BotoCoreError, ClientError
-from django.core.files.base import ContentFile
+from django.core.files.base import ContentFile, File
 from django.core.files.storage import FileSystemStorage, Storage, storages
 from storages.backends.s3 import S3Storage
 from storages.utils import clean_name
@@ -22,6 +23,12 @@ from sharing.errors import StorageUnavailable
 logger = logging.getLogger(__name__)
 # PUTs of one upload in flight together to an S3 server.
 S3_PARALLEL_PUTS = 8
+# A large file (an export) goes to S3 as a multipart upload of parts this size, two at a
+# time: what it holds in memory is about two parts, whatever the file's size.
+S3_PART_SIZE = 8 * 1024 * 1024
+_S3_TRANSFER = TransferConfig(
+    multipart_threshold=S3_PART_SIZE, multipart_chunksize=S3_PART_SIZE, max_concurrency=2
+)
 
 
 class DurableFileSystemStorage(FileSystemStorage):
@@ -91,6 +98,27 @@ class DurableS3Storage(S3Storage):
             raise failed[0]
         return names
 
+    def save_streamed(self, name: str, content: IO[bytes]) -> str:
+        """Upload an open file of any size (multipart above S3_PART_SIZE), confirmed by the
+        size the server then reports."""
+        client = self.connection.meta.client
+        key = self._key(name)
+        size = content.seek(0, os.SEEK_END)
+        content.seek(0)
+        client.upload_fileobj(
+            content,
+            self.bucket_name,
+            key,
+            ExtraArgs={"ContentType": "application/octet-stream"},
+            Config=_S3_TRANSFER,
+        )
+        stored = client.head_object(Bucket=self.bucket_name, Key=key)["ContentLength"]
+        if stored != size:
+            with suppress(Exception):
+                client.delete_object(Bucket=self.bucket_name, Key=key)
+            raise OSError(f"the S3 server holds {stored} bytes of {name}, not {size}")
+        return clean_name(name)
+
     def _key(self, name: str) -> str:
         return self._normalize_name(clean_name(name))
 
@@ -118,6 +146,22 @@ def envelopes_save(storage: Storage, files: Sequence[tuple[str, bytes]]) -> list
         logger.error("envelope storage refused %d files: %s", len(files), exc)
         raise StorageUnavailable(
             "the portal could not store the envelopes durably; nothing was stored, send them again"
+        ) from exc
+
+
+def file_save(storage: Storage, name: str, content: IO[bytes]) -> str:
+    """Save one file of any size from an open binary file, in constant memory (local disk:
+    copied in chunks and fsync'd; S3: a multipart upload), durable when this returns; the
+    name it was saved as. A failure is StorageUnavailable."""
+    try:
+        if isinstance(storage, DurableS3Storage):
+            return storage.save_streamed(name, content)
+        content.seek(0)
+        return storage.save(name, File(content, name=name))
+    except (OSError, BotoCoreError, ClientError) as exc:
+        logger.error("envelope storage refused %s: %s", name, exc)
+        raise StorageUnavailable(
+            "the portal could not store the file durably; nothing was stored, try again"
         ) from exc
 
 

@@ -96,6 +96,11 @@ def exports_sweep() -> dict[str, int]:
     return exports.exports_sweep()
 
 
+@shared_task(name="sharing.tasks.exports_recheck", soft_time_limit=600, time_limit=660)
+def exports_recheck(owner_id: int | None = None) -> int:
+    return exports.exports_recheck(owner_id=owner_id)
+
+
 @shared_task(name="sharing.tasks.disk_space_watch", soft_time_limit=30, time_limit=60)
 def disk_space_watch() -> dict[str, int]:
     return disk.disk_space_watch()

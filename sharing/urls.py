@@ -22,6 +22,7 @@ urlpatterns = [
     path("access-log/access-log.csv", views.access_log_download, name="access-log-csv"),
     path("exports/", views.exports, name="exports"),
     path("exports/<uuid:export_id>/", views.export_detail, name="export-detail"),
+    path("exports/<uuid:export_id>/rebuild/", views.export_rebuild_view, name="export-rebuild"),
     path(
         "account/tokens/<int:token_id>/revoke/",
         views.api_token_revoke,

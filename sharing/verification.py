@@ -231,20 +231,62 @@ def accesses_open(
     by_owner: dict[int, list[Record]] = defaultdict(list)
     for record in records:
         by_owner[record.owner_id].append(record)
+    reads = [
+        OwnerRead(
+            owner_id=owner_id,
+            count=len(owned),
+            record=owned[0] if len(owned) == 1 else None,
+            robot_id=_shared({record.robot_id for record in owned}),
+            topic=_shared({record.topic for record in owned}),
+        )
+        for owner_id, owned in by_owner.items()
+    ]
+    return accesses_open_for(
+        kind=kind,
+        viewer_id=viewer_id,
+        reads=reads,
+        credential=credential,
+        token_id=token_id,
+        checked_by_id=checked_by_id,
+    )
+
+
+@dataclass(frozen=True)
+class OwnerRead:
+    """What one read takes of one owner's records: how many, the record when it is one, the
+    robot and the topic when they all share them (an export counts them in the database)."""
+
+    owner_id: int
+    count: int
+    record: Record | None
+    robot_id: uuid.UUID | None
+    topic: str | None
+
+
+def accesses_open_for(
+    *,
+    kind: str,
+    viewer_id: int,
+    reads: Sequence[OwnerRead],
+    credential: str,
+    token_id: int | None,
+    checked_by_id: int | None = None,
+) -> dict[int, int]:
+    """accesses_open for reads already summed up per owner. Record owner id -> Access id."""
     rows = [
         Access(
             kind=kind,
             viewer_id=viewer_id,
-            record_owner_id=owner_id,
+            record_owner_id=read.owner_id,
             checked_by_id=checked_by_id,
             credential=credential,
             token_id=token_id,
-            count=len(owned),
-            record=owned[0] if len(owned) == 1 else None,
-            robot_id=_shared({record.robot_id for record in owned}),
-            topic=_shared({record.topic for record in owned}) or "",
+            count=read.count,
+            record=read.record,
+            robot_id=read.robot_id,
+            topic=read.topic or "",
         )
-        for owner_id, owned in by_owner.items()
+        for read in reads
     ]
     return {row.record_owner_id: row.pk for row in Access.objects.bulk_create(rows)}
 

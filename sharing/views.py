@@ -49,6 +49,7 @@ from sharing.deletion import (
 from sharing.errors import (
     NOT_VISIBLE,
     AccessDenied,
+    ExportNotFound,
     ExportRefused,
     IntegrityCheckFailed,
     InvalidGrantTerms,
@@ -60,8 +61,12 @@ from sharing.errors import (
     VerificationUnavailable,
 )
 from sharing.exports import (
+    export_count,
     export_create,
+    export_current,
+    export_rebuild,
     export_robots_visible,
+    export_selection_described,
     export_topics_visible,
 )
 from sharing.forms import (
@@ -83,7 +88,6 @@ from sharing.selectors import (
     access_list_filtered,
     access_log_filter_choices,
     export_list_of,
-    export_of,
     grant_list_changed_with,
     grant_list_given,
     grant_list_made_with,
@@ -771,37 +775,56 @@ def api_token_revoke(request: HttpRequest, token_id: int) -> HttpResponse:
 @page_throttle()
 @require_http_methods(["GET", "POST"])
 def exports(request: HttpRequest) -> HttpResponse:
-    """GET: the export form and the owner's exports; POST: start an export of a selection."""
+    """GET: the export form and the owner's exports; POST: count the selection's records
+    (the "Count records" button) or start its export."""
     owner: Owner = request.owner
     form = ExportForm(
         request.POST if request.method == "POST" else None,
         robots=export_robots_visible(owner),
         topics=export_topics_visible(owner),
     )
+    counted = None
     if request.method == "POST" and form.is_valid():
-        data = form.cleaned_data
+        selection = {
+            name: form.cleaned_data.get(name) for name in ("robots", "topics", "since", "until")
+        }
         try:
-            export = export_create(
-                requester=owner,
-                robots=data["robots"],
-                topics=data["topics"],
-                since=data.get("since"),
-                until=data.get("until"),
-            )
+            if "count" in request.POST:
+                counted = export_count(requester=owner, **selection)
+            else:
+                export = export_create(requester=owner, **selection)
+                return redirect("export-detail", export_id=export.pk)
         except ExportRefused as exc:
             form.add_error(None, str(exc))
-        else:
-            return redirect("export-detail", export_id=export.pk)
-    context = {"form": form, "exports": export_list_of(owner)[:20]}
-    return render(request, "sharing/exports.html", context, status=400 if form.is_bound else 200)
+    refused = form.is_bound and (not form.is_valid() or bool(counted and counted.refusal))
+    context = {"form": form, "counted": counted, "exports": export_list_of(owner)[:20]}
+    return render(request, "sharing/exports.html", context, status=400 if refused else 200)
 
 
 @owner_required
 @page_throttle()
 @require_GET
 def export_detail(request: HttpRequest, export_id: uuid.UUID) -> HttpResponse:
-    """An export's progress (updating itself while it runs), then its files."""
-    export = export_of(request.owner, export_id)
-    if export is None:
-        raise Http404("no such export of yours")
-    return no_store(render(request, "sharing/export_detail.html", {"export": export}))
+    """An export's progress (updating itself while it runs), then its files, its selection
+    and the command that checks them; withdrawn, with why, once access to its records ended."""
+    try:
+        export = export_current(requester=request.owner, export_id=export_id)
+    except ExportNotFound:
+        raise Http404("no such export of yours") from None
+    context = {"export": export, "selection": export_selection_described(export)}
+    return no_store(render(request, "sharing/export_detail.html", context))
+
+
+@owner_required
+@page_throttle()
+@require_POST
+def export_rebuild_view(request: HttpRequest, export_id: uuid.UUID) -> HttpResponse:
+    """Export an export's selection again, under the owner's access now."""
+    try:
+        export = export_rebuild(requester=request.owner, export_id=export_id)
+    except ExportNotFound:
+        raise Http404("no such export of yours") from None
+    except ExportRefused as exc:
+        messages.error(request, f"Not exported again: {exc}.")
+        return redirect("export-detail", export_id=export_id)
+    return redirect("export-detail", export_id=export.pk)

@@ -15,3 +15,9 @@ def sm3_digest(data: bytes) -> bytes:
 def sm3_hex(data: bytes) -> str:
     """Return the SM3 digest of data as 64 lowercase hex characters."""
     return sm3_digest(data).hex()
+
+
+def sm3_hasher() -> hashes.Hash:
+    """An SM3 hash fed piece by piece (`update`, then `finalize` for the 32 bytes): for files
+    hashed as they are written, in constant memory."""
+    return hashes.Hash(hashes.SM3())

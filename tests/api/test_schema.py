@@ -38,6 +38,9 @@ EXPORT_OPERATIONS = {
     ("/api/v1/exports/", "post"),
     ("/api/v1/exports/{export_id}/", "get"),
     ("/api/v1/exports/{export_id}/{part}/", "get"),
+    # Issue 35: the count before exporting; issue 37: rebuilding a withdrawn export.
+    ("/api/v1/exports/count/", "get"),
+    ("/api/v1/exports/{export_id}/rebuild/", "post"),
 }
 # Added by issue 16 (scoped grants): changing a grant's terms.
 GRANT_TERMS_OPERATIONS = {("/api/v1/grants/{grantee}/", "patch")}

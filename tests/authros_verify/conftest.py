@@ -13,10 +13,9 @@ from mcap.writer import CompressionType, Writer
 from accounts.selectors import owner_eoa_account
 from authros_verify import ChainReader, bundle_digest, bundle_serialise
 from chainworker.chain import AuthROSChain
-from sharing.exports import export_create
+from sharing.exports import export_create, export_download
 from sharing.models import Export
 from sharing.services import record_create_batch
-from sharing.storage import envelope_storage
 from smcrypto import envelope
 from smcrypto.merkle import leaf_hash
 from smcrypto.sm3 import sm3_hex
@@ -34,9 +33,19 @@ def export_of(
         export = export_create(requester=setup.owner)
     export.refresh_from_db()
     assert export.status == Export.Status.DONE, export.error
-    storage = envelope_storage()
-    with storage.open(export.bundle_name, "rb") as bundle, storage.open(export.mcap_name) as mcap:
-        return bundle.read(), mcap.read()
+    mcap, bundle = export_files(export)
+    return bundle, mcap
+
+
+def export_files(export: Export) -> tuple[bytes, bytes]:
+    """(MCAP file, proof bundle) of a ready export, as its requester downloads them (stored
+    sealed, decrypted as streamed)."""
+    return tuple(
+        b"".join(
+            export_download(requester=export.requester, export_id=export.pk, part=part).chunks()
+        )
+        for part in ("mcap", "bundle")
+    )
 
 
 def mcap_rewritten(

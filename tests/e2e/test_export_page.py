@@ -62,7 +62,16 @@ def test_export_page_with_progress_on_desktop_and_phone(
     expect(page.get_by_label("/chatter")).to_be_visible()
     _no_horizontal_scroll(page)
     page.screenshot(path=artifacts / "export-form-desktop.png", full_page=True)
+    # The count before submitting (static/portal/export_count.js on the count API).
+    expect(page.get_by_test_id("export-count")).to_contain_text("holds 2 records")
     page.get_by_label("/chatter").check()
+    expect(page.get_by_test_id("export-count")).to_have_attribute("data-count", "2")
+    page.fill("#id_since", "2030-01-01T00:00")
+    page.locator("#id_since").dispatch_event("change")
+    expect(page.get_by_test_id("export-count")).to_contain_text("No record you may view")
+    page.fill("#id_since", "")
+    page.locator("#id_since").dispatch_event("change")
+    expect(page.get_by_test_id("export-count")).to_contain_text("holds 2 records")
     page.click("#export-submit")
     page.wait_for_url("**/exports/*/")
     expect(page.get_by_test_id("export-status")).to_have_text("ready")
@@ -76,6 +85,12 @@ def test_export_page_with_progress_on_desktop_and_phone(
     assert mcap_download.value.suggested_filename.endswith(".mcap")
     report = verify(bundle, chain=ChainReader(deployed.w3), mcap=mcap, contract=deployed.address)
     assert report.ok, report.problems
+    # The selection and the command that checks the files against this chain.
+    expect(page.get_by_test_id("export-selection")).to_contain_text("/chatter")
+    command = page.get_by_test_id("verify-command")
+    expect(command).to_contain_text(f"--contract {deployed.address}")
+    expect(command).to_contain_text(f"--chain-id {deployed.w3.eth.chain_id}")
+    expect(command).to_contain_text(mcap_download.value.suggested_filename)
     _no_horizontal_scroll(page)
     page.screenshot(path=artifacts / "export-ready-desktop.png", full_page=True)
 
@@ -101,6 +116,7 @@ def test_export_page_with_progress_on_desktop_and_phone(
     export_run(export_id=running.pk)  # ... and finishes: the page reloads with the files
     expect(phone.get_by_test_id("download-mcap")).to_be_visible()
     expect(phone.get_by_test_id("export-status")).to_have_text("ready")
+    expect(phone.get_by_test_id("verify-command")).to_be_visible()
     _no_horizontal_scroll(phone)
     phone.screenshot(path=artifacts / "export-ready-phone.png", full_page=True)
     phone.goto(f"{base}/exports/")

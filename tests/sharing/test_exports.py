@@ -28,6 +28,7 @@ from sharing.services import record_create, record_create_batch
 from sharing.storage import envelope_storage
 from smcrypto import sm2, sm4
 from tests.api.conftest import session_client
+from tests.authros_verify.conftest import export_files
 from tests.conftest import TEST_PASSWORD, seal_for, tamper
 
 pytestmark = pytest.mark.django_db
@@ -154,9 +155,7 @@ def run_export(requester, django_capture_on_commit_callbacks, **selection) -> Ex
 
 
 def files_of(export: Export) -> tuple[bytes, bytes]:
-    storage = envelope_storage()
-    with storage.open(export.mcap_name, "rb") as mcap, storage.open(export.bundle_name, "rb") as b:
-        return mcap.read(), b.read()
+    return export_files(export)
 
 
 def decoded(mcap: bytes) -> dict[str, tuple]:
@@ -291,7 +290,7 @@ def test_a_grantee_exports_only_what_they_may_view(
     # Expired: the download is refused, and the sweep removes the files.
     Export.objects.filter(pk=export.pk).update(expires_at=timezone.now() - timedelta(seconds=1))
     assert api.get(status["bundle_url"]).status_code == 410
-    assert exports_sweep() == {"requeued": 0, "expired": 1}
+    assert exports_sweep() == {"requeued": 0, "expired": 1, "withdrawn": 0}
     assert not envelope_storage().exists(export.mcap_name)
     assert Export.objects.get(pk=export.pk).status == Export.Status.EXPIRED
 
@@ -303,7 +302,7 @@ def test_a_grantee_exports_only_what_they_may_view(
         expires_at=timezone.now() + timedelta(hours=1),
     )
     Export.objects.filter(pk=lost.pk).update(created_at=timezone.now() - timedelta(hours=1))
-    assert exports_sweep() == {"requeued": 1, "expired": 0}
+    assert exports_sweep() == {"requeued": 1, "expired": 0, "withdrawn": 0}
     assert Export.objects.get(pk=lost.pk).status == Export.Status.DONE
 
 

@@ -83,9 +83,12 @@ def test_an_upload_lands_in_the_bucket_and_verifies_from_it(
     assert (export.status, export.exported) == ("done", 1)
     key = f"{PREFIX}/{export.mcap_name}"
     stored = seaweedfs.client().get_object(Bucket=bucket, Key=key)["Body"].read()
+    assert stored.startswith(b"ARS")  # sealed at rest (smcrypto/stream.py), no MCAP in clear
+    assert b"MCAP" not in stored
     download = session_client(setup.owner).get(f"/api/v1/exports/{export.pk}/mcap/")
-    assert b"".join(download.streaming_content) == stored
-    assert sm3_hex(stored) == export.mcap_sm3
+    mcap = b"".join(download.streaming_content)
+    assert mcap.startswith(b"\x89MCAP0")
+    assert sm3_hex(mcap) == export.mcap_sm3
 
 
 def test_a_batch_is_stored_whole(make_robot, bucket, seaweedfs):
