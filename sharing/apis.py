@@ -742,6 +742,8 @@ class RecordSeriesApi(APIView):
         OpenApiTypes.STR,
         OpenApiParameter.QUERY,
         required=True,
+        allow_blank=False,
+        pattern=r"^[A-Za-z0-9_-]+(\.[A-Za-z0-9_-]+)*(,[A-Za-z0-9_-]+(\.[A-Za-z0-9_-]+)*)*$",
         description=f"up to {MAX_FIELDS} dotted paths into the decoded message (`K` of the "
         "record), comma separated, e.g. position.x,position.y",
     )
