@@ -17,6 +17,7 @@ from authros_verify.bundle import (
     BUNDLE_FORMAT,
     BUNDLE_FORMAT_V1,
     bundle_digest,
+    bundle_entry_line,
     bundle_serialise,
     record_line_index,
 )
@@ -163,14 +164,17 @@ def verify(
     head = _check_head(report, document, chain, contract, chain_id)
     messages = _mcap_messages(report, document, mcap)
     fields = RECORD_FIELDS_OF.get(document.get("format"), RECORD_FIELDS)
-    sequences: set[int] = set()
+    sequences: dict[int, list[RecordResult]] = {}
     for result, entry in zip(report.records, entries, strict=True):
         try:
-            result.signed = _check_record(entry, head, chain, messages, sequences, fields)
+            result.signed = _check_record(entry, head, chain, messages, fields)
         except Invalid as exc:
             result.problems.append(str(exc))
         except (KeyError, TypeError, ValueError, AttributeError) as exc:
             result.problems.append(f"its entry is malformed ({type(exc).__name__}: {exc})")
+        if _has_sequence(entry):
+            sequences.setdefault(entry["mcap"]["sequence"], []).append(result)
+    _name_shared_sequences(sequences)
     if messages is not None:
         named = {entry["mcap"]["sequence"] for entry in entries if _has_sequence(entry)}
         extra = sorted(set(messages) - named)
@@ -268,7 +272,6 @@ def _check_record(
     head: _Head,
     chain: ChainReader,
     messages: dict | None,
-    sequences: set[int],
     fields: set[str],
 ) -> bool | None:
     """Check one record's entry; whether its robot signed it (None: a v1 bundle's)."""
@@ -285,7 +288,7 @@ def _check_record(
     if "signature" in fields:
         rebuilt = _check_signature(entry, sealed, chain, head, anchored.owner, anchored.block)
         signed = rebuilt is not None
-    _check_message(entry, messages, sequences, rebuilt)
+    _check_message(entry, messages, rebuilt)
     return signed
 
 
@@ -331,9 +334,7 @@ def _check_signature(
     return message_encode(data_type=header["type"], plaintext=content)
 
 
-def _check_message(
-    entry: dict, messages: dict | None, sequences: set[int], rebuilt: EncodedMessage | None
-) -> None:
+def _check_message(entry: dict, messages: dict | None, rebuilt: EncodedMessage | None) -> None:
     """Its MCAP binding is well formed, timed at its capture, is the message its signed
     plaintext makes (when signed), and (with the file) matches the message's bytes, topic,
     encodings and schema."""
@@ -341,9 +342,6 @@ def _check_message(
     if not isinstance(binding, dict) or set(binding) != MCAP_FIELDS:
         raise Invalid(f"its mcap fields are not {sorted(MCAP_FIELDS)}")
     sequence = whole(binding["sequence"], "mcap.sequence")
-    if sequence in sequences:
-        raise Invalid(f"another record has MCAP sequence {sequence}")
-    sequences.add(sequence)
     log_time = whole(binding["log_time"], "mcap.log_time")
     captured_ns = micros(entry["captured_at"]) * 1000
     if binding["publish_time"] != log_time or log_time // 1000 != captured_ns // 1000:
@@ -382,6 +380,16 @@ def _check_message(
         raise Invalid("its message's schema in the MCAP file is not its type's definition")
 
 
+def _name_shared_sequences(sequences: dict[int, list[RecordResult]]) -> None:
+    """An MCAP message belongs to one record. Of the records naming the same one, those that
+    failed their own checks are the altered ones (already named); if all of them hold, none
+    can be told apart and each is named."""
+    for sequence, claimants in sequences.items():
+        if len(claimants) > 1 and all(result.ok for result in claimants):
+            for result in claimants:
+                result.problems.append(f"another record has MCAP sequence {sequence}")
+
+
 def _has_sequence(entry: Any) -> bool:
     binding = entry.get("mcap") if isinstance(entry, dict) else None
     return isinstance(binding, dict) and isinstance(binding.get("sequence"), int)
@@ -402,22 +410,76 @@ _RECORD_ID = re.compile(rb'"record":"([0-9a-f-]{36})"')
 
 
 def _name_broken_line(report: Report, bundle: bytes, exc: Exception) -> None:
-    """A bundle that does not parse: name the record on the line where it breaks."""
+    """A bundle that does not parse: name the records whose own lines do not parse (or are not
+    in their canonical form), each line read alone, so that a change that breaks the JSON
+    further on (a quote or a comma turned into a space) still names its own record; else the
+    record on the line where the parser stopped."""
+    lines = bundle.split(b"\n")
+    broken = _broken_record_lines(lines)
+    if broken:
+        report.records = broken
+        return
     position = getattr(exc, "pos", None)
     if position is None:
         position = getattr(exc, "start", None)
     if position is None:
         return
-    lines = bundle.split(b"\n")
     number = bundle.count(b"\n", 0, position)
     # Records are the lines after the head and `"records":[`, before `]}` (two bytes even
     # when one of them changed) and the final empty line.
     if not 2 <= number < len(lines) or len(lines[number]) <= 2:
         return
-    index = number - 2
-    line = lines[number]
-    found = _RECORD_ID.search(line)
-    record = found.group(1).decode() if found else "?"
-    report.records = [
-        RecordResult(index, record, [f"its line in the bundle does not parse ({exc})"])
+    problem = f"its line in the bundle does not parse ({exc})"
+    report.records = [RecordResult(number - 2, _record_id(lines[number]), [problem])]
+
+
+def _broken_record_lines(lines: list[bytes]) -> list[RecordResult]:
+    """The record lines (after the head and an intact `"records":[`, before `]}`) that do not
+    parse alone, or do not read back byte for byte, trailing comma included. A line that
+    follows a broken one and does not start a record (`{"` after `},`) is that record's
+    line split in two by a changed byte, and joined back to it."""
+    if len(lines) < 3 or lines[1] != b'"records":[':
+        return []  # the skeleton itself changed: no line can be told to be whose
+    records: list[tuple[bytes, str | None]] = []  # each line, and why it is broken
+    for line in lines[2:]:
+        if len(line) <= 2 or line.startswith(b"]}"):
+            continue
+        if records and records[-1][1] is not None:
+            previous = records[-1][0]
+            if not (line.startswith(b'{"') and previous.endswith(b"},")):
+                joined = previous + b"\n" + line
+                records[-1] = (joined, records[-1][1])
+                continue
+        records.append((line, _line_problem(line)))
+    # Every record's line but the last ends with a comma; the last has none.
+    for index, (line, why) in enumerate(records):
+        last = index == len(records) - 1
+        if why is None and line.endswith(b",") == last:
+            records[index] = (line, "its comma " + ("is one too many" if last else "is missing"))
+    return [
+        RecordResult(index, _record_id(line), [f"its line in the bundle does not parse ({why})"])
+        for index, (line, why) in enumerate(records)
+        if why is not None
     ]
+
+
+def _line_problem(line: bytes) -> str | None:
+    """Why one record's line (with its comma, if any) is not a record's line, or None."""
+    text = line.removesuffix(b",")
+    try:
+        entry = json.loads(
+            text.decode("ascii"),
+            object_pairs_hook=_no_duplicates,
+            parse_constant=_no_constant,
+            parse_float=str,
+        )
+    except (UnicodeDecodeError, ValueError) as exc:
+        return str(exc)
+    if not isinstance(entry, dict) or bundle_entry_line(entry).encode("ascii") != text:
+        return "it is not in its canonical form"
+    return None
+
+
+def _record_id(line: bytes) -> str:
+    found = _RECORD_ID.search(line)
+    return found.group(1).decode() if found else "?"

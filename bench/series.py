@@ -94,11 +94,13 @@ class SeriesRun:
     block_time: float | None = None
     batch_max: int = 100
     max_wait: float = MAKE_RUN_ANCHOR_MAX_WAIT
+    signed: bool = True  # a paired robot's records, as the demo robot's (else added by hand)
 
     def describe(self) -> str:
+        signed = "signed by a paired robot" if self.signed else "of a robot added by hand"
         return (
-            f"series of {self.records} odometry records ({self.series_rounds} reads) against "
-            f"{self.per_record_sample} reads one record at a time"
+            f"series of {self.records} odometry records {signed} ({self.series_rounds} reads) "
+            f"against {self.per_record_sample} reads one record at a time"
         )
 
 
@@ -133,15 +135,57 @@ def odometry_plaintext(owner: str, index: int, at: datetime) -> bytes:
     return json.dumps(record, separators=(",", ":")).encode()
 
 
+def _series_start(run: SeriesRun) -> datetime:
+    """The first capture time: R records 0.1 s apart end a minute ago."""
+    return datetime.now(tz=UTC).replace(microsecond=0) - timedelta(
+        seconds=run.records / RATE_HZ + 60
+    )
+
+
+def _store_signed(
+    stack: BenchStack, run: SeriesRun, robot: Any, key: bytes, signing_key: Any
+) -> datetime:
+    """R odometry records 0.1 s apart, sealed and signed as the paired robot's agent does and
+    stored PER_POST at a time through the upload service (record_create_batch: what the REST
+    upload runs), every one awaited on chain. The capture time of the first."""
+    from ros_agent import sealing
+    from sharing.models import Record
+    from sharing.services import record_create_batch
+
+    start = _series_start(run)
+    owner = robot.owner.username
+    for first in range(0, run.records, PER_POST):
+        envelopes = []
+        for index in range(first, min(first + PER_POST, run.records)):
+            at = start + timedelta(seconds=index / RATE_HZ)
+            header = {
+                "owner": owner,
+                "robot": str(robot.pk),
+                "topic": TOPIC,
+                "type": "nav_msgs/Odometry",
+                "seq": index + 1,
+                "time": at.isoformat().replace("+00:00", "Z"),
+            }
+            plaintext = odometry_plaintext(owner, index, at)
+            envelopes.append(sealing.seal_record(key, header, plaintext, signing_key))
+        record_create_batch(robot=robot, envelopes=envelopes)
+
+    def anchored() -> bool:
+        return (
+            Record.objects.filter(robot=robot, status=Record.Status.ANCHORED).count() == run.records
+        )
+
+    stack.wait_for(anchored, "records not anchored", timeout=900)
+    return start
+
+
 def _upload(stack: BenchStack, run: SeriesRun, robot: Any, key: bytes, token: str) -> datetime:
     """R odometry records 0.1 s apart, ending now, POSTed PER_POST at a time; every one awaited
     on chain. The capture time of the first."""
     from sharing.models import Record
     from smcrypto import envelope
 
-    start = datetime.now(tz=UTC).replace(microsecond=0) - timedelta(
-        seconds=run.records / RATE_HZ + 60
-    )
+    start = _series_start(run)
     session = requests.Session()
     session.headers["Authorization"] = f"Token {token}"
     owner = robot.owner.username
@@ -222,10 +266,17 @@ def measure(run: SeriesRun) -> dict[str, Any]:
         from accounts.services.robots import robot_create
         from sharing.models import Record
 
-        ((robot, key),) = owners_register(stack, 1)
-        odometry_robot, robot_token = robot_create(owner=robot.owner, name="odometry")
         uploaded = time.perf_counter()
-        start = _upload(stack, run, odometry_robot, key, robot_token)
+        if run.signed:
+            from bench.exports import _paired_robot
+
+            odometry_robot, key, signing_key = _paired_robot(stack)
+            robot = odometry_robot
+            start = _store_signed(stack, run, odometry_robot, key, signing_key)
+        else:
+            ((robot, key),) = owners_register(stack, 1)
+            odometry_robot, robot_token = robot_create(owner=robot.owner, name="odometry")
+            start = _upload(stack, run, odometry_robot, key, robot_token)
         row["upload_and_anchor_s"] = time.perf_counter() - uploaded
         until = start + timedelta(seconds=run.records / RATE_HZ)
         token = viewer_token(robot.owner)
@@ -359,6 +410,11 @@ def main(argv: list[str]) -> int:
     parser.add_argument("--results-dir", type=Path, default=RESULTS_DIR)
     parser.add_argument("--keep-logs", action="store_true")
     parser.add_argument("--quick", action="store_true", help="smoke run with small numbers")
+    parser.add_argument(
+        "--unsigned",
+        action="store_true",
+        help="a robot added by hand (no robot signatures to check), instead of a paired one",
+    )
     args = parser.parse_args(argv)
     if args.quick:
         args.records, args.rounds, args.sample = 1_000, 2, 30
@@ -370,6 +426,7 @@ def main(argv: list[str]) -> int:
         web_workers=args.web_workers,
         redis_url=args.redis_url,
         keep_logs=args.keep_logs,
+        signed=not args.unsigned,
     )
     started = now_iso()
     report = report_header(
@@ -397,6 +454,7 @@ def main(argv: list[str]) -> int:
         "per_post": PER_POST,
         "anchor_mode": "root",
         "chain": "anvil, automine",
+        "signed": run.signed,
     }
     report["goal_p50_s"] = GOAL_P50_S
     report["measured"] = measured
@@ -404,7 +462,9 @@ def main(argv: list[str]) -> int:
     report["load_average_at_end"] = [round(load, 2) for load in psutil.getloadavg()]
     report["goal_met"] = report["results"][1]["p50_s"] <= GOAL_P50_S
     print_table(report, COLUMNS)
-    write_results(NAME, report, FIELDS, args.results_dir, plot=_plot)
+    # The unsigned run is a comparison: it does not take the place of the demo robot's.
+    name = NAME if run.signed else f"{NAME}-unsigned"
+    write_results(name, report, FIELDS, args.results_dir, plot=_plot)
     return 0
 
 

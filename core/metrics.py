@@ -145,8 +145,22 @@ class _HostFiles:
         self.root = root
 
     def collect(self) -> Iterator:
-        files = sorted(str(path) for path in self.root.glob("*/*.db"))
+        files = sorted(str(path) for path in self.root.glob("*/*.db") if _counts_begun(path))
         yield from MultiProcessCollector.merge(files, accumulate=True)
+
+
+# A process's counts file holds at least its 8-byte header once the client has sized it.
+_COUNTS_HEADER = 8
+
+
+def _counts_begun(path: Path) -> bool:
+    """Whether a process's counts file can be read: a process that is starting creates it
+    empty and sizes it a moment later (a scrape then would fail), one that is removed may be
+    gone; neither holds a count yet."""
+    try:
+        return path.stat().st_size >= _COUNTS_HEADER
+    except FileNotFoundError:
+        return False
 
 
 class _ProcessCounts:

@@ -1362,8 +1362,12 @@ class ExportsApi(APIView):
     def post(self, request: Request) -> Response:
         payload = self.InputSerializer(data=request.data)
         payload.is_valid(raise_exception=True)
+        credential, token = _caller_credential(request)
         export = export_create(
-            requester=caller_owner(request), **_selection_of(payload.validated_data)
+            requester=caller_owner(request),
+            credential=credential,
+            token=token,
+            **_selection_of(payload.validated_data),
         )
         export.refresh_from_db()
         return Response(ExportOutputSerializer(export).data, status=status.HTTP_202_ACCEPTED)
@@ -1446,7 +1450,13 @@ class ExportRebuildApi(APIView):
         },
     )
     def post(self, request: Request, export_id: str) -> Response:
-        export = export_rebuild(requester=caller_owner(request), export_id=export_id)
+        credential, token = _caller_credential(request)
+        export = export_rebuild(
+            requester=caller_owner(request),
+            export_id=export_id,
+            credential=credential,
+            token=token,
+        )
         export.refresh_from_db()
         return Response(ExportOutputSerializer(export).data, status=status.HTTP_202_ACCEPTED)
 

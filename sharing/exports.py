@@ -37,7 +37,7 @@ from django.utils import timezone
 
 from accounts.errors import IdentityMismatch
 from accounts.keywrap import UnwrapFailed, unwrap, wrap
-from accounts.models import Owner, OwnerKey, Robot
+from accounts.models import Owner, OwnerKey, OwnerToken, Robot
 from authros_verify.bundle import BUNDLE_FORMAT, bundle_entry_line, bundle_write
 from authros_verify.messages import message_encode, message_log_time
 from chainworker.chain import ChainError
@@ -181,9 +181,12 @@ def export_create(
     topics: Sequence[str] = (),
     since: datetime | None = None,
     until: datetime | None = None,
+    credential: str = Verdict.Credential.UNKNOWN,
+    token: OwnerToken | None = None,
 ) -> Export:
     """Check the selection (robots and topics, empty: all; capture times [since, until)) and
-    queue its export; ExportRefused if it cannot be exported (its count says why)."""
+    queue its export; ExportRefused if it cannot be exported (its count says why). The
+    credential (and token) that asked is what its access-log lines record."""
     counted = export_count(
         requester=requester, robots=robots, topics=topics, since=since, until=until
     )
@@ -192,6 +195,8 @@ def export_create(
     with transaction.atomic():
         export = Export.objects.create(
             requester=requester,
+            credential=credential,
+            token=token,
             selection=counted.selection.as_json(),
             total=counted.count,
             expires_at=timezone.now() + timedelta(hours=settings.EXPORT_TTL_HOURS),
@@ -208,7 +213,7 @@ def export_selection_described(export: Export) -> dict[str, object]:
     names = {robot.pk: f"{robot.name} ({robot.owner.username})" for robot in robots}
     stem = export_file_stem(export)
     command = [
-        "python -m authros_verify",
+        "authros-verify",
         f"{stem}.proofs.json",
         f"--mcap {stem}.mcap",
         "--rpc RPC_URL",
@@ -231,8 +236,15 @@ def export_file_stem(export: Export) -> str:
     return f"authros-export-{str(export.pk)[:8]}"
 
 
-def export_rebuild(*, requester: Owner, export_id: uuid.UUID | str) -> Export:
-    """A new export of an export's selection, made under the requester's access now."""
+def export_rebuild(
+    *,
+    requester: Owner,
+    export_id: uuid.UUID | str,
+    credential: str = Verdict.Credential.UNKNOWN,
+    token: OwnerToken | None = None,
+) -> Export:
+    """A new export of an export's selection, made under the requester's access now, asked
+    for by `credential`."""
     export = export_of(requester, export_id)
     if export is None:
         raise ExportNotFound("no such export of yours")
@@ -243,6 +255,8 @@ def export_rebuild(*, requester: Owner, export_id: uuid.UUID | str) -> Export:
         topics=selection.topics,
         since=selection.since,
         until=selection.until,
+        credential=credential,
+        token=token,
     )
 
 
@@ -332,8 +346,8 @@ def _run(export: Export) -> None:
         kind=Access.Kind.EXPORT,
         viewer_id=export.requester.pk,
         reads=_owner_reads(records),
-        credential=Verdict.Credential.UNKNOWN,
-        token_id=None,
+        credential=export.credential,
+        token_id=export.token_id,
     )
     excluded: list[dict] = []
     exported = processed = 0

@@ -453,6 +453,13 @@ class Export(models.Model):
 
     id = models.UUIDField(primary_key=True, default=uuid.uuid4, editable=False)
     requester = models.ForeignKey(Owner, on_delete=models.CASCADE, related_name="exports")
+    # The credential that asked for it, as its access-log lines record it.
+    credential = models.CharField(
+        max_length=10, choices=Verdict.Credential.choices, blank=True, default=""
+    )
+    token = models.ForeignKey(
+        OwnerToken, on_delete=models.SET_NULL, null=True, blank=True, related_name="exports"
+    )
     # {"robots": [uuid...], "topics": [...], "since": iso or null, "until": iso or null}
     selection = models.JSONField(default=dict)
     status = models.CharField(max_length=16, choices=Status.choices, default=Status.QUEUED)

@@ -75,10 +75,12 @@ class Verification:
 
 class _ChainReads:
     """What one run of checks reads from the chain, each asked once in the run: the grant per
-    record owner, the owner's identity, `rootOf` per tree and `robotKeyOf` per signer."""
+    record owner, the owner's identity, `rootOf` per tree and `robotKeyOf` per signer; and
+    the records' keys (to check a signature over the plaintext), unwrapped once per key."""
 
     def __init__(self, client: AuthROSChain) -> None:
         self.client = client
+        self.keys = RecordKeys()
         self.grants: dict[int, Grant | None] = {}
         self.identified: set[int] = set()
         self.roots: dict[tuple[str, str], OnChainRoot | None] = {}
@@ -373,7 +375,9 @@ def _provenance_holds(record: Record, data: bytes, reads: _ChainReads) -> bool:
         and on_chain.live_at(record.block_number)
         and bool(public_key)
         and provenance.key_hash(public_key) == signer
-        and provenance.verify_header(public_key, header, envelope.open(record_key(record), data)[1])
+        and provenance.verify_header(
+            public_key, header, envelope.open(reads.keys.of(record), data)[1]
+        )
     )
 
 

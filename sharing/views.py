@@ -239,6 +239,10 @@ def record_detail(request: HttpRequest, record_id: str) -> HttpResponse:
             render(request, "sharing/record_detail.html", context, status=opened.status)
         )
     record = opened.record
+    if record.block_number is None:
+        # Anchored between this page's read of the row and the worker's check: show the block
+        # and transaction anchoring wrote since (if it has yet), not the row read before.
+        record.refresh_from_db()
     content = content_of(data_type=record.data_type, plaintext=opened.plaintext)
     context = {
         "nav": _record_nav(request, record),
@@ -792,7 +796,9 @@ def exports(request: HttpRequest) -> HttpResponse:
             if "count" in request.POST:
                 counted = export_count(requester=owner, **selection)
             else:
-                export = export_create(requester=owner, **selection)
+                export = export_create(
+                    requester=owner, credential=Verdict.Credential.SESSION, **selection
+                )
                 return redirect("export-detail", export_id=export.pk)
         except ExportRefused as exc:
             form.add_error(None, str(exc))
@@ -821,7 +827,11 @@ def export_detail(request: HttpRequest, export_id: uuid.UUID) -> HttpResponse:
 def export_rebuild_view(request: HttpRequest, export_id: uuid.UUID) -> HttpResponse:
     """Export an export's selection again, under the owner's access now."""
     try:
-        export = export_rebuild(requester=request.owner, export_id=export_id)
+        export = export_rebuild(
+            requester=request.owner,
+            export_id=export_id,
+            credential=Verdict.Credential.SESSION,
+        )
     except ExportNotFound:
         raise Http404("no such export of yours") from None
     except ExportRefused as exc:

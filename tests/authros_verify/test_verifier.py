@@ -83,6 +83,16 @@ def test_one_changed_byte_anywhere_in_the_bundle_or_mcap_is_caught_and_named(sma
 
     any_value()
 
+    # What the random search found: a byte turned into a line break or a space (a comma, a
+    # quote, a brace) breaks the JSON on another line, or makes a field appear twice; the
+    # record whose line held it is still the one named.
+    for value in b"\n ,":
+        for position in range(len(bundle)):
+            if bundle[position] != value:
+                changed = bundle[:position] + bytes([value]) + bundle[position + 1 :]
+                report = verify(changed, chain=chain, mcap=mcap, contract=contract)
+                _assert_caught(report, bundle, position, ids)
+
     # A digit changed to "e" makes a fraction, beyond any float ("1e999" is infinite): caught
     # and named like any other change, not a crash of the verifier.
     for field in (b'"chain_id":', b'"block":'):

@@ -145,6 +145,29 @@ def test_verified_odometry_record(client, alice, upload):
     assert all(Verdict.objects.filter(record=r, outcome="verified").exists() for r in earlier)
 
 
+def test_a_record_anchored_while_its_page_loads_shows_its_block(client, alice, upload, monkeypatch):
+    """The page read the row before anchoring wrote its block; the worker's check then found
+    the root on chain: the page shows the block anchoring wrote, not the stale row's blank."""
+    from sharing import views
+
+    record = upload(alice, 1)
+    assert record.block_number is not None
+    opened_once = views.record_open
+
+    def stale_row(**kwargs):
+        opened = opened_once(**kwargs)
+        opened.record.block_number = None  # as it was read before the anchor landed
+        opened.record.tx_hash = ""
+        return opened
+
+    monkeypatch.setattr(views, "record_open", stale_row)
+    client.force_login(alice.owner.user)
+    html = client.get(reverse("record-detail", args=[record.id])).content.decode()
+    assert 'data-verdict="verified"' in html
+    assert f'data-testid="anchored-block">{record.block_number}<' in html
+    assert record.tx_hash in html
+
+
 def test_trajectory_leaves_out_records_that_fail_their_check(client, alice, upload):
     first = upload(alice, 1, plaintext=odometry("alice", 0, 0))
     record = upload(alice, 2, plaintext=odometry("alice", 1, 1))

@@ -153,3 +153,19 @@ def test_the_counted_routes_are_the_portals(route):
     """Renamed routes would silently stop being counted: each one counted resolves to itself."""
     path = "/" + re.sub(r"<\w+:\w+>", str(uuid.uuid4()), route)
     assert resolve(path).route == route
+
+
+def test_a_process_starting_while_scraped_does_not_fail_the_scrape(tmp_path):
+    """A process that is starting creates its counts file empty and sizes it a moment later:
+    a scrape in between answers the others' counts, not a 500 (seen under load)."""
+    from prometheus_client.mmap_dict import MmapedDict, mmap_key
+
+    from core.metrics import _HostFiles
+
+    (tmp_path / "web").mkdir()
+    counts = MmapedDict(str(tmp_path / "web" / "counter_1.db"))
+    counts.write_value(mmap_key("uploads_total", "uploads_total", [], [], ""), 3.0, 0.0)
+    counts.close()
+    (tmp_path / "web" / "counter_2.db").touch()  # the starting process's, still empty
+    samples = [sample for family in _HostFiles(tmp_path).collect() for sample in family.samples]
+    assert [(sample.name, sample.value) for sample in samples] == [("uploads_total", 3.0)]

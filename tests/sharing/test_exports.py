@@ -22,12 +22,12 @@ from accounts.services.owners import owner_create
 from accounts.services.robots import robot_create
 from authros_verify import ChainReader, verify
 from sharing.exports import export_create, export_run, exports_sweep
-from sharing.models import Export, Record, Verdict
+from sharing.models import Access, Export, Record, Verdict
 from sharing.selection import RecordSelection
 from sharing.services import record_create, record_create_batch
 from sharing.storage import envelope_storage
 from smcrypto import sm2, sm4
-from tests.api.conftest import session_client
+from tests.api.conftest import session_client, token_client
 from tests.authros_verify.conftest import export_files
 from tests.conftest import TEST_PASSWORD, seal_for, tamper
 
@@ -326,6 +326,32 @@ BAD_SELECTIONS = [
     {"topics": ["/chatter"] * 101},
     {"robots": [str(uuid.uuid4())]},
 ]
+
+
+def test_an_exports_access_log_line_names_the_credential_that_asked(
+    alice, bob, alice_records, make_owner_token, django_capture_on_commit_callbacks
+):
+    """The export is one access-log line per record owner, naming the browser session or the
+    token that asked for it (and its rebuild), never "not recorded"."""
+    token, key = make_owner_token(bob, scopes=("read",))
+    asked = {"session": session_client(bob), "token": token_client(key)}
+    for credential, api in asked.items():
+        with django_capture_on_commit_callbacks(execute=True):
+            answer = api.post(EXPORTS, {"topics": ["/chatter"]}, format="json")
+        assert answer.status_code == 202, answer.content
+        export = Export.objects.get(pk=answer.json()["id"])
+        assert export.status == Export.Status.DONE
+        line = Access.objects.filter(kind=Access.Kind.EXPORT).latest("pk")
+        assert (line.viewer, line.record_owner, line.credential) == (bob, alice.owner, credential)
+        assert line.token_id == (token.pk if credential == "token" else None)
+        with django_capture_on_commit_callbacks(execute=True):
+            again = api.post(f"{EXPORTS}{export.pk}/rebuild/")
+        assert again.status_code == 202, again.content
+        rebuilt = Export.objects.get(pk=again.json()["id"])
+        assert rebuilt.status == Export.Status.DONE
+        line = Access.objects.filter(kind=Access.Kind.EXPORT).latest("pk")
+        assert (line.credential, line.token_id) == (credential, token.pk if line.token else None)
+    assert not Access.objects.filter(credential=Verdict.Credential.UNKNOWN).exists()
 
 
 def test_a_bad_selection_is_a_400_or_a_form_error_and_changes_nothing(carol_robot):
