@@ -140,14 +140,7 @@ def verify(
     """
     report = Report()
     try:
-        document = json.loads(
-            bundle.decode("ascii"),
-            object_pairs_hook=_no_duplicates,
-            parse_constant=_no_constant,
-            # A bundle holds no fractions: one (a digit changed to "e", say) is kept as its
-            # text, which fails the form check at its own byte and every number check.
-            parse_float=str,
-        )
+        document = _strict_json(bundle)
     except (UnicodeDecodeError, ValueError) as exc:
         report.problems.append(f"the bundle is not valid JSON: {exc}")
         _name_broken_line(report, bundle, exc)
@@ -395,6 +388,19 @@ def _has_sequence(entry: Any) -> bool:
     return isinstance(binding, dict) and isinstance(binding.get("sequence"), int)
 
 
+def _strict_json(data: bytes) -> Any:
+    """ASCII JSON as a bundle holds it: no field twice in an object, no NaN or Infinity.
+    UnicodeDecodeError or ValueError if it is not."""
+    return json.loads(
+        data.decode("ascii"),
+        object_pairs_hook=_no_duplicates,
+        parse_constant=_no_constant,
+        # A bundle holds no fractions: one (a digit changed to "e", say) is kept as its text,
+        # which fails the form check at its own byte and every number check.
+        parse_float=str,
+    )
+
+
 def _no_duplicates(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
     document = dict(pairs)
     if len(document) != len(pairs):
@@ -467,12 +473,7 @@ def _line_problem(line: bytes) -> str | None:
     """Why one record's line (with its comma, if any) is not a record's line, or None."""
     text = line.removesuffix(b",")
     try:
-        entry = json.loads(
-            text.decode("ascii"),
-            object_pairs_hook=_no_duplicates,
-            parse_constant=_no_constant,
-            parse_float=str,
-        )
+        entry = _strict_json(text)
     except (UnicodeDecodeError, ValueError) as exc:
         return str(exc)
     if not isinstance(entry, dict) or bundle_entry_line(entry).encode("ascii") != text:

@@ -37,6 +37,7 @@ import statistics
 import sys
 import tempfile
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass
 from datetime import UTC, datetime, timedelta
 from pathlib import Path
@@ -142,6 +143,38 @@ def _series_start(run: SeriesRun) -> datetime:
     )
 
 
+def _odometry_batches(
+    run: SeriesRun, robot: Any, start: datetime
+) -> Iterator[list[tuple[dict[str, Any], bytes]]]:
+    """R odometry records 0.1 s apart from `start`, PER_POST at a time: (header, plaintext)."""
+    owner = robot.owner.username
+    for first in range(0, run.records, PER_POST):
+        batch = []
+        for index in range(first, min(first + PER_POST, run.records)):
+            at = start + timedelta(seconds=index / RATE_HZ)
+            header = {
+                "owner": owner,
+                "robot": str(robot.pk),
+                "topic": TOPIC,
+                "type": "nav_msgs/Odometry",
+                "seq": index + 1,
+                "time": at.isoformat().replace("+00:00", "Z"),
+            }
+            batch.append((header, odometry_plaintext(owner, index, at)))
+        yield batch
+
+
+def _await_anchored(stack: BenchStack, run: SeriesRun, robot: Any) -> None:
+    from sharing.models import Record
+
+    def anchored() -> bool:
+        return (
+            Record.objects.filter(robot=robot, status=Record.Status.ANCHORED).count() == run.records
+        )
+
+    stack.wait_for(anchored, "records not anchored", timeout=900)
+
+
 def _store_signed(
     stack: BenchStack, run: SeriesRun, robot: Any, key: bytes, signing_key: Any
 ) -> datetime:
@@ -149,72 +182,37 @@ def _store_signed(
     stored PER_POST at a time through the upload service (record_create_batch: what the REST
     upload runs), every one awaited on chain. The capture time of the first."""
     from ros_agent import sealing
-    from sharing.models import Record
     from sharing.services import record_create_batch
 
     start = _series_start(run)
-    owner = robot.owner.username
-    for first in range(0, run.records, PER_POST):
-        envelopes = []
-        for index in range(first, min(first + PER_POST, run.records)):
-            at = start + timedelta(seconds=index / RATE_HZ)
-            header = {
-                "owner": owner,
-                "robot": str(robot.pk),
-                "topic": TOPIC,
-                "type": "nav_msgs/Odometry",
-                "seq": index + 1,
-                "time": at.isoformat().replace("+00:00", "Z"),
-            }
-            plaintext = odometry_plaintext(owner, index, at)
-            envelopes.append(sealing.seal_record(key, header, plaintext, signing_key))
+    for batch in _odometry_batches(run, robot, start):
+        envelopes = [
+            sealing.seal_record(key, header, plaintext, signing_key) for header, plaintext in batch
+        ]
         record_create_batch(robot=robot, envelopes=envelopes)
-
-    def anchored() -> bool:
-        return (
-            Record.objects.filter(robot=robot, status=Record.Status.ANCHORED).count() == run.records
-        )
-
-    stack.wait_for(anchored, "records not anchored", timeout=900)
+    _await_anchored(stack, run, robot)
     return start
 
 
 def _upload(stack: BenchStack, run: SeriesRun, robot: Any, key: bytes, token: str) -> datetime:
     """R odometry records 0.1 s apart, ending now, POSTed PER_POST at a time; every one awaited
     on chain. The capture time of the first."""
-    from sharing.models import Record
     from smcrypto import envelope
 
     start = _series_start(run)
     session = requests.Session()
     session.headers["Authorization"] = f"Token {token}"
-    owner = robot.owner.username
-    for first in range(0, run.records, PER_POST):
-        envelopes = []
-        for index in range(first, min(first + PER_POST, run.records)):
-            at = start + timedelta(seconds=index / RATE_HZ)
-            header = {
-                "owner": owner,
-                "robot": str(robot.pk),
-                "topic": TOPIC,
-                "type": "nav_msgs/Odometry",
-                "seq": index + 1,
-                "time": at.isoformat().replace("+00:00", "Z"),
-            }
-            data = envelope.seal(key, header, odometry_plaintext(owner, index, at))
-            envelopes.append(base64.b64encode(data).decode())
+    for batch in _odometry_batches(run, robot, start):
+        envelopes = [
+            base64.b64encode(envelope.seal(key, header, plaintext)).decode()
+            for header, plaintext in batch
+        ]
         answer = session.post(
             f"{stack.web_url}/api/v1/records/", json={"envelopes": envelopes}, timeout=120
         )
         answer.raise_for_status()
     session.close()
-
-    def anchored() -> bool:
-        return (
-            Record.objects.filter(robot=robot, status=Record.Status.ANCHORED).count() == run.records
-        )
-
-    stack.wait_for(anchored, "records not anchored", timeout=900)
+    _await_anchored(stack, run, robot)
     return start
 
 
