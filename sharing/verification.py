@@ -53,6 +53,7 @@ from sharing.roots import record_path
 from sharing.scope import scope_commitment
 from sharing.selectors import grant_live, record_deletion_text, record_to_open
 from smcrypto import envelope, provenance, sm3
+from smcrypto.errors import CryptoError, SignatureInvalid
 from smcrypto.merkle import leaf_hash, proof_holds
 
 logger = logging.getLogger(__name__)
@@ -315,10 +316,40 @@ def _records_check(
             checked.append(None)
     to_fetch = [record for record, done in zip(records, checked, strict=True) if done is None]
     fetched = iter(envelopes_fetch(to_fetch))
-    return [
-        done if done is not None else _digest_check(record, viewer, reads, next(fetched))
+    anchored = [
+        done if done is not None else _anchored_check(record, viewer, reads, next(fetched))
         for record, done in zip(records, checked, strict=True)
     ]
+    return _signatures_check(records, anchored, reads)
+
+
+def _signatures_check(
+    records: Sequence[Record],
+    anchored: Sequence[tuple[dict[str, object], bytes | None]],
+    reads: _ChainReads,
+) -> list[tuple[dict[str, object], bytes | None]]:
+    """The robot signatures of the records whose envelopes hold against the chain, verified
+    all at once on every core (provenance.claims_hold): a record whose signature does not hold
+    is refused, and its bytes are not handed on."""
+    claims = {
+        at: _provenance_claim(record, data, reads)
+        for at, (record, (_fields, data)) in enumerate(zip(records, anchored, strict=True))
+        if data is not None
+    }
+    pending = [at for at, claim in claims.items() if isinstance(claim, provenance.SignatureClaim)]
+    verified = provenance.claims_hold([claims[at] for at in pending])
+    holds = {**claims, **dict(zip(pending, verified, strict=True))}
+    checked = []
+    for at, (record, (fields, data)) in enumerate(zip(records, anchored, strict=True)):
+        if data is not None and not holds[at]:
+            security_log.error(
+                "record %s is anchored but its robot signature does not hold (signer %r)",
+                record.pk,
+                record.signer,
+            )
+            fields, data = {**fields, "outcome": Verdict.Outcome.SIGNATURE_REFUSED}, None
+        checked.append((fields, data))
+    return checked
 
 
 def _credential_check(credential: str, token_id: int | None) -> None:
@@ -335,50 +366,36 @@ def _verdict_block(head: int, record: Record) -> int:
     return max(head, record.block_number or 0)
 
 
-def _digest_check(
-    record: Record,
-    viewer: Owner,
-    reads: _ChainReads,
-    fetched: tuple[bytes, str] | FileNotFoundError,
-) -> tuple[dict[str, object], bytes | None]:
-    """The stored envelope (as envelopes_fetch found it)'s SM3 digest against the chain's, then
-    its robot signature: the verdict's fields, and the bytes checked when both hold."""
-    fields, data = _anchored_check(record, viewer, reads, fetched)
-    if data is None or _provenance_holds(record, data, reads):
-        return fields, data
-    security_log.error(
-        "record %s is anchored but its robot signature does not hold (signer %r)",
-        record.pk,
-        record.signer,
-    )
-    return {**fields, "outcome": Verdict.Outcome.SIGNATURE_REFUSED}, None
-
-
-def _provenance_holds(record: Record, data: bytes, reads: _ChainReads) -> bool:
+def _provenance_claim(
+    record: Record, data: bytes, reads: _ChainReads
+) -> provenance.SignatureClaim | bool:
     """DESIGN.md "Provenance": the anchored envelope names the signer the record was stored
     with; a signed record's key is its owner's on chain (robotKeyOf), added at or before the
     record's anchoring block and not revoked by then, hashes to `signer`, and its signature
-    holds over the decrypted content. An unsigned record (a robot added by hand) holds as
+    holds over the decrypted content: the signature left to verify (a SignatureClaim), or
+    whether the record holds without one. An unsigned record (a robot added by hand) holds as
     unsigned: pages and answers say so, never "genuine"."""
-    header = envelope.read_header(data).header
-    signer = header.get("signer", "")
-    if signer != record.signer:
+    if not record.signer:
+        return not envelope.read_header(data).header.get("signer", "")
+    try:
+        header, plaintext = envelope.open(reads.keys.of(record), data)
+    except (CryptoError, OwnerKey.DoesNotExist):  # anchored, yet not an envelope of its key
         return False
-    if not signer:
-        return True
-    on_chain = reads.robot_key_of(signer)
+    on_chain = reads.robot_key_of(record.signer)
     public_key = record.robot.public_key
-    return (
-        on_chain.owner is not None
+    if not (
+        header.get("signer", "") == record.signer
+        and on_chain.owner is not None
         and on_chain.owner.lower() == record.owner.eoa_address.lower()
         and record.block_number is not None
         and on_chain.live_at(record.block_number)
-        and bool(public_key)
-        and provenance.key_hash(public_key) == signer
-        and provenance.verify_header(
-            public_key, header, envelope.open(reads.keys.of(record), data)[1]
-        )
-    )
+        and public_key
+    ):
+        return False
+    try:
+        return provenance.signature_claim(public_key, header, plaintext)
+    except SignatureInvalid:
+        return False
 
 
 def record_signature(record: Record, data: bytes, client: AuthROSChain) -> dict[str, Any] | None:

@@ -13,10 +13,13 @@ header fields carry the signature, authenticated by the envelope like every othe
   of every field except `sig` (so `signer` is in it) in the envelope's own canonical JSON.
 
 Pure functions, no Django. `signature_check` says why a signature does not hold with a
-SignatureInvalid whose `reason` names the check; `verify_header` is the yes or no.
+SignatureInvalid whose `reason` names the check; `verify_header` is the yes or no;
+`signature_claim` does the cheap checks and leaves the SM2 verification to `claims_hold`, which
+verifies the signatures of a whole check on every core at once.
 """
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 from typing import Any
 
 from smcrypto import sm2
@@ -71,13 +74,26 @@ def sign_header(
     return signed
 
 
-def signature_check(public_key_hex: str, header: Mapping[str, Any], plaintext: bytes) -> None:
-    """Check that the robot whose public key is given signed this header and plaintext.
+@dataclass(frozen=True)
+class SignatureClaim:
+    """A signature whose shape and signer hold, left to verify: the public key, the message
+    (signature_message) and `sig`. `holds()` verifies it; claims_hold verifies many at once."""
 
-    Raises SignatureMissing (no `signer` or `sig`), SignatureMalformed (not lowercase hex of
-    their lengths, a public key that is not an SM2 point, a header that is not JSON),
-    SignerMismatch (`signer` is not this key's hash) or BadSignature.
-    """
+    public_key: str
+    message: bytes
+    sig: str
+
+    def holds(self) -> bool:
+        return sm2.verify(self.public_key, self.message, self.sig)
+
+
+def signature_claim(
+    public_key_hex: str, header: Mapping[str, Any], plaintext: bytes
+) -> SignatureClaim:
+    """What verifying the robot's signature over this header and plaintext takes, once the
+    cheap checks hold. Raises SignatureMissing (no `signer` or `sig`), SignatureMalformed (not
+    lowercase hex of their lengths, a public key that is not an SM2 point, a header that is not
+    JSON) or SignerMismatch (`signer` is not this key's hash)."""
     if not isinstance(header, Mapping):
         raise SignatureMalformed(f"a header is a mapping, not {type(header).__name__}")
     missing = [name for name in SIGNATURE_FIELDS if name not in header]
@@ -94,7 +110,21 @@ def signature_check(public_key_hex: str, header: Mapping[str, Any], plaintext: b
         raise SignerMismatch(
             f"the record names signer {header['signer']}, not this key's hash {expected_signer}"
         )
-    if not sm2.verify(public_key_hex, signature_message(header, plaintext), header["sig"]):
+    return SignatureClaim(public_key_hex, signature_message(header, plaintext), header["sig"])
+
+
+def claims_hold(claims: Sequence[SignatureClaim]) -> list[bool]:
+    """Whether each claim's signature verifies, in order: on every core (sm2.verify_many), for
+    the records of one check or one export batch."""
+    return sm2.verify_many([(claim.public_key, claim.message, claim.sig) for claim in claims])
+
+
+def signature_check(public_key_hex: str, header: Mapping[str, Any], plaintext: bytes) -> None:
+    """Check that the robot whose public key is given signed this header and plaintext.
+
+    Raises what signature_claim raises, or BadSignature.
+    """
+    if not signature_claim(public_key_hex, header, plaintext).holds():
         raise BadSignature("the signature does not verify over this header and plaintext")
 
 

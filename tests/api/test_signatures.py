@@ -223,3 +223,31 @@ def test_a_run_over_many_records_of_one_robot_asks_the_chain_for_its_key_once(
     verifications = records_verify(record_ids=ids, viewer_id=setup.owner.pk)
     assert [v.verdict.outcome for v in verifications] == [Verdict.Outcome.VERIFIED] * 3
     assert asked == [bytes.fromhex(setup.robot.key_hash)]
+
+
+def test_a_check_of_many_records_refuses_exactly_the_forged_ones_among_them(
+    make_paired_robot, monkeypatch, django_capture_on_commit_callbacks
+):
+    """The signatures of one check are verified side by side on every core: each verdict is
+    still its own record's, the forged ones refused wherever they stand in the batch."""
+    setup = make_paired_robot("alice")
+    monkeypatch.setattr(sharing_services, "_signature_check", lambda robot, *_: robot.key_hash)
+    forged = {1, 9, 16, 23}
+    envelopes = [
+        _signed_over_other_content(setup, seq) if seq in forged else setup.seal(seq)
+        for seq in range(24)
+    ]
+    with django_capture_on_commit_callbacks(execute=True):
+        sharing_services.record_create_batch(robot=setup.robot, envelopes=envelopes)
+    records = list(Record.objects.order_by("seq"))
+    assert {record.status for record in records} == {Record.Status.ANCHORED}
+    checked = records_verify(record_ids=[r.id for r in records], viewer_id=setup.owner.pk)
+    assert [(c.verdict.record_id, c.verdict.outcome) for c in checked] == [
+        (
+            record.id,
+            Verdict.Outcome.SIGNATURE_REFUSED if record.seq in forged else Verdict.Outcome.VERIFIED,
+        )
+        for record in records
+    ]
+    handed_on = [c.envelope is not None for c in checked]
+    assert handed_on == [record.seq not in forged for record in records]

@@ -2,6 +2,7 @@
 Tongsuo, gmssl the pure-Python reference), gmssl's key-stripping bug, ASN.1 edge cases."""
 
 import json
+import os
 import random
 import re
 import shutil
@@ -429,3 +430,53 @@ def test_the_fingerprint_is_short_stable_and_tells_keys_apart():
     assert re.fullmatch(r"[0-9a-f]{4}(:[0-9a-f]{4}){3}", fingerprint)
     assert sm2.fingerprint(public[2:]) == fingerprint
     assert sm2.fingerprint(sm2.generate_keypair()[1]) != fingerprint
+
+
+def _claims_of_every_kind() -> tuple[list[tuple[str, bytes, str]], list[bool]]:
+    """Signatures by three keys over distinct messages, a quarter of them wrong in one way or
+    another (another message, another key, a flipped bit, not hex), spread over every slice."""
+    keys = [sm2.generate_keypair() for _ in range(3)]
+    claims, expected = [], []
+    for index in range(40):
+        private, public = keys[index % 3]
+        message = f"record {index}".encode()
+        signature = sm2.sign(private, message)
+        kind = index % 8
+        if kind == 1:
+            message += b"!"
+        elif kind == 3:
+            public = keys[(index + 1) % 3][1]
+        elif kind == 5:
+            signature = signature[:-1] + ("0" if signature[-1] != "0" else "1")
+        elif kind == 7:
+            signature = "zz" + signature[2:]
+        claims.append((public, message, signature))
+        expected.append(kind not in (1, 3, 5, 7))
+    return claims, expected
+
+
+def test_many_signatures_verified_at_once_answer_each_as_verify_does() -> None:
+    """verify_many cuts the claims into one slice per core, checked in threads side by side:
+    each answer is still its own claim's, in order, as verify() answers it."""
+    claims, expected = _claims_of_every_kind()
+    assert [sm2.verify(*claim) for claim in claims] == expected
+    assert sm2.verify_many(claims) == expected
+    assert sm2.verify_many(claims[:3]) == expected[:3]  # few: in the caller's thread
+    assert sm2.verify_many([]) == []
+
+
+def test_many_signatures_are_verified_in_a_forked_process_too() -> None:
+    """A worker forked after its parent used the pool gets its own threads (a fork inherits
+    none): verify_many answers there, not waiting for threads that do not exist."""
+    claims, expected = _claims_of_every_kind()
+    assert sm2.verify_many(claims) == expected  # the parent's pool, made
+    read, write = os.pipe()
+    child = os.fork()
+    if child == 0:  # pragma: no cover (the child reports through the pipe)
+        try:
+            os.write(write, b"1" if sm2.verify_many(claims) == expected else b"0")
+        finally:
+            os._exit(0)
+    os.close(write)
+    _, status = os.waitpid(child, 0)
+    assert (os.read(read, 1), status) == (b"1", 0)
