@@ -433,7 +433,9 @@ def _floats(value: Any, length: int) -> np.ndarray:
     items = _list(value)
     if len(items) != length:
         raise Unbuildable(f"{len(items)} values where {length} belong")
-    return np.array([_float(item) for item in items], dtype=np.float64)
+    if not all(type(item) is float or type(item) is int for item in items):
+        items = [_float(item) for item in items]  # null, or what no number is (a bool too)
+    return np.array(items, dtype=np.float64)
 
 
 def _float(value: Any) -> float:

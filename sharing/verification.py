@@ -72,6 +72,9 @@ VERIFY_BATCH = 1000
 class Verification:
     verdict: Verdict
     envelope: bytes | None  # the bytes that were checked; only when verified
+    # Those bytes opened (header, plaintext), when the check decrypted them for the robot
+    # signature (a signed record's); for a reader in the same process to use, never sent.
+    opened: tuple[dict, bytes] | None = None
 
 
 class _ChainReads:
@@ -86,6 +89,8 @@ class _ChainReads:
         self.identified: set[int] = set()
         self.roots: dict[tuple[str, str], OnChainRoot | None] = {}
         self.robot_keys: dict[str, RobotKeyOnChain] = {}
+        # The signed envelopes the run opened to check their signatures, by record.
+        self.opened: dict[uuid.UUID, tuple[dict, bytes]] = {}
 
     def grant(self, record: Record, viewer: Owner) -> Grant | None:
         if record.owner_id not in self.grants:
@@ -111,7 +116,8 @@ class _ChainReads:
 
 def records_verify(
     *,
-    record_ids: Sequence[uuid.UUID | str],
+    record_ids: Sequence[uuid.UUID | str] = (),
+    records: Sequence[Record] | None = None,
     viewer_id: int,
     credential: str = Verdict.Credential.UNKNOWN,
     token_id: int | None = None,
@@ -132,17 +138,20 @@ def records_verify(
     of several, an operator's check). `checked_by_id` names the operator running the check with
     the viewer's rights (the admin console's re-verify), recorded as `operator`, never as the
     viewer's own view; `credential` and `token_id` say which credential of the viewer asked.
+    `records`, instead of `record_ids`: the records already read with their owner, robot and
+    tree (an export's batch), checked as they are, not read again.
     """
     if checked_by_id is not None:
         credential, token_id = Verdict.Credential.OPERATOR, None
     _credential_check(credential, token_id)
-    wanted = [uuid.UUID(str(record_id)) for record_id in record_ids]
-    # Owners, robots (a signed record's check reads its key) and trees read once each, not
-    # once per record: the records of one tree share them (a tree's leaves are not read).
-    found = Record.objects.prefetch_related(
-        "owner", "robot", Prefetch("anchor_root", AnchorRoot.objects.defer("leaves"))
-    ).in_bulk(wanted)
-    records = [found[record_id] for record_id in wanted if record_id in found]
+    if records is None:
+        wanted = [uuid.UUID(str(record_id)) for record_id in record_ids]
+        # Owners, robots (a signed record's check reads its key) and trees read once each, not
+        # once per record: the records of one tree share them (a tree's leaves are not read).
+        found = Record.objects.prefetch_related(
+            "owner", "robot", Prefetch("anchor_root", AnchorRoot.objects.defer("leaves"))
+        ).in_bulk(wanted)
+        records = [found[record_id] for record_id in wanted if record_id in found]
     viewer = Owner.objects.get(pk=viewer_id)
     reads = _ChainReads(chain_client())
     block = chain_head(reads.client)
@@ -174,7 +183,7 @@ def records_verify(
         for record, (fields, _data) in zip(records, checked, strict=True)
     )
     return [
-        Verification(verdict, data)
+        Verification(verdict, data, reads.opened.get(verdict.record_id) if data else None)
         for verdict, (_fields, data) in zip(verdicts, checked, strict=True)
     ]
 
@@ -381,6 +390,7 @@ def _provenance_claim(
         header, plaintext = envelope.open(reads.keys.of(record), data)
     except (CryptoError, OwnerKey.DoesNotExist):  # anchored, yet not an envelope of its key
         return False
+    reads.opened[record.pk] = header, plaintext
     on_chain = reads.robot_key_of(record.signer)
     public_key = record.robot.public_key
     if not (
