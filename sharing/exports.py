@@ -309,7 +309,9 @@ def export_batches(records: QuerySet[Record], size: int) -> Iterator[list[Record
             return
         yield batch
         last = batch[-1]
-        after = (
+        # The leading `>=` lets the database seek to the batch in its (owner, captured_at)
+        # index rather than read every earlier record again for each batch.
+        after = Q(captured_at__gte=last.captured_at) & (
             Q(captured_at__gt=last.captured_at)
             | Q(captured_at=last.captured_at, seq__gt=last.seq)
             | Q(captured_at=last.captured_at, seq=last.seq, id__gt=last.id)
