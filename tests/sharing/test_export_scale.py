@@ -15,6 +15,7 @@ from authros_verify import ChainReader, verify
 from sharing import exports
 from sharing.exports import export_create
 from sharing.models import Export
+from sharing.selection import RecordSelection
 from sharing.services import record_create_batch
 from smcrypto import sm4
 from smcrypto.stream import SEGMENT_SIZE, SealedWriter, sealed_open
@@ -146,3 +147,19 @@ def test_a_sealed_file_opens_whole_and_refuses_any_cut_or_change(size):
     ):
         with pytest.raises(Exception):  # noqa: B017, PT011 (AuthenticationFailed or InvalidData)
             b"".join(sealed_open(io.BytesIO(broken), key))
+
+
+def test_batches_take_every_record_once_in_order_when_capture_times_tie(
+    make_robot, django_capture_on_commit_callbacks
+):
+    """Keyset batches on (captured_at, seq, id): records captured at the same instant across
+    a batch's edge are neither repeated nor skipped."""
+    setup = make_robot("alice")
+    times = ["2026-05-01T00:00:00Z"] * 5 + ["2026-05-01T00:00:01Z"] * 4 + ["2026-05-01T00:00:02Z"]
+    envelopes = [setup.seal(seq, time=time) for seq, time in enumerate(times, start=1)]
+    with django_capture_on_commit_callbacks(execute=True):
+        record_create_batch(robot=setup.robot, envelopes=envelopes)
+    records = exports.export_records(setup.owner, RecordSelection())
+    for size in (1, 2, 3, 4, 7, 10, 11):
+        taken = [r.seq for batch in exports.export_batches(records, size) for r in batch]
+        assert taken == list(range(1, len(times) + 1)), size
