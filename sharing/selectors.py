@@ -579,6 +579,18 @@ _RECORD_TO_OPEN = FixedSelect(
 )
 
 
+# Anchor_root is read whole (its leaves too): one record's tree, not worth a second query.
+_RECORD_TO_CHECK = FixedSelect(
+    Record, related=("owner", "robot", "anchor_root"), where="t0.id = %s", params_of=("id",)
+)
+
+
+def record_to_check(record_id: uuid.UUID) -> Record | None:
+    """The record the worker checks, with its owner, robot and tree, in one fixed query (the
+    view of one record, the most frequent check)."""
+    return _RECORD_TO_CHECK.fetch_one(record_id)
+
+
 def record_to_open(record_id: uuid.UUID) -> Record | None:
     """The record a view opens, with its owner (and user) and who deleted it, if anyone."""
     return _RECORD_TO_OPEN.fetch_one(record_id)

@@ -66,7 +66,8 @@ VERIFY_TASK = {
 
 
 # One task for any number of records (a record page is one); `accesses` maps record owner ids
-# (as text: JSON) to the Access the web process opened for a read sent in several batches.
+# (as text: JSON) to the Access the web process opened for a read sent in several batches; a
+# read sent in one batch has the worker open its Access, of `kind`, with the verdicts.
 @shared_task(name="sharing.tasks.records_verify", **VERIFY_TASK)
 def records_verify(
     record_ids: list[str],
@@ -74,12 +75,14 @@ def records_verify(
     credential: str = "",
     token_id: int | None = None,
     accesses: dict[str, int] | None = None,
+    kind: str | None = None,
 ) -> list[dict[str, Any]]:
     checked = verification.records_verify(
         record_ids=record_ids,
         viewer_id=viewer_id,
         credential=credential,
         token_id=token_id,
+        kind=kind,
         accesses=None if accesses is None else {int(k): v for k, v in accesses.items()},
     )
     return [verification.verification_answer(one) for one in checked]

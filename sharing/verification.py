@@ -25,6 +25,7 @@ from datetime import datetime, timedelta
 from typing import Any
 
 from django.conf import settings
+from django.db import transaction
 from django.db.models import Prefetch
 from django.utils import timezone
 from redis.exceptions import RedisError
@@ -51,7 +52,7 @@ from sharing.errors import (
 from sharing.models import Access, AnchorRoot, Grant, Record, SecurityEvent, Verdict
 from sharing.roots import record_path
 from sharing.scope import scope_commitment
-from sharing.selectors import grant_live, record_deletion_text, record_to_open
+from sharing.selectors import grant_live, record_deletion_text, record_to_check, record_to_open
 from smcrypto import envelope, provenance, sm3
 from smcrypto.errors import CryptoError, SignatureInvalid
 from smcrypto.merkle import leaf_hash, proof_holds
@@ -144,6 +145,11 @@ def records_verify(
     if checked_by_id is not None:
         credential, token_id = Verdict.Credential.OPERATOR, None
     _credential_check(credential, token_id)
+    if kind is not None and kind not in Access.Kind.values:
+        raise ValueError(f"unknown access kind {kind!r}")
+    if records is None and len(record_ids) == 1:  # a view of one record: one fixed query
+        found_one = record_to_check(uuid.UUID(str(record_ids[0])))
+        records = [found_one] if found_one is not None else []
     if records is None:
         wanted = [uuid.UUID(str(record_id)) for record_id in record_ids]
         # Owners, robots (a signed record's check reads its key) and trees read once each, not
@@ -159,29 +165,30 @@ def records_verify(
     again = _refused_again(records, checked, viewer, checked_by_id=checked_by_id, accesses=accesses)
     if again is not None:  # answered as the refused view before it, not written again
         return [Verification(again, None)]
-    if accesses is None:  # opened once the checks ran: a check that raised leaves no line
-        accesses = accesses_open(
-            kind=kind or _kind_of(len(records), checked_by_id),
-            viewer_id=viewer_id,
-            records=records,
-            credential=credential,
-            token_id=token_id,
-            checked_by_id=checked_by_id,
+    with transaction.atomic():  # the access line and its verdicts: one commit
+        if accesses is None:  # opened once the checks ran: a check that raised leaves no line
+            accesses = accesses_open(
+                kind=kind or _kind_of(len(records), checked_by_id),
+                viewer_id=viewer_id,
+                records=records,
+                credential=credential,
+                token_id=token_id,
+                checked_by_id=checked_by_id,
+            )
+        verdicts = Verdict.objects.bulk_create(
+            Verdict(
+                record=record,
+                viewer=viewer,
+                checked_by_id=checked_by_id,
+                record_owner_id=record.owner_id,
+                access_id=accesses.get(record.owner_id),
+                credential=credential,
+                token_id=token_id,
+                block_number=_verdict_block(block, record),
+                **fields,
+            )
+            for record, (fields, _data) in zip(records, checked, strict=True)
         )
-    verdicts = Verdict.objects.bulk_create(
-        Verdict(
-            record=record,
-            viewer=viewer,
-            checked_by_id=checked_by_id,
-            record_owner_id=record.owner_id,
-            access_id=accesses.get(record.owner_id),
-            credential=credential,
-            token_id=token_id,
-            block_number=_verdict_block(block, record),
-            **fields,
-        )
-        for record, (fields, _data) in zip(records, checked, strict=True)
-    )
     return [
         Verification(verdict, data, reads.opened.get(verdict.record_id) if data else None)
         for verdict, (_fields, data) in zip(verdicts, checked, strict=True)
@@ -632,23 +639,29 @@ def records_open(
 ) -> list[OpenedRecord | SharingError]:
     """Have the worker check the records, then decrypt what it checked: one Access of `kind`
     (per record owner) in the access log, the records sent in batches of VERIFY_BATCH all at
-    once, the keys unwrapped while the worker checks. One result per record, in order: the
-    opened record, or the SharingError that refuses it (VerificationUnavailable for each of a
-    batch the worker could not answer). `credential` (and `token`, an owner API token's) is
-    the viewer's credential that asked. IdentityMismatch is raised as the worker raised it."""
+    once, the keys unwrapped while the worker checks. A read of one batch (a record's page,
+    a page of records) is sent at once and its Access opened by the worker with the verdicts,
+    in one commit, and coalesced as a refused view is; a read of several batches has its
+    Access opened here first, so that every batch's verdicts point to it. One result per
+    record, in order: the opened record, or the SharingError that refuses it
+    (VerificationUnavailable for each of a batch the worker could not answer). `credential`
+    (and `token`, an owner API token's) is the viewer's credential that asked.
+    IdentityMismatch is raised as the worker raised it."""
     token_id = _token_id(token)
     _credential_check(credential, token_id)
     if not records:
         return []
-    accesses = accesses_open(
-        kind=kind,
-        viewer_id=viewer.pk,
-        records=records,
-        credential=credential,
-        token_id=token_id,
-    )
-    sent_accesses = {str(owner_id): access_id for owner_id, access_id in accesses.items()}
     batches = [records[at : at + VERIFY_BATCH] for at in range(0, len(records), VERIFY_BATCH)]
+    sent_accesses = None
+    if len(batches) > 1:
+        accesses = accesses_open(
+            kind=kind,
+            viewer_id=viewer.pk,
+            records=records,
+            credential=credential,
+            token_id=token_id,
+        )
+        sent_accesses = {str(owner_id): access_id for owner_id, access_id in accesses.items()}
     pending = [
         _send(
             VERIFY_TASK,
@@ -657,6 +670,7 @@ def records_open(
             credential,
             token_id,
             sent_accesses,
+            kind,
         )
         for batch in batches
     ]

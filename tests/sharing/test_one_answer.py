@@ -11,7 +11,7 @@ from django.urls import reverse
 from django.utils import timezone
 
 from sharing.deletion import record_delete
-from sharing.models import Record, Verdict
+from sharing.models import Access, Record, Verdict
 from sharing.services import record_create
 from sharing.verification import REFUSED_VIEWS_COALESCED, records_verify
 from tests.api.conftest import RECORDS, token_client
@@ -76,3 +76,25 @@ def test_refused_views_in_a_row_leave_one_row_an_hour(anchored, make_owner):
     refused.update(created_at=timezone.now() - REFUSED_VIEWS_COALESCED - timedelta(seconds=1))
     records_verify(record_ids=[records[0].pk], viewer_id=mallory.pk)
     assert refused.count() == 2
+
+
+def test_refused_views_through_the_api_and_pages_leave_one_row_an_hour(
+    anchored, make_owner, make_owner_token, client
+):
+    """The web's reads (the content answer, a record's page) are coalesced as the worker's
+    check is: an owner without a grant cannot fill another owner's access log by asking."""
+    setup, records = anchored
+    mallory = make_owner("mallory")
+    api = token_client(make_owner_token(mallory, scopes=("read",))[1])
+    client.force_login(mallory.user)
+    for _ in range(3):
+        for record in records:
+            assert api.get(f"{RECORDS}{record.pk}/content/").status_code == 404
+            assert client.get(reverse("record-detail", args=[record.pk])).status_code == 404
+    assert Verdict.objects.filter(viewer=mallory).count() == 1
+    assert Access.objects.filter(viewer=mallory).count() == 1
+    # The owner's own views are each written.
+    own = token_client(make_owner_token(setup.owner, scopes=("read",))[1])
+    for _ in range(2):
+        assert own.get(f"{RECORDS}{records[0].pk}/content/").status_code == 200
+    assert Access.objects.filter(viewer=setup.owner, kind=Access.Kind.VIEW).count() == 2
