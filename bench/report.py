@@ -1,9 +1,9 @@
 """bench/REPORT.md from whatever results exist in bench/results/, beside the paper's figures.
 
 Reads crypto.json, pipeline.json, concurrency.json, message_size.json, block_interval.json,
-sustained.json, roots.json, signing.json, series.json and soak.json (any may be missing) and
-writes one Markdown report: per experiment, what the paper says (quoted, with its figure
-numbers), the machine and date of our run, and our measurements. Nothing here is a result:
+sustained.json, roots.json, signing.json, exports.json, series.json and soak.json (any may be
+missing) and writes one Markdown report: per experiment, what the paper says (quoted, with its
+figure numbers), the machine and date of our run, and our measurements. Nothing here is a result:
 every number comes from the JSON files.
 
 The concurrency and sustained sections show each configuration on SQLite + disk (`make run`'s
@@ -46,6 +46,7 @@ def main(argv: list[str]) -> int:
         _section_sustained,
         _section_roots,
         _section_signing,
+        _section_exports,
         _section_series,
         _section_soak,
         _section_webserver,
@@ -990,28 +991,28 @@ def _signing_machine(unsigned: dict[str, Any], signed: dict[str, Any]) -> str:
     )
 
 
-# Where a signed series' time goes, from a profile of the worker's check (records_verify) of
-# 2,000 signed odometry records in the test settings (cProfile, load about 5 on 2 cores).
+# Where a signed series' time goes: the run's CPU per record, `openssl speed sm2` and a profile
+# of the worker's check (records_verify) of 2,000 signed odometry records in the test settings,
+# all on the machine of the 2026-11-29 run.
 SERIES_SIGNED_FINDING = (
-    "**Where the time goes, and what would reach 2 s.** A profile of the worker's check of "
-    "2,000 signed records put most of it in two places: the SM2 verification of each record's "
-    "robot signature (tongsuopy's EVP_DigestVerify, 0.40 ms a record in the profile; 0.8 s of "
-    "its 3.7 s) and building the 2,000 Record rows with their owner, robot and tree (in_bulk "
-    "with prefetches, 1.5 s); before this run, the owner's key was also fetched and unwrapped "
-    "from the database once per record to open each envelope for its signature (3.1 s of "
-    "12.0 s), now once per key and run (the same 2,000 records: 4.7 s before, 2.5 s after, "
-    "without the profiler). A signature is checked at every view because it is what a portal "
-    "that holds the KEK cannot make up; remembering that it held would hand that back to "
-    "whoever can write the database. With one SM2 verification per record, 18,000 records are "
-    "at least 18,000 x 0.4 ms = 7 s of one core's CPU before anything else, 3.6 s on both: "
-    "the 2 s goal cannot be reached on this machine with one signature per record. A design "
-    "that reaches it: the agent signs once per upload batch (a signature over the batch's "
-    "envelope digests, or over a hash chain of them, which the agent already sends together), "
-    "so that a series checks a few hundred signatures instead of 18,000 and each record only "
-    "its SM3 against the signed list; it changes the fixed envelope and upload formats "
-    "(DESIGN.md), so it is proposed, not built. The rest (row building, the envelopes' round "
-    "trip through the result backend in base64, decrypting twice) is about half of the CPU "
-    "and would come down with the worker handing back only the plotted values.\n"
+    "**Where the time goes, and what would reach 2 s.** A series keeps both cores busy (its "
+    "batches of 1,000 are checked side by side by the workers), so its answer is about its CPU "
+    "divided by the cores. About 0.70 ms of each record's CPU is the SM2 verification of its "
+    "robot signature (`openssl speed sm2` on this machine: 1,429 verifications a second on one "
+    "core; Tongsuo through smcrypto: 0.70 ms). The rest is reading the Record rows and writing "
+    "a verdict for each, the envelopes' round trip through the result backend in base64, and "
+    "decrypting and parsing every record again in the web process. The worker now verifies a "
+    "check's signatures on every core at once (Tongsuo verifies without the GIL): its check of "
+    "2,000 signed records took 1.5 s instead of 2.5 s in the test settings, which shortens a "
+    "page or an export, not a series that already fills both cores. A signature is checked at "
+    "every view because it is what a portal that holds the KEK cannot make up; remembering that "
+    "it held would hand that back to whoever can write the database. With one signature per "
+    "record (DESIGN.md's fixed format) 18,000 records need 12.6 s of SM2 alone, 6.3 s on both "
+    "cores: the 2 s goal cannot be reached on this machine. docs/provenance-batches.md "
+    "proposes one signature per upload batch (a new version of the format; v1 stays), which "
+    "takes SM2 out of the per-record cost; the rest would then still need the worker to hand "
+    "back only the plotted numbers, and the verdicts written without the ORM's per-object "
+    "work, to come near 2 s.\n"
 )
 
 
@@ -1079,9 +1080,111 @@ def _section_series(results: Path) -> str | None:
         "(other engineers' test runs share the machine: see the others' share).\n",
         f"The CPU a series spends, {cpu_per_record:.3f} ms per record (web and workers), puts "
         f"a floor of {floor:.1f} s under its answer on {cores} cores with nothing else running "
-        "(the CPU divided by the cores; not measured here, as the machine was not idle).\n",
+        "(the CPU divided by the cores).\n",
         *([SERIES_SIGNED_FINDING] if signed else []),
         "![Series against per record](results/series.png)\n",
+    ]
+    return "\n".join(lines)
+
+
+# Where an export's time goes: the 2026-11-29 run (results/exports.json), a run of the same day
+# before its last changes, `openssl speed sm2` on the same machine, and profiles of the export
+# task's service over 3,000 signed odometry records in the test settings.
+EXPORTS_FINDING = (
+    "**Where the time goes, and what would reach 1,000 records/s.** An export runs in one "
+    "worker process, one batch after another: the batch's check (the view's check, "
+    "`records_verify`), then its records written to the MCAP file and the bundle. At 100,000 "
+    "records on 2026-11-29 the check took 82 s of the 153 s and the writing 71 s. About 0.70 ms "
+    "of each record's CPU is the SM2 verification of its robot signature (`openssl speed sm2` "
+    "on this machine: 1,429 verifications a second on one core); the check now spreads it over "
+    "both cores (Tongsuo verifies without the GIL), which is why the CPU per record exceeds "
+    "the wall time per record. That run against one of the same day before its last changes: "
+    "2.05 -> 1.77 ms of CPU a record and 554 -> 654 records/s at 100,000 (the check on the "
+    "batch's records as read, with their owner, robot and tree read once and no tree leaves; "
+    "the plaintext the check opened handed to the writer instead of decrypting each record "
+    "twice; covariances built as one array; each batch sought in the capture-time index "
+    "instead of reading every earlier record again, which had made 100,000 records slower "
+    "each than 5,000). With both cores busy all the time its CPU allows at most about 1,130 "
+    "records/s: 1,000/s needs the checks and the writing on both cores at once, i.e. the next "
+    "batches checked by the verify workers while the export writes (as a series sends its "
+    "batches). That is not built: the export itself runs in a worker, and waiting there for "
+    "the verify queue would deadlock a deployment with one worker process. One robot "
+    "signature per upload batch (docs/provenance-batches.md) would take the 0.70 ms of SM2 out "
+    "of every record. Earlier runs on another machine (AMD EPYC, other work beside them): "
+    "3.42 ms of CPU a record before the check was one path for N records, 1.21 ms once the "
+    "record keys were unwrapped once per run.\n"
+)
+
+
+def _section_exports(results: Path) -> str | None:
+    """Exports of a day (issues 35, 37): the streaming, sealed export against the in-memory
+    builder it replaced, same run; the rate and memory goals judged at the largest."""
+    report = _load(results, "exports")
+    if report is None:
+        return None
+    settings, goals, met = report["settings"], report["goals"], report["goals_met"]
+    rows = report["results"]
+    large = rows[-1]
+    idle = rows[0]["rss_before_mib"]
+    others = ", ".join(f"{row['others_cpu']:.0%}" for row in rows)
+    lines = [
+        "## Exports of a day: streaming and sealed against in memory (issues 35, 37; no paper "
+        "figure)\n",
+        f"**Our run:** {_machine(report)} At the end {report.get('load_average_at_end')}. "
+        f"Processes outside the benchmark took {others} of the machine's CPU during the "
+        f"{len(rows)} exports (`others_cpu`, sampled every second).\n",
+        "Method (`python -m bench exports`, bench/exports.py): one fresh `make run` stack "
+        "(ANCHOR_MODE=root, anvil with automine, no web server, no ROS), one owner on chain and "
+        "one robot paired through the pairing services, as the demo robot is; "
+        f"{settings['records']:,} `nav_msgs/Odometry` records of the demo robot's shape (about "
+        "900 bytes of Fig. 4 JSON, capture times 10 ms apart), sealed and signed as its agent "
+        "seals them, stored with `record_create_batch` 1,000 at a time and anchored by the "
+        "stack's workers. Each export runs in a fresh interpreter that stands for the worker "
+        "(the export task's service on an Export row): the baseline is `sharing/exports.py` of "
+        f"{settings['baseline_commit']} (the in-memory builder: every record of the selection "
+        "in one list, the bundle one dict serialised whole, plaintext files) at "
+        f"{settings['baseline_records']:,} records; then today's streaming, sealed export at "
+        f"{settings['baseline_records']:,} and at {settings['records']:,} records (EXPORT_BATCH "
+        f"{settings.get('export_batch')}). `in the check` is the time spent in the integrity "
+        "check every view runs (`records_verify`: access, the envelope, `rootOf`, `robotKeyOf`, "
+        "the SM2 signature, a verdict row each), `own rec/s` the rate without it.\n",
+        f"| variant | records | wall s | rec/s | CPU s | CPU ms / record | peak RSS MiB (idle "
+        f"{idle:.0f}) | in the check, s | own rec/s | MCAP | bundle |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    labels = {
+        "in-memory": f"in-memory ({settings['baseline_commit']})",
+        "streaming": "streaming, sealed",
+    }
+    for row in rows:
+        lines.append(
+            f"| {labels.get(row['variant'], row['variant'])} | {row['records']:,} | "
+            f"{row['seconds']:.1f} | "
+            f"{row['records_per_s']:,.0f} | {row['cpu_seconds']:.1f} | "
+            f"{1000 * row['cpu_seconds'] / row['records']:.2f} | {row['peak_rss_mib']:.0f} | "
+            f"{row['check_seconds']:.1f} | {row['own_records_per_s']:,.0f} | "
+            f"{row['mcap_bytes'] / 1e6:.1f} MB | {row['bundle_bytes'] / 1e6:.1f} MB |"
+        )
+    streaming = next(
+        row for row in rows if row["variant"] != "in-memory" and row["rate_ratio"] is not None
+    )
+    cpu_ms = 1000 * large["cpu_seconds"] / large["records"]
+    lines += [
+        "",
+        f"- **Rate: {'met' if met['records_per_s'] else 'NOT met'}.** "
+        f"{large['records_per_s']:,.0f} records/s at {large['records']:,} against the goal of "
+        f"{goals['records_per_s_at_least']:,}: {cpu_ms:.2f} ms of CPU a record in "
+        f"{1000 / large['records_per_s']:.2f} ms of wall time (the signatures are verified on "
+        f"both cores at once). Streaming over in-memory at {streaming['records']:,}: rate "
+        f"{_ratio(streaming['rate_ratio'])}.",
+        f"- **Memory: {'met' if met['peak_rss'] else 'NOT met'}.** Peak RSS "
+        f"{large['peak_rss_mib']:.0f} MiB at {large['records']:,} records against "
+        f"{goals['peak_rss_mib_below']} MiB, {large['peak_rss_mib'] - idle:.0f} MiB above the "
+        f"process before exporting; streaming over in-memory at {streaming['records']:,}: peak "
+        f"RSS {_ratio(streaming['rss_ratio'])}.",
+        "",
+        EXPORTS_FINDING,
+        "![Exports](results/exports.png)\n",
     ]
     return "\n".join(lines)
 
