@@ -32,7 +32,7 @@ from typing import IO
 
 from django.conf import settings
 from django.db import transaction
-from django.db.models import Prefetch, Q, QuerySet
+from django.db.models import Q, QuerySet
 from django.utils import timezone
 
 from accounts.errors import IdentityMismatch
@@ -53,15 +53,7 @@ from sharing.errors import (
     SharingError,
 )
 from sharing.mcap_export import McapBuilder
-from sharing.models import (
-    Access,
-    AnchorRoot,
-    Export,
-    ExportRecord,
-    Grant,
-    Record,
-    Verdict,
-)
+from sharing.models import Access, Export, ExportRecord, Grant, Record, Verdict
 from sharing.selection import (
     MAX_SELECTED_ROBOTS,
     MAX_SELECTED_TOPICS,
@@ -72,7 +64,13 @@ from sharing.selection import (
     SelectionError,
     iso_utc,
 )
-from sharing.selectors import export_of, grant_live, record_list_visible_to, record_proof
+from sharing.selectors import (
+    export_of,
+    grant_live,
+    record_list_visible_to,
+    record_proof,
+    records_to_check,
+)
 from sharing.storage import envelope_storage, file_save
 from sharing.verification import (
     OwnerRead,
@@ -345,15 +343,7 @@ class _SealedOutput:
 
 def _run(export: Export) -> None:
     selection = RecordSelection.from_json(export.selection)
-    # The owner, robot and tree of a batch's records read once each, not once per record;
-    # a tree's leaves (16 KB for 500 records) not at all.
-    records = (
-        export_records(export.requester, selection)
-        .select_related(None)
-        .prefetch_related(
-            "owner__user", "robot", Prefetch("anchor_root", AnchorRoot.objects.defer("leaves"))
-        )
-    )
+    records = records_to_check(export_records(export.requester, selection))
     total = records.count()
     ExportRecord.objects.filter(export=export).delete()  # left by a run that stopped midway
     Export.objects.filter(pk=export.pk).update(

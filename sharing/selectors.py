@@ -4,13 +4,22 @@ import uuid
 from collections.abc import Iterable
 from datetime import datetime
 
-from django.db.models import Count, Exists, F, OuterRef, Q, QuerySet, Window
+from django.db.models import Count, Exists, F, OuterRef, Prefetch, Q, QuerySet, Window
 from django.db.models.functions import RowNumber
 from django.utils import timezone
 
 from accounts.models import ChainActivity, Owner, OwnerToken, Robot
 from core.rows import FixedSelect
-from sharing.models import Access, Export, Grant, GrantChange, Record, SecurityEvent, Verdict
+from sharing.models import (
+    Access,
+    AnchorRoot,
+    Export,
+    Grant,
+    GrantChange,
+    Record,
+    SecurityEvent,
+    Verdict,
+)
 from sharing.selection import RecordSelection
 from smcrypto.merkle import path_split
 
@@ -583,6 +592,15 @@ _RECORD_TO_OPEN = FixedSelect(
 _RECORD_TO_CHECK = FixedSelect(
     Record, related=("owner", "robot", "anchor_root"), where="t0.id = %s", params_of=("id",)
 )
+
+
+def records_to_check(records: QuerySet[Record]) -> QuerySet[Record]:
+    """The records with what the check reads of each: the owner, the robot (a signed record's
+    key) and the tree, each read once for all the records that share it (no joins), a tree's
+    leaves not at all. For a batch of a read, or an export's."""
+    return records.select_related(None).prefetch_related(
+        "owner", "robot", Prefetch("anchor_root", AnchorRoot.objects.defer("leaves"))
+    )
 
 
 def record_to_check(record_id: uuid.UUID) -> Record | None:

@@ -26,7 +26,6 @@ from typing import Any
 
 from django.conf import settings
 from django.db import transaction
-from django.db.models import Prefetch
 from django.utils import timezone
 from redis.exceptions import RedisError
 
@@ -49,10 +48,16 @@ from sharing.errors import (
     SharingError,
     VerificationUnavailable,
 )
-from sharing.models import Access, AnchorRoot, Grant, Record, SecurityEvent, Verdict
+from sharing.models import Access, Grant, Record, SecurityEvent, Verdict
 from sharing.roots import record_path
 from sharing.scope import scope_commitment
-from sharing.selectors import grant_live, record_deletion_text, record_to_check, record_to_open
+from sharing.selectors import (
+    grant_live,
+    record_deletion_text,
+    record_to_check,
+    record_to_open,
+    records_to_check,
+)
 from smcrypto import envelope, provenance, sm3
 from smcrypto.errors import CryptoError, SignatureInvalid
 from smcrypto.merkle import leaf_hash, proof_holds
@@ -152,11 +157,7 @@ def records_verify(
         records = [found_one] if found_one is not None else []
     if records is None:
         wanted = [uuid.UUID(str(record_id)) for record_id in record_ids]
-        # Owners, robots (a signed record's check reads its key) and trees read once each, not
-        # once per record: the records of one tree share them (a tree's leaves are not read).
-        found = Record.objects.prefetch_related(
-            "owner", "robot", Prefetch("anchor_root", AnchorRoot.objects.defer("leaves"))
-        ).in_bulk(wanted)
+        found = records_to_check(Record.objects.all()).in_bulk(wanted)
         records = [found[record_id] for record_id in wanted if record_id in found]
     viewer = Owner.objects.get(pk=viewer_id)
     reads = _ChainReads(chain_client())
