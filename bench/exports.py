@@ -316,7 +316,7 @@ def _records_stored(
 ) -> None:
     from ros_agent import sealing
     from sharing.models import Record
-    from sharing.services import record_create_batch
+    from sharing.services.uploads import record_create_batch
 
     owner = robot.owner.username
     for start in range(1, count + 1, UPLOAD_CHUNK):

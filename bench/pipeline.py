@@ -5,7 +5,7 @@ the baseline), 10 and 100, on anvil with automine and with `--block-time 1`. Eve
 configuration gets a fresh stack, `make run`'s without the portal (bench/stack.py): SQLite
 database, anvil, contract, a chain worker with W pool processes, a verify worker and beat, all
 sharing Redis DB 13 (flushed first). K owners are registered on chain by the workers,
-then N envelopes of about 1 KB are uploaded through `sharing.services.record_create`,
+then N envelopes of about 1 KB are uploaded through `sharing.services.uploads.record_create`,
 round-robin over the owners' robots, as fast as one process can (or at `--rate`), and the
 benchmark waits until every record is anchored.
 
@@ -221,7 +221,7 @@ def _measure(configuration: Configuration) -> dict[str, Any]:
 
 def _upload(configuration: Configuration, robots: list[tuple[Any, bytes]]) -> None:
     """Upload the records round-robin over the robots, paced if --rate is given."""
-    from sharing.services import record_create
+    from sharing.services.uploads import record_create
 
     started = time.monotonic()
     with progress_bar(configuration.records, "uploaded", unit="rec") as progress:

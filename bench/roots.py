@@ -505,7 +505,7 @@ def views_under_load(
 def _limits(robot_key: tuple[Any, bytes]) -> dict[str, Any]:
     """What the hardware allows: SM3 and SM4-GCM of 1 KB on one core, and the database's
     insert rate through the upload service (no HTTP, no JSON, no base64)."""
-    from sharing.services import record_create_batch
+    from sharing.services.uploads import record_create_batch
     from smcrypto import sm3, sm4
 
     robot, key = robot_key

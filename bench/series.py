@@ -182,7 +182,7 @@ def _store_signed(
     stored PER_POST at a time through the upload service (record_create_batch: what the REST
     upload runs), every one awaited on chain. The capture time of the first."""
     from ros_agent import sealing
-    from sharing.services import record_create_batch
+    from sharing.services.uploads import record_create_batch
 
     start = _series_start(run)
     for batch in _odometry_batches(run, robot, start):

@@ -23,7 +23,8 @@ from alerts.selectors import alert_deliveries_pending_count
 from chainworker.backlog import backlog_counts
 from core.metrics import CachedCollector
 from portal.health import chain_probe_client, redis_probe_client
-from sharing.selectors import export_counts_unfinished, record_oldest_pending_since
+from sharing.selectors.activity import record_oldest_pending_since
+from sharing.selectors.exports import export_counts_unfinished
 
 logger = logging.getLogger(__name__)
 

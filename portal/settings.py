@@ -402,7 +402,8 @@ CELERY_BEAT_SCHEDULE = {
         "schedule": env.float("ALERTS_CHECK_INTERVAL", default=60.0),
         "options": {"expires": env.float("ALERTS_CHECK_INTERVAL", default=60.0)},
     },
-    # Deletes records past their robot's retention, and finishes purges (sharing/deletion.py).
+    # Deletes records past their robot's retention, and finishes purges
+    # (sharing/services/deletion.py).
     "apply-retention": {
         "task": "sharing.tasks.retention_apply",
         "schedule": env.float("RETENTION_INTERVAL", default=3600.0),
@@ -448,7 +449,7 @@ if ANCHOR_QUIET < 0 or ANCHOR_MAX_WAIT < 0:
 # Pending work older than this is queued again by the sweep (lost message, dead worker).
 ANCHOR_STALE_AFTER = env.float("ANCHOR_STALE_AFTER", default=60.0)
 ANCHOR_MAX_ATTEMPTS = env.int("ANCHOR_MAX_ATTEMPTS", default=20)
-# --- Reconciliation and chain resets (sharing/reconcile.py) ---
+# --- Reconciliation and chain resets (sharing/services/reconcile.py) ---
 # Seconds between runs of the job comparing the database with the chain (beat schedule above).
 RECONCILE_INTERVAL = env.float("RECONCILE_INTERVAL", default=60.0)
 # Rows (records, owners, grants) each run reads from the chain besides the recent records: all
@@ -475,8 +476,8 @@ ENVELOPE_CACHE_MAX_ITEM_BYTES = env.int("ENVELOPE_CACHE_MAX_ITEM_BYTES", default
 # All cached envelopes together; the oldest go first past it (sharing/cache.py).
 ENVELOPE_CACHE_MAX_BYTES = env.int("ENVELOPE_CACHE_MAX_BYTES", default=256 * 1024 * 1024)
 ENVELOPE_MAX_BYTES = env.int("ENVELOPE_MAX_BYTES", default=8 * 1024 * 1024)
-# Retention and deletion (sharing/deletion.py): records per batch, batches per run (the next
-# run goes on), and seconds a run's lock outlives a worker that died holding it.
+# Retention and deletion (sharing/services/deletion.py): records per batch, batches per run
+# (the next run goes on), and seconds a run's lock outlives a worker that died holding it.
 RETENTION_BATCH = env.int("RETENTION_BATCH", default=500)
 RETENTION_MAX_BATCHES = env.int("RETENTION_MAX_BATCHES", default=20)
 RETENTION_LOCK_TTL = env.float("RETENTION_LOCK_TTL", default=900.0)

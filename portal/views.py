@@ -32,12 +32,9 @@ from accounts.selectors import (
 from accounts.services.funding import owner_eoa_gas
 from chainworker.chain import ChainError
 from sharing.models import SecurityEvent
-from sharing.selectors import (
-    grant_count_given,
-    grant_count_received,
-    record_counts_of,
-    security_events_of,
-)
+from sharing.selectors.activity import security_events_of
+from sharing.selectors.grants import grant_count_given, grant_count_received
+from sharing.selectors.records import record_counts_of
 
 WEI_PER_ETHER = Decimal(10) ** 18
 SECURITY_EVENTS_PER_PAGE = 50

@@ -2,7 +2,7 @@
 a plot, an export, an operator's check), who made it, when, how many records it read, what
 their integrity checks found, and with which credential; one page of it, or all of it as CSV.
 
-The rows are sharing.models.Access, listed by sharing.selectors.access_list_access_log and
+The rows are sharing.models.Access, listed by sharing.selectors.access.access_list_access_log and
 access_list_filtered; each access's records' verdicts (the integrity trail, one per record and
 check) are summed per access in one query per page or chunk. The CSV is streamed in chunks read
 by keyset (time, id), so its memory does not grow with the log, and no cell can start a

@@ -16,8 +16,8 @@ from django.http import HttpRequest
 from accounts.admin import ReadOnlyAdmin, admin_action_record
 from accounts.errors import IdentityMismatch
 from chainworker.chain import ChainError
-from sharing.anchoring import records_reanchor
 from sharing.models import Access, Grant, Record, SecurityEvent, Verdict
+from sharing.services.anchoring import records_reanchor
 from sharing.verification import records_verify
 
 # Re-verification runs in the admin's request: keep a selection small enough to answer.

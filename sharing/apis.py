@@ -48,7 +48,6 @@ from chainworker.services import chain_client
 from core.api_errors import ErrorSerializer, error_responses
 from sharing.access_log import access_log_redacted
 from sharing.cache import envelope_fetch
-from sharing.deletion import record_delete
 from sharing.errors import (
     NOT_VISIBLE,
     ExportNotFound,
@@ -63,22 +62,24 @@ from sharing.exports import (
     export_download,
     export_rebuild,
 )
+from sharing.grant_terms import GrantTerms, grant_terms_make
 from sharing.models import Export, Grant, Record, Verdict
 from sharing.robot_status import RobotActivity, robot_activity, robot_of_owner
 from sharing.selection import MAX_SELECTED_ROBOTS, MAX_SELECTED_TOPICS, MAX_TOPIC_LENGTH
-from sharing.selectors import (
+from sharing.selectors.access import (
     ACCESS_LOG_DIRECTIONS,
     ACCESS_LOG_INCOMING,
+    verdict_list_access_log,
+    verdict_list_filtered,
+)
+from sharing.selectors.exports import export_list_of
+from sharing.selectors.grants import grant_list_given, grant_list_received, owner_resolve
+from sharing.selectors.records import (
     RECORD_FILTER_STATUSES,
-    export_list_of,
-    grant_list_given,
-    grant_list_received,
     record_list_filtered,
     record_list_uploaded_by,
     record_list_visible_to,
     record_proof,
-    verdict_list_access_log,
-    verdict_list_filtered,
 )
 from sharing.series import (
     DEFAULT_POINTS,
@@ -87,16 +88,9 @@ from sharing.series import (
     series_of,
     series_query_make,
 )
-from sharing.services import (
-    GRANT_MADE_WITH,
-    GrantTerms,
-    grant_create,
-    grant_revoke,
-    grant_terms_change,
-    grant_terms_make,
-    owner_resolve,
-    record_create_batch,
-)
+from sharing.services.deletion import record_delete
+from sharing.services.grants import GRANT_MADE_WITH, grant_create, grant_revoke, grant_terms_change
+from sharing.services.uploads import record_create_batch
 from sharing.verification import record_open, record_reseal_for, record_signature
 
 # Envelopes in one upload at most; the body size limit (413) bounds the bytes.

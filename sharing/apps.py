@@ -9,8 +9,11 @@ class SharingConfig(AppConfig):
         from accounts.services.registration import owner_chain_ready_listener_register
         from accounts.services.robot_keys import robot_key_revoke_wait_register
         from chainworker.backlog import backlog_counter_register
-        from sharing.anchoring import anchor_after_chain_ready, robot_records_await_anchoring
-        from sharing.selectors import chain_backlog
+        from sharing.selectors.activity import chain_backlog
+        from sharing.services.anchoring import (
+            anchor_after_chain_ready,
+            robot_records_await_anchoring,
+        )
 
         backlog_counter_register(chain_backlog)
         owner_chain_ready_listener_register(anchor_after_chain_ready)

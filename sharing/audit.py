@@ -19,7 +19,7 @@ from django.db.models.functions import TruncMinute
 
 from accounts.models import ChainActivity, Owner
 from sharing.models import Record
-from sharing.selectors import chain_activity_of, records_anchored_in
+from sharing.selectors.activity import chain_activity_of, records_anchored_in
 
 # Records listed under one minute of anchoring; the rest are counted.
 AUDIT_RECORDS_PER_UPLOAD = 10

@@ -64,13 +64,9 @@ from sharing.selection import (
     SelectionError,
     iso_utc,
 )
-from sharing.selectors import (
-    export_of,
-    grant_live,
-    record_list_visible_to,
-    record_proof,
-    records_to_check,
-)
+from sharing.selectors.exports import export_of
+from sharing.selectors.grants import grant_live
+from sharing.selectors.records import record_list_visible_to, record_proof, records_to_check
 from sharing.storage import envelope_storage, file_save
 from sharing.verification import (
     OwnerRead,

@@ -10,14 +10,8 @@ from django.db.models import QuerySet
 from accounts.models import ChainActivity, Owner, Robot
 from sharing.models import Record, Verdict
 from sharing.selection import MAX_TOPIC_LENGTH
-from sharing.selectors import (
-    ACCESS_LOG_DIRECTIONS,
-    ACCESS_LOG_INCOMING,
-    ACCESS_LOG_OUTGOING,
-    RECORD_FILTER_STATUSES,
-    RECORD_SORT_DEFAULT,
-    RECORD_SORTS,
-)
+from sharing.selectors.access import ACCESS_LOG_DIRECTIONS, ACCESS_LOG_INCOMING, ACCESS_LOG_OUTGOING
+from sharing.selectors.records import RECORD_FILTER_STATUSES, RECORD_SORT_DEFAULT, RECORD_SORTS
 
 
 class UtcDateTimeInput(forms.DateTimeInput):
@@ -264,7 +258,7 @@ class AccessLogFilterForm(PeriodFilterForm):
     """Filters of the access log (GET), for `verdict_list_filtered`: which side of the log,
     who viewed (or whose record), robot, topic, verdict, credential and the time of the view.
 
-    `choices` is sharing.selectors.access_log_filter_choices for the side asked for.
+    `choices` is sharing.selectors.access.access_log_filter_choices for the side asked for.
     """
 
     since = _period_field("Viewed from (UTC)")

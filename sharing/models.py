@@ -93,8 +93,8 @@ class Record(models.Model):
     leaf_index = models.PositiveIntegerField(null=True, blank=True)
     merkle_path = models.BinaryField(default=b"", blank=True)
     created_at = models.DateTimeField(auto_now_add=True)
-    # Deletion (sharing/deletion.py): the row stays as a tombstone with its digest and proof;
-    # the ciphertext is removed from storage and cache, then `purged_at` is set.
+    # Deletion (sharing/services/deletion.py): the row stays as a tombstone with its digest and
+    # proof; the ciphertext is removed from storage and cache, then `purged_at` is set.
     deleted_at = models.DateTimeField(null=True, blank=True)
     deleted_by = models.ForeignKey(
         settings.AUTH_USER_MODEL,
@@ -257,7 +257,7 @@ class GrantChange(models.Model):
 
     grant = models.ForeignKey(Grant, on_delete=models.CASCADE, related_name="changes")
     kind = models.CharField(max_length=16, choices=Kind.choices)
-    # "session", "token" or "cli" (sharing.services.GRANT_MADE_WITH), with the token if one.
+    # "session", "token" or "cli" (sharing.services.grants.GRANT_MADE_WITH), with the token if one.
     made_with = models.CharField(max_length=16)
     token = models.ForeignKey(
         OwnerToken,

@@ -25,7 +25,7 @@ from sharing.content import Uninterpretable, document_parse
 from sharing.errors import SeriesRefused, SharingError, VerificationUnavailable
 from sharing.models import Access, Record
 from sharing.selection import RecordSelection
-from sharing.selectors import record_list_visible_to
+from sharing.selectors.records import record_list_visible_to
 from sharing.verification import OpenedRecord, records_open
 
 # Fields of one series, and characters of one field's dotted path.

@@ -11,7 +11,8 @@ from celery import shared_task
 from accounts.errors import IdentityMismatch
 from chainworker.chain import ChainUnavailable
 from chainworker.work import CHAIN_TASK
-from sharing import anchoring, deletion, disk, exports, reconcile, services, verification
+from sharing import disk, exports, verification
+from sharing.services import anchoring, deletion, grant_chain, reconcile, sweep
 
 
 @shared_task(name="sharing.tasks.records_anchor", **CHAIN_TASK)
@@ -21,12 +22,12 @@ def records_anchor(owner_id: int) -> int:
 
 @shared_task(name="sharing.tasks.grant_sync", **CHAIN_TASK)
 def grant_sync(grant_id: int) -> str:
-    return services.grant_sync_on_chain(grant_id=grant_id).status
+    return grant_chain.grant_sync_on_chain(grant_id=grant_id).status
 
 
 @shared_task(name="sharing.tasks.chain_work_sweep", soft_time_limit=60, time_limit=90)
 def chain_work_sweep() -> dict[str, int]:
-    return services.chain_work_sweep()
+    return sweep.chain_work_sweep()
 
 
 # Periodic (beat): it sends nothing itself but a redeployment on a reset development chain, and

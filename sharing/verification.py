@@ -49,15 +49,15 @@ from sharing.errors import (
     VerificationUnavailable,
 )
 from sharing.models import Access, Grant, Record, SecurityEvent, Verdict
-from sharing.roots import record_path
 from sharing.scope import scope_commitment
-from sharing.selectors import (
-    grant_live,
+from sharing.selectors.grants import grant_live
+from sharing.selectors.records import (
     record_deletion_text,
     record_to_check,
     record_to_open,
     records_to_check,
 )
+from sharing.services.roots import record_path
 from smcrypto import envelope, provenance, sm3
 from smcrypto.errors import CryptoError, SignatureInvalid
 from smcrypto.merkle import leaf_hash, proof_holds

@@ -40,12 +40,6 @@ from accounts.services.api_tokens import owner_token_revoke
 from sharing.access_log import access_log_csv, access_log_page
 from sharing.audit import audit_page_of_owner
 from sharing.content import IMAGE_TYPES, content_of
-from sharing.deletion import (
-    account_delete,
-    record_delete,
-    record_selection,
-    records_delete,
-)
 from sharing.errors import (
     NOT_VISIBLE,
     AccessDenied,
@@ -81,13 +75,16 @@ from sharing.forms import (
     RecordFilterForm,
     TopicRangeForm,
 )
+from sharing.grant_terms import GrantTerms, grant_terms_make
 from sharing.models import Access, Grant, Record, Verdict
-from sharing.selectors import (
+from sharing.selectors.access import (
     ACCESS_LOG_DIRECTIONS,
     access_list_access_log,
     access_list_filtered,
     access_log_filter_choices,
-    export_list_of,
+)
+from sharing.selectors.exports import export_list_of
+from sharing.selectors.grants import (
     grant_list_changed_with,
     grant_list_given,
     grant_list_made_with,
@@ -95,7 +92,10 @@ from sharing.selectors import (
     grant_terms_of,
     grant_topic_choices,
     grants_described,
+    owner_resolve,
     owners_granting,
+)
+from sharing.selectors.records import (
     record_get_visible,
     record_list_filtered,
     record_list_owned,
@@ -107,15 +107,18 @@ from sharing.selectors import (
     robots_visible_to,
 )
 from sharing.series import DEFAULT_POINTS
-from sharing.services import (
-    GrantTerms,
+from sharing.services.deletion import (
+    account_delete,
+    record_delete,
+    record_selection,
+    records_delete,
+)
+from sharing.services.grants import (
     grant_create,
     grant_create_check,
     grant_revoke,
     grant_terms_change,
-    grant_terms_make,
     grants_undo_made_with,
-    owner_resolve,
 )
 from sharing.verification import OpenedRecord, record_open, records_open
 

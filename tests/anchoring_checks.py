@@ -6,7 +6,7 @@ from collections import Counter
 
 from chainworker.chain import AuthROSChain, record_id_to_bytes32
 from sharing.models import AnchorRoot, Record
-from sharing.roots import record_path
+from sharing.services.roots import record_path
 from smcrypto.merkle import leaf_hash, root_from_path
 
 

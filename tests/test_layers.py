@@ -169,7 +169,7 @@ def test_the_check_sees_a_forbidden_import(tmp_path):
     source.write_text("import os\n\ndef f():\n    from sharing import services\n")
     assert list(imports(source)) == [("os", False, 1), ("sharing.services", True, 4)]
     edges, _local = _graph()
-    assert "chainworker.chain" in edges["sharing.anchoring"]
+    assert "chainworker.chain" in edges["sharing.services.anchoring"]
 
 
 def test_the_check_sees_a_task_sent_by_name(tmp_path):
@@ -188,7 +188,7 @@ def test_the_check_sees_a_task_sent_by_name(tmp_path):
         ("sharing.tasks", 3),
         ("accounts.tasks", 4),
     ]
-    assert "accounts.tasks" in _task_graph()["sharing.services"]
+    assert "accounts.tasks" in _task_graph()["sharing.services.grant_chain"]
 
 
 # What the standalone verifier may never load: Django, its ecosystem, or a portal app.

@@ -13,7 +13,7 @@ from accounts.models import ChainState, Owner
 from accounts.services.owners import owner_create
 from accounts.services.robots import robot_create
 from sharing.models import Record
-from sharing.services import record_create
+from sharing.services.uploads import record_create
 from smcrypto import sm4
 from tests.conftest import TEST_PASSWORD, RobotSetup
 from tests.harness import wait_for

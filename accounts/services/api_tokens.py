@@ -64,7 +64,7 @@ def owner_token_create(
 
 def owner_token_revoke(*, token: OwnerToken, actor: AbstractBaseUser | None) -> OwnerToken:
     """The token stops working at once (401); what it granted is
-    sharing.services.grants_undo_made_with's to take back or restore."""
+    sharing.services.grants.grants_undo_made_with's to take back or restore."""
     with transaction.atomic():
         revoked = OwnerToken.objects.filter(pk=token.pk, revoked_at__isnull=True).update(
             revoked_at=timezone.now()

@@ -140,7 +140,7 @@ def owner_password_confirm(*, owner: Owner, password: str) -> None:
 
 
 def owner_close(*, owner: Owner, actor: AbstractBaseUser) -> Owner:
-    """The accounts side of deleting an account (sharing.deletion.account_delete does the
+    """The accounts side of deleting an account (sharing.services.deletion.account_delete does the
     records and grants, in the same transaction): no sign-in any more (inactive, no usable
     password), every owner API token and robot token revoked, pairing requests refused.
 

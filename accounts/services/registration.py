@@ -3,7 +3,7 @@ first key's commitment) and key rotations, in the order the keys were made.
 
 The tasks in accounts/tasks.py call these; chain_work_sweep queues again what waits too long
 (robots' keys of robot_keys.py too), and owners_reconcile and owners_chain_reset (run by
-sharing.reconcile) put back what the chain lost, robots' keys included. Once an owner is
+sharing.services.reconcile) put back what the chain lost, robots' keys included. Once an owner is
 registered, or one of its robots' keys is, the work that waited for it in the apps above
 accounts (sharing's anchoring) is started through the listeners they register here, so that
 accounts imports none of them.

@@ -105,7 +105,7 @@ def robot_token_revoke(*, robot: Robot, actor: AbstractBaseUser | None = None) -
 
 def robot_retention_set(*, robot: Robot, days: int | None, actor: AbstractBaseUser) -> Robot:
     """Keep the robot's records `days` days after their capture (None: until deleted by
-    hand); older ones are deleted by sharing.deletion.retention_apply, the beat task. The
+    hand); older ones are deleted by sharing.services.deletion.retention_apply, the beat task. The
     owner's security page shows the change."""
     if days is not None and (
         isinstance(days, bool) or not isinstance(days, int) or not 1 <= days <= RETENTION_MAX_DAYS

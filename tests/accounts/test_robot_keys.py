@@ -21,9 +21,9 @@ from accounts.services.robot_keys import robot_key_register_on_chain, robot_key_
 from accounts.services.robots import robot_create, robot_token_revoke
 from chainworker import services as chain_services
 from chainworker.work import ChainWorkNotReady
-from sharing.anchoring import records_anchor
 from sharing.models import Record
-from sharing.reconcile import chain_reconcile
+from sharing.services.anchoring import records_anchor
+from sharing.services.reconcile import chain_reconcile
 from smcrypto.sm3 import sm3_hex
 
 pytestmark = pytest.mark.django_db

@@ -27,7 +27,7 @@ from accounts.services.keys import key_rotate
 from accounts.services.owners import owner_create
 from accounts.services.registration import owner_register_on_chain
 from accounts.services.robots import robot_create, robot_token_revoke
-from sharing import anchoring
+from sharing.services import anchoring
 from smcrypto import key_commitment, key_id, sm4
 from tests.conftest import TEST_PASSWORD
 

@@ -12,10 +12,11 @@ from accounts.services.owners import owner_create
 from alerts.models import Alert, AlertDelivery, AlertKind
 from alerts.services import gas_low_check, robots_silent_check
 from chainworker import services as chain_services
-from sharing.anchoring import record_chain_mismatch, records_anchor
 from sharing.errors import IntegrityCheckFailed
 from sharing.models import Record
-from sharing.services import grant_create, grant_revoke, record_create
+from sharing.services.anchoring import record_chain_mismatch, records_anchor
+from sharing.services.grants import grant_create, grant_revoke
+from sharing.services.uploads import record_create
 from sharing.verification import record_open
 from smcrypto import sm4
 from stack.anvil import start_anvil

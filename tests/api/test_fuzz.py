@@ -25,7 +25,7 @@ from schemathesis import GenerationMode
 from schemathesis.errors import FailureGroup
 
 from accounts.services.api_tokens import owner_token_create
-from sharing.services import grant_create
+from sharing.services.grants import grant_create
 from tests.conftest import RobotSetup
 
 pytestmark = [pytest.mark.slow, pytest.mark.django_db(transaction=True)]
@@ -93,7 +93,7 @@ def portal(live_server, make_robot, settings, django_capture_on_commit_callbacks
     alice, bob = make_robot("alice"), make_robot("bob")
     with django_capture_on_commit_callbacks(execute=True):
         grant_create(owner=bob.owner, grantee=alice.owner)
-    from sharing.services import record_create_batch
+    from sharing.services.uploads import record_create_batch
 
     with django_capture_on_commit_callbacks(execute=True):
         records = record_create_batch(robot=alice.robot, envelopes=[alice.seal(s) for s in (1, 2)])

@@ -8,8 +8,9 @@ import pytest
 from django.urls import reverse
 from django.utils import timezone
 
+from sharing.grant_terms import grant_terms_make
 from sharing.models import Grant, GrantChange
-from sharing.services import grant_create, grant_terms_change, grant_terms_make
+from sharing.services.grants import grant_create, grant_terms_change
 from tests.api.conftest import GRANTS, session_client, token_client
 
 pytestmark = pytest.mark.django_db

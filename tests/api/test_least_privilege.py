@@ -17,7 +17,8 @@ from accounts.models import AccountEvent, OwnerToken
 from accounts.services.api_tokens import owner_token_revoke
 from accounts.services.robots import robot_create
 from sharing.models import Grant, Record, Verdict
-from sharing.services import grant_create, record_create_batch
+from sharing.services.grants import grant_create
+from sharing.services.uploads import record_create_batch
 from tests.conftest import seal_for
 
 pytestmark = pytest.mark.django_db(transaction=True)

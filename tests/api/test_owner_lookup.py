@@ -7,7 +7,7 @@ from accounts.models import Owner
 from accounts.selectors import owner_by_identifier
 from accounts.services.owners import owner_create
 from sharing.errors import OwnerNotFound
-from sharing.services import owner_resolve
+from sharing.selectors.grants import owner_resolve
 from smcrypto import sm4
 from tests.conftest import TEST_PASSWORD
 

@@ -31,7 +31,7 @@ from accounts.services.pairing import (
     robot_pairings_purge,
 )
 from accounts.services.robots import robot_token_revoke
-from sharing.services import KEY_ROTATION_GRACE
+from sharing.services.uploads import KEY_ROTATION_GRACE
 from smcrypto import envelope, provenance, sm2, sm4
 from tests.api.conftest import Snapshot, b64, session_client, token_client
 

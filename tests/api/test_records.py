@@ -10,7 +10,7 @@ from django.contrib.auth import get_user_model
 
 from sharing.cache import envelope_cache_evict
 from sharing.models import Grant, Record, Verdict
-from sharing.services import grant_create, grant_revoke
+from sharing.services.grants import grant_create, grant_revoke
 from sharing.storage import envelope_storage
 from smcrypto import envelope, sm3
 from smcrypto.errors import WrongKey

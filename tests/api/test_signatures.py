@@ -11,10 +11,11 @@ import pytest
 
 from accounts.models import ChainState
 from accounts.selectors import owner_eoa_account
-from sharing import services as sharing_services
 from sharing.errors import IntegrityCheckFailed
 from sharing.models import Record, SecurityEvent, Verdict
-from sharing.services import grant_create, record_create
+from sharing.services import uploads as sharing_uploads
+from sharing.services.grants import grant_create
+from sharing.services.uploads import record_create
 from sharing.verification import record_open, records_verify
 from smcrypto import envelope, provenance, sm2
 from tests.api.conftest import RECORDS, Snapshot, token_client
@@ -167,7 +168,7 @@ def test_a_record_forged_with_the_owners_key_and_account_fails_every_check(
     the owner's account, skipping the upload's check: without the robot's private key the
     record is never genuine."""
     setup = make_paired_robot("alice")
-    monkeypatch.setattr(sharing_services, "_signature_check", lambda robot, *_: robot.key_hash)
+    monkeypatch.setattr(sharing_uploads, "_signature_check", lambda robot, *_: robot.key_hash)
     with django_capture_on_commit_callbacks(execute=True):
         record = record_create(robot=setup.robot, data=forge(setup, 1))
     record.refresh_from_db()
@@ -231,14 +232,14 @@ def test_a_check_of_many_records_refuses_exactly_the_forged_ones_among_them(
     """The signatures of one check are verified side by side on every core: each verdict is
     still its own record's, the forged ones refused wherever they stand in the batch."""
     setup = make_paired_robot("alice")
-    monkeypatch.setattr(sharing_services, "_signature_check", lambda robot, *_: robot.key_hash)
+    monkeypatch.setattr(sharing_uploads, "_signature_check", lambda robot, *_: robot.key_hash)
     forged = {1, 9, 16, 23}
     envelopes = [
         _signed_over_other_content(setup, seq) if seq in forged else setup.seal(seq)
         for seq in range(24)
     ]
     with django_capture_on_commit_callbacks(execute=True):
-        sharing_services.record_create_batch(robot=setup.robot, envelopes=envelopes)
+        sharing_uploads.record_create_batch(robot=setup.robot, envelopes=envelopes)
     records = list(Record.objects.order_by("seq"))
     assert {record.status for record in records} == {Record.Status.ANCHORED}
     checked = records_verify(record_ids=[r.id for r in records], viewer_id=setup.owner.pk)

@@ -14,7 +14,7 @@ from accounts.services.robots import robot_create, robot_token_revoke
 from chainworker import services as chain_services
 from core.redis_client import get_redis, redis_key
 from sharing.models import Record, SecurityEvent
-from sharing.services import KEY_ROTATION_GRACE
+from sharing.services.uploads import KEY_ROTATION_GRACE
 from smcrypto import envelope, sm3, sm4
 from tests.api.conftest import RECORDS, Snapshot, b64, session_client, token_client
 from tests.conftest import seal_for

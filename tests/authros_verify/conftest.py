@@ -15,7 +15,7 @@ from authros_verify import ChainReader, bundle_digest, bundle_serialise
 from chainworker.chain import AuthROSChain
 from sharing.exports import export_create, export_download
 from sharing.models import Export
-from sharing.services import record_create_batch
+from sharing.services.uploads import record_create_batch
 from smcrypto import envelope
 from smcrypto.merkle import leaf_hash
 from smcrypto.sm3 import sm3_hex

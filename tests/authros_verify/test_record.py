@@ -14,7 +14,8 @@ import pytest
 from accounts.selectors import owner_eoa_account
 from authros_verify import ChainReader, record_check
 from authros_verify.__main__ import main
-from sharing.services import grant_create, record_create_batch
+from sharing.services.grants import grant_create
+from sharing.services.uploads import record_create_batch
 from smcrypto import envelope, provenance, sm2, sm4
 from tests.api.conftest import token_client
 from tests.authros_verify.conftest import forged_proof

@@ -13,10 +13,12 @@ from chainworker import services as chain_services
 from chainworker.models import Deployment
 from chainworker.work import ChainWorkNotReady
 from core.redis_client import get_redis
-from sharing import anchoring
 from sharing.models import Grant, Record
-from sharing.reconcile import chain_reconcile
-from sharing.services import grant_create, grant_sync_on_chain, record_create
+from sharing.services import anchoring
+from sharing.services.grant_chain import grant_sync_on_chain
+from sharing.services.grants import grant_create
+from sharing.services.reconcile import chain_reconcile
+from sharing.services.uploads import record_create
 from tests.conftest import logged_by
 
 pytestmark = pytest.mark.django_db
@@ -53,7 +55,7 @@ def test_on_a_real_network_a_reset_stops_sending_and_says_why(
     fresh_chain()
     settings.CHAIN_DEV_FAUCET = False  # a real network: no faucet, no redeployment by itself
 
-    with logged_by("sharing.reconcile") as seen:
+    with logged_by("sharing.services.reconcile") as seen:
         outcome = chain_reconcile()
     assert outcome["identity"] == "reset"
     assert any(

@@ -18,9 +18,9 @@ from chainworker.chain import TransactionTimeout
 from chainworker.models import OperatorAlert
 from chainworker.services import CHAIN_STALLED_ALERT, chain_stall_forget, chain_stalled
 from chainworker.work import ChainWorkNotReady
-from sharing import anchoring
 from sharing.models import Record
-from sharing.services import record_create
+from sharing.services import anchoring
+from sharing.services.uploads import record_create
 from stack.anvil import AnvilProcess, start_anvil
 from tests.anchoring_checks import assert_anchored_exactly_once, records_on_chain
 

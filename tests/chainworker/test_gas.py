@@ -27,10 +27,11 @@ from chainworker.chain import AuthROSChain, InsufficientFunds
 from chainworker.models import OperatorAlert
 from chainworker.work import WAITING_FOR_GAS
 from portal.celery import app as celery_app
-from sharing import anchoring
-from sharing import services as sharing_services
 from sharing.models import Grant, Record
-from sharing.services import grant_create, record_create_batch
+from sharing.services import anchoring
+from sharing.services import sweep as sharing_sweep
+from sharing.services.grants import grant_create
+from sharing.services.uploads import record_create_batch
 from stack.anvil import start_anvil
 from tests.anchoring_checks import assert_anchored_exactly_once
 from tests.conftest import TEST_PASSWORD, RobotSetup
@@ -118,7 +119,7 @@ def test_with_the_budget_spent_records_wait_and_the_operator_is_alerted(
     settings.SIGNUP_FUNDING_BUDGET_WEI = 50 * 10**18
     assert chain_work_sweep()["top_ups"] == 1
     with django_capture_on_commit_callbacks(execute=True):
-        sharing_services.chain_work_sweep()
+        sharing_sweep.chain_work_sweep()
     assert Record.objects.filter(owner=bob.owner, status=Record.Status.PENDING).count() == 5
     assert anchoring.records_anchor(owner_id=bob.owner.pk) == 5  # the retry
     _assert_anchored_once(deployed, records)

@@ -14,11 +14,12 @@ import redis
 from accounts.models import ChainState
 from accounts.services import keys as account_keys
 from chainworker import services as chain_services
-from sharing import anchoring as sharing_anchoring
-from sharing import services as sharing_services
 from sharing.cache import _key as cache_key
 from sharing.models import Grant, Record
-from sharing.services import grant_create, grant_revoke, record_create, record_create_batch
+from sharing.services import anchoring as sharing_anchoring
+from sharing.services import grants as sharing_grants
+from sharing.services.grants import grant_create, grant_revoke
+from sharing.services.uploads import record_create, record_create_batch
 from sharing.storage import envelope_storage
 from sharing.tasks import records_verify
 from smcrypto import sm4
@@ -242,7 +243,7 @@ def test_work_whose_messages_the_broker_lost_is_queued_again_by_the_beat_sweep(
         lost.append(task_name.rpartition(".")[2])
         return False
 
-    for module in (sharing_services, sharing_anchoring, account_keys):
+    for module in (sharing_grants, sharing_anchoring, account_keys):
         monkeypatch.setattr(module, "enqueue", broker_lost)
     for seq in range(1, 6):
         record_create(robot=alice.robot, data=alice.seal(seq))

@@ -11,7 +11,7 @@ from core import commits as commits_module
 from core import files as files_module
 from sharing import errors
 from sharing.models import Record
-from sharing.services import record_create_batch
+from sharing.services.uploads import record_create_batch
 
 pytestmark = pytest.mark.django_db
 
@@ -87,7 +87,7 @@ def test_a_sync_that_fails_asks_the_robot_to_send_again_and_keeps_what_was_store
     def failing(using="default"):
         raise OSError("I/O error")
 
-    monkeypatch.setattr("sharing.services.commits_durable", failing)
+    monkeypatch.setattr("sharing.services.uploads.commits_durable", failing)
     with pytest.raises(errors.StorageUnavailable) as refused:
         record_create_batch(robot=setup.robot, envelopes=[envelope])
     assert refused.value.http_status == 503

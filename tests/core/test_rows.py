@@ -13,11 +13,11 @@ from accounts.selectors import owner_keys, robot_by_token, robot_token_hash
 from accounts.services.keys import key_rotate
 from accounts.services.robots import robot_token_revoke
 from core.rows import FixedInsert
-from sharing.anchoring import records_anchor
-from sharing.deletion import record_delete
 from sharing.models import Record
-from sharing.selectors import record_to_open
-from sharing.services import _ROBOT_SEQ_MOVE, record_create, record_create_batch
+from sharing.selectors.records import record_to_open
+from sharing.services.anchoring import records_anchor
+from sharing.services.deletion import record_delete
+from sharing.services.uploads import _ROBOT_SEQ_MOVE, record_create, record_create_batch
 from smcrypto import sm4
 
 pytestmark = pytest.mark.django_db

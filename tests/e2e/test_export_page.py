@@ -18,7 +18,7 @@ from authros_verify import ChainReader, verify
 from sharing.exports import export_run
 from sharing.models import Export
 from sharing.selection import RecordSelection
-from sharing.services import record_create_batch
+from sharing.services.uploads import record_create_batch
 from tests.conftest import TEST_PASSWORD
 
 pytestmark = [pytest.mark.browser, pytest.mark.django_db(transaction=True)]

@@ -15,7 +15,9 @@ import pytest
 from django.conf import settings
 from playwright.sync_api import Browser, Page, expect
 
-from sharing.services import grant_create, grant_terms_make, record_create
+from sharing.grant_terms import grant_terms_make
+from sharing.services.grants import grant_create
+from sharing.services.uploads import record_create
 from tests.pages.conftest import odometry
 
 pytestmark = [pytest.mark.browser, pytest.mark.django_db(transaction=True)]

@@ -16,7 +16,7 @@ from django.conf import settings
 from playwright.sync_api import Browser, Page, expect
 
 from sharing.models import Record
-from sharing.services import record_create
+from sharing.services.uploads import record_create
 from tests.conftest import RobotSetup
 from tests.pages.conftest import image, odometry
 

@@ -13,7 +13,7 @@ from playwright.sync_api import Browser, Page, expect
 
 from accounts.models import Robot
 from sharing.models import Record
-from sharing.services import record_create
+from sharing.services.uploads import record_create
 from tests.conftest import TEST_PASSWORD
 from tests.e2e.layout import cells_off_screen
 

@@ -14,7 +14,7 @@ from accounts.keyexchange import portal_sm2_public_key
 from accounts.models import Owner
 from accounts.services.owners import owner_create
 from sharing.models import Record
-from sharing.services import record_create
+from sharing.services.uploads import record_create
 from smcrypto import sm2, sm4
 from tests.conftest import TEST_PASSWORD, RobotSetup
 

@@ -6,7 +6,7 @@ from django.urls import reverse
 
 from accounts.models import AccountEvent, OwnerKey, Robot
 from sharing.models import Record, SecurityEvent, Verdict
-from sharing.selectors import verdict_latest
+from sharing.selectors.access import verdict_latest
 from stack.anvil import free_port
 from tests.conftest import TEST_PASSWORD, tamper
 
@@ -35,7 +35,7 @@ def admin_client(client, db):
 
 @pytest.fixture
 def populated(make_robot, make_owner, upload, django_capture_on_commit_callbacks):
-    from sharing.services import grant_create
+    from sharing.services.grants import grant_create
     from sharing.verification import record_open
 
     alice = make_robot("alice")

@@ -13,7 +13,7 @@ from accounts.models import AccountEvent, OwnerToken
 from accounts.selectors import owner_token_by_key
 from accounts.services.api_tokens import owner_token_revoke
 from sharing.models import Grant
-from sharing.services import grant_create
+from sharing.services.grants import grant_create
 from tests.conftest import TEST_PASSWORD
 
 pytestmark = pytest.mark.django_db

@@ -14,7 +14,7 @@ from chainworker.chain import ChainError
 from chainworker.services import chain_client
 from ros_agent.config import config_from_mapping
 from sharing.models import Grant
-from sharing.services import grant_create, grant_revoke
+from sharing.services.grants import grant_create, grant_revoke
 from stack.anvil import free_port
 
 pytestmark = pytest.mark.django_db

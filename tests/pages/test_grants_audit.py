@@ -8,7 +8,7 @@ from django.test import Client
 from django.urls import reverse
 
 from sharing.models import Grant, Record
-from sharing.services import record_create_batch
+from sharing.services.uploads import record_create_batch
 
 pytestmark = pytest.mark.django_db
 

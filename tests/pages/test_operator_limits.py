@@ -14,7 +14,7 @@ from django.test import Client
 from django.urls import URLPattern, URLResolver, get_resolver, reverse
 
 from accounts.models import AccountEvent, Owner
-from sharing.services import grant_create
+from sharing.services.grants import grant_create
 from sharing.verification import record_open
 from smcrypto import sm4
 from tests.conftest import TEST_PASSWORD

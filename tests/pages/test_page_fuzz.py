@@ -19,7 +19,8 @@ from django.urls.resolvers import RoutePattern
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from sharing.services import grant_create, grant_terms_make
+from sharing.grant_terms import grant_terms_make
+from sharing.services.grants import grant_create
 from tests.pages.conftest import image, odometry
 
 pytestmark = pytest.mark.django_db

@@ -12,7 +12,7 @@ from django.urls import reverse
 from django.utils import timezone
 
 from sharing.models import Record
-from sharing.selectors import record_list_filtered, record_list_owned
+from sharing.selectors.records import record_list_filtered, record_list_owned
 from tests.api.conftest import RECORDS, session_client
 
 pytestmark = pytest.mark.django_db

@@ -9,7 +9,8 @@ import pytest
 from django.urls import reverse
 
 from accounts.services.robots import robot_create
-from sharing.services import grant_create, grant_terms_make
+from sharing.grant_terms import grant_terms_make
+from sharing.services.grants import grant_create
 from tests.conftest import RobotSetup
 from tests.pages.conftest import image
 

@@ -9,9 +9,9 @@ import pytest
 from django.urls import reverse
 from django.utils import timezone
 
-from sharing.anchoring import records_reanchor
 from sharing.models import Record, Verdict
-from sharing.services import grant_create, grant_revoke
+from sharing.services.anchoring import records_reanchor
+from sharing.services.grants import grant_create, grant_revoke
 from stack.anvil import free_port
 from tests.conftest import tamper
 from tests.pages.conftest import image, odometry

@@ -15,7 +15,7 @@ from django.utils import timezone
 
 from accounts.services.robots import robot_create
 from sharing.models import Record, Verdict
-from sharing.services import grant_create
+from sharing.services.grants import grant_create
 from tests.conftest import RobotSetup, tamper
 from tests.pages.conftest import fig4, image, odometry
 

@@ -14,7 +14,7 @@ from accounts.lastseen import seen_ago_text
 from accounts.models import Robot
 from sharing.models import Access, Verdict
 from sharing.robot_status import robot_activity
-from sharing.services import grant_create
+from sharing.services.grants import grant_create
 from tests.conftest import RobotSetup, tamper
 from tests.pages.conftest import image, odometry
 

@@ -3,8 +3,8 @@ upload, and one run of the reconciliation."""
 
 import pytest
 
-from sharing.reconcile import chain_reconcile
-from sharing.services import grant_create
+from sharing.services.grants import grant_create
+from sharing.services.reconcile import chain_reconcile
 from tests.pages.conftest import upload  # noqa: F401  (the fixture, for tests/sharing/)
 
 

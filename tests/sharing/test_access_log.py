@@ -17,7 +17,7 @@ from accounts.services.robots import robot_create
 from sharing import access_log
 from sharing.access_log import csv_cell
 from sharing.models import Verdict
-from sharing.selectors import (
+from sharing.selectors.access import (
     ACCESS_LOG_INCOMING,
     ACCESS_LOG_OUTGOING,
     access_list_access_log,

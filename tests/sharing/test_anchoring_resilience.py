@@ -10,10 +10,12 @@ from accounts.selectors import owner_eoa_account
 from chainworker.chain import ChainUnavailable, TransactionDropped, TransactionReverted
 from chainworker.work import CHAIN_TASK, ChainWorkNotReady
 from core.redis_client import get_redis, redis_key
-from sharing import anchoring
-from sharing.anchoring import anchor_item, records_anchor
 from sharing.models import Grant, Record
-from sharing.services import grant_create, grant_revoke, grant_sync_on_chain, record_create
+from sharing.services import anchoring
+from sharing.services.anchoring import anchor_item, records_anchor
+from sharing.services.grant_chain import grant_sync_on_chain
+from sharing.services.grants import grant_create, grant_revoke
+from sharing.services.uploads import record_create
 from tests.conftest import blocks_mine
 
 pytestmark = [pytest.mark.django_db, pytest.mark.usefixtures("records_mode")]

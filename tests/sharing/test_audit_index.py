@@ -17,7 +17,7 @@ from accounts.services.activity import chain_activity_record
 from accounts.services.keys import key_rotate
 from chainworker import services as chain_services
 from sharing.models import Grant, Record
-from sharing.services import record_create_batch
+from sharing.services.uploads import record_create_batch
 from smcrypto import sm4
 from stack.anvil import free_port
 

@@ -25,8 +25,8 @@ from django.urls import reverse
 from accounts.keywrap import kek_fingerprint, master_key
 from accounts.services.robots import robot_create
 from chainworker import services as chain_services
-from sharing import backup
 from sharing.models import Grant, Record
+from sharing.services import backup
 from sharing.storage import envelope_storage
 from stack.anvil import start_anvil
 from tests.conftest import RobotSetup

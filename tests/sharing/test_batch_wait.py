@@ -1,5 +1,6 @@
-"""How long an anchoring run waits for its owner's batch to fill (sharing.anchoring): until the
-uploads pause for ANCHOR_QUIET, at most until the oldest pending record is ANCHOR_MAX_WAIT old.
+"""How long an anchoring run waits for its owner's batch to fill (sharing.services.anchoring):
+until the uploads pause for ANCHOR_QUIET, at most until the oldest pending record is
+ANCHOR_MAX_WAIT old.
 
 The run's clock is a fake one: each sleep moves the records' times back by what was slept, as
 time passing would, and may let new records arrive; no test waits for real.
@@ -12,9 +13,9 @@ import pytest
 from django.db.models import F
 from django.utils import timezone
 
-from sharing import anchoring
 from sharing.models import Record
-from sharing.services import record_create
+from sharing.services import anchoring
+from sharing.services.uploads import record_create
 
 MAX_WAIT = 1.0
 QUIET = 0.1

@@ -7,7 +7,6 @@ import pytest
 import redis
 
 from core.redis_client import get_redis, redis_key
-from sharing import anchoring
 from sharing.cache import (
     _key,
     envelope_cache_bytes,
@@ -16,7 +15,8 @@ from sharing.cache import (
     envelope_cache_put,
 )
 from sharing.models import Record
-from sharing.services import record_create_batch
+from sharing.services import anchoring
+from sharing.services.uploads import record_create_batch
 
 NOW = 1_800_000_000_000  # ms
 

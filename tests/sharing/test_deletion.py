@@ -1,4 +1,4 @@
-"""Deleting records and accounts, and the retention policy (sharing/deletion.py): what goes
+"""Deleting records and accounts, and the retention policy (sharing/services/deletion.py): what goes
 (the ciphertext, from storage and cache), what stays (the tombstone, the digest, the proof),
 who may, and a crash between the two steps."""
 
@@ -14,13 +14,6 @@ from accounts.services.owners import owner_create
 from accounts.services.robots import robot_create, robot_retention_set
 from chainworker.services import chain_client
 from sharing.cache import envelope_cache_get
-from sharing.deletion import (
-    account_delete,
-    record_delete,
-    records_delete,
-    records_purge,
-    retention_apply,
-)
 from sharing.errors import (
     NotDeletableYet,
     NotRecordOwner,
@@ -29,7 +22,15 @@ from sharing.errors import (
     RecordNotFound,
 )
 from sharing.models import Grant, Record, Verdict
-from sharing.services import grant_create, owner_resolve
+from sharing.selectors.grants import owner_resolve
+from sharing.services.deletion import (
+    account_delete,
+    record_delete,
+    records_delete,
+    records_purge,
+    retention_apply,
+)
+from sharing.services.grants import grant_create
 from sharing.storage import envelope_storage
 from sharing.verification import record_open, records_verify
 from smcrypto import sm4

@@ -16,7 +16,7 @@ from sharing import disk
 from sharing.disk import DISK_LOW_ALERT, disk_space_watch, portal_disks
 from sharing.exports import EXPORT_STORAGE_PREFIX, export_create, export_run
 from sharing.models import Export, Record
-from sharing.services import record_create
+from sharing.services.uploads import record_create
 from sharing.storage import envelope_storage
 from tests.api.conftest import RECORDS, Snapshot, b64, token_client
 from tests.conftest import logged_by

@@ -15,17 +15,13 @@ from django.urls import reverse
 from django.utils import timezone
 
 from accounts.models import Owner
-from sharing.backup import portal_backup
-from sharing.deletion import account_delete, records_delete
 from sharing.exports import export_create, exports_sweep
+from sharing.grant_terms import grant_terms_make
 from sharing.models import Export, ExportRecord, Grant, Record
-from sharing.services import (
-    grant_create,
-    grant_revoke,
-    grant_terms_change,
-    grant_terms_make,
-    record_create_batch,
-)
+from sharing.services.backup import portal_backup
+from sharing.services.deletion import account_delete, records_delete
+from sharing.services.grants import grant_create, grant_revoke, grant_terms_change
+from sharing.services.uploads import record_create_batch
 from sharing.storage import envelope_storage
 from smcrypto.stream import MAGIC as SEALED_MAGIC
 from tests.api.conftest import session_client

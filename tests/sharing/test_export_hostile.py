@@ -17,7 +17,7 @@ from authros_verify import ChainReader, verify
 from authros_verify.messages import message_encode
 from sharing.exports import export_create
 from sharing.models import Export
-from sharing.services import record_create_batch
+from sharing.services.uploads import record_create_batch
 from tests.authros_verify.conftest import export_files
 
 STAMP = {"secs": 1_777_000_000, "nsecs": 5}

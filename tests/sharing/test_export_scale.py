@@ -16,7 +16,7 @@ from sharing import exports
 from sharing.exports import export_create
 from sharing.models import Export
 from sharing.selection import RecordSelection
-from sharing.services import record_create_batch
+from sharing.services.uploads import record_create_batch
 from smcrypto import sm4
 from smcrypto.stream import SEGMENT_SIZE, SealedWriter, sealed_open
 from tests.api.conftest import session_client

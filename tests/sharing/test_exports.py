@@ -24,7 +24,7 @@ from authros_verify import ChainReader, verify
 from sharing.exports import export_create, export_run, exports_sweep
 from sharing.models import Access, Export, Record, Verdict
 from sharing.selection import RecordSelection
-from sharing.services import record_create, record_create_batch
+from sharing.services.uploads import record_create, record_create_batch
 from sharing.storage import envelope_storage
 from smcrypto import sm2, sm4
 from tests.api.conftest import session_client, token_client

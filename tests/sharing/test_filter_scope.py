@@ -9,13 +9,12 @@ from django.urls import reverse
 from django.utils import timezone
 
 from accounts.services.robots import robot_create
+from sharing.grant_terms import grant_terms_make
 from sharing.models import Grant
-from sharing.selectors import (
-    ACCESS_LOG_OUTGOING,
-    access_log_filter_choices,
-    robots_visible_to,
-)
-from sharing.services import grant_create, grant_revoke, grant_terms_make, record_create
+from sharing.selectors.access import ACCESS_LOG_OUTGOING, access_log_filter_choices
+from sharing.selectors.records import robots_visible_to
+from sharing.services.grants import grant_create, grant_revoke
+from sharing.services.uploads import record_create
 from tests.conftest import seal_for
 
 pytestmark = pytest.mark.django_db

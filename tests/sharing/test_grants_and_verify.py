@@ -7,16 +7,13 @@ from django.utils import timezone
 
 from core.redis_client import get_redis
 from sharing import errors
-from sharing.anchoring import records_anchor
 from sharing.cache import _key as cache_key
 from sharing.cache import envelope_cache_get
 from sharing.models import Grant, Record, SecurityEvent, Verdict
-from sharing.services import (
-    grant_create,
-    grant_revoke,
-    owner_resolve,
-    record_create,
-)
+from sharing.selectors.grants import owner_resolve
+from sharing.services.anchoring import records_anchor
+from sharing.services.grants import grant_create, grant_revoke
+from sharing.services.uploads import record_create
 from sharing.storage import envelope_storage
 from sharing.verification import records_verify
 from tests.conftest import tamper
@@ -222,7 +219,7 @@ def test_anchoring_is_idempotent(make_robot, deployed):
     records = [record_create(robot=setup.robot, data=setup.seal(seq)) for seq in range(1, 6)]
     # A previous attempt anchored two of them and died before writing it down.
     from accounts.selectors import owner_eoa_account
-    from sharing.anchoring import anchor_item
+    from sharing.services.anchoring import anchor_item
 
     account = owner_eoa_account(setup.owner)
     deployed.data_upload_batch(account, [anchor_item(r) for r in records[:2]])
@@ -241,7 +238,7 @@ def test_taken_id_without_a_recorded_attempt_is_settled(make_robot, deployed):
     setup = make_robot()
     records = [record_create(robot=setup.robot, data=setup.seal(seq)) for seq in range(1, 4)]
     from accounts.selectors import owner_eoa_account
-    from sharing.anchoring import anchor_item
+    from sharing.services.anchoring import anchor_item
 
     deployed.data_upload(owner_eoa_account(setup.owner), anchor_item(records[1]))
     records_anchor(owner_id=setup.owner.pk)
@@ -254,7 +251,7 @@ def test_other_digest_on_chain_fails_the_record_and_raises_an_alarm(make_robot, 
     setup = make_robot()
     record = record_create(robot=setup.robot, data=setup.seal(1))
     from accounts.selectors import owner_eoa_account
-    from sharing.anchoring import anchor_item
+    from sharing.services.anchoring import anchor_item
 
     wrong = anchor_item(record)
     object.__setattr__(wrong, "digest", bytes(32 - 1) + b"\x01")

@@ -10,9 +10,9 @@ import pytest
 from django.urls import reverse
 from django.utils import timezone
 
-from sharing.deletion import record_delete
 from sharing.models import Access, Record, Verdict
-from sharing.services import record_create
+from sharing.services.deletion import record_delete
+from sharing.services.uploads import record_create
 from sharing.verification import REFUSED_VIEWS_COALESCED, records_verify
 from tests.api.conftest import RECORDS, token_client
 

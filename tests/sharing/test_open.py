@@ -7,8 +7,9 @@ from core.redis_client import get_redis
 from sharing import errors, verification
 from sharing.cache import _key as cache_key
 from sharing.models import Access
-from sharing.selectors import record_get_visible, record_list_visible_to
-from sharing.services import grant_create, grant_revoke, record_create
+from sharing.selectors.records import record_get_visible, record_list_visible_to
+from sharing.services.grants import grant_create, grant_revoke
+from sharing.services.uploads import record_create
 from sharing.verification import record_open, record_reseal_for, records_open
 from smcrypto import CryptoError, envelope, sm3
 

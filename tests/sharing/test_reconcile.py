@@ -1,5 +1,5 @@
 """Reconciliation: a chain that lost blocks, or was reset, is brought back to what the database
-says, by the periodic job (sharing.reconcile.chain_reconcile) or `manage.py chain_resync`.
+says, by the periodic job (sharing.services.reconcile.chain_reconcile) or `manage.py chain_resync`.
 
 "Lost blocks" are the test node's snapshots reverted (`blocks_lost`); a "reset" points
 CHAIN_RPC_URL at a new node (`fresh_chain`).
@@ -16,7 +16,7 @@ from accounts.services.keys import key_rotate
 from chainworker import services as chain_services
 from chainworker.chain import AnchorItem, bytes32_to_record_id
 from sharing.models import Grant, Record, SecurityEvent, Verdict
-from sharing.services import grant_create, grant_revoke
+from sharing.services.grants import grant_create, grant_revoke
 from sharing.verification import records_verify
 from smcrypto import sm4
 

@@ -10,11 +10,11 @@ from django.utils import timezone
 from accounts.services.keys import key_rotate
 from core import files as files_module
 from sharing import errors
-from sharing import services as services_module
 from sharing import storage as storage_module
 from sharing.cache import envelope_cache_get
 from sharing.models import Record, SecurityEvent
-from sharing.services import record_create, record_create_batch
+from sharing.services import uploads as uploads_module
+from sharing.services.uploads import record_create, record_create_batch
 from sharing.storage import envelope_storage
 from smcrypto import envelope, sm3, sm4
 from tests.conftest import seal_for
@@ -172,7 +172,7 @@ def test_a_batch_the_database_refuses_leaves_no_file_behind(make_robot, monkeypa
     def disk_full(*args, **kwargs):
         raise DatabaseError("disk full")
 
-    monkeypatch.setattr(services_module._RECORD_INSERT, "insert", disk_full)
+    monkeypatch.setattr(uploads_module._RECORD_INSERT, "insert", disk_full)
     with pytest.raises(DatabaseError):
         record_create_batch(robot=setup.robot, envelopes=[setup.seal(seq) for seq in (1, 2, 3)])
     _batch_left_nothing(setup)

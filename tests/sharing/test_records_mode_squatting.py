@@ -8,9 +8,9 @@ import pytest
 
 from accounts.selectors import owner_eoa_account
 from chainworker.services import chain_client
-from sharing.anchoring import anchor_item
 from sharing.models import Record, SecurityEvent, Verdict
-from sharing.services import record_create
+from sharing.services.anchoring import anchor_item
+from sharing.services.uploads import record_create
 from sharing.verification import records_verify
 from smcrypto import sm3
 

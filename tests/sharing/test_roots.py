@@ -9,10 +9,11 @@ import pytest
 from accounts.selectors import owner_eoa_account
 from chainworker import services as chain_services
 from chainworker.chain import ChainUnavailable
-from sharing.anchoring import records_anchor
 from sharing.models import AnchorRoot, Grant, Record, Verdict
-from sharing.roots import record_path, tree_build
-from sharing.services import grant_create, record_create
+from sharing.services.anchoring import records_anchor
+from sharing.services.grants import grant_create
+from sharing.services.roots import record_path, tree_build
+from sharing.services.uploads import record_create
 from sharing.storage import envelope_storage
 from sharing.verification import records_verify
 from smcrypto import sm3
@@ -93,7 +94,7 @@ def test_records_that_come_while_a_partial_tree_is_sent_wait_for_the_next_run(
     """A run sends another tree only for a backlog bigger than a tree: records uploaded while
     its last tree (not full) was sent go into one tree of their own in the next run (queued
     by this one), not a transaction each for whatever came in meanwhile."""
-    from sharing import anchoring, roots
+    from sharing.services import anchoring, roots
 
     setup = make_robot()
     _pending(setup, 3)

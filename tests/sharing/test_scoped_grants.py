@@ -11,15 +11,12 @@ from django.utils import timezone
 from accounts.services.robots import robot_create
 from chainworker import services as chain_services
 from chainworker.models import Deployment
+from sharing.grant_terms import grant_terms_make
 from sharing.models import Grant, Record, Verdict
 from sharing.scope import scope_commitment
-from sharing.selectors import (
-    grant_count_received,
-    owners_granting,
-    record_list_shared_with,
-    record_list_visible_to,
-)
-from sharing.services import grant_create, grant_revoke, grant_terms_change, grant_terms_make
+from sharing.selectors.grants import grant_count_received, owners_granting
+from sharing.selectors.records import record_list_shared_with, record_list_visible_to
+from sharing.services.grants import grant_create, grant_revoke, grant_terms_change
 from sharing.verification import records_verify
 from tests.api.conftest import RECORDS, session_client
 from tests.conftest import RobotSetup, chain_time_travel

@@ -11,9 +11,10 @@ from django.test.utils import CaptureQueriesContext
 from django.urls import reverse
 
 from chainworker.chain import AuthROSChain
+from sharing.grant_terms import grant_terms_make
 from sharing.models import Access, Record, Verdict
 from sharing.series import field_value, series_downsample
-from sharing.services import grant_create, grant_terms_make
+from sharing.services.grants import grant_create
 from sharing.verification import records_verify
 from tests.api.conftest import session_client, token_client
 from tests.conftest import tamper

@@ -20,8 +20,9 @@ from chainworker import services as chain_services
 from chainworker.chain import ChainError
 from core.redis_client import get_redis, redis_key
 from sharing.models import Grant, Record
-from sharing.reconcile import RECONCILE_LOCK, chain_resync
-from sharing.services import grant_create, grant_revoke, record_create, record_create_batch
+from sharing.services.grants import grant_create, grant_revoke
+from sharing.services.reconcile import RECONCILE_LOCK, chain_resync
+from sharing.services.uploads import record_create, record_create_batch
 from smcrypto import sm4
 from tests.anchoring_checks import assert_anchored_exactly_once, records_on_chain
 from tests.conftest import RobotSetup

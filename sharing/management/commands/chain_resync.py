@@ -8,7 +8,7 @@ from django.core.management.base import BaseCommand, CommandError, CommandParser
 from chainworker.chain import ChainError
 from chainworker.services import chain_identity
 from chainworker.work import ChainWorkNotReady
-from sharing.reconcile import chain_resync
+from sharing.services.reconcile import chain_resync
 
 
 class Command(BaseCommand):

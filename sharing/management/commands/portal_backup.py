@@ -1,12 +1,13 @@
 """`manage.py portal_backup --to DIR`: the database, the envelopes and the secrets, in a new
-0700 folder with a manifest of SM3 digests (sharing/backup.py); safe while the portal runs."""
+0700 folder with a manifest of SM3 digests (sharing/services/backup.py); safe while the portal
+runs."""
 
 from pathlib import Path
 from typing import Any
 
 from django.core.management.base import BaseCommand, CommandError, CommandParser
 
-from sharing.backup import BackupRefused, portal_backup
+from sharing.services.backup import BackupRefused, portal_backup
 
 
 class Command(BaseCommand):

@@ -1,5 +1,5 @@
 """`manage.py portal_restore --from DIR [--force]`: a backup of `portal_backup` into this
-portal (sharing/backup.py). Run `manage.py migrate` first; every digest is checked before
+portal (sharing/services/backup.py). Run `manage.py migrate` first; every digest is checked before
 anything changes, and a database that holds rows is replaced only with --force."""
 
 from pathlib import Path
@@ -7,7 +7,7 @@ from typing import Any
 
 from django.core.management.base import BaseCommand, CommandError, CommandParser
 
-from sharing.backup import BackupRefused, portal_restore
+from sharing.services.backup import BackupRefused, portal_restore
 
 
 class Command(BaseCommand):

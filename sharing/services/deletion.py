@@ -46,8 +46,8 @@ from sharing.cache import envelope_cache_evict
 from sharing.errors import NoGrant, NotDeletableYet, NotRecordOwner, RecordNotFound
 from sharing.models import Grant, Record
 from sharing.selection import RecordSelection
-from sharing.selectors import record_get_visible
-from sharing.services import EXPORTS_RECHECK_TASK, grant_revoke
+from sharing.selectors.records import record_get_visible
+from sharing.services.grants import EXPORTS_RECHECK_TASK, grant_revoke
 from sharing.storage import envelope_storage
 
 logger = logging.getLogger(__name__)

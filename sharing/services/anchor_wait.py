@@ -18,7 +18,7 @@ from chainworker.work import WAITING_FOR_GAS
 from core.outbox import enqueue
 from sharing.models import Record
 
-logger = logging.getLogger("sharing.anchoring")
+logger = logging.getLogger("sharing.services.anchoring")
 
 # Records signed by a robot key not confirmed on chain yet: anchored once it is (its
 # confirmation queues the owner's run), since robotKeyOf must show the key added at or before

@@ -40,10 +40,10 @@ from chainworker.services import (
 from chainworker.work import ChainWorkNotReady
 from core.outbox import enqueue
 from core.redis_client import get_redis, redis_key
-from sharing.anchoring import anchor_schedule, record_chain_mismatch
 from sharing.models import AnchorRoot, Grant, Record, SecurityEvent
-from sharing.roots import tree_lost
 from sharing.scope import scope_commitment
+from sharing.services.anchoring import anchor_schedule, record_chain_mismatch
+from sharing.services.roots import tree_lost
 
 logger = logging.getLogger(__name__)
 

@@ -42,7 +42,8 @@ from chainworker.chain import (
     TransactionTimeout,
 )
 from chainworker.services import chain_stall_check
-from sharing.anchor_wait import (
+from sharing.models import AnchorRoot, Record
+from sharing.services.anchor_wait import (
     AWAITING_ROBOT_KEY,
     gas_wait_end,
     gas_wait_start,
@@ -50,10 +51,9 @@ from sharing.anchor_wait import (
     receipt_await,
     records_fail_exhausted,
 )
-from sharing.models import AnchorRoot, Record
 from smcrypto.merkle import MerkleTree, leaf_hash, path_split
 
-logger = logging.getLogger("sharing.anchoring")
+logger = logging.getLogger("sharing.services.anchoring")
 
 
 def roots_anchor_round(client: AuthROSChain, owner: Owner, lock: Lock) -> tuple[int, int]:

@@ -1,6 +1,6 @@
 """Anchoring: the SM3 digests of pending records go on chain in `dataUploadBatch`
 transactions sent by their owner's EOA (ANCHOR_MODE=records), or under Merkle roots sent with
-`anchorRoot` (ANCHOR_MODE=root, sharing/roots.py), a fair share of one owner per task run.
+`anchorRoot` (ANCHOR_MODE=root, sharing/services/roots.py), a fair share of one owner per task run.
 
 A record moves pending -> anchored (or failed after ANCHOR_MAX_ATTEMPTS); only these services
 and the upload move it. Every run is idempotent: ids are write-once on chain, and a record
@@ -41,7 +41,8 @@ from chainworker.services import chain_client, chain_stall_check, chain_work_che
 from chainworker.work import CHAIN_TASK, TRANSIENT, ChainWorkNotReady
 from core.outbox import enqueue
 from core.redis_client import get_redis, redis_key
-from sharing.anchor_wait import (
+from sharing.models import Record, SecurityEvent
+from sharing.services.anchor_wait import (
     AWAITING_ROBOT_KEY,
     gas_wait_end,
     gas_wait_start,
@@ -49,8 +50,7 @@ from sharing.anchor_wait import (
     receipt_await,
     records_fail_exhausted,
 )
-from sharing.models import Record, SecurityEvent
-from sharing.roots import roots_anchor_round, roots_await_robot_key
+from sharing.services.roots import roots_anchor_round, roots_await_robot_key
 
 logger = logging.getLogger(__name__)
 security_log = logging.getLogger("authros.security")

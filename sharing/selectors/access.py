@@ -1,0 +1,175 @@
+"""Reads of the access log: views of an owner's records (incoming) and the owner's own views
+of records shared with them (outgoing), as Verdict or Access rows, filtered, and the filters'
+choices; a viewer's latest verdict on a record."""
+
+import uuid
+from datetime import datetime
+
+from django.db.models import Exists, OuterRef, Q, QuerySet
+
+from accounts.models import Owner, Robot
+from sharing.models import Access, Record, Verdict
+from sharing.selectors.grants import owners_granting
+from sharing.selectors.records import record_list_shared_with, robots_in_scope_of
+
+
+def verdict_latest(record: Record, viewer: Owner) -> Verdict | None:
+    """The viewer's most recent integrity verdict on the record (their own views only)."""
+    return (
+        record.verdicts.filter(viewer=viewer, checked_by__isnull=True)
+        .order_by("-created_at", "-pk")
+        .first()
+    )
+
+
+# Which views an access log lists: those of the owner's records (by anyone, the owner and the
+# operator included), or the owner's own views of records others shared with the owner.
+ACCESS_LOG_INCOMING = "incoming"
+ACCESS_LOG_OUTGOING = "outgoing"
+ACCESS_LOG_DIRECTIONS = [
+    (ACCESS_LOG_INCOMING, "views of my data"),
+    (ACCESS_LOG_OUTGOING, "my views of data shared with me"),
+]
+
+
+def verdict_list_access_log(owner: Owner, *, direction: str) -> QuerySet[Verdict]:
+    """The owner's access log, newest first, with everything a row shows in the same query.
+
+    Incoming: every view of the owner's records (Verdict.record_owner, indexed with the
+    time), refused ones included. Outgoing: the owner's own views of other owners' records
+    that access was granted for (a refused one would show the metadata of a record the
+    viewer may not read; an operator's checks are made with the record owner's rights, so
+    they are only ever incoming).
+    """
+    if direction == ACCESS_LOG_INCOMING:
+        verdicts = Verdict.objects.filter(record_owner=owner)
+    elif direction == ACCESS_LOG_OUTGOING:
+        verdicts = Verdict.objects.filter(viewer=owner, checked_by__isnull=True).exclude(
+            Q(record_owner=owner) | Q(outcome=Verdict.Outcome.NO_ACCESS)
+        )
+    else:
+        raise ValueError(f"unknown access log direction {direction!r}")
+    return verdicts.select_related(
+        "viewer__user", "record__robot", "record__owner__user", "token", "checked_by"
+    ).order_by("-created_at", "-id")
+
+
+def verdict_list_filtered(
+    verdicts: QuerySet[Verdict],
+    *,
+    viewer: str | None = None,
+    owner: str | None = None,
+    robot: uuid.UUID | str | None = None,
+    topic: str | None = None,
+    verdict: str | None = None,
+    credential: str | None = None,
+    since: datetime | None = None,
+    until: datetime | None = None,
+) -> QuerySet[Verdict]:
+    """The views that match every filter given (None or empty: not filtered): `viewer` and
+    `owner` (the record's) are usernames, `robot` a robot id, `topic` exact, `verdict` an
+    outcome, `credential` a Verdict.Credential; view times half-open, [since, until)."""
+    if viewer:
+        verdicts = verdicts.filter(viewer__user__username=viewer)
+    if owner:
+        verdicts = verdicts.filter(record_owner__user__username=owner)
+    if robot:
+        verdicts = verdicts.filter(record__robot_id=robot)
+    if topic:
+        verdicts = verdicts.filter(record__topic=topic)
+    if verdict:
+        verdicts = verdicts.filter(outcome=verdict)
+    if credential:
+        verdicts = verdicts.filter(credential=credential)
+    if since is not None:
+        verdicts = verdicts.filter(created_at__gte=since)
+    if until is not None:
+        verdicts = verdicts.filter(created_at__lt=until)
+    return verdicts
+
+
+def access_list_access_log(owner: Owner, *, direction: str) -> QuerySet[Access]:
+    """The owner's access log as people read it: one row per access (a record page, a gallery
+    page, a plot, an export, an operator's check), newest first, with everything a row shows
+    in the same query.
+
+    Incoming: every access to the owner's records (Access.record_owner, indexed with the time),
+    refused ones included. Outgoing: the owner's own accesses to other owners' records that
+    at least one record was granted for (one refused whole would show what a record the viewer
+    may not read is; an operator's checks are made with the record owner's rights, so they are
+    only ever incoming).
+    """
+    if direction == ACCESS_LOG_INCOMING:
+        accesses = Access.objects.filter(record_owner=owner)
+    elif direction == ACCESS_LOG_OUTGOING:
+        granted = Verdict.objects.filter(access=OuterRef("pk")).exclude(
+            outcome=Verdict.Outcome.NO_ACCESS
+        )
+        accesses = Access.objects.filter(
+            Exists(granted), viewer=owner, checked_by__isnull=True
+        ).exclude(record_owner=owner)
+    else:
+        raise ValueError(f"unknown access log direction {direction!r}")
+    return accesses.select_related(
+        "viewer__user", "record_owner__user", "record", "robot", "token", "checked_by"
+    ).order_by("-created_at", "-id")
+
+
+def access_list_filtered(
+    accesses: QuerySet[Access],
+    *,
+    viewer: str | None = None,
+    owner: str | None = None,
+    robot: uuid.UUID | str | None = None,
+    topic: str | None = None,
+    verdict: str | None = None,
+    credential: str | None = None,
+    since: datetime | None = None,
+    until: datetime | None = None,
+) -> QuerySet[Access]:
+    """The accesses that match every filter given (None or empty: not filtered), as
+    verdict_list_filtered for views: `robot` and `topic` those all its records share,
+    `verdict` an outcome of any of its records; access times half-open, [since, until)."""
+    if viewer:
+        accesses = accesses.filter(viewer__user__username=viewer)
+    if owner:
+        accesses = accesses.filter(record_owner__user__username=owner)
+    if robot:
+        accesses = accesses.filter(robot_id=robot)
+    if topic:
+        accesses = accesses.filter(topic=topic)
+    if verdict:
+        found = Verdict.objects.filter(access=OuterRef("pk"), outcome=verdict)
+        accesses = accesses.filter(Exists(found))
+    if credential:
+        accesses = accesses.filter(credential=credential)
+    if since is not None:
+        accesses = accesses.filter(created_at__gte=since)
+    if until is not None:
+        accesses = accesses.filter(created_at__lt=until)
+    return accesses
+
+
+def access_log_filter_choices(owner: Owner, *, direction: str) -> dict[str, QuerySet]:
+    """What the access log's filters offer, each a small query run only when read: robots
+    (id, name, owner's username), topics, and the usernames of the other side (the owner and
+    grantees, or the owners who shared with the owner)."""
+    if direction == ACCESS_LOG_OUTGOING:
+        # Only what the owner's live grants let it read now (their scopes), never the rest of
+        # a granting owner's robots and topics, nor those of a revoked or expired grant.
+        robots = robots_in_scope_of(owner)
+        topics = record_list_shared_with(owner)
+        people = owners_granting(owner)
+    else:
+        robots = Robot.objects.filter(owner=owner)
+        topics = Record.objects.filter(owner=owner)
+        people = Owner.objects.filter(Q(pk=owner.pk) | Q(grants_received__owner=owner))
+    return {
+        "robots": robots.order_by("owner__user__username", "name").values_list(
+            "id", "name", "owner__user__username"
+        ),
+        "topics": topics.order_by("topic").values_list("topic", flat=True).distinct(),
+        "people": people.order_by("user__username")
+        .values_list("user__username", flat=True)
+        .distinct(),
+    }

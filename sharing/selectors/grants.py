@@ -1,0 +1,130 @@
+"""Reads of grants: which grants let a viewer read now (in the portal: active, not
+expired), an owner's grants given and received and their counts, the grants an owner API token
+made or changed, and the owner a grant names (by username or address)."""
+
+import uuid
+from collections.abc import Iterable
+
+from django.db.models import Q, QuerySet
+from django.utils import timezone
+
+from accounts.models import Owner, OwnerToken, Robot
+from accounts.selectors import owner_by_identifier
+from sharing.errors import OwnerNotFound
+from sharing.models import Grant, GrantChange, Record
+
+
+def _unexpired() -> Q:
+    return Q(expires_at__isnull=True) | Q(expires_at__gt=timezone.now())
+
+
+def grant_list_live_received(viewer: Owner) -> QuerySet[Grant]:
+    """The grants that let `viewer` read now, in the portal: active and not expired."""
+    return Grant.objects.filter(_unexpired(), grantee=viewer, status=Grant.Status.ACTIVE)
+
+
+def grant_live(*, owner_id: int, viewer: Owner) -> Grant | None:
+    """The grant from the owner that lets `viewer` read now, in the portal, if any."""
+    return grant_list_live_received(viewer).filter(owner_id=owner_id).first()
+
+
+def owners_granting(viewer: Owner) -> QuerySet[Owner]:
+    """Owners whose grant to `viewer` is active (and not expired) in the portal."""
+    return Owner.objects.filter(pk__in=grant_list_live_received(viewer).values("owner_id"))
+
+
+def grant_list_given(owner: Owner) -> QuerySet[Grant]:
+    return Grant.objects.filter(owner=owner).select_related("grantee__user", "made_with_token")
+
+
+def grant_list_received(owner: Owner) -> QuerySet[Grant]:
+    return Grant.objects.filter(grantee=owner).select_related("owner__user")
+
+
+# A grant counts, on both sides alike, while it is active or being granted on chain; one being
+# revoked does not: its owner has taken it back.
+GRANTS_COUNTED = (Grant.Status.ACTIVE, Grant.Status.PENDING)
+
+
+def grants_described(grants: Iterable[Grant]) -> list[Grant]:
+    """The grants, each with `robot_names` (its scope's robots by name, in one query for all),
+    for the pages that show what a grant covers."""
+    grants = list(grants)
+    ids = {robot for grant in grants for robot in grant.scope_robots}
+    names = dict(Robot.objects.filter(pk__in=ids).values_list("pk", "name")) if ids else {}
+    for grant in grants:
+        grant.robot_names = sorted(
+            names.get(uuid.UUID(robot), "(removed robot)") for robot in grant.scope_robots
+        )
+    return grants
+
+
+def grant_count_given(owner: Owner) -> int:
+    return grant_list_given(owner).filter(_unexpired(), status__in=GRANTS_COUNTED).count()
+
+
+def grant_count_received(owner: Owner) -> int:
+    return grant_list_received(owner).filter(_unexpired(), status__in=GRANTS_COUNTED).count()
+
+
+def grant_topic_choices(owner: Owner, robots: list[Robot]) -> list[str]:
+    """Topics a grant of the owner's may name: those of its records and those its robots'
+    agents are set up for, sorted."""
+    recorded = Record.objects.filter(owner=owner).values_list("topic", flat=True).distinct()
+    configured = {entry["name"] for robot in robots for entry in robot.topics}
+    return sorted({*recorded, *configured})
+
+
+def grant_terms_of(owner: Owner, grantee: Owner) -> Grant | None:
+    """The owner's grant to `grantee` whose terms may be changed (pending or active)."""
+    return Grant.objects.filter(
+        owner=owner, grantee=grantee, status__in=[Grant.Status.PENDING, Grant.Status.ACTIVE]
+    ).first()
+
+
+def grant_list_made_with(token: OwnerToken) -> QuerySet[Grant]:
+    """Grants made with an owner API token that can still be revoked (pending or active)."""
+    return (
+        Grant.objects.filter(
+            made_with_token=token, status__in=(Grant.Status.PENDING, Grant.Status.ACTIVE)
+        )
+        .select_related("owner__user", "grantee__user")
+        .order_by("-created_at")
+    )
+
+
+def grant_list_changed_with(token: OwnerToken) -> list[tuple[Grant, dict]]:
+    """Live grants (pending or active) not made with `token` whose last change was, each with
+    the terms it had before that run of the token's changes (GrantChange.terms_before)."""
+    changed = (
+        Grant.objects.filter(
+            owner_id=token.owner_id,
+            status__in=(Grant.Status.PENDING, Grant.Status.ACTIVE),
+            changes__token=token,
+        )
+        .exclude(made_with_token=token)
+        .distinct()
+        .select_related("owner__user", "grantee__user")
+        .order_by("-created_at")
+    )
+    found = []
+    for grant in changed:
+        before = None
+        for change in grant.changes.order_by("-id"):
+            if change.token_id != token.pk or change.kind != GrantChange.Kind.CHANGED:
+                break
+            before = change.terms_before
+        if before is not None:
+            found.append((grant, before))
+    return found
+
+
+def owner_resolve(identifier: str) -> Owner:
+    """An owner named by username or by EOA address; OwnerNotFound for anything else."""
+    owner = owner_by_identifier(identifier)
+    if owner is None:
+        raise OwnerNotFound(
+            f"There is no owner with the username or address “{identifier.strip()}”: check the "
+            "spelling, or ask them for their username."
+        )
+    return owner

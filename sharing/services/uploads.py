@@ -1,0 +1,323 @@
+"""Uploads: a robot's envelopes checked, stored durably, and their anchoring queued.
+
+An upload is all or none and committed (the files made durable, then the rows) before it is
+acknowledged. Each envelope must parse, name its robot and owner, open under one of the owner's
+keys, carry the robot's signature if the robot is paired, and a sequence number above every
+earlier one of the robot; a refusal that may be an attack is a SecurityEvent. Anchoring
+(sharing/services/anchoring.py) is queued on commit and retried by the sweep (sweep.py).
+"""
+
+import logging
+import uuid
+from collections.abc import Sequence
+from contextlib import suppress
+from dataclasses import dataclass
+from datetime import UTC, datetime, timedelta
+from typing import NoReturn
+
+from django.conf import settings
+from django.db import transaction
+from django.utils import timezone
+from redis.exceptions import RedisError
+
+from accounts.identity import owner_identity_check
+from accounts.models import ChainState, OwnerKey, Robot
+from accounts.selectors import owner_key_bytes, owner_keys
+from core.commits import commits_durable
+from core.redis_client import get_redis
+from core.rows import FixedInsert, FixedUpdate
+from sharing.cache import envelope_cache_put_queued
+from sharing.disk import disk_room_check
+from sharing.errors import (
+    EnvelopeTooLarge,
+    ForgedEnvelope,
+    HeaderMismatch,
+    InvalidEnvelope,
+    ReplayedSequence,
+    SequenceConflict,
+    SignatureRefused,
+    StorageUnavailable,
+    UnknownKey,
+)
+from sharing.models import Record, SecurityEvent
+from sharing.services.anchoring import anchor_schedule_queued
+from sharing.storage import envelope_storage, envelopes_save
+from smcrypto import CryptoError, envelope, provenance, sm3
+
+logger = logging.getLogger(__name__)
+security_log = logging.getLogger("authros.security")
+
+# An envelope sealed under a key retired less than this long ago is still accepted from a robot
+# whose key file is updated by hand (a paired robot fetches the new key and re-seals). One
+# captured before the key was retired always is, from any robot (a spool filled while the robot
+# was offline), give or take settings.KEY_ROTATION_CLOCK_SKEW seconds of robot clock.
+KEY_ROTATION_GRACE = timedelta(hours=1)
+MAX_FIELD_LENGTH = 255
+EPOCH = datetime(1970, 1, 1, tzinfo=UTC)
+
+
+@dataclass(frozen=True)
+class _CheckedUpload:
+    record_id: uuid.UUID
+    data: bytes
+    header: dict
+    key: OwnerKey
+    captured_at: datetime
+    digest: str  # SM3 of data, hex
+    signer: str  # the robot key that signed it (hex), or "" (a robot added by hand)
+
+
+def record_create(*, robot: Robot, data: bytes) -> Record:
+    """Store one envelope uploaded by `robot`; see `record_create_batch`."""
+    return record_create_batch(robot=robot, envelopes=[data])[0]
+
+
+# An upload's two writes, their SQL written once (core/rows.py): the robot's last seq moved on
+# only if every seq of the upload is above it, and the new records.
+_ROBOT_SEQ_MOVE = FixedUpdate(
+    Robot,
+    columns=("last_seq", "last_upload_at"),
+    where="id = %s AND last_seq < %s",
+    params_of=("id", "last_seq"),
+)
+_RECORD_INSERT = FixedInsert(Record)
+
+
+def record_create_batch(*, robot: Robot, envelopes: Sequence[bytes]) -> list[Record]:
+    """Store envelopes uploaded by `robot`, all or none, and queue their anchoring.
+
+    Each must parse, name this robot and its owner, be sealed under the owner's current key
+    (or one retired after the envelope's capture time, or, for a robot not paired, within
+    KEY_ROTATION_GRACE) with a valid tag, and carry a sequence number above every earlier one
+    of this robot.
+    """
+    if not envelopes:
+        raise InvalidEnvelope("no envelopes in the upload")
+    owner_keys_read = owner_keys(robot.owner)  # read once, for the check and the unsealing
+    # The owner's commitment on chain must be the key the envelopes are sealed under.
+    owner_identity_check(owner=robot.owner, keys=owner_keys_read)
+    keys = _UploadKeys(owner_keys_read, robot)
+    checked = [_check_upload(robot, data, keys) for data in envelopes]
+    seqs = [c.header["seq"] for c in checked]
+    if seqs != sorted(set(seqs)):
+        raise InvalidEnvelope("sequence numbers in one upload must strictly increase")
+    disk_room_check(sum(len(upload.data) for upload in checked))
+    # The files first, durable before the transaction starts: the robot's row lock (and
+    # SQLite's write lock) is then held for the rows alone, not for a disk sync. Files of an
+    # upload refused or failed below are removed again.
+    names = envelopes_save(
+        envelope_storage(), [(f"{robot.owner_id}/{c.record_id}.env", c.data) for c in checked]
+    )
+    try:
+        with transaction.atomic():
+            # Moving the robot's last seq on is the check and the row lock in one statement:
+            # it only moves when every seq of the upload is above it.
+            moved = _ROBOT_SEQ_MOVE.run((seqs[-1], timezone.now()), (robot.pk, seqs[0]))
+            if not moved:
+                last_seq = Robot.objects.values_list("last_seq", flat=True).get(pk=robot.pk)
+                _sequence_check(robot, checked, last_seq=last_seq)
+            records = [
+                Record(
+                    id=upload.record_id,
+                    owner_id=robot.owner_id,
+                    robot=robot,
+                    topic=upload.header["topic"],
+                    data_type=upload.header["type"],
+                    seq=upload.header["seq"],
+                    captured_at=upload.captured_at,
+                    key_id=upload.key.key_id,
+                    digest=upload.digest,
+                    signer=upload.signer,
+                    size=len(upload.data),
+                    storage_name=name,
+                )
+                for upload, name in zip(checked, names, strict=True)
+            ]
+            _RECORD_INSERT.insert(records)
+            transaction.on_commit(lambda: _after_upload(robot.owner_id, checked))
+    except BaseException as refused:
+        # Nothing of a refused or failed upload stays behind, not even its files.
+        _files_forget(names)
+        if isinstance(refused, SequenceConflict):
+            _sequence_conflict_alarm(robot, refused.detail)  # outside the refused transaction
+        raise
+    # The robot drops its copies once answered: the rows must outlive a power loss too. (Not
+    # in the block above: the rows are committed, so their files stay whatever happens here;
+    # a robot told to send again is answered replayed_sequence, which it counts delivered.)
+    try:
+        commits_durable()
+    except OSError as exc:
+        logger.error("an upload's rows could not be made durable: %s", exc)
+        raise StorageUnavailable(
+            "the portal could not make the upload durable; send it again"
+        ) from exc
+    return records
+
+
+def _sequence_check(robot: Robot, checked: Sequence[_CheckedUpload], *, last_seq: int) -> NoReturn:
+    """An upload whose first seq is not above the robot's last: ReplayedSequence if these very
+    envelopes are stored (the agent counts them delivered), else SequenceConflict and a
+    SecurityEvent (the agent keeps them as refused, and the owner is told)."""
+    stored = dict(
+        Record.objects.filter(robot=robot, seq__in=[c.header["seq"] for c in checked]).values_list(
+            "seq", "digest"
+        )
+    )
+    if all(stored.get(c.header["seq"]) == c.digest for c in checked):
+        raise ReplayedSequence(f"seq {checked[0].header['seq']} is stored already, as sent")
+    seq = checked[0].header["seq"]
+    raise SequenceConflict(
+        f"seq {seq} is not above {last_seq}, the last one of this robot, and is not data this "
+        "robot uploaded: check the robot, and revoke its token if it is not in your hands",
+        detail={"robot": str(robot.id), "seq": seq, "last_seq": last_seq},
+    )
+
+
+def _sequence_conflict_alarm(robot: Robot, detail: dict) -> None:
+    SecurityEvent.objects.create(
+        kind=SecurityEvent.Kind.SEQUENCE_CONFLICT, owner=robot.owner, detail=detail
+    )
+    security_log.warning(
+        "robot %s uploaded seq %s, not above its last %s, with other data than it stored",
+        detail["robot"],
+        detail["seq"],
+        detail["last_seq"],
+    )
+
+
+def _files_forget(names: Sequence[str]) -> None:
+    storage = envelope_storage()
+    for name in names:
+        with suppress(OSError):
+            storage.delete(name)
+
+
+def _after_upload(owner_id: int, uploads: Sequence[_CheckedUpload]) -> None:
+    """Cache the envelopes and queue the owner's anchoring, in one round trip to Redis."""
+    items = [(upload.record_id, upload.data) for upload in uploads]
+    with get_redis().pipeline(transaction=False) as pipe:
+        finishers = [
+            finish
+            for finish in (
+                envelope_cache_put_queued(pipe, items),
+                anchor_schedule_queued(pipe, owner_id=owner_id),
+            )
+            if finish is not None
+        ]
+        try:
+            answers = pipe.execute(raise_on_error=False)
+        except RedisError as exc:  # Redis unreachable: each says what that means for it
+            answers = [exc] * len(finishers)
+    for finish, answer in zip(finishers, answers, strict=True):
+        finish(answer)
+
+
+class _UploadKeys:
+    """The owner's keys an upload may be sealed under, each unwrapped once per upload: the
+    current key, one retired after the envelope's capture (give or take
+    settings.KEY_ROTATION_CLOCK_SKEW), or, for a robot not paired, one retired within
+    KEY_ROTATION_GRACE (a paired robot fetches the new key and re-seals)."""
+
+    def __init__(self, keys: Sequence[OwnerKey], robot: Robot) -> None:
+        self._keys = {key.key_id: key for key in keys}
+        self._unwrapped: dict[str, bytes] = {}
+        self._grace_start = None if robot.public_key else timezone.now() - KEY_ROTATION_GRACE
+        self._skew = timedelta(seconds=settings.KEY_ROTATION_CLOCK_SKEW)
+
+    def get(self, key_id: str, captured_at: datetime) -> tuple[OwnerKey, bytes] | None:
+        """The key `key_id` and its bytes, or None if an envelope captured at `captured_at` may
+        not be sealed under it."""
+        key = self._keys.get(key_id)
+        if key is None or not self._usable(key, captured_at):
+            return None
+        if key_id not in self._unwrapped:
+            self._unwrapped[key_id] = owner_key_bytes(key)
+        return key, self._unwrapped[key_id]
+
+    def _usable(self, key: OwnerKey, captured_at: datetime) -> bool:
+        if key.is_current:
+            return True
+        if key.retired_at is None:
+            return False
+        if self._grace_start is not None and key.retired_at > self._grace_start:
+            return True
+        return captured_at <= key.retired_at + self._skew
+
+
+def _check_upload(robot: Robot, data: bytes, keys: _UploadKeys) -> _CheckedUpload:
+    if len(data) > settings.ENVELOPE_MAX_BYTES:
+        raise EnvelopeTooLarge(
+            f"envelope of {len(data)} bytes is above the limit of {settings.ENVELOPE_MAX_BYTES}"
+        )
+    try:
+        info = envelope.read_header(data)
+    except CryptoError as exc:
+        raise InvalidEnvelope(str(exc)) from None
+    header = info.header
+    owner = robot.owner
+    if header["owner"] != owner.username or header["robot"] != str(robot.id):
+        raise HeaderMismatch("the envelope's owner and robot must be this robot's")
+    for field in ("topic", "type"):
+        if len(header[field]) > MAX_FIELD_LENGTH:
+            raise InvalidEnvelope(f"{field} is longer than {MAX_FIELD_LENGTH} characters")
+        if "\x00" in header[field]:
+            raise InvalidEnvelope(f"{field} contains a NUL character")
+    captured_at = datetime.fromisoformat(header["time"].replace("Z", "+00:00"))
+    usable = keys.get(info.key_id.hex(), captured_at)
+    if usable is None:
+        raise UnknownKey("the envelope is not sealed under the owner's current key")
+    key, key_bytes = usable
+    try:
+        _sealed_header, plaintext = envelope.open(key_bytes, data)
+    except CryptoError:
+        SecurityEvent.objects.create(
+            kind=SecurityEvent.Kind.FORGED_UPLOAD,
+            owner=owner,
+            detail={"robot": str(robot.id), "seq": header["seq"], "topic": header["topic"]},
+        )
+        security_log.warning("forged upload refused: robot %s seq %s", robot.id, header["seq"])
+        raise ForgedEnvelope("the envelope does not open under the owner's key") from None
+    if captured_at < EPOCH:
+        # The chain stores capture times as unsigned microseconds since 1970.
+        raise InvalidEnvelope("the capture time must be 1970-01-01T00:00:00Z or later")
+    signer = _signature_check(robot, header, plaintext)
+    data = bytes(data)
+    return _CheckedUpload(uuid.uuid4(), data, header, key, captured_at, sm3.sm3_hex(data), signer)
+
+
+def _signature_check(robot: Robot, header: dict, plaintext: bytes) -> str:
+    """The robot key that signed the envelope (DESIGN.md "Provenance"), "" for a robot added by
+    hand that signs nothing. A paired robot's envelope must carry `signer` and `sig`, name the
+    robot's own key, and its signature must hold over the plaintext; a robot added by hand has
+    no key, so an envelope of its naming one is refused too. Each refusal is a SecurityEvent."""
+    signed = "signer" in header or "sig" in header
+    if not robot.key_hash and not signed:
+        return ""
+    if not signed:
+        _signature_refused(robot, header, SecurityEvent.Kind.UNSIGNED_UPLOAD)
+        raise SignatureRefused(
+            "the envelope carries no robot signature (signer, sig): a paired robot signs every "
+            "envelope with its pairing key"
+        )
+    if not robot.key_hash or header.get("signer") != robot.key_hash:
+        _signature_refused(robot, header, SecurityEvent.Kind.FOREIGN_SIGNER)
+        raise SignatureRefused("the envelope is signed by a key that is not this robot's")
+    if robot.key_chain_state == ChainState.FAILED:
+        # Its records could never be anchored as genuine (another account registered the key
+        # first, or it was revoked before): refused rather than kept waiting for good.
+        raise SignatureRefused(
+            "this robot's key could not be registered on chain for its owner: pair the robot "
+            "again (a new key)"
+        )
+    if not provenance.verify_header(robot.public_key, header, plaintext):
+        _signature_refused(robot, header, SecurityEvent.Kind.BAD_SIGNATURE)
+        raise SignatureRefused("the envelope's robot signature does not match its content")
+    return robot.key_hash
+
+
+def _signature_refused(robot: Robot, header: dict, kind: str) -> None:
+    detail = {"robot": str(robot.id), "seq": header["seq"], "topic": header["topic"]}
+    if isinstance(header.get("signer"), str):
+        detail["signer"] = header["signer"][:64]
+    SecurityEvent.objects.create(kind=kind, owner=robot.owner, detail=detail)
+    security_log.warning("upload refused (%s): robot %s seq %s", kind, robot.id, header["seq"])
