@@ -49,6 +49,13 @@ class AnchorRoot(models.Model):
         return f"{self.owner} root {self.root[:12]} ({self.size}, {self.status})"
 
 
+class RecordQuerySet(models.QuerySet):
+    def live(self) -> "RecordQuerySet":
+        """The records not deleted: a tombstone (deleted_at set) keeps its row, digest and proof,
+        but is no record anyone lists, opens or exports."""
+        return self.filter(deleted_at__isnull=True)
+
+
 class Record(models.Model):
     """One envelope: its bytes live in durable storage, its SM3 digest on chain."""
 
@@ -108,6 +115,8 @@ class Record(models.Model):
     purged_at = models.DateTimeField(
         null=True, blank=True, help_text="when its ciphertext left storage and cache"
     )
+
+    objects = RecordQuerySet.as_manager()
 
     class Meta:
         ordering = ["-captured_at"]

@@ -129,8 +129,8 @@ def robot_latest_anchored(robot: Robot, *, data_types: frozenset[str] | set[str]
             robot=robot,
             data_type=data_type,
             status=Record.Status.ANCHORED,
-            deleted_at__isnull=True,
         )
+        .live()
         .select_related("owner", "robot")
         .order_by("-captured_at", "-seq")
         .first()

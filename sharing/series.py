@@ -127,7 +127,7 @@ def series_records(viewer: Owner, query: SeriesQuery) -> list[Record]:
     )
     in_range = (
         selection.apply(record_list_visible_to(viewer))
-        .filter(deleted_at__isnull=True)
+        .live()
         # One owner instance for all its records (its key is looked up per owner), no joins.
         .select_related(None)
         .prefetch_related("owner")

@@ -79,7 +79,7 @@ def record_list_filtered(
     if status == RECORD_STATUS_DELETED:
         records = records.filter(deleted_at__isnull=False)
     else:
-        records = records.filter(deleted_at__isnull=True)
+        records = records.live()
     records = RecordSelection.from_filters(
         robot=robot, topic=topic, since=since, until=until
     ).apply(records)
@@ -134,7 +134,7 @@ def robots_in_scope_of(viewer: Owner) -> QuerySet[Robot]:
 def record_counts_of(owner: Owner) -> dict[str, int]:
     """The owner's records not deleted: all, pending, failed and tampered; each one count over
     an index (record_owner_status, record_owner_tampered), never a scan of the records."""
-    owned = Record.objects.filter(owner=owner, deleted_at__isnull=True)
+    owned = Record.objects.filter(owner=owner).live()
     return {
         "total": owned.count(),
         "pending": owned.filter(status=Record.Status.PENDING).count(),
@@ -154,7 +154,8 @@ def record_list_same_topic(
     )
     return (
         around.apply(record_list_visible_to(viewer))
-        .filter(data_type=record.data_type, deleted_at__isnull=True)
+        .filter(data_type=record.data_type)
+        .live()
         .order_by("captured_at", "seq")
     )
 
@@ -171,12 +172,15 @@ def record_neighbours(record: Record, *, viewer: Owner) -> tuple[Record | None, 
     """The records just before and just after it of its robot and topic (by capture time, then
     sequence number) that `viewer` may see and that are not deleted: a record page's previous
     and next. Two seeks in the index record_owner_topic_captured."""
-    same = record_list_visible_to(viewer).filter(
-        owner_id=record.owner_id,
-        robot_id=record.robot_id,
-        topic=record.topic,
-        data_type=record.data_type,
-        deleted_at__isnull=True,
+    same = (
+        record_list_visible_to(viewer)
+        .filter(
+            owner_id=record.owner_id,
+            robot_id=record.robot_id,
+            topic=record.topic,
+            data_type=record.data_type,
+        )
+        .live()
     )
     at, seq = record.captured_at, record.seq
     before = (

@@ -130,7 +130,7 @@ def record_selection(
     until: datetime | None = None,
 ) -> QuerySet[Record]:
     """The owner's records of a selection that are not deleted yet."""
-    records = Record.objects.filter(owner=owner, deleted_at__isnull=True)
+    records = Record.objects.filter(owner=owner).live()
     if record_ids is not None:
         records = records.filter(pk__in=list(record_ids))
     selection = RecordSelection.from_filters(robot=robot, topic=topic, since=since, until=until)
@@ -140,7 +140,7 @@ def record_selection(
 def _tombstone(records: QuerySet[Record], *, reason: str, actor: AbstractBaseUser | None) -> int:
     """Step 1: mark the records deleted (those not deleted already); how many were. Exports
     that hold any of them are withdrawn after commit, their files removed with the data."""
-    deleted = records.filter(deleted_at__isnull=True).update(
+    deleted = records.live().update(
         deleted_at=timezone.now(), deleted_by=actor, deletion_reason=reason
     )
     if deleted:
@@ -233,9 +233,7 @@ def _retention_run(now: datetime) -> dict[str, int]:
     ).order_by("pk")
     for robot in robots:
         cutoff = now - timedelta(days=robot.retention_days)
-        expired = Record.objects.filter(
-            robot=robot, deleted_at__isnull=True, captured_at__lt=cutoff
-        )
+        expired = Record.objects.filter(robot=robot).live().filter(captured_at__lt=cutoff)
         while budget > 0:
             with transaction.atomic():
                 ids = list(

@@ -76,7 +76,7 @@ def _real_values(case: Any, choice: dict[str, Any] | None) -> Any:
             case.body = {"grantee": value}
         elif (method, path) == ("DELETE", "/api/v1/records/{record_id}/"):
             # Deleting the real records would leave every later case about them a 410
-            # (tests/sharing/test_deletion.py covers deleting); random ids still reach it.
+            # (tests/sharing/services/test_deletion.py covers deleting); random ids still reach it.
             continue
         elif case.path_parameters and name in case.path_parameters:
             case.path_parameters = {**case.path_parameters, name: value}

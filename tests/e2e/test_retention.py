@@ -113,7 +113,7 @@ def test_retention_deletion_and_robot_removal_with_confirmation(
     expect(confirm).to_be_in_viewport()
     confirm.click()
     expect(phone.locator("body")).to_contain_text("2 records deleted.")
-    assert Record.objects.filter(deleted_at__isnull=True).count() == 0
+    assert Record.objects.live().count() == 0
 
     phone.goto(f"{base}/robots/")
     no_sideways_scroll(phone)

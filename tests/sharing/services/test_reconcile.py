@@ -20,7 +20,7 @@ from sharing.services.grants import grant_create, grant_revoke
 from sharing.verification import records_verify
 from smcrypto import sm4
 
-# Records mode: what the chain holds per record id. Roots: tests/sharing/test_roots.py.
+# Records mode: what the chain holds per record id. Roots: tests/sharing/services/test_roots.py.
 pytestmark = [pytest.mark.django_db, pytest.mark.usefixtures("records_mode")]
 
 
