@@ -1,13 +1,16 @@
-"""What anchoring runs (one record per slot, or Merkle roots) share while they wait: their
-hold on an owner's lock, receipts awaited in steps that keep that hold alive, an owner's
-account that cannot pay for gas, and records whose robot's key is not on chain yet."""
+"""What anchoring runs (one record per slot, or Merkle roots) share while they wait: receipts
+awaited in steps that keep the owner's lock alive (core.locks.lock_renew), an owner's account
+that cannot pay for gas, and records whose robot's key is not on chain yet.
+
+Losing the owner's lock is safe, not fatal: a record id is written once on chain (records mode)
+and a sender's roots are chained by prevRoot (root mode), so a duplicate send is refused and
+settled from the chain. A run that lost it stops after the batch in hand."""
 
 import logging
 import time
 
 from django.conf import settings
 from django.db.models import Q, QuerySet
-from redis.exceptions import LockError, RedisError
 from redis.lock import Lock
 from web3.types import TxReceipt
 
@@ -15,6 +18,7 @@ from accounts.models import ChainState, Owner
 from alerts.services import anchoring_failed_alert
 from chainworker.chain import AuthROSChain, TransactionTimeout
 from chainworker.work import WAITING_FOR_GAS
+from core.locks import lock_renew
 from core.outbox import enqueue
 from sharing.models import Record
 
@@ -25,21 +29,6 @@ logger = logging.getLogger("sharing.services.anchoring")
 # their anchoring block (DESIGN.md "A record is genuine"). They use up no attempt meanwhile;
 # unsigned records (a robot added by hand) never wait.
 AWAITING_ROBOT_KEY = ~Q(signer="") & ~Q(robot__key_chain_state=ChainState.CONFIRMED)
-
-
-def lock_renew(lock: Lock) -> bool:
-    """Extend our hold on a lock; False if it expired meanwhile (another worker may own it).
-
-    Losing it is safe, not fatal: a record id is written once on chain (records mode) and a
-    sender's roots are chained by prevRoot (root mode), so a duplicate send is refused and
-    settled from the chain. We stop after the batch in hand.
-    """
-    try:
-        lock.reacquire()
-    except (LockError, RedisError) as exc:
-        logger.warning("lost lock %s (%s); finishing the batch in hand", lock.name, exc)
-        return False
-    return True
 
 
 def receipt_await(client: AuthROSChain, tx_hash: str, lock: Lock) -> TxReceipt:

@@ -20,7 +20,7 @@ from django.db.models import Count, F, Max, Min
 from django.utils import timezone
 from redis import Redis
 from redis.client import Pipeline
-from redis.exceptions import LockError, RedisError
+from redis.exceptions import RedisError
 from redis.lock import Lock
 
 from accounts.models import ChainActivity, ChainState, Owner, Robot
@@ -39,6 +39,7 @@ from chainworker.chain import (
 )
 from chainworker.services import chain_client, chain_stall_check, chain_work_check
 from chainworker.work import CHAIN_TASK, TRANSIENT, ChainWorkNotReady
+from core.locks import LockUnavailable, lock_held, lock_renew
 from core.outbox import enqueue
 from core.redis_client import get_redis, redis_key
 from sharing.models import Record, SecurityEvent
@@ -46,7 +47,6 @@ from sharing.services.anchor_wait import (
     AWAITING_ROBOT_KEY,
     gas_wait_end,
     gas_wait_start,
-    lock_renew,
     receipt_await,
     records_fail_exhausted,
 )
@@ -189,21 +189,17 @@ def _anchor_run(owner_id: int) -> tuple[int, int | None]:
         raise ChainWorkNotReady(f"{owner} is not registered on chain yet")
     chain_work_check()  # nothing goes to a reset chain
     # Short, and renewed while waiting for receipts, so a killed worker frees it quickly.
-    lock = get_redis().lock(
-        redis_key("work", f"anchor:{owner_id}"), timeout=settings.ANCHOR_LOCK_TTL
-    )
     try:
-        if not lock.acquire(blocking=False):
-            return 0, None
-    except RedisError as exc:
+        with lock_held(
+            redis_key("work", f"anchor:{owner_id}"), timeout=settings.ANCHOR_LOCK_TTL
+        ) as lock:
+            if lock is None:
+                return 0, None
+            _wait_for_batch_to_fill(owner_id)
+            anchor_round = roots_anchor_round if settings.ANCHOR_MODE == "root" else _anchor_round
+            return anchor_round(chain_client(), owner, lock)
+    except LockUnavailable as exc:
         raise ChainWorkNotReady(f"cannot lock owner {owner_id} in Redis: {exc}") from exc
-    try:
-        _wait_for_batch_to_fill(owner_id)
-        anchor_round = roots_anchor_round if settings.ANCHOR_MODE == "root" else _anchor_round
-        return anchor_round(chain_client(), owner, lock)
-    finally:
-        with suppress(LockError, RedisError):
-            lock.release()
 
 
 def records_reanchor(*, record_ids: Sequence[uuid.UUID]) -> int:

@@ -35,13 +35,13 @@ from django.contrib.auth.base_user import AbstractBaseUser
 from django.db import transaction
 from django.db.models import QuerySet
 from django.utils import timezone
-from redis.exceptions import LockError, RedisError
 
 from accounts.events import account_event_record
 from accounts.models import AccountEvent, Owner, Robot
 from accounts.services.owners import owner_close, owner_password_confirm
+from core.locks import LockUnavailable, lock_held
 from core.outbox import enqueue
-from core.redis_client import get_redis, redis_key
+from core.redis_client import redis_key
 from sharing.cache import envelope_cache_evict
 from sharing.errors import NoGrant, NotDeletableYet, NotRecordOwner, RecordNotFound
 from sharing.models import Grant, Record
@@ -208,19 +208,15 @@ def retention_apply(*, now: datetime | None = None) -> dict[str, int]:
     One run at a time (a Redis lock): another run meanwhile returns at once, `skipped`.
     """
     try:
-        lock = get_redis().lock(
+        with lock_held(
             redis_key("work", RETENTION_LOCK), timeout=settings.RETENTION_LOCK_TTL
-        )
-        if not lock.acquire(blocking=False):
-            return {"skipped": 1}
-    except RedisError as exc:
+        ) as lock:
+            if lock is None:
+                return {"skipped": 1}
+            return _retention_run(now or timezone.now())
+    except LockUnavailable as exc:
         logger.warning("retention not run: Redis unavailable (%s)", exc)
         return {"skipped": 1}
-    try:
-        return _retention_run(now or timezone.now())
-    finally:
-        with suppress(LockError, RedisError):
-            lock.release()
 
 
 def _retention_run(now: datetime) -> dict[str, int]:

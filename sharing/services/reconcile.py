@@ -13,9 +13,8 @@ the node is still the chain the portal deployed on (chainworker.services.chain_i
 """
 
 import logging
-import threading
 from collections.abc import Iterator
-from contextlib import contextmanager, suppress
+from contextlib import contextmanager
 from datetime import timedelta
 from typing import Any
 
@@ -23,7 +22,6 @@ from django.conf import settings
 from django.db import transaction
 from django.db.models import Exists, OuterRef, QuerySet
 from django.utils import timezone
-from redis.exceptions import LockError, RedisError
 
 from accounts.models import ChainState, Owner
 from accounts.services.registration import owners_chain_reset, owners_reconcile
@@ -38,8 +36,9 @@ from chainworker.services import (
     reconcile_window,
 )
 from chainworker.work import ChainWorkNotReady
+from core.locks import lock_held
 from core.outbox import enqueue
-from core.redis_client import get_redis, redis_key
+from core.redis_client import redis_key
 from sharing.models import AnchorRoot, Grant, Record, SecurityEvent
 from sharing.scope import scope_commitment
 from sharing.services.anchoring import anchor_schedule, record_chain_mismatch
@@ -98,30 +97,15 @@ def chain_resync() -> dict[str, object]:
 def _reconcile_lock(*, wait: float) -> Iterator[None]:
     """Hold the reconciliation lock, renewed every RECONCILE_LOCK_TTL / 3 seconds by a thread
     while the run goes on; ChainWorkNotReady if another run holds it after `wait` seconds."""
-    lock = get_redis().lock(
+    with lock_held(
         redis_key("work", RECONCILE_LOCK),
         timeout=RECONCILE_LOCK_TTL,
-        blocking_timeout=wait,
-        thread_local=False,  # renewed from another thread
-    )
-    if not lock.acquire():
-        raise ChainWorkNotReady("a reconciliation is under way in another worker")
-    done = threading.Event()
-
-    def renew() -> None:
-        while not done.wait(RECONCILE_LOCK_TTL / 3):
-            with suppress(LockError, RedisError):
-                lock.reacquire()
-
-    renewer = threading.Thread(target=renew, name="reconcile-lock", daemon=True)
-    renewer.start()
-    try:
+        wait=wait,
+        renew_every=RECONCILE_LOCK_TTL / 3,
+    ) as lock:
+        if lock is None:
+            raise ChainWorkNotReady("a reconciliation is under way in another worker")
         yield
-    finally:
-        done.set()
-        renewer.join()
-        with suppress(LockError, RedisError):
-            lock.release()
 
 
 def _resync() -> dict[str, object]:

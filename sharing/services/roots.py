@@ -42,12 +42,12 @@ from chainworker.chain import (
     TransactionTimeout,
 )
 from chainworker.services import chain_stall_check
+from core.locks import lock_renew
 from sharing.models import AnchorRoot, Record
 from sharing.services.anchor_wait import (
     AWAITING_ROBOT_KEY,
     gas_wait_end,
     gas_wait_start,
-    lock_renew,
     receipt_await,
     records_fail_exhausted,
 )
