@@ -221,7 +221,7 @@ SIGNUP_APPROVAL = env.bool("SIGNUP_APPROVAL", default=False)
 # Seconds a robot's pairing request waits for its owner's answer before it expires.
 ROBOT_PAIRING_TTL = env.int("ROBOT_PAIRING_TTL", default=900)
 # An envelope sealed under a retired key is accepted when captured before the rotation, give or
-# take this many seconds of robot clock (sharing.services._upload_key).
+# take this many seconds of robot clock (sharing.services.uploads._UploadKeys).
 KEY_ROTATION_CLOCK_SKEW = env.float("KEY_ROTATION_CLOCK_SKEW", default=300.0)
 # On a development chain (anvil) the operator is topped up automatically.
 CHAIN_DEV_FAUCET = env.bool("CHAIN_DEV_FAUCET", default=True)
