@@ -81,13 +81,7 @@ from sharing.selectors.records import (
     record_list_visible_to,
     record_proof,
 )
-from sharing.series import (
-    DEFAULT_POINTS,
-    MAX_FIELDS,
-    MAX_POINTS,
-    series_of,
-    series_query_make,
-)
+from sharing.series import DEFAULT_POINTS, MAX_FIELDS, MAX_POINTS, series_of, series_query_make
 from sharing.services.deletion import record_delete
 from sharing.services.grants import GRANT_MADE_WITH, grant_create, grant_revoke, grant_terms_change
 from sharing.services.uploads import record_create_batch
