@@ -1,0 +1,178 @@
+"""What the API views of sharing share: serializer fields, the pagination, the robot-only
+permission, the schema's security requirements and refusal wording, and the small helpers
+of the caller (its credential, a record id that refuses like a record not seen)."""
+
+import base64
+import binascii
+import uuid
+from typing import Any
+
+from django.core.validators import ProhibitNullCharactersValidator, RegexValidator
+from drf_spectacular.types import OpenApiTypes
+from drf_spectacular.utils import (
+    OpenApiParameter,
+    extend_schema_field,
+)
+from rest_framework import serializers
+from rest_framework.pagination import LimitOffsetPagination
+from rest_framework.permissions import BasePermission
+from rest_framework.request import Request
+from rest_framework.views import APIView
+
+from accounts.authentication import (
+    caller_owner_token,
+    caller_robot,
+)
+from accounts.models import OwnerToken
+from sharing.errors import (
+    NOT_VISIBLE,
+    RecordNotFound,
+)
+from sharing.models import Verdict
+
+# A username is at most 150 characters, an address 42.
+MAX_OWNER_IDENTIFIER = 150
+NO_NUL = "NUL characters are not allowed"
+
+ROBOT_ONLY = [{"robotToken": []}]
+# Content and grants: the owner, signed in or with an owner API token; never a robot token.
+OWNER_ONLY = [{"ownerToken": []}, {"cookieAuth": []}]
+READ, SHARE, DELETE = OwnerToken.Scope.READ, OwnerToken.Scope.SHARE, OwnerToken.Scope.DELETE
+ROBOT_REFUSED = (
+    "`permission_denied`: a robot token (it only uploads and reads its own uploads); "
+    "`insufficient_scope`: an owner API token without the `{scope}` scope"
+)
+RECORD_ID = OpenApiParameter(
+    "record_id", OpenApiTypes.UUID, OpenApiParameter.PATH, description="the record's id"
+)
+
+
+@extend_schema_field(
+    {
+        "type": "string",
+        "format": "byte",
+        "minLength": 1,
+        "pattern": r"^(?:[A-Za-z0-9+/]{4})*(?:[A-Za-z0-9+/]{2}==|[A-Za-z0-9+/]{3}=)?$",
+    }
+)
+class Base64EnvelopeField(serializers.Field):
+    """An envelope v1 as standard base64 (RFC 4648, with padding)."""
+
+    default_error_messages = {
+        "not_text": "an envelope is sent as a base64 string",
+        "blank": "an envelope cannot be empty",
+        "not_base64": "not valid base64",
+    }
+
+    def to_internal_value(self, data: Any) -> bytes:
+        if not isinstance(data, str):
+            self.fail("not_text")
+        if not data:
+            self.fail("blank")
+        try:
+            return base64.b64decode(data, validate=True)
+        except (binascii.Error, ValueError):
+            self.fail("not_base64")
+
+    def to_representation(self, value: bytes) -> str:
+        return base64.b64encode(value).decode("ascii")
+
+
+class TextField(serializers.CharField):
+    """A string and only a string (DRF's CharField takes 5 for "5"), without NUL characters,
+    which the schema says too (a database may refuse them)."""
+
+    def __init__(self, **kwargs: Any) -> None:
+        super().__init__(**kwargs)
+        self.validators = [
+            validator
+            for validator in self.validators
+            if not isinstance(validator, ProhibitNullCharactersValidator)
+        ]
+        self.validators.append(RegexValidator(r"^[^\x00]*$", message=NO_NUL))
+
+    def to_internal_value(self, data: Any) -> str:
+        if not isinstance(data, str):
+            self.fail("invalid")
+        return super().to_internal_value(data)
+
+
+class NullIfBlankCharField(serializers.CharField):
+    """A text attribute that is blank until something happens, shown as null until then."""
+
+    def __init__(self, **kwargs: Any) -> None:
+        super().__init__(allow_null=True, read_only=True, **kwargs)
+
+    def to_representation(self, value: Any) -> str | None:
+        return str(value) if value else None
+
+
+class RecordPagination(LimitOffsetPagination):
+    """`?limit=&offset=`, refusing values out of range instead of guessing."""
+
+    default_limit = 50
+    max_limit = 500
+    max_offset = 10**9
+
+    def get_limit(self, request: Request) -> int:
+        return self._bounded(request, self.limit_query_param, 1, self.max_limit, self.default_limit)
+
+    def get_offset(self, request: Request) -> int:
+        return self._bounded(request, self.offset_query_param, 0, self.max_offset, 0)
+
+    @staticmethod
+    def _bounded(request: Request, name: str, lowest: int, highest: int, default: int) -> int:
+        raw = request.query_params.get(name)
+        if raw is None:
+            return default
+        if not (raw.isascii() and raw.isdigit() and len(raw) <= 10):
+            raise serializers.ValidationError({name: [f"must be an integer {lowest}..{highest}"]})
+        value = int(raw)
+        if not lowest <= value <= highest:
+            raise serializers.ValidationError({name: [f"must be an integer {lowest}..{highest}"]})
+        return value
+
+    def get_schema_operation_parameters(self, view: APIView) -> list[dict[str, Any]]:
+        return [
+            {
+                "name": self.limit_query_param,
+                "required": False,
+                "in": "query",
+                "description": "records per page",
+                "schema": {"type": "integer", "minimum": 1, "maximum": self.max_limit},
+            },
+            {
+                "name": self.offset_query_param,
+                "required": False,
+                "in": "query",
+                "description": "records to skip",
+                "schema": {"type": "integer", "minimum": 0, "maximum": self.max_offset},
+            },
+        ]
+
+
+class IsRobot(BasePermission):
+    message = "uploads need a robot token: `Authorization: Token <key>`"
+
+    def has_permission(self, request: Request, view: APIView) -> bool:
+        return caller_robot(request) is not None
+
+
+def record_uuid(record_id: str) -> uuid.UUID:
+    try:
+        return uuid.UUID(record_id)
+    except ValueError:
+        raise RecordNotFound(NOT_VISIBLE) from None
+
+
+def refuse_unseen(request: Request, record_id: uuid.UUID) -> None:
+    """A record the caller may not see: 404 whether it exists or not, outside a grant's scope
+    or not (nothing tells it exists)."""
+    raise RecordNotFound(NOT_VISIBLE)
+
+
+def caller_credential(request: Request) -> tuple[str, OwnerToken | None]:
+    """The owner's credential behind a request, as the access log records it: an owner API
+    token (with the token), else the browser session."""
+    token = caller_owner_token(request)
+    return (Verdict.Credential.SESSION if token is None else Verdict.Credential.TOKEN), token
