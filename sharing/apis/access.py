@@ -3,19 +3,14 @@ records shared with it."""
 
 from typing import Any
 
-from drf_spectacular.utils import (
-    extend_schema,
-)
+from drf_spectacular.utils import extend_schema
 from rest_framework import serializers
 from rest_framework.permissions import BasePermission, IsAuthenticated
 from rest_framework.request import Request
 from rest_framework.response import Response
 from rest_framework.views import APIView
 
-from accounts.authentication import (
-    OwnerCredential,
-    caller_owner,
-)
+from accounts.authentication import OwnerCredential, caller_owner
 from core.api_errors import error_responses
 from sharing.access_log import access_log_redacted
 from sharing.apis.fields import (

@@ -1,19 +1,14 @@
 """`/api/v1/records/{id}/content/`: a record's content, checked against the chain
 (`record_open`) and re-sealed under the caller's own current key."""
 
-from drf_spectacular.utils import (
-    extend_schema,
-)
+from drf_spectacular.utils import extend_schema
 from rest_framework import serializers
 from rest_framework.permissions import BasePermission, IsAuthenticated
 from rest_framework.request import Request
 from rest_framework.response import Response
 from rest_framework.views import APIView
 
-from accounts.authentication import (
-    OwnerCredential,
-    caller_owner,
-)
+from accounts.authentication import OwnerCredential, caller_owner
 from core.api_errors import error_responses
 from sharing.apis.fields import (
     OWNER_ONLY,

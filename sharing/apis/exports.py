@@ -2,38 +2,29 @@
 the caller's exports, creating one, counting a selection first, following one, rebuilding
 one under the caller's access now, and downloading its files."""
 
-from typing import Any
+from typing import ClassVar
 
 from django.http import StreamingHttpResponse
 from django.urls import reverse
 from drf_spectacular.types import OpenApiTypes
-from drf_spectacular.utils import (
-    OpenApiParameter,
-    OpenApiResponse,
-    extend_schema,
-)
+from drf_spectacular.utils import OpenApiParameter, OpenApiResponse, extend_schema
 from rest_framework import serializers, status
 from rest_framework.permissions import BasePermission, IsAuthenticated
 from rest_framework.request import Request
 from rest_framework.response import Response
 from rest_framework.views import APIView
 
-from accounts.authentication import (
-    OwnerCredential,
-    caller_owner,
-)
+from accounts.authentication import OwnerCredential, caller_owner
 from core.api_errors import ErrorSerializer, error_responses
 from sharing.apis.fields import (
     OWNER_ONLY,
     READ,
     ROBOT_REFUSED,
     NullIfBlankCharField,
-    TextField,
+    RecordSelectionSerializer,
     caller_credential,
 )
-from sharing.errors import (
-    ExportNotFound,
-)
+from sharing.errors import ExportNotFound
 from sharing.exports import (
     export_count,
     export_create,
@@ -42,10 +33,7 @@ from sharing.exports import (
     export_rebuild,
 )
 from sharing.models import Export
-from sharing.selection import MAX_SELECTED_ROBOTS, MAX_SELECTED_TOPICS, MAX_TOPIC_LENGTH
-from sharing.selectors import (
-    export_list_of,
-)
+from sharing.selectors import export_list_of
 
 
 class ExportOutputSerializer(serializers.Serializer):
@@ -93,34 +81,17 @@ def _export_file_url(export: Export, part: str) -> str | None:
     return reverse("api-v1:export-file", args=[export.pk, part])
 
 
-class ExportSelectionSerializer(serializers.Serializer):
+class ExportSelectionSerializer(RecordSelectionSerializer):
     """What to export: robots and topics (empty: all) and a capture-time window."""
 
     class Meta:
         ref_name = "ExportRequest"
 
-    robots = serializers.ListField(
-        child=serializers.UUIDField(),
-        required=False,
-        max_length=MAX_SELECTED_ROBOTS,
-        help_text="robot ids (empty or absent: every robot you may view)",
-    )
-    topics = serializers.ListField(
-        child=TextField(max_length=MAX_TOPIC_LENGTH),
-        required=False,
-        max_length=MAX_SELECTED_TOPICS,
-        help_text="topics (empty or absent: every topic)",
-    )
-    since = serializers.DateTimeField(required=False, help_text="captured at or after")
-    until = serializers.DateTimeField(required=False, help_text="captured before")
-
-
-def _selection_of(data: dict[str, Any]) -> dict[str, Any]:
-    return {
-        "robots": data.get("robots", ()),
-        "topics": data.get("topics", ()),
-        "since": data.get("since"),
-        "until": data.get("until"),
+    selection_help: ClassVar[dict[str, str]] = {
+        "robots": "robot ids (empty or absent: every robot you may view)",
+        "topics": "topics (empty or absent: every topic)",
+        "since": "captured at or after",
+        "until": "captured before",
     }
 
 
@@ -177,7 +148,7 @@ class ExportsApi(APIView):
             requester=caller_owner(request),
             credential=credential,
             token=token,
-            **_selection_of(payload.validated_data),
+            **payload.selection(),
         )
         export.refresh_from_db()
         return Response(ExportOutputSerializer(export).data, status=status.HTTP_202_ACCEPTED)
@@ -218,9 +189,7 @@ class ExportCountApi(APIView):
     def get(self, request: Request) -> Response:
         payload = ExportSelectionSerializer(data=request.query_params)
         payload.is_valid(raise_exception=True)
-        counted = export_count(
-            requester=caller_owner(request), **_selection_of(payload.validated_data)
-        )
+        counted = export_count(requester=caller_owner(request), **payload.selection())
         answer = {
             "count": counted.count,
             "limit": counted.limit,

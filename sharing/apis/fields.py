@@ -1,34 +1,33 @@
-"""What the API views of sharing share: serializer fields, the pagination, the robot-only
+"""What the API views of sharing share: serializer fields, the record selection's input
+(one serializer for every request that selects records), the pagination, the robot-only
 permission, the schema's security requirements and refusal wording, and the small helpers
 of the caller (its credential, a record id that refuses like a record not seen)."""
 
 import base64
 import binascii
+import dataclasses
 import uuid
-from typing import Any
+from typing import Any, ClassVar
 
 from django.core.validators import ProhibitNullCharactersValidator, RegexValidator
 from drf_spectacular.types import OpenApiTypes
-from drf_spectacular.utils import (
-    OpenApiParameter,
-    extend_schema_field,
-)
+from drf_spectacular.utils import OpenApiParameter, extend_schema_field
 from rest_framework import serializers
 from rest_framework.pagination import LimitOffsetPagination
 from rest_framework.permissions import BasePermission
 from rest_framework.request import Request
 from rest_framework.views import APIView
 
-from accounts.authentication import (
-    caller_owner_token,
-    caller_robot,
-)
+from accounts.authentication import caller_owner_token, caller_robot
 from accounts.models import OwnerToken
-from sharing.errors import (
-    NOT_VISIBLE,
-    RecordNotFound,
-)
+from sharing.errors import NOT_VISIBLE, RecordNotFound
 from sharing.models import Verdict
+from sharing.selection import (
+    MAX_SELECTED_ROBOTS,
+    MAX_SELECTED_TOPICS,
+    MAX_TOPIC_LENGTH,
+    RecordSelection,
+)
 
 # A username is at most 150 characters, an address 42.
 MAX_OWNER_IDENTIFIER = 150
@@ -42,6 +41,8 @@ ROBOT_REFUSED = (
     "`permission_denied`: a robot token (it only uploads and reads its own uploads); "
     "`insufficient_scope`: an owner API token without the `{scope}` scope"
 )
+# The names of a record selection's values, in every request that selects records.
+SELECTION_FIELDS = tuple(field.name for field in dataclasses.fields(RecordSelection))
 RECORD_ID = OpenApiParameter(
     "record_id", OpenApiTypes.UUID, OpenApiParameter.PATH, description="the record's id"
 )
@@ -105,6 +106,49 @@ class NullIfBlankCharField(serializers.CharField):
 
     def to_representation(self, value: Any) -> str | None:
         return str(value) if value else None
+
+
+class RecordSelectionSerializer(serializers.Serializer):
+    """The input of a record selection (sharing.selection.RecordSelection): robots and topics
+    (absent or empty: all) and a capture-time window [since, until), within the bounds that
+    `RecordSelection.of` holds. `selection()` gives the four values by RecordSelection's names,
+    as the services take them (they make the RecordSelection and refuse what it refuses).
+
+    The one definition of these fields for every request that selects records (a grant's terms,
+    an export, an export's count); each says its own words (`selection_help`, by field) and
+    whether `since` and `until` may be sent as null (`window_nullable`)."""
+
+    selection_help: ClassVar[dict[str, str]] = {}
+    window_nullable: ClassVar[bool] = False
+
+    robots = serializers.ListField(
+        child=serializers.UUIDField(), required=False, max_length=MAX_SELECTED_ROBOTS
+    )
+    topics = serializers.ListField(
+        child=TextField(max_length=MAX_TOPIC_LENGTH),
+        required=False,
+        max_length=MAX_SELECTED_TOPICS,
+    )
+    since = serializers.DateTimeField(required=False)
+    until = serializers.DateTimeField(required=False)
+
+    def get_fields(self) -> dict[str, serializers.Field]:
+        fields = super().get_fields()
+        for name in SELECTION_FIELDS:
+            fields[name].help_text = self.selection_help.get(name)
+        for name in ("since", "until"):
+            fields[name].allow_null = self.window_nullable
+        return fields
+
+    def selection(self) -> dict[str, Any]:
+        """robots, topics, since and until as given (absent: all robots, all topics, no bound)."""
+        data = self.validated_data
+        return {
+            "robots": data.get("robots", ()),
+            "topics": data.get("topics", ()),
+            "since": data.get("since"),
+            "until": data.get("until"),
+        }
 
 
 class RecordPagination(LimitOffsetPagination):

@@ -1,25 +1,17 @@
 """`/api/v1/grants/` and `/api/v1/grants/{grantee}/`: grants given and received, granting
 (with optional terms), changing a grant's terms, and revoking."""
 
-from typing import Any
+from typing import Any, ClassVar
 
 from drf_spectacular.types import OpenApiTypes
-from drf_spectacular.utils import (
-    OpenApiParameter,
-    OpenApiResponse,
-    extend_schema,
-)
+from drf_spectacular.utils import OpenApiParameter, OpenApiResponse, extend_schema
 from rest_framework import serializers, status
 from rest_framework.permissions import BasePermission, IsAuthenticated
 from rest_framework.request import Request
 from rest_framework.response import Response
 from rest_framework.views import APIView
 
-from accounts.authentication import (
-    OwnerCredential,
-    caller_owner,
-    caller_owner_token,
-)
+from accounts.authentication import OwnerCredential, caller_owner, caller_owner_token
 from core.api_errors import error_responses
 from sharing.apis.fields import (
     MAX_OWNER_IDENTIFIER,
@@ -27,14 +19,11 @@ from sharing.apis.fields import (
     ROBOT_REFUSED,
     SHARE,
     NullIfBlankCharField,
+    RecordSelectionSerializer,
     TextField,
 )
 from sharing.models import Grant
-from sharing.selection import MAX_SELECTED_ROBOTS, MAX_SELECTED_TOPICS, MAX_TOPIC_LENGTH
-from sharing.selectors import (
-    grant_list_given,
-    grant_list_received,
-)
+from sharing.selectors import grant_list_given, grant_list_received
 from sharing.services import (
     GRANT_MADE_WITH,
     GrantTerms,
@@ -99,30 +88,20 @@ class GrantOutputSerializer(serializers.Serializer):
     expired = serializers.BooleanField(source="is_expired", help_text="its expiry has passed")
 
 
-class GrantTermsInputSerializer(serializers.Serializer):
+class GrantTermsInputSerializer(RecordSelectionSerializer):
     """The optional terms of a grant: leave them all out for all records, without expiry."""
 
     class Meta:
         ref_name = "GrantTerms"
 
-    robots = serializers.ListField(
-        child=serializers.UUIDField(),
-        required=False,
-        max_length=MAX_SELECTED_ROBOTS,
-        help_text="only these robots' records (ids of your robots); default: all robots",
-    )
-    topics = serializers.ListField(
-        child=TextField(max_length=MAX_TOPIC_LENGTH),
-        required=False,
-        max_length=MAX_SELECTED_TOPICS,
-        help_text="only these topics' records; default: all topics",
-    )
-    since = serializers.DateTimeField(
-        required=False, allow_null=True, help_text="only records captured at or after (ISO 8601)"
-    )
-    until = serializers.DateTimeField(
-        required=False, allow_null=True, help_text="only records captured before (ISO 8601)"
-    )
+    selection_help: ClassVar[dict[str, str]] = {
+        "robots": "only these robots' records (ids of your robots); default: all robots",
+        "topics": "only these topics' records; default: all topics",
+        "since": "only records captured at or after (ISO 8601)",
+        "until": "only records captured before (ISO 8601)",
+    }
+    window_nullable: ClassVar[bool] = True
+
     expires_at = serializers.DateTimeField(
         required=False,
         allow_null=True,
@@ -131,14 +110,8 @@ class GrantTermsInputSerializer(serializers.Serializer):
     )
 
     def terms_for(self, owner: Any) -> GrantTerms:
-        data = self.validated_data
         return grant_terms_make(
-            owner=owner,
-            robots=data.get("robots", ()),
-            topics=data.get("topics", ()),
-            since=data.get("since"),
-            until=data.get("until"),
-            expires_at=data.get("expires_at"),
+            owner=owner, **self.selection(), expires_at=self.validated_data.get("expires_at")
         )
 
 

@@ -4,19 +4,14 @@ the stored envelope and the robot's signature), to check it without the portal."
 import base64
 import contextlib
 
-from drf_spectacular.utils import (
-    extend_schema,
-)
+from drf_spectacular.utils import extend_schema
 from rest_framework import serializers
 from rest_framework.permissions import BasePermission, IsAuthenticated
 from rest_framework.request import Request
 from rest_framework.response import Response
 from rest_framework.views import APIView
 
-from accounts.authentication import (
-    OwnerCredential,
-    caller_owner,
-)
+from accounts.authentication import OwnerCredential, caller_owner
 from chainworker.services import chain_client
 from core.api_errors import error_responses
 from sharing.apis.fields import (
@@ -28,14 +23,9 @@ from sharing.apis.fields import (
     refuse_unseen,
 )
 from sharing.cache import envelope_fetch
-from sharing.errors import (
-    NotAnchoredYet,
-)
+from sharing.errors import NotAnchoredYet
 from sharing.models import Record
-from sharing.selectors import (
-    record_list_visible_to,
-    record_proof,
-)
+from sharing.selectors import record_list_visible_to, record_proof
 from sharing.verification import record_signature
 
 

@@ -4,11 +4,7 @@ may read (filtered, a page at a time), one record's metadata, and its deletion."
 from typing import Any
 
 from django.db.models import QuerySet
-from drf_spectacular.utils import (
-    OpenApiResponse,
-    PolymorphicProxySerializer,
-    extend_schema,
-)
+from drf_spectacular.utils import OpenApiResponse, PolymorphicProxySerializer, extend_schema
 from rest_framework import serializers, status
 from rest_framework.permissions import BasePermission, IsAuthenticated
 from rest_framework.request import Request
@@ -49,9 +45,7 @@ from sharing.selectors import (
     record_list_uploaded_by,
     record_list_visible_to,
 )
-from sharing.services import (
-    record_create_batch,
-)
+from sharing.services import record_create_batch
 
 # Envelopes in one upload at most; the body size limit (413) bounds the bytes.
 MAX_ENVELOPES_PER_UPLOAD = 1000

@@ -3,30 +3,18 @@ it). Reads no content: nothing is checked against the chain."""
 
 from django.utils import timezone
 from drf_spectacular.types import OpenApiTypes
-from drf_spectacular.utils import (
-    OpenApiParameter,
-    extend_schema,
-)
+from drf_spectacular.utils import OpenApiParameter, extend_schema
 from rest_framework import serializers
 from rest_framework.permissions import BasePermission, IsAuthenticated
 from rest_framework.request import Request
 from rest_framework.response import Response
 from rest_framework.views import APIView
 
-from accounts.authentication import (
-    OwnerCredential,
-    caller_owner,
-)
+from accounts.authentication import OwnerCredential, caller_owner
 from accounts.lastseen import seen_ago_text
 from core.api_errors import error_responses
-from sharing.apis.fields import (
-    OWNER_ONLY,
-    READ,
-    ROBOT_REFUSED,
-)
-from sharing.errors import (
-    RobotNotFound,
-)
+from sharing.apis.fields import OWNER_ONLY, READ, ROBOT_REFUSED
+from sharing.errors import RobotNotFound
 from sharing.robot_status import RobotActivity, robot_activity, robot_of_owner
 
 

@@ -2,37 +2,18 @@
 record in it integrity-checked (sharing/series.py)."""
 
 from drf_spectacular.types import OpenApiTypes
-from drf_spectacular.utils import (
-    OpenApiParameter,
-    OpenApiResponse,
-    extend_schema,
-)
+from drf_spectacular.utils import OpenApiParameter, OpenApiResponse, extend_schema
 from rest_framework import serializers
 from rest_framework.permissions import BasePermission, IsAuthenticated
 from rest_framework.request import Request
 from rest_framework.response import Response
 from rest_framework.views import APIView
 
-from accounts.authentication import (
-    OwnerCredential,
-    caller_owner,
-)
+from accounts.authentication import OwnerCredential, caller_owner
 from core.api_errors import error_responses
-from sharing.apis.fields import (
-    OWNER_ONLY,
-    READ,
-    ROBOT_REFUSED,
-    TextField,
-    caller_credential,
-)
+from sharing.apis.fields import OWNER_ONLY, READ, ROBOT_REFUSED, TextField, caller_credential
 from sharing.selection import MAX_TOPIC_LENGTH
-from sharing.series import (
-    DEFAULT_POINTS,
-    MAX_FIELDS,
-    MAX_POINTS,
-    series_of,
-    series_query_make,
-)
+from sharing.series import DEFAULT_POINTS, MAX_FIELDS, MAX_POINTS, series_of, series_query_make
 
 
 class RecordSeriesApi(APIView):

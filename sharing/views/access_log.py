@@ -3,20 +3,14 @@ with them), one line per access, filtered, a page at a time or as a CSV download
 
 from django.contrib import messages
 from django.db.models import QuerySet
-from django.http import (
-    HttpRequest,
-    HttpResponse,
-    StreamingHttpResponse,
-)
+from django.http import HttpRequest, HttpResponse, StreamingHttpResponse
 from django.shortcuts import render
 from django.utils import timezone
 from django.views.decorators.http import require_GET
 
 from accounts.decorators import no_store, owner_required, page_throttle
 from sharing.access_log import access_log_csv, access_log_page
-from sharing.forms import (
-    AccessLogFilterForm,
-)
+from sharing.forms import AccessLogFilterForm
 from sharing.models import Access
 from sharing.selectors import (
     ACCESS_LOG_DIRECTIONS,

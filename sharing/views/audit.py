@@ -1,18 +1,13 @@
 """The audit trail page: the owner's transactions and the anchoring of their records."""
 
-from django.http import (
-    HttpRequest,
-    HttpResponse,
-)
+from django.http import HttpRequest, HttpResponse
 from django.shortcuts import render
 from django.views.decorators.http import require_GET
 
 from accounts.decorators import owner_required, page_throttle
 from accounts.models import Owner
 from sharing.audit import audit_page_of_owner
-from sharing.forms import (
-    AuditFilterForm,
-)
+from sharing.forms import AuditFilterForm
 from sharing.views.filters import say_left_out
 
 # Minutes of anchoring on one page of the audit trail.

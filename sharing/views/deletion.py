@@ -4,11 +4,7 @@ whole account (here rather than in accounts: it deletes records and revokes gran
 from django.contrib import messages
 from django.contrib.auth import logout
 from django.core.exceptions import PermissionDenied
-from django.http import (
-    Http404,
-    HttpRequest,
-    HttpResponse,
-)
+from django.http import Http404, HttpRequest, HttpResponse
 from django.shortcuts import redirect, render
 from django.views.decorators.cache import never_cache
 from django.views.decorators.http import require_http_methods
@@ -16,27 +12,11 @@ from django.views.decorators.http import require_http_methods
 from accounts.decorators import owner_required, page_throttle
 from accounts.errors import WrongPassword
 from accounts.models import Owner
-from sharing.deletion import (
-    account_delete,
-    record_delete,
-    record_selection,
-    records_delete,
-)
-from sharing.errors import (
-    NotRecordOwner,
-    RecordNotFound,
-    SharingError,
-)
-from sharing.forms import (
-    AccountDeleteForm,
-    RecordDeleteSelectionForm,
-)
+from sharing.deletion import account_delete, record_delete, record_selection, records_delete
+from sharing.errors import NotRecordOwner, RecordNotFound, SharingError
+from sharing.forms import AccountDeleteForm, RecordDeleteSelectionForm
 from sharing.models import Grant, Record
-from sharing.selectors import (
-    grant_list_given,
-    grant_list_received,
-    record_list_owned,
-)
+from sharing.selectors import grant_list_given, grant_list_received, record_list_owned
 
 
 @never_cache
@@ -81,7 +61,7 @@ def records_delete_view(request: HttpRequest) -> HttpResponse:
     if not form.is_bound or not form.is_valid():
         status = 400 if form.is_bound else 200
         return render(request, "sharing/records_delete.html", {"form": form}, status=status)
-    selection = form.filters()
+    selection = form.selection()
     if request.method == "POST":
         done = records_delete(owner=owner, actor=request.user, **selection)
         said = f"{done.deleted} record{'s' if done.deleted != 1 else ''} deleted."

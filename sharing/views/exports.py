@@ -4,20 +4,13 @@ exports, an export's progress and files, and rebuilding one under the owner's ac
 import uuid
 
 from django.contrib import messages
-from django.http import (
-    Http404,
-    HttpRequest,
-    HttpResponse,
-)
+from django.http import Http404, HttpRequest, HttpResponse
 from django.shortcuts import redirect, render
 from django.views.decorators.http import require_GET, require_http_methods, require_POST
 
 from accounts.decorators import no_store, owner_required, page_throttle
 from accounts.models import Owner
-from sharing.errors import (
-    ExportNotFound,
-    ExportRefused,
-)
+from sharing.errors import ExportNotFound, ExportRefused
 from sharing.exports import (
     export_count,
     export_create,
@@ -27,13 +20,9 @@ from sharing.exports import (
     export_selection_described,
     export_topics_visible,
 )
-from sharing.forms import (
-    ExportForm,
-)
+from sharing.forms import ExportForm
 from sharing.models import Verdict
-from sharing.selectors import (
-    export_list_of,
-)
+from sharing.selectors import export_list_of
 
 
 @owner_required
@@ -50,9 +39,7 @@ def exports(request: HttpRequest) -> HttpResponse:
     )
     counted = None
     if request.method == "POST" and form.is_valid():
-        selection = {
-            name: form.cleaned_data.get(name) for name in ("robots", "topics", "since", "until")
-        }
+        selection = form.selection()
         try:
             if "count" in request.POST:
                 counted = export_count(requester=owner, **selection)

@@ -1,13 +1,9 @@
 """What a list page (records, audit, access log) says of the filters it left out."""
 
 from django.contrib import messages
-from django.http import (
-    HttpRequest,
-)
+from django.http import HttpRequest
 
-from sharing.forms import (
-    PeriodFilterForm,
-)
+from sharing.forms import PeriodFilterForm
 
 
 def say_left_out(request: HttpRequest, form: PeriodFilterForm) -> None:

@@ -2,10 +2,7 @@
 grant of everything), and revoking, with the lists of grants given and received."""
 
 from django.contrib import messages
-from django.http import (
-    HttpRequest,
-    HttpResponse,
-)
+from django.http import HttpRequest, HttpResponse
 from django.shortcuts import redirect, render
 from django.views.decorators.cache import never_cache
 from django.views.decorators.http import require_GET, require_http_methods, require_POST
@@ -13,14 +10,8 @@ from django.views.decorators.http import require_GET, require_http_methods, requ
 from accounts.decorators import owner_required, page_throttle
 from accounts.models import Owner
 from accounts.selectors import owner_by_identifier, robot_list_of
-from sharing.errors import (
-    InvalidGrantTerms,
-    SharingError,
-)
-from sharing.forms import (
-    GrantForm,
-    GrantRevokeForm,
-)
+from sharing.errors import InvalidGrantTerms, SharingError
+from sharing.forms import GrantForm, GrantRevokeForm
 from sharing.models import Grant
 from sharing.selectors import (
     grant_list_given,
@@ -95,12 +86,7 @@ def _grant_give_or_change(request: HttpRequest, form: GrantForm) -> HttpResponse
         return render(request, "sharing/grant_confirm_all.html", context)
     try:
         terms = grant_terms_make(
-            owner=request.owner,
-            robots=data["robots"],
-            topics=data["topics"],
-            since=data["since"],
-            until=data["until"],
-            expires_at=data["expires_at"],
+            owner=request.owner, **form.selection(), expires_at=data["expires_at"]
         )
         if data["change"]:
             grant_terms_change(owner=request.owner, grantee=grantee, terms=terms)

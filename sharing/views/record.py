@@ -12,13 +12,7 @@ from datetime import datetime, timedelta
 
 from django.core.paginator import Paginator
 from django.db.models import QuerySet
-from django.http import (
-    Http404,
-    HttpRequest,
-    HttpResponse,
-    JsonResponse,
-    QueryDict,
-)
+from django.http import Http404, HttpRequest, HttpResponse, JsonResponse, QueryDict
 from django.shortcuts import render
 from django.urls import reverse
 from django.utils.http import urlencode
@@ -37,9 +31,7 @@ from sharing.errors import (
     SharingError,
     VerificationUnavailable,
 )
-from sharing.forms import (
-    TopicRangeForm,
-)
+from sharing.forms import TopicRangeForm
 from sharing.models import Access, Record, Verdict
 from sharing.selectors import (
     record_get_visible,

@@ -3,17 +3,12 @@ sorted and a page at a time."""
 
 from django.core.paginator import Paginator
 from django.db.models import QuerySet
-from django.http import (
-    HttpRequest,
-    HttpResponse,
-)
+from django.http import HttpRequest, HttpResponse
 from django.shortcuts import render
 from django.views.decorators.http import require_GET
 
 from accounts.decorators import owner_required, page_throttle
-from sharing.forms import (
-    RecordFilterForm,
-)
+from sharing.forms import RecordFilterForm
 from sharing.models import Record
 from sharing.selectors import (
     owners_granting,

@@ -2,11 +2,7 @@
 lists and revokes the grants the token made, and gives grants it changed their terms back."""
 
 from django.contrib import messages
-from django.http import (
-    Http404,
-    HttpRequest,
-    HttpResponse,
-)
+from django.http import Http404, HttpRequest, HttpResponse
 from django.shortcuts import redirect, render
 from django.views.decorators.cache import never_cache
 from django.views.decorators.http import require_http_methods
@@ -14,14 +10,8 @@ from django.views.decorators.http import require_http_methods
 from accounts.decorators import owner_required, page_throttle
 from accounts.selectors import owner_token_of
 from accounts.services.api_tokens import owner_token_revoke
-from sharing.selectors import (
-    grant_list_changed_with,
-    grant_list_made_with,
-)
-from sharing.services import (
-    GrantTerms,
-    grants_undo_made_with,
-)
+from sharing.selectors import grant_list_changed_with, grant_list_made_with
+from sharing.services import GrantTerms, grants_undo_made_with
 
 
 @never_cache
