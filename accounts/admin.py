@@ -1,4 +1,5 @@
-"""Admin console for owners, their keys and robots, users and account events.
+"""Admin console for owners, their keys, robots, pairings, API tokens and funding, users,
+account events, and the fingerprint of the portal's KEK.
 
 Rows are made by the services (they create EOAs, wrap keys, queue chain work), so the admin
 only reads them; secrets (wrapped keys, token hashes) are never shown. The operator is not
@@ -14,13 +15,29 @@ from django.contrib.auth import admin as auth_admin
 from django.contrib.auth import get_user_model
 from django.contrib.auth.base_user import AbstractBaseUser
 from django.core.exceptions import PermissionDenied
-from django.db.models import QuerySet
+from django.db.models import Model, QuerySet
 from django.http import HttpRequest, HttpResponse
 
 from accounts.events import account_event_record
-from accounts.models import AccountEvent, ChainActivity, Owner, OwnerKey, Robot
+from accounts.models import (
+    AccountEvent,
+    ChainActivity,
+    EoaFunding,
+    Owner,
+    OwnerKey,
+    OwnerToken,
+    Robot,
+    RobotPairing,
+    SecretFingerprint,
+)
 from accounts.services.owners import owner_active_set, owner_approve, owner_refuse
 from accounts.services.robots import robot_token_revoke
+
+
+def shown_fields(model: type[Model], *, hidden: tuple[str, ...] = ()) -> tuple[str, ...]:
+    """The model's fields for a read-only page: all of them but `hidden` (secrets: wrapped keys,
+    hashes of tokens and secrets, a robot's sealed token)."""
+    return tuple(field.name for field in model._meta.fields if field.name not in hidden)
 
 
 class ReadOnlyAdmin(admin.ModelAdmin):
@@ -334,3 +351,43 @@ class ChainActivityAdmin(ReadOnlyAdmin):
     search_fields = ("owner__user__username", "tx_hash")
     list_select_related = ("owner__user", "counterpart__user")
     readonly_fields = [f.name for f in ChainActivity._meta.fields]
+
+
+@admin.register(RobotPairing)
+class RobotPairingAdmin(ReadOnlyAdmin):
+    """Pairing requests; the secret's hash and the token sealed for the robot are not shown."""
+
+    list_display = ("code", "name", "state", "owner", "robot", "created_at", "expires_at")
+    list_filter = ("state", "created_at")
+    search_fields = ("code", "name", "owner__user__username")
+    list_select_related = ("owner__user", "robot")
+    fields = readonly_fields = shown_fields(RobotPairing, hidden=("secret_hash", "token_sm2"))
+
+
+@admin.register(OwnerToken)
+class OwnerTokenAdmin(ReadOnlyAdmin):
+    """Owners' API tokens: names, prefixes, scopes and dates; never the hash. Revoking one is
+    the owner's (its page offers to take back the grants it made)."""
+
+    list_display = ("name", "owner", "token_prefix", "expires_at", "last_used_at", "revoked_at")
+    list_filter = (("revoked_at", admin.EmptyFieldListFilter), "created_at")
+    search_fields = ("name", "token_prefix", "owner__user__username")
+    list_select_related = ("owner__user",)
+    fields = readonly_fields = shown_fields(OwnerToken, hidden=("token_hash",))
+
+
+@admin.register(EoaFunding)
+class EoaFundingAdmin(ReadOnlyAdmin):
+    list_display = ("owner", "amount_wei", "reason", "tx_hash", "created_at")
+    list_filter = ("reason", "created_at")
+    search_fields = ("owner__user__username", "tx_hash")
+    list_select_related = ("owner__user",)
+    fields = readonly_fields = shown_fields(EoaFunding)
+
+
+@admin.register(SecretFingerprint)
+class SecretFingerprintAdmin(ReadOnlyAdmin):
+    """The KEK's fingerprint: changing it here would let a portal with another KEK serve."""
+
+    list_display = ("name", "fingerprint", "created_at")
+    fields = readonly_fields = shown_fields(SecretFingerprint)

@@ -61,7 +61,7 @@ class Sm2PublicKeyApi(APIView):
 
 class _Text(serializers.CharField):
     """A string and only a string (DRF's CharField takes 5 for "5"), without NUL characters,
-    which the schema says too (as sharing.apis.TextField, which this layer cannot import)."""
+    which the schema says too (as sharing.apis.fields.TextField, which this layer cannot import)."""
 
     def __init__(self, **kwargs: object) -> None:
         super().__init__(**kwargs)

@@ -428,7 +428,7 @@ def _agent_config(request: HttpRequest, robot: Robot, *, token: str | None) -> s
 
 
 # --- owner API tokens ------------------------------------------------------------------------
-# Revoking one is sharing.views.api_token_revoke: it offers to take back the grants it made.
+# Revoking one is sharing.views.tokens.api_token_revoke: it offers to take back the grants it made.
 
 
 @never_cache

@@ -149,7 +149,7 @@ def _polls(robot: object, user: object, polls: int) -> dict[str, object]:
     from django.utils import timezone
     from rest_framework.test import APIRequestFactory, force_authenticate
 
-    from sharing.apis import RobotStatusApi
+    from sharing.apis.robots import RobotStatusApi
     from sharing.models import Record
 
     view = RobotStatusApi.as_view()

@@ -26,13 +26,23 @@ KOMBU_PRIORITY_STEPS = (3, 6, 9)
 
 @admin.register(Deployment)
 class DeploymentAdmin(admin.ModelAdmin):
+    """Read-only: the active deployment is the contract every record is checked against, so
+    whoever could change or delete it here could make the portal call a record genuine.
+    `manage.py chain_deploy` deploys and records."""
+
     list_display = ("address", "chain_id", "block_number", "is_active", "created_at")
     list_filter = ("is_active", "chain_id")
     search_fields = ("address", "tx_hash", "deployer")
     readonly_fields = [f.name for f in Deployment._meta.fields]
 
     def has_add_permission(self, request: HttpRequest) -> bool:
-        return False  # `manage.py chain_deploy` deploys and records
+        return False
+
+    def has_change_permission(self, request: HttpRequest, obj: Deployment | None = None) -> bool:
+        return False
+
+    def has_delete_permission(self, request: HttpRequest, obj: Deployment | None = None) -> bool:
+        return False
 
     def get_urls(self) -> list[URLPattern]:
         status_view = self.admin_site.admin_view(self.chain_status_view)

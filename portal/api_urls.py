@@ -5,22 +5,20 @@ from drf_spectacular.views import SpectacularAPIView, SpectacularSwaggerSplitVie
 
 from accounts.apis import RobotKeyApi, RobotPairingCollectApi, RobotPairingsApi, Sm2PublicKeyApi
 from core.api_errors import api_not_found
-from sharing.apis import (
-    AccessLogApi,
+from sharing.apis.access import AccessLogApi
+from sharing.apis.content import RecordContentApi
+from sharing.apis.exports import (
     ExportCountApi,
     ExportDetailApi,
     ExportFileApi,
     ExportRebuildApi,
     ExportsApi,
-    GrantRevokeApi,
-    GrantsApi,
-    RecordContentApi,
-    RecordDetailApi,
-    RecordProofApi,
-    RecordsApi,
-    RecordSeriesApi,
-    RobotStatusApi,
 )
+from sharing.apis.grants import GrantRevokeApi, GrantsApi
+from sharing.apis.proofs import RecordProofApi
+from sharing.apis.records import RecordDetailApi, RecordsApi
+from sharing.apis.robots import RobotStatusApi
+from sharing.apis.series import RecordSeriesApi
 
 v1 = [
     path("sm2-public-key/", Sm2PublicKeyApi.as_view(), name="sm2-public-key"),

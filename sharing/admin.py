@@ -1,4 +1,5 @@
-"""Admin console for records, grants, verdicts and security events.
+"""Admin console for records, their anchored roots, grants and their changes, the access log,
+verdicts, security events and exports.
 
 Read-only like accounts.admin; the two actions repair anchoring and re-run the integrity
 check, and each tells the owners concerned on their security page. Envelope bytes and keys
@@ -13,10 +14,20 @@ from django.contrib import admin, messages
 from django.db.models import QuerySet
 from django.http import HttpRequest
 
-from accounts.admin import ReadOnlyAdmin, admin_action_record
+from accounts.admin import ReadOnlyAdmin, admin_action_record, shown_fields
 from accounts.errors import IdentityMismatch
 from chainworker.chain import ChainError
-from sharing.models import Access, Grant, Record, SecurityEvent, Verdict
+from sharing.models import (
+    Access,
+    AnchorRoot,
+    Export,
+    ExportRecord,
+    Grant,
+    GrantChange,
+    Record,
+    SecurityEvent,
+    Verdict,
+)
 from sharing.services.anchoring import records_reanchor
 from sharing.verification import records_verify
 
@@ -260,3 +271,46 @@ class SecurityEventAdmin(ReadOnlyAdmin):
     search_fields = ("record__id", "owner__user__username")
     list_select_related = ("record__owner__user", "owner__user")
     readonly_fields = [f.name for f in SecurityEvent._meta.fields]
+
+
+@admin.register(AnchorRoot)
+class AnchorRootAdmin(ReadOnlyAdmin):
+    """The Merkle roots records are anchored under (the leaves' bytes are not shown)."""
+
+    list_display = ("id", "owner", "size", "status", "block_number", "anchored_at", "created_at")
+    list_filter = ("status", "created_at")
+    search_fields = ("root", "prev_root", "tx_hash", "sender", "owner__user__username")
+    list_select_related = ("owner__user",)
+    fields = readonly_fields = shown_fields(AnchorRoot, hidden=("leaves",))
+
+
+@admin.register(GrantChange)
+class GrantChangeAdmin(ReadOnlyAdmin):
+    """Each grant's history: made, terms changed, revoked, with the credential that did it."""
+
+    list_display = ("grant", "kind", "made_with", "token", "created_at")
+    list_filter = ("kind", "made_with", "created_at")
+    search_fields = ("grant__owner__user__username", "grant__grantee__user__username")
+    list_select_related = ("grant__owner__user", "grant__grantee__user", "token")
+    fields = readonly_fields = shown_fields(GrantChange)
+
+
+@admin.register(Export)
+class ExportAdmin(ReadOnlyAdmin):
+    """Exports' progress and files' names and sizes; the export's wrapped key is not shown."""
+
+    list_display = ("id", "requester", "status", "total", "exported", "created_at", "expires_at")
+    list_filter = ("status", "credential", "created_at")
+    search_fields = ("id", "requester__user__username", "mcap_sm3")
+    list_select_related = ("requester__user",)
+    fields = readonly_fields = shown_fields(Export, hidden=("key_wrapped",))
+
+
+@admin.register(ExportRecord)
+class ExportRecordAdmin(ReadOnlyAdmin):
+    """Which records an export holds."""
+
+    list_display = ("export", "record")
+    search_fields = ("export__id", "record__id")
+    list_select_related = ("export", "record")
+    fields = readonly_fields = shown_fields(ExportRecord)

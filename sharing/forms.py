@@ -1,7 +1,10 @@
-"""Forms of the sharing pages: record and audit filters, and grants."""
+"""Forms of the sharing pages: record, audit and access-log filters, the record selection's
+input (one mixin for a grant's terms, an export and a deletion), grants, the account's
+deletion."""
 
+from collections.abc import Iterable
 from datetime import UTC, datetime
-from typing import Any
+from typing import Any, ClassVar
 
 from django import forms
 from django.core.exceptions import ValidationError
@@ -101,6 +104,60 @@ class PeriodFilterForm(forms.Form):
         return "Left out of the filters, as they do not hold: " + "; ".join(said)
 
 
+class RecordSelectionForm(forms.Form):
+    """Form mixin: a page's input of a record selection (sharing.selection.RecordSelection), the
+    one definition of its fields for every form that selects records (a grant's terms, an
+    export, a deletion).
+
+    Robots and topics are either several, ticked (none: all; RecordSelection.of: a grant, an
+    export) or, with `one_of_each`, one of each chosen from a list with "any" (as the record
+    lists filter; RecordSelection.from_filters: a deletion); the capture-time window is
+    [since, until), UTC. Each form says its own words (`selection_labels`, `selection_help`),
+    is offered its robots and topics by `offer`, and checks the window as it words it. The
+    values go to the service by `selection()`, which makes the RecordSelection and refuses
+    what it refuses.
+    """
+
+    one_of_each: ClassVar[bool] = False
+    selection_labels: ClassVar[dict[str, str]] = {}
+    selection_help: ClassVar[dict[str, str]] = {}
+
+    since = _period_field("From (UTC)")
+    until = _period_field("Before (UTC)")
+
+    def offer(self, *, robots: Iterable[tuple[str, str]], topics: Iterable[str]) -> None:
+        """The robots (id, label) and topics to choose from, as the selection's fields."""
+        robot_choices = [(str(pk), label) for pk, label in robots]
+        topic_choices = [(topic, topic) for topic in topics]
+        if self.one_of_each:
+            shown = {
+                "robot": forms.ChoiceField(required=False, choices=[("", "any"), *robot_choices]),
+                "topic": forms.ChoiceField(required=False, choices=[("", "any"), *topic_choices]),
+            }
+        else:
+            shown = {
+                name: forms.MultipleChoiceField(
+                    required=False,
+                    widget=forms.CheckboxSelectMultiple,
+                    choices=choices,
+                    label=self.selection_labels.get(name),
+                    help_text=self.selection_help.get(name, ""),
+                )
+                for name, choices in (("robots", robot_choices), ("topics", topic_choices))
+            }
+        self.fields.update(shown)
+        for name in ("since", "until"):
+            if name in self.selection_labels:
+                self.fields[name].label = self.selection_labels[name]
+        self.order_fields(self.field_order)
+
+    def selection(self) -> dict[str, Any]:
+        """The values given, by the names the services take: robots, topics, since, until
+        (robot, topic, since, until with `one_of_each`); empty or None where none is given."""
+        names = ("robot", "topic") if self.one_of_each else ("robots", "topics")
+        return {name: self.cleaned_data.get(name) for name in (*names, "since", "until")}
+
+
 def _sort_choices() -> list[tuple[str, str]]:
     names = {"captured": "capture time", "robot": "robot", "topic": "topic", "status": "status"}
     choices = []
@@ -190,9 +247,30 @@ class AuditFilterForm(PeriodFilterForm):
         self.fields["robot"].choices = [("", "any"), *((str(pk), name) for pk, name in robots)]
 
 
-class GrantForm(forms.Form):
+class GrantForm(RecordSelectionForm):
     """Give access (or, with `change`, change a grant's terms): who, and which records until
     when. Nothing ticked and no dates: all records, without expiry."""
+
+    selection_labels: ClassVar[dict[str, str]] = {
+        "robots": "Robots",
+        "topics": "Topics",
+        "since": "Captured from (UTC)",
+        "until": "Captured before (UTC)",
+    }
+    selection_help: ClassVar[dict[str, str]] = {
+        "robots": "None ticked: all your robots, also those you add later.",
+        "topics": "None ticked: all topics.",
+    }
+    field_order = (
+        "grantee",
+        "robots",
+        "topics",
+        "since",
+        "until",
+        "expires_at",
+        "change",
+        "confirm_all",
+    )
 
     grantee = forms.CharField(
         label="Username or EOA address",
@@ -201,20 +279,6 @@ class GrantForm(forms.Form):
         widget=forms.TextInput(attrs={"autocomplete": "off", "spellcheck": "false"}),
         error_messages={"required": "Enter the username or address of the owner to share with."},
     )
-    robots = forms.MultipleChoiceField(
-        label="Robots",
-        required=False,
-        widget=forms.CheckboxSelectMultiple,
-        help_text="None ticked: all your robots, also those you add later.",
-    )
-    topics = forms.MultipleChoiceField(
-        label="Topics",
-        required=False,
-        widget=forms.CheckboxSelectMultiple,
-        help_text="None ticked: all topics.",
-    )
-    since = _period_field("Captured from (UTC)")
-    until = _period_field("Captured before (UTC)")
     expires_at = _period_field("Access ends (UTC)")
     change = forms.BooleanField(required=False, widget=forms.HiddenInput)
     # Set by the confirmation page: the owner read that the grant covers every record, for ever.
@@ -224,8 +288,7 @@ class GrantForm(forms.Form):
         self, data: object = None, *, robots: list[Robot], topics: list[str], **kwargs: Any
     ) -> None:
         super().__init__(data, **kwargs)
-        self.fields["robots"].choices = [(str(robot.pk), robot.name) for robot in robots]
-        self.fields["topics"].choices = [(topic, topic) for topic in topics]
+        self.offer(robots=((robot.pk, robot.name) for robot in robots), topics=topics)
         self.fields[
             "expires_at"
         ].help_text = "Leave empty for access until you revoke it. At least 5 minutes from now."
@@ -303,44 +366,40 @@ class AccessLogFilterForm(PeriodFilterForm):
         return found
 
 
-class ExportForm(PeriodFilterForm):
+class ExportForm(RecordSelectionForm, PeriodFilterForm):
     """What to export: robots and topics the owner may view (none ticked: all), a period."""
 
-    robots = forms.MultipleChoiceField(
-        required=False, widget=forms.CheckboxSelectMultiple, label="Robots (none ticked: all)"
-    )
-    topics = forms.MultipleChoiceField(
-        required=False, widget=forms.CheckboxSelectMultiple, label="Topics (none ticked: all)"
-    )
+    selection_labels: ClassVar[dict[str, str]] = {
+        "robots": "Robots (none ticked: all)",
+        "topics": "Topics (none ticked: all)",
+    }
 
     def __init__(self, data: object, *, robots: QuerySet[Robot], topics: list[str]) -> None:
         super().__init__(data)
-        self.fields["robots"].choices = [
-            (str(robot.pk), f"{robot.name} ({robot.owner.username})") for robot in robots
-        ]
-        self.fields["topics"].choices = [(topic, topic) for topic in topics]
+        self.offer(
+            robots=((robot.pk, f"{robot.name} ({robot.owner.username})") for robot in robots),
+            topics=topics,
+        )
 
 
-class RecordDeleteSelectionForm(PeriodFilterForm):
+class RecordDeleteSelectionForm(RecordSelectionForm, PeriodFilterForm):
     """Which of the owner's records to delete: a robot, a topic, a capture-time range; at
     least one of them (never "everything" by an empty form)."""
 
-    robot = forms.ChoiceField(required=False)
-    topic = forms.ChoiceField(required=False)
-
+    one_of_each: ClassVar[bool] = True
     field_order = ("robot", "topic", "since", "until")
 
     def __init__(self, data: object, *, owner: Owner) -> None:
         super().__init__(data)
         robots = Robot.objects.filter(owner=owner).order_by("name").values_list("id", "name")
-        self.fields["robot"].choices = [("", "any"), *((str(pk), name) for pk, name in robots)]
         topics = (
-            Record.objects.filter(owner=owner, deleted_at__isnull=True)
+            Record.objects.live()
+            .filter(owner=owner)
             .order_by("topic")
             .values_list("topic", flat=True)
             .distinct()
         )
-        self.fields["topic"].choices = [("", "any"), *((t, t) for t in topics)]
+        self.offer(robots=robots, topics=topics)
 
     def clean(self) -> dict:
         cleaned = super().clean()

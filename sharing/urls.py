@@ -1,31 +1,41 @@
-"""Owner pages of the sharing app: records, grants, audit."""
+"""Routes of the owner pages of the sharing app (sharing/views/, one module per page group)."""
 
 from django.urls import path
 
-from sharing import robot_views, views
+from sharing.views import (
+    access_log,
+    audit,
+    deletion,
+    exports,
+    grants,
+    record,
+    records,
+    robot,
+    tokens,
+)
 
 urlpatterns = [
-    path("records/", views.my_records, name="records"),
-    path("shared/", views.shared_records, name="shared"),
-    path("records/<uuid:record_id>/", views.record_detail, name="record-detail"),
-    path("records/<uuid:record_id>/raw.json", views.record_raw, name="record-raw"),
-    path("records/<uuid:record_id>/gallery/", views.record_gallery, name="record-gallery"),
-    path("records/<uuid:record_id>/delete/", views.record_delete_view, name="record-delete"),
-    path("records/delete/", views.records_delete_view, name="records-delete"),
-    path("account/delete/", views.account_delete_view, name="account-delete"),
-    path("robots/<uuid:robot_id>/", robot_views.robot_page, name="robot-detail"),
-    path("grants/", views.grants, name="grants"),
-    path("grants/revoke/", views.grant_revoke_view, name="grant-revoke"),
-    path("grants/revoke/confirm/", views.grant_revoke_confirm, name="grant-revoke-confirm"),
-    path("audit/", views.audit, name="audit"),
-    path("access-log/", views.access_log, name="access-log"),
-    path("access-log/access-log.csv", views.access_log_download, name="access-log-csv"),
-    path("exports/", views.exports, name="exports"),
-    path("exports/<uuid:export_id>/", views.export_detail, name="export-detail"),
-    path("exports/<uuid:export_id>/rebuild/", views.export_rebuild_view, name="export-rebuild"),
+    path("records/", records.my_records, name="records"),
+    path("shared/", records.shared_records, name="shared"),
+    path("records/<uuid:record_id>/", record.record_detail, name="record-detail"),
+    path("records/<uuid:record_id>/raw.json", record.record_raw, name="record-raw"),
+    path("records/<uuid:record_id>/gallery/", record.record_gallery, name="record-gallery"),
+    path("records/<uuid:record_id>/delete/", deletion.record_delete_view, name="record-delete"),
+    path("records/delete/", deletion.records_delete_view, name="records-delete"),
+    path("account/delete/", deletion.account_delete_view, name="account-delete"),
+    path("robots/<uuid:robot_id>/", robot.robot_page, name="robot-detail"),
+    path("grants/", grants.grants, name="grants"),
+    path("grants/revoke/", grants.grant_revoke_view, name="grant-revoke"),
+    path("grants/revoke/confirm/", grants.grant_revoke_confirm, name="grant-revoke-confirm"),
+    path("audit/", audit.audit, name="audit"),
+    path("access-log/", access_log.access_log, name="access-log"),
+    path("access-log/access-log.csv", access_log.access_log_download, name="access-log-csv"),
+    path("exports/", exports.exports, name="exports"),
+    path("exports/<uuid:export_id>/", exports.export_detail, name="export-detail"),
+    path("exports/<uuid:export_id>/rebuild/", exports.export_rebuild_view, name="export-rebuild"),
     path(
         "account/tokens/<int:token_id>/revoke/",
-        views.api_token_revoke,
+        tokens.api_token_revoke,
         name="api-token-revoke",
     ),
 ]

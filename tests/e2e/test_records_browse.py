@@ -43,7 +43,7 @@ def _no_horizontal_overflow(page: Page) -> None:
 def test_records_on_a_desktop_and_a_phone(
     live_server, make_robot, client, browser: Browser, artifacts: Path, monkeypatch
 ):
-    monkeypatch.setattr("sharing.views.RECORDS_PER_PAGE", 3)
+    monkeypatch.setattr("sharing.views.records.RECORDS_PER_PAGE", 3)
     alice = make_robot("alice")
     track = [
         _upload(alice, seq, 10 * seq, plaintext=odometry("alice", seq, seq / 2))

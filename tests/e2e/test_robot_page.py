@@ -42,7 +42,7 @@ def _fits(page: Page) -> None:
 def test_robot_page_and_owner_pages_on_a_desktop_and_a_phone(
     live_server, make_robot, make_owner, client, browser: Browser, artifacts: Path, monkeypatch
 ):
-    monkeypatch.setattr("sharing.robot_views.LATEST_REFRESH_SECONDS", 2)
+    monkeypatch.setattr("sharing.views.robot.LATEST_REFRESH_SECONDS", 2)
     alice = make_robot("alice")
     make_owner("bob")
     poses = [

@@ -23,6 +23,22 @@ MODELS = [
     "sharing_securityevent",
     "chainworker_deployment",
     "auth_user",
+    "accounts_robotpairing",
+    "accounts_ownertoken",
+    "accounts_eoafunding",
+    "accounts_secretfingerprint",
+    "accounts_chainactivity",
+    "sharing_anchorroot",
+    "sharing_grantchange",
+    "sharing_access",
+    "sharing_export",
+    "sharing_exportrecord",
+    "alerts_alertpreferences",
+    "alerts_webhookendpoint",
+    "alerts_alert",
+    "alerts_alertdelivery",
+    "alerts_alertcondition",
+    "chainworker_operatoralert",
 ]
 
 

@@ -82,7 +82,7 @@ def test_my_data_lists_filters_and_pages(client, alice, make_robot, upload):
 
 
 def test_my_data_pagination(client, alice, upload, monkeypatch):
-    monkeypatch.setattr("sharing.views.RECORDS_PER_PAGE", 2)
+    monkeypatch.setattr("sharing.views.records.RECORDS_PER_PAGE", 2)
     for seq in (1, 2, 3):
         upload(alice, seq, anchor=False)
     client.force_login(alice.owner.user)
@@ -148,7 +148,7 @@ def test_verified_odometry_record(client, alice, upload):
 def test_a_record_anchored_while_its_page_loads_shows_its_block(client, alice, upload, monkeypatch):
     """The page read the row before anchoring wrote its block; the worker's check then found
     the root on chain: the page shows the block anchoring wrote, not the stale row's blank."""
-    from sharing import views
+    from sharing.views import record as views
 
     record = upload(alice, 1)
     assert record.block_number is not None

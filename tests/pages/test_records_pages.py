@@ -134,7 +134,7 @@ def test_sort_filter_pages_and_bad_parameters(client, fleet, make_robot, upload,
         assert len(_rows(page.content.decode())) == 4
 
     # Page numbers: first, previous, a window of numbers, next, last; links keep the filters.
-    monkeypatch.setattr("sharing.views.RECORDS_PER_PAGE", 1)
+    monkeypatch.setattr("sharing.views.records.RECORDS_PER_PAGE", 1)
     html = client.get(url, {"page": 2, "sort": "topic"}).content.decode()
     nav = html[html.index('data-testid="pagination"') :]
     nav = nav[: nav.index("</nav>")]
@@ -280,7 +280,7 @@ def shots(alice, upload) -> list[Record]:
 
 
 def test_the_gallery_of_a_range(client, shots, alice, upload, make_owner, monkeypatch):
-    monkeypatch.setattr("sharing.views.GALLERY_PER_PAGE", 2)
+    monkeypatch.setattr("sharing.views.record.GALLERY_PER_PAGE", 2)
     tamper(shots[1])
     client.force_login(shots[0].owner.user)
     url = reverse("record-gallery", args=[shots[0].id])

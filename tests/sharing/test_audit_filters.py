@@ -95,7 +95,7 @@ def test_period_filter_is_half_open_on_when_the_receipt_was_seen(client, two_rob
 
 
 def test_filters_keep_the_pages_and_the_filter_in_their_links(client, two_robots, monkeypatch):
-    monkeypatch.setattr("sharing.views.AUDIT_ENTRIES_PER_PAGE", 1)
+    monkeypatch.setattr("sharing.views.audit.AUDIT_ENTRIES_PER_PAGE", 1)
     first = client.get(reverse("audit"), {"kind": "anchored"}).content.decode()
     assert "Page 1 of 2" in first
     assert "?kind=anchored&amp;page=2" in first

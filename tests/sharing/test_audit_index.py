@@ -106,7 +106,7 @@ def test_the_audit_page_lists_the_index_with_times_for_owner_and_grantee(client,
 
 def test_the_audit_page_is_paged_in_the_database(client, history, no_chain, monkeypatch):
     """Minutes of anchoring are paged; grants, revocations and keys stay on top of each."""
-    monkeypatch.setattr("sharing.views.AUDIT_ENTRIES_PER_PAGE", 1)
+    monkeypatch.setattr("sharing.views.audit.AUDIT_ENTRIES_PER_PAGE", 1)
     alice, _bob = history
     rows = ChainActivity.objects.filter(owner=alice.owner, kind="anchored").order_by("id")
     for row, minute in zip(rows, (1, 2), strict=True):

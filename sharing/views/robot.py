@@ -5,7 +5,7 @@ Only the robot's owner sees it; anyone else gets the 404 of a robot that does no
 numbers come from sharing/robot_status.py; the pose and image go through the integrity check
 every record view goes through (`records_open`, both in one run and one access of the page,
 in `_latest_verified` only), so they are shown only when the chain holds them. The page keeps
-itself up to date by polling the status API (sharing.apis.RobotStatusApi) from
+itself up to date by polling the status API (sharing.apis.robots.RobotStatusApi) from
 static/portal/robot-page.js.
 """
 

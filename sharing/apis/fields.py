@@ -1,0 +1,222 @@
+"""What the API views of sharing share: serializer fields, the record selection's input
+(one serializer for every request that selects records), the pagination, the robot-only
+permission, the schema's security requirements and refusal wording, and the small helpers
+of the caller (its credential, a record id that refuses like a record not seen)."""
+
+import base64
+import binascii
+import dataclasses
+import uuid
+from typing import Any, ClassVar
+
+from django.core.validators import ProhibitNullCharactersValidator, RegexValidator
+from drf_spectacular.types import OpenApiTypes
+from drf_spectacular.utils import OpenApiParameter, extend_schema_field
+from rest_framework import serializers
+from rest_framework.pagination import LimitOffsetPagination
+from rest_framework.permissions import BasePermission
+from rest_framework.request import Request
+from rest_framework.views import APIView
+
+from accounts.authentication import caller_owner_token, caller_robot
+from accounts.models import OwnerToken
+from sharing.errors import NOT_VISIBLE, RecordNotFound
+from sharing.models import Verdict
+from sharing.selection import (
+    MAX_SELECTED_ROBOTS,
+    MAX_SELECTED_TOPICS,
+    MAX_TOPIC_LENGTH,
+    RecordSelection,
+)
+
+# A username is at most 150 characters, an address 42.
+MAX_OWNER_IDENTIFIER = 150
+NO_NUL = "NUL characters are not allowed"
+
+ROBOT_ONLY = [{"robotToken": []}]
+# Content and grants: the owner, signed in or with an owner API token; never a robot token.
+OWNER_ONLY = [{"ownerToken": []}, {"cookieAuth": []}]
+READ, SHARE, DELETE = OwnerToken.Scope.READ, OwnerToken.Scope.SHARE, OwnerToken.Scope.DELETE
+ROBOT_REFUSED = (
+    "`permission_denied`: a robot token (it only uploads and reads its own uploads); "
+    "`insufficient_scope`: an owner API token without the `{scope}` scope"
+)
+# The names of a record selection's values, in every request that selects records.
+SELECTION_FIELDS = tuple(field.name for field in dataclasses.fields(RecordSelection))
+RECORD_ID = OpenApiParameter(
+    "record_id", OpenApiTypes.UUID, OpenApiParameter.PATH, description="the record's id"
+)
+
+
+@extend_schema_field(
+    {
+        "type": "string",
+        "format": "byte",
+        "minLength": 1,
+        "pattern": r"^(?:[A-Za-z0-9+/]{4})*(?:[A-Za-z0-9+/]{2}==|[A-Za-z0-9+/]{3}=)?$",
+    }
+)
+class Base64EnvelopeField(serializers.Field):
+    """An envelope v1 as standard base64 (RFC 4648, with padding)."""
+
+    default_error_messages = {
+        "not_text": "an envelope is sent as a base64 string",
+        "blank": "an envelope cannot be empty",
+        "not_base64": "not valid base64",
+    }
+
+    def to_internal_value(self, data: Any) -> bytes:
+        if not isinstance(data, str):
+            self.fail("not_text")
+        if not data:
+            self.fail("blank")
+        try:
+            return base64.b64decode(data, validate=True)
+        except (binascii.Error, ValueError):
+            self.fail("not_base64")
+
+    def to_representation(self, value: bytes) -> str:
+        return base64.b64encode(value).decode("ascii")
+
+
+class TextField(serializers.CharField):
+    """A string and only a string (DRF's CharField takes 5 for "5"), without NUL characters,
+    which the schema says too (a database may refuse them)."""
+
+    def __init__(self, **kwargs: Any) -> None:
+        super().__init__(**kwargs)
+        self.validators = [
+            validator
+            for validator in self.validators
+            if not isinstance(validator, ProhibitNullCharactersValidator)
+        ]
+        self.validators.append(RegexValidator(r"^[^\x00]*$", message=NO_NUL))
+
+    def to_internal_value(self, data: Any) -> str:
+        if not isinstance(data, str):
+            self.fail("invalid")
+        return super().to_internal_value(data)
+
+
+class NullIfBlankCharField(serializers.CharField):
+    """A text attribute that is blank until something happens, shown as null until then."""
+
+    def __init__(self, **kwargs: Any) -> None:
+        super().__init__(allow_null=True, read_only=True, **kwargs)
+
+    def to_representation(self, value: Any) -> str | None:
+        return str(value) if value else None
+
+
+class RecordSelectionSerializer(serializers.Serializer):
+    """The input of a record selection (sharing.selection.RecordSelection): robots and topics
+    (absent or empty: all) and a capture-time window [since, until), within the bounds that
+    `RecordSelection.of` holds. `selection()` gives the four values by RecordSelection's names,
+    as the services take them (they make the RecordSelection and refuse what it refuses).
+
+    The one definition of these fields for every request that selects records (a grant's terms,
+    an export, an export's count); each says its own words (`selection_help`, by field) and
+    whether `since` and `until` may be sent as null (`window_nullable`)."""
+
+    selection_help: ClassVar[dict[str, str]] = {}
+    window_nullable: ClassVar[bool] = False
+
+    robots = serializers.ListField(
+        child=serializers.UUIDField(), required=False, max_length=MAX_SELECTED_ROBOTS
+    )
+    topics = serializers.ListField(
+        child=TextField(max_length=MAX_TOPIC_LENGTH),
+        required=False,
+        max_length=MAX_SELECTED_TOPICS,
+    )
+    since = serializers.DateTimeField(required=False)
+    until = serializers.DateTimeField(required=False)
+
+    def get_fields(self) -> dict[str, serializers.Field]:
+        fields = super().get_fields()
+        for name in SELECTION_FIELDS:
+            fields[name].help_text = self.selection_help.get(name)
+        for name in ("since", "until"):
+            fields[name].allow_null = self.window_nullable
+        return fields
+
+    def selection(self) -> dict[str, Any]:
+        """robots, topics, since and until as given (absent: all robots, all topics, no bound)."""
+        data = self.validated_data
+        return {
+            "robots": data.get("robots", ()),
+            "topics": data.get("topics", ()),
+            "since": data.get("since"),
+            "until": data.get("until"),
+        }
+
+
+class RecordPagination(LimitOffsetPagination):
+    """`?limit=&offset=`, refusing values out of range instead of guessing."""
+
+    default_limit = 50
+    max_limit = 500
+    max_offset = 10**9
+
+    def get_limit(self, request: Request) -> int:
+        return self._bounded(request, self.limit_query_param, 1, self.max_limit, self.default_limit)
+
+    def get_offset(self, request: Request) -> int:
+        return self._bounded(request, self.offset_query_param, 0, self.max_offset, 0)
+
+    @staticmethod
+    def _bounded(request: Request, name: str, lowest: int, highest: int, default: int) -> int:
+        raw = request.query_params.get(name)
+        if raw is None:
+            return default
+        if not (raw.isascii() and raw.isdigit() and len(raw) <= 10):
+            raise serializers.ValidationError({name: [f"must be an integer {lowest}..{highest}"]})
+        value = int(raw)
+        if not lowest <= value <= highest:
+            raise serializers.ValidationError({name: [f"must be an integer {lowest}..{highest}"]})
+        return value
+
+    def get_schema_operation_parameters(self, view: APIView) -> list[dict[str, Any]]:
+        return [
+            {
+                "name": self.limit_query_param,
+                "required": False,
+                "in": "query",
+                "description": "records per page",
+                "schema": {"type": "integer", "minimum": 1, "maximum": self.max_limit},
+            },
+            {
+                "name": self.offset_query_param,
+                "required": False,
+                "in": "query",
+                "description": "records to skip",
+                "schema": {"type": "integer", "minimum": 0, "maximum": self.max_offset},
+            },
+        ]
+
+
+class IsRobot(BasePermission):
+    message = "uploads need a robot token: `Authorization: Token <key>`"
+
+    def has_permission(self, request: Request, view: APIView) -> bool:
+        return caller_robot(request) is not None
+
+
+def record_uuid(record_id: str) -> uuid.UUID:
+    try:
+        return uuid.UUID(record_id)
+    except ValueError:
+        raise RecordNotFound(NOT_VISIBLE) from None
+
+
+def refuse_unseen(request: Request, record_id: uuid.UUID) -> None:
+    """A record the caller may not see: 404 whether it exists or not, outside a grant's scope
+    or not (nothing tells it exists)."""
+    raise RecordNotFound(NOT_VISIBLE)
+
+
+def caller_credential(request: Request) -> tuple[str, OwnerToken | None]:
+    """The owner's credential behind a request, as the access log records it: an owner API
+    token (with the token), else the browser session."""
+    token = caller_owner_token(request)
+    return (Verdict.Credential.SESSION if token is None else Verdict.Credential.TOKEN), token

@@ -1,0 +1,125 @@
+"""`/api/v1/records/series/`: numeric fields of a robot's topic over a time range, every
+record in it integrity-checked (sharing/series.py)."""
+
+from drf_spectacular.types import OpenApiTypes
+from drf_spectacular.utils import OpenApiParameter, OpenApiResponse, extend_schema
+from rest_framework import serializers
+from rest_framework.permissions import BasePermission, IsAuthenticated
+from rest_framework.request import Request
+from rest_framework.response import Response
+from rest_framework.views import APIView
+
+from accounts.authentication import OwnerCredential, caller_owner
+from core.api_errors import error_responses
+from sharing.apis.fields import OWNER_ONLY, READ, ROBOT_REFUSED, TextField, caller_credential
+from sharing.selection import MAX_TOPIC_LENGTH
+from sharing.series import DEFAULT_POINTS, MAX_FIELDS, MAX_POINTS, series_of, series_query_make
+
+
+class RecordSeriesApi(APIView):
+    """`GET /api/v1/records/series/`: numeric fields of a robot's topic over a time range,
+    from every record in it, each integrity-checked (sharing/series.py)."""
+
+    def get_permissions(self) -> list[BasePermission]:
+        return [IsAuthenticated(), OwnerCredential(READ, "read records' content")]
+
+    class InputSerializer(serializers.Serializer):
+        class Meta:
+            ref_name = "SeriesQuery"
+
+        robot = serializers.UUIDField(help_text="the robot's id")
+        topic = TextField(max_length=MAX_TOPIC_LENGTH, help_text="the topic, e.g. /odom")
+        since = serializers.DateTimeField(help_text="captured at or after (ISO 8601)")
+        until = serializers.DateTimeField(help_text="captured before (ISO 8601): [since, until)")
+        points = serializers.IntegerField(
+            required=False,
+            default=DEFAULT_POINTS,
+            min_value=2,
+            max_value=MAX_POINTS,
+            help_text="points answered at most (downsampled by min/max per bucket)",
+        )
+
+    # `fields` is not a serializer field's name (a Serializer's own attribute): read apart.
+    FIELDS = OpenApiParameter(
+        "fields",
+        OpenApiTypes.STR,
+        OpenApiParameter.QUERY,
+        required=True,
+        allow_blank=False,
+        pattern=r"^[A-Za-z0-9_-]+(\.[A-Za-z0-9_-]+)*(,[A-Za-z0-9_-]+(\.[A-Za-z0-9_-]+)*)*$",
+        description=f"up to {MAX_FIELDS} dotted paths into the decoded message (`K` of the "
+        "record), comma separated, e.g. position.x,position.y",
+    )
+    ANSWER = {
+        "type": "object",
+        "properties": {
+            "fields": {"type": "array", "items": {"type": "string"}},
+            "points": {
+                "type": "array",
+                "items": {"type": "array", "items": {"type": "number", "nullable": True}},
+                "description": "[t, v1, v2...] oldest first; t in Unix seconds (UTC); a value "
+                "is null where the record holds no number at that path",
+            },
+            "source_records": {"type": "integer", "description": "records in range you may see"},
+            "verified": {"type": "integer", "description": "of them, verified against the chain"},
+            "refused": {
+                "type": "integer",
+                "description": "of them, refused by the check (tampered, signature not valid, "
+                "not anchored yet, no access on chain): never plotted",
+            },
+            "without_values": {
+                "type": "integer",
+                "description": "verified records holding none of the fields as a number",
+            },
+        },
+    }
+
+    @extend_schema(
+        operation_id="records_series",
+        summary="Numeric fields of a robot's topic over time, every record checked",
+        description=(
+            "Every record of the robot's topic captured in [since, until) that the caller may "
+            "read (its own, or within a live grant's scope) is checked against the chain like "
+            "a content read; the verified ones' fields are answered, downsampled to at most "
+            "`points` rows by keeping each field's lowest and highest value per slice of time "
+            "(never by skipping records). The whole answer is one line of the access log "
+            "(kind `plot`). A session or an owner API token with the `read` scope."
+        ),
+        auth=OWNER_ONLY,
+        parameters=[InputSerializer, FIELDS],
+        responses={
+            200: OpenApiResponse(ANSWER, description="the series"),
+            **error_responses(
+                400,
+                401,
+                403,
+                409,
+                503,
+                e400="`invalid_request` (a parameter missing or malformed), `invalid_series` "
+                "(too many fields, a range too long or holding too many records)",
+                e403=ROBOT_REFUSED.format(scope="read"),
+                e409="`identity_check_failed`: the owner's key commitment on chain differs "
+                "from the key the portal holds",
+            ),
+        },
+    )
+    def get(self, request: Request) -> Response:
+        given = self.InputSerializer(data=request.query_params.dict())
+        given.is_valid(raise_exception=True)
+        data = given.validated_data
+        fields = request.query_params.get("fields")
+        if not fields:
+            raise serializers.ValidationError({"fields": ["This field is required."]})
+        query = series_query_make(
+            robot=data["robot"],
+            topic=data["topic"],
+            fields=fields.split(","),
+            since=data["since"],
+            until=data["until"],
+            points=data["points"],
+        )
+        credential, token = caller_credential(request)
+        series = series_of(
+            viewer=caller_owner(request), query=query, credential=credential, token=token
+        )
+        return Response(series.as_json())
