@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# `make test`: install what is missing, lint, then the whole suite in its tiers (tests/tiers.py),
+# `make test`: install what is missing, lint, then the whole suite in its tiers (tests/support/tiers.py),
 # each run in parallel by pytest-xdist:
 #   1. the unit tier on SQLite (with the benchmark tooling's tests);
 #   2. on PostgreSQL (PG_TEST_URL, else a server at 127.0.0.1:5432, else a throwaway cluster of

@@ -26,7 +26,7 @@ from schemathesis.errors import FailureGroup
 
 from accounts.services.api_tokens import owner_token_create
 from sharing.services import grant_create
-from tests.conftest import RobotSetup
+from tests.support.robot_setup import RobotSetup
 
 pytestmark = [pytest.mark.slow, pytest.mark.django_db(transaction=True)]
 

@@ -18,7 +18,7 @@ from accounts.services.api_tokens import owner_token_revoke
 from accounts.services.robots import robot_create
 from sharing.models import Grant, Record, Verdict
 from sharing.services import grant_create, record_create_batch
-from tests.conftest import seal_for
+from tests.support.robot_setup import seal_for
 
 pytestmark = pytest.mark.django_db(transaction=True)
 

@@ -17,7 +17,7 @@ from sharing import anchoring
 from sharing.models import Grant, Record
 from sharing.reconcile import chain_reconcile
 from sharing.services import grant_create, grant_sync_on_chain, record_create
-from tests.conftest import logged_by
+from tests.support.logs import logged_by
 
 pytestmark = pytest.mark.django_db
 

@@ -32,8 +32,8 @@ from sharing import services as sharing_services
 from sharing.models import Grant, Record
 from sharing.services import grant_create, record_create_batch
 from stack.anvil import start_anvil
-from tests.anchoring_checks import assert_anchored_exactly_once
-from tests.conftest import TEST_PASSWORD, RobotSetup
+from tests.support.anchoring_checks import assert_anchored_exactly_once
+from tests.support.robot_setup import TEST_PASSWORD, RobotSetup
 
 pytestmark = pytest.mark.django_db
 

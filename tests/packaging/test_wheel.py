@@ -24,7 +24,7 @@ import pytest
 from django.conf import settings
 
 from tests.authros_verify.conftest import export_of
-from tests.harness import REPO_ROOT
+from tests.support.harness import REPO_ROOT
 
 pytestmark = [pytest.mark.process, pytest.mark.slow, pytest.mark.timeout(1200)]
 

@@ -10,8 +10,8 @@ from django.urls import reverse
 
 from accounts.services.robots import robot_create
 from sharing.services import grant_create, grant_terms_make
-from tests.conftest import RobotSetup
 from tests.pages.conftest import image
+from tests.support.robot_setup import RobotSetup
 
 pytestmark = pytest.mark.django_db
 

@@ -14,7 +14,7 @@ from sharing import anchoring
 from sharing.anchoring import anchor_item, records_anchor
 from sharing.models import Grant, Record
 from sharing.services import grant_create, grant_revoke, grant_sync_on_chain, record_create
-from tests.conftest import blocks_mine
+from tests.support.anvil_rpc import blocks_mine
 
 pytestmark = [pytest.mark.django_db, pytest.mark.usefixtures("records_mode")]
 

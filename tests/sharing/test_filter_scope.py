@@ -16,7 +16,7 @@ from sharing.selectors import (
     robots_visible_to,
 )
 from sharing.services import grant_create, grant_revoke, grant_terms_make, record_create
-from tests.conftest import seal_for
+from tests.support.robot_setup import seal_for
 
 pytestmark = pytest.mark.django_db
 

@@ -19,7 +19,7 @@ from sharing.services import (
 )
 from sharing.storage import envelope_storage
 from sharing.verification import records_verify
-from tests.conftest import tamper
+from tests.support.tampering import tamper
 
 pytestmark = pytest.mark.django_db
 

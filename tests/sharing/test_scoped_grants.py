@@ -22,7 +22,8 @@ from sharing.selectors import (
 from sharing.services import grant_create, grant_revoke, grant_terms_change, grant_terms_make
 from sharing.verification import records_verify
 from tests.api.conftest import RECORDS, session_client
-from tests.conftest import RobotSetup, chain_time_travel
+from tests.support.anvil_rpc import chain_time_travel
+from tests.support.robot_setup import RobotSetup
 
 pytestmark = pytest.mark.django_db
 

@@ -9,9 +9,9 @@ import yaml
 
 from sharing.models import Access, Record
 from sharing.verification import records_open
-from tests.harness import wait_for
 from tests.ros_agent.conftest import write_key_file
-from tests.ros_agent.recordings import TOPICS
+from tests.support.harness import wait_for
+from tests.support.recordings import TOPICS
 
 _EPOCH = datetime(1970, 1, 1, tzinfo=UTC)
 

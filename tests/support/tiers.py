@@ -1,4 +1,4 @@
-"""The suite's tiers, and a guard that keeps them honest (loaded by `-p tests.tiers`).
+"""The suite's tiers, and a guard that keeps them honest (loaded by `-p tests.support.tiers`).
 
 A test is marked by what it needs beyond this process, Redis and the session's anvil:
 
@@ -77,7 +77,10 @@ def pytest_addoption(parser: pytest.Parser) -> None:
         action="append",
         choices=sorted(TIERS),
         default=[],
-        help="run a tier of the suite, or several given again (tests/tiers.py); all without it",
+        help=(
+            "run a tier of the suite, or several given again (tests/support/tiers.py); "
+            "all without it"
+        ),
     )
 
 
@@ -135,6 +138,6 @@ def pytest_runtest_makereport(item: pytest.Item, call: pytest.CallInfo) -> pytes
         report.longrepr = (
             f"{item.nodeid} started a process ({spawned!r}) without the `process` mark: "
             "mark it (pytestmark = pytest.mark.process) so that it leaves the fast tier "
-            "(tests/tiers.py)"
+            "(tests/support/tiers.py)"
         )
     return report
