@@ -1,5 +1,5 @@
 # AuthROS portal. `make run` starts the stack, `make test` runs the whole suite, `make test-fast`
-# its fast tier (tests/tiers.py) in a few minutes.
+# its fast tier (tests/support/tiers.py) in a few minutes.
 .PHONY: run test test-fast bench soak install lint format contracts lock clean
 
 install:

@@ -5,18 +5,14 @@ test runs on a snapshot of it, reverted afterwards (`isolated_portal`), and talk
 the portal's own client over JSON-RPC, the code path production runs.
 """
 
-import json
-import logging
 import time
 import uuid
 from collections.abc import Iterator
 from contextlib import contextmanager
-from dataclasses import dataclass
-from datetime import UTC, datetime, timedelta
+from datetime import timedelta
 
 import pytest
 import redis
-import requests
 from django.conf import settings as django_settings
 from eth_account.signers.local import LocalAccount
 
@@ -28,18 +24,14 @@ from accounts.services.robots import robot_create
 from chainworker import chain as chain_module
 from chainworker import services as chain_services
 from chainworker.chain import AuthROSChain
-from core.redis_client import get_redis
 from portal.celery import app as celery_app
 from portal.middleware import service_checks_forget
-from sharing.cache import _key as cache_key
-from sharing.models import Record
-from sharing.storage import envelope_storage
-from smcrypto import envelope, provenance, sm2, sm4
+from smcrypto import sm2, sm4
 from stack.anvil import AnvilProcess, start_anvil
-from tests.chain_setup import make_registered_owner
-from tests.tiers import spawning_allowed
-
-TEST_PASSWORD = "correct horse battery staple 42"
+from tests.support.anvil_rpc import anvil_rpc, genesis_hash
+from tests.support.chain_setup import make_registered_owner
+from tests.support.robot_setup import TEST_PASSWORD, PairedRobot, RobotSetup
+from tests.support.tiers import spawning_allowed
 
 
 @pytest.fixture(scope="session")
@@ -158,49 +150,6 @@ def anvil() -> Iterator[AnvilProcess]:
         yield node
 
 
-def seal_for(
-    robot: Robot,
-    key: bytes,
-    *,
-    seq: int,
-    topic: str = "/robot/odom",
-    data_type: str = "nav_msgs/Odometry",
-    plaintext: bytes | None = None,
-    owner: str | None = None,
-    robot_id: str | None = None,
-    time: str | None = None,
-    signing_key: tuple[str, str] | None = None,
-) -> bytes:
-    """An envelope as the robot's agent would seal it, signed with `signing_key` (the robot's
-    SM2 private and public key, hex) when given, as a paired robot signs."""
-    header = {
-        "owner": owner or robot.owner.username,
-        "robot": robot_id or str(robot.id),
-        "topic": topic,
-        "type": data_type,
-        "seq": seq,
-        "time": time or datetime.now(tz=UTC).isoformat().replace("+00:00", "Z"),
-    }
-    body = plaintext if plaintext is not None else json.dumps({"K": {"seq": seq}}).encode()
-    if signing_key is not None:
-        header = provenance.sign_header(*signing_key, header, body)
-    return envelope.seal(key, header, body)
-
-
-@dataclass
-class RobotSetup:
-    owner: Owner
-    key: bytes
-    robot: Robot
-    token: str
-    # A paired robot's SM2 key pair (private, public hex): its envelopes are signed.
-    signing_key: tuple[str, str] | None = None
-
-    def seal(self, seq: int, **kwargs: object) -> bytes:
-        kwargs.setdefault("signing_key", self.signing_key)
-        return seal_for(self.robot, self.key, seq=seq, **kwargs)
-
-
 @pytest.fixture
 def records_mode(settings):
     """Anchor one record per slot (ANCHOR_MODE=records, the paper's interface): for tests of
@@ -210,10 +159,11 @@ def records_mode(settings):
 
 @pytest.fixture
 def worker_stack(tmp_path, settings, request):
-    """Start real Celery workers and beat on an anvil of their own (tests.harness.WorkerStack):
-    worker_stack(workers=N, block_time=None, env_overrides=None); stopped after the test. A
-    failing test's report ends with the last lines of each process's log."""
-    from tests.harness import WorkerStack
+    """Start real Celery workers and beat on an anvil of their own
+    (tests.support.harness.WorkerStack): worker_stack(workers=N, block_time=None,
+    env_overrides=None); stopped after the test. A failing test's report ends with the last
+    lines of each process's log."""
+    from tests.support.harness import WorkerStack
 
     stacks = []
     request.node.worker_stacks = stacks
@@ -242,13 +192,6 @@ def on_commit(django_capture_on_commit_callbacks):
             return action()
 
     return run
-
-
-@dataclass(frozen=True)
-class PairedRobot:
-    robot: Robot
-    token: str
-    signing_key: tuple[str, str]  # its SM2 key pair (private, public hex)
 
 
 @pytest.fixture
@@ -340,10 +283,10 @@ def pytest_runtest_makereport(item: pytest.Item, call: pytest.CallInfo) -> pytes
 
 
 def pytest_configure(config: pytest.Config) -> None:
-    """Passwords hashed in this process at few iterations (tests/hashers.py), before anything
-    has hashed one (Django caches the hashers it built)."""
+    """Passwords hashed in this process at few iterations (tests/support/hashers.py), before
+    anything has hashed one (Django caches the hashers it built)."""
     django_settings.PASSWORD_HASHERS = [
-        "tests.hashers.FewIterationsPBKDF2PasswordHasher",
+        "tests.support.hashers.FewIterationsPBKDF2PasswordHasher",
         *django_settings.PASSWORD_HASHERS,
     ]
 
@@ -372,41 +315,6 @@ def make_owner_token(db):
     return make
 
 
-@contextmanager
-def logged_by(name: str) -> Iterator[list[logging.LogRecord]]:
-    """What the logger `name` logs meanwhile (pytest's caplog loses its handler when the first
-    task run inline sets Django's logging up again)."""
-    records: list[logging.LogRecord] = []
-    handler = logging.Handler()
-    handler.emit = records.append
-    logger = logging.getLogger(name)
-    logger.addHandler(handler)
-    try:
-        yield records
-    finally:
-        logger.removeHandler(handler)
-
-
-def anvil_rpc(url: str, method: str, *params: object) -> object:
-    """One JSON-RPC call to a test node (snapshots, time, mining); its result."""
-    answer = requests.post(
-        url, json={"jsonrpc": "2.0", "id": 1, "method": method, "params": list(params)}, timeout=30
-    ).json()
-    if "error" in answer:
-        raise AssertionError(f"{method}: anvil refused: {answer['error']}")
-    return answer["result"]
-
-
-def chain_time_travel(url: str, timestamp: int) -> None:
-    """Mine the next block at `timestamp` (seconds), as the node's clock would later."""
-    anvil_rpc(url, "evm_setNextBlockTimestamp", timestamp)
-    anvil_rpc(url, "evm_mine")
-
-
-def blocks_mine(url: str, count: int) -> None:
-    anvil_rpc(url, "anvil_mine", hex(count))
-
-
 @pytest.fixture
 def eager_retries() -> Iterator[None]:
     """Tasks run inline, and a task's retries too: Celery retries an eager task inline only
@@ -433,10 +341,6 @@ def blocks_lost(isolated_portal, monkeypatch, eager_retries):
     return lose
 
 
-def genesis_hash(url: str) -> str:
-    return anvil_rpc(url, "eth_getBlockByNumber", "0x0", False)["hash"]
-
-
 @pytest.fixture
 def fresh_chain(settings):
     """Point the portal at a new, empty chain (a reset): a node of its own, stopped afterwards,
@@ -457,14 +361,3 @@ def fresh_chain(settings):
     yield reset
     for node in nodes:
         node.stop()
-
-
-def tamper(record: Record) -> None:
-    """Flip one byte of the stored envelope (durable copy), and drop the cached one."""
-    get_redis().delete(cache_key(record.id))
-    path = envelope_storage().path(record.storage_name)
-    with open(path, "r+b") as handle:
-        handle.seek(40)
-        byte = handle.read(1)
-        handle.seek(40)
-        handle.write(bytes([byte[0] ^ 0x01]))

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.source_imports import REPO_ROOT, imports, source_files
+from tests.support.source_imports import REPO_ROOT, imports, source_files
 
 pytestmark = pytest.mark.nodb
 

@@ -1,5 +1,6 @@
-"""The suite's tiers (tests/tiers.py): every test is in exactly one of the two parts `make test`
-runs, the fast tier leaves out everything slow, and a process started unmarked is caught."""
+"""The suite's tiers (tests/support/tiers.py): every test is in exactly one of the two parts
+`make test` runs, the fast tier leaves out everything slow, and a process started unmarked is
+caught."""
 
 import itertools
 import subprocess
@@ -7,7 +8,7 @@ from types import SimpleNamespace
 
 import pytest
 
-from tests import tiers
+from tests.support import tiers
 
 pytestmark = pytest.mark.nodb
 

@@ -15,7 +15,7 @@ from accounts.models import ChainState, Owner, Robot
 from accounts.selectors import owner_key_bytes, owner_key_current, robot_by_token
 from smcrypto import key_id, sm2, sm4
 from stack.anvil import start_anvil
-from tests.conftest import TEST_PASSWORD
+from tests.support.robot_setup import TEST_PASSWORD
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 # A well-formed key that looks random, for tests about the other arguments.

@@ -23,7 +23,8 @@ from sharing.models import Record
 from smcrypto import key_commitment, sm4
 from stack.anvil import free_port
 from tests.api.conftest import RECORDS, Snapshot, b64, session_client, token_client
-from tests.conftest import RobotSetup, logged_by, seal_for
+from tests.support.logs import logged_by
+from tests.support.robot_setup import RobotSetup, seal_for
 
 pytestmark = pytest.mark.django_db
 

@@ -25,8 +25,9 @@ from chainworker.services import operator_account, operator_verify
 from portal.middleware import service_checks_forget
 from smcrypto import sm4
 from stack.anvil import free_port
-from tests.conftest import TEST_PASSWORD, logged_by
-from tests.harness import wait_for
+from tests.support.harness import wait_for
+from tests.support.logs import logged_by
+from tests.support.robot_setup import TEST_PASSWORD
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 RECORDS = "/api/v1/records/"

@@ -17,8 +17,8 @@ from accounts.selectors import owner_key_bytes, owner_key_current
 from accounts.services.keys import key_rotate, sm4_key_check, sm4_key_generate
 from accounts.services.owners import owner_create
 from smcrypto import key_id, sm4
-from tests.conftest import TEST_PASSWORD
 from tests.pages.conftest import encrypted_key
+from tests.support.robot_setup import TEST_PASSWORD
 
 pytestmark = pytest.mark.django_db
 

@@ -29,7 +29,7 @@ from accounts.services.registration import owner_register_on_chain
 from accounts.services.robots import robot_create, robot_token_revoke
 from sharing.services import anchoring
 from smcrypto import key_commitment, key_id, sm4
-from tests.conftest import TEST_PASSWORD
+from tests.support.robot_setup import TEST_PASSWORD
 
 pytestmark = pytest.mark.django_db
 

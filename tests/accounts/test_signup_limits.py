@@ -21,8 +21,8 @@ from accounts.services.registration import chain_work_sweep
 from accounts.tasks import owner_register
 from chainworker import services as chain_services
 from stack.anvil import start_anvil
-from tests.conftest import TEST_PASSWORD
 from tests.pages.conftest import encrypted_key
+from tests.support.robot_setup import TEST_PASSWORD
 
 pytestmark = pytest.mark.django_db
 

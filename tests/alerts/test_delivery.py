@@ -21,7 +21,7 @@ from alerts.services import (
 from alerts.tasks import alerts_watch
 from alerts.webhooks import webhook_url_check
 from smcrypto import sm4
-from tests.conftest import TEST_PASSWORD
+from tests.support.robot_setup import TEST_PASSWORD
 
 
 @pytest.fixture

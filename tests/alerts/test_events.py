@@ -20,7 +20,8 @@ from sharing.services.uploads import record_create
 from sharing.verification import record_open
 from smcrypto import sm4
 from stack.anvil import start_anvil
-from tests.conftest import TEST_PASSWORD, tamper
+from tests.support.robot_setup import TEST_PASSWORD
+from tests.support.tampering import tamper
 
 
 def _alerts(owner, kind: str) -> list[Alert]:

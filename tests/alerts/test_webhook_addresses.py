@@ -13,7 +13,7 @@ from alerts.models import AlertDelivery, AlertKind
 from alerts.services import alert_test_send, webhook_endpoint_create
 from alerts.webhooks import globally_routable, webhook_url_check
 from smcrypto import sm4
-from tests.conftest import TEST_PASSWORD
+from tests.support.robot_setup import TEST_PASSWORD
 
 # Each accepted before issue 37 (the audit's list), plus the other transition forms.
 INNER_SPELLINGS = [

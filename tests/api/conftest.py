@@ -10,7 +10,7 @@ from rest_framework.test import APIClient
 from accounts.models import Owner, Robot
 from sharing.models import Record
 from sharing.storage import envelope_storage
-from tests.conftest import RobotSetup
+from tests.support.robot_setup import RobotSetup
 
 RECORDS = "/api/v1/records/"
 GRANTS = "/api/v1/grants/"

@@ -8,7 +8,7 @@ from accounts.services.owners import owner_create
 from sharing.models import Grant
 from smcrypto import sm4
 from tests.api.conftest import GRANTS, session_client
-from tests.conftest import TEST_PASSWORD
+from tests.support.robot_setup import TEST_PASSWORD
 
 pytestmark = pytest.mark.django_db
 

@@ -19,7 +19,7 @@ from accounts.services.robots import robot_create
 from sharing.models import Grant, Record, Verdict
 from sharing.services.grants import grant_create
 from sharing.services.uploads import record_create_batch
-from tests.conftest import seal_for
+from tests.support.robot_setup import seal_for
 
 pytestmark = pytest.mark.django_db(transaction=True)
 

@@ -9,7 +9,7 @@ from accounts.services.owners import owner_create
 from sharing.errors import OwnerNotFound
 from sharing.selectors.grants import owner_resolve
 from smcrypto import sm4
-from tests.conftest import TEST_PASSWORD
+from tests.support.robot_setup import TEST_PASSWORD
 
 pytestmark = pytest.mark.django_db
 

@@ -16,7 +16,7 @@ from smcrypto import envelope, sm3
 from smcrypto.errors import WrongKey
 from stack.anvil import free_port
 from tests.api.conftest import RECORDS, session_client, token_client
-from tests.conftest import seal_for
+from tests.support.robot_setup import seal_for
 
 pytestmark = pytest.mark.django_db
 

@@ -17,7 +17,7 @@ from sharing.models import Record, SecurityEvent
 from sharing.services.uploads import KEY_ROTATION_GRACE
 from smcrypto import envelope, sm3, sm4
 from tests.api.conftest import RECORDS, Snapshot, b64, session_client, token_client
-from tests.conftest import seal_for
+from tests.support.robot_setup import seal_for
 
 pytestmark = pytest.mark.django_db
 

@@ -19,7 +19,7 @@ from sharing.services.uploads import record_create_batch
 from smcrypto import envelope
 from smcrypto.merkle import leaf_hash
 from smcrypto.sm3 import sm3_hex
-from tests.conftest import RobotSetup
+from tests.support.robot_setup import RobotSetup
 
 
 def export_of(

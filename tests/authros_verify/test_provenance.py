@@ -20,7 +20,7 @@ from authros_verify.messages import message_encode, message_log_time
 from authros_verify.values import micros
 from smcrypto import envelope, provenance, sm2
 from tests.authros_verify.conftest import export_of, forged_proof, recomputed
-from tests.conftest import seal_for
+from tests.support.robot_setup import seal_for
 
 pytestmark = pytest.mark.django_db
 

@@ -19,7 +19,7 @@ from sharing.services.uploads import record_create_batch
 from smcrypto import envelope, provenance, sm2, sm4
 from tests.api.conftest import token_client
 from tests.authros_verify.conftest import forged_proof
-from tests.conftest import seal_for
+from tests.support.robot_setup import seal_for
 
 pytestmark = pytest.mark.django_db
 

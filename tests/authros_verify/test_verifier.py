@@ -19,7 +19,7 @@ from chainworker import services as chain_services
 from chainworker.chain import ContractArtifact
 from stack.anvil import start_anvil
 from tests.authros_verify.conftest import export_of
-from tests.harness import REPO_ROOT
+from tests.support.harness import REPO_ROOT
 
 pytestmark = pytest.mark.django_db
 

@@ -16,7 +16,7 @@ from tqdm import tqdm
 
 from bench import available, common, crypto, message_size, report, rest, roots, sustained
 from bench.__main__ import main as bench_main
-from tests.fresh_python import fresh_python
+from tests.support.fresh_python import fresh_python
 
 
 def _machine() -> dict:

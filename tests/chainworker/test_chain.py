@@ -27,7 +27,7 @@ from chainworker.chain import (
 )
 from smcrypto import key_commitment, sm3, sm4
 from stack.anvil import free_port
-from tests.chain_setup import make_registered_owner
+from tests.support.chain_setup import make_registered_owner
 
 
 def _item(data_type: str = "nav_msgs/Odometry") -> AnchorItem:

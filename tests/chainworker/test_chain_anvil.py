@@ -26,7 +26,7 @@ from chainworker.chain import (
 )
 from smcrypto import key_commitment, sm4
 from stack.anvil import start_anvil
-from tests.chain_setup import anchor_item, make_registered_owner
+from tests.support.chain_setup import anchor_item, make_registered_owner
 
 pytestmark = pytest.mark.process
 

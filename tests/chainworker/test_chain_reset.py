@@ -19,7 +19,7 @@ from sharing.services.grant_chain import grant_sync_on_chain
 from sharing.services.grants import grant_create
 from sharing.services.reconcile import chain_reconcile
 from sharing.services.uploads import record_create
-from tests.conftest import logged_by
+from tests.support.logs import logged_by
 
 pytestmark = pytest.mark.django_db
 

@@ -8,7 +8,7 @@ from eth_account import Account
 
 from chainworker.chain import RobotKeyOnChain, TransactionReverted
 from smcrypto import sm2, sm3
-from tests.conftest import make_registered_owner
+from tests.support.chain_setup import make_registered_owner
 
 ROBOT_KEY_EVENTS = {"RobotKeyAdded": ("owner",), "RobotKeyRevoked": ("owner",)}
 

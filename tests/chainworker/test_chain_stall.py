@@ -22,7 +22,7 @@ from sharing.models import Record
 from sharing.services import anchoring
 from sharing.services.uploads import record_create
 from stack.anvil import AnvilProcess, start_anvil
-from tests.anchoring_checks import assert_anchored_exactly_once, records_on_chain
+from tests.support.anchoring_checks import assert_anchored_exactly_once, records_on_chain
 
 pytestmark = [pytest.mark.django_db, pytest.mark.process]
 

@@ -33,8 +33,8 @@ from sharing.services import sweep as sharing_sweep
 from sharing.services.grants import grant_create
 from sharing.services.uploads import record_create_batch
 from stack.anvil import start_anvil
-from tests.anchoring_checks import assert_anchored_exactly_once
-from tests.conftest import TEST_PASSWORD, RobotSetup
+from tests.support.anchoring_checks import assert_anchored_exactly_once
+from tests.support.robot_setup import TEST_PASSWORD, RobotSetup
 
 pytestmark = pytest.mark.django_db
 

@@ -1,6 +1,6 @@
 """Real Celery workers, Redis and anvil: everything is anchored exactly once, whatever fails.
 
-These tests start worker and beat processes (tests/harness.py) that share the test database,
+These tests start worker and beat processes (tests/support/harness.py) that share the test database,
 a Redis database of their own and an anvil node, then break things: kill -9 a worker in the
 middle of a batch, stop the chain for 20 s, flush Redis, change stored ciphertext.
 """
@@ -23,9 +23,9 @@ from sharing.services.uploads import record_create, record_create_batch
 from sharing.storage import envelope_storage
 from sharing.tasks import records_verify
 from smcrypto import sm4
-from tests.anchoring_checks import assert_anchored_exactly_once, records_on_chain
-from tests.harness import WorkerStack, wait_for
-from tests.worker_robots import registered_robots, uploading
+from tests.support.anchoring_checks import assert_anchored_exactly_once, records_on_chain
+from tests.support.harness import WorkerStack, wait_for
+from tests.support.worker_robots import registered_robots, uploading
 
 _ANCHOR_RUN_DONE = r"Task sharing\.tasks\.records_anchor\[[^\]]+\] succeeded"
 

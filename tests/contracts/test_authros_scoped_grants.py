@@ -5,8 +5,8 @@ from eth_utils import keccak
 from web3.exceptions import ContractLogicError
 from web3.logs import DISCARD
 
-from tests.conftest import chain_time_travel
 from tests.contracts.conftest import decode_revert
+from tests.support.anvil_rpc import chain_time_travel
 
 SCOPE = keccak(text="scope-a")  # stand-in for SM3 of a canonical scope encoding
 OTHER_SCOPE = keccak(text="scope-b")

@@ -24,8 +24,8 @@ from core.redis_url import celery_redis
 from sharing import cache
 from stack.anvil import free_port
 from stack.processes import Children, celery_worker
-from tests.harness import database_url
 from tests.launchers.redis_sentinel import RedisSentinels, start_redis_sentinels
+from tests.support.harness import database_url
 
 pytestmark = pytest.mark.process
 

@@ -3,8 +3,8 @@ and numbered screenshots of the steps.
 
 The portal runs in pytest-django's live server (a thread of the test process, sharing its
 settings and test database; it serves /static/ through django.contrib.staticfiles). Real
-Celery workers, beat and anvil come from tests/harness.py: the record page runs its integrity
-check through the worker.
+Celery workers, beat and anvil come from tests/support/harness.py: the record page runs its
+integrity check through the worker.
 """
 
 from collections.abc import Iterator
@@ -12,10 +12,11 @@ from pathlib import Path
 
 import pytest
 from django.db import connections
-from playwright.sync_api import Browser, Page, sync_playwright
+from playwright.sync_api import Browser, sync_playwright
 
 from chainworker import services as chain_services
-from tests.harness import REPO_ROOT, WorkerStack
+from tests.support.harness import WorkerStack
+from tests.support.screenshots import ARTIFACTS
 
 CHROMIUM = "/usr/bin/chromium"
 # Nothing may leave the machine: no component updates, sync, QUIC probes or field trials.
@@ -28,7 +29,6 @@ CHROMIUM_ARGS = [
     "--disable-component-update",
     "--disable-sync",
 ]
-ARTIFACTS = REPO_ROOT / "test-artifacts" / "e2e"
 
 
 @pytest.fixture
@@ -72,15 +72,3 @@ def artifacts() -> Path:
     for old in ARTIFACTS.glob("*.png"):
         old.unlink()
     return ARTIFACTS
-
-
-class Screenshots:
-    """Numbered full-page screenshots, in the order the steps happen."""
-
-    def __init__(self, directory: Path) -> None:
-        self.directory = directory
-        self.count = 0
-
-    def __call__(self, page: Page, name: str) -> None:
-        self.count += 1
-        page.screenshot(path=self.directory / f"{self.count:02d}-{name}.png", full_page=True)

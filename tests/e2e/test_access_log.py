@@ -4,7 +4,7 @@ CSV; a grantee reads their own views of shared data as
 cards, every field inside the screen.
 
 No worker, no anvil: the log only reads verdicts, made here straight in the database
-(tests/sharing/access_log_data.py). Screenshots go to test-artifacts/e2e/access-log/.
+(tests/support/access_log_data.py). Screenshots go to test-artifacts/e2e/access-log/.
 """
 
 import csv
@@ -15,16 +15,16 @@ import pytest
 from playwright.sync_api import Browser, BrowserContext, Page, expect
 
 from sharing.models import Record
-from tests.conftest import TEST_PASSWORD
-from tests.e2e.conftest import ARTIFACTS
-from tests.e2e.layout import cells_off_screen
-from tests.sharing.access_log_data import (
+from tests.support.access_log_data import (
     CAROL_TOPIC,
     FORMULA_TOKEN,
     access_log_world,
     plot,
     stored_record,
 )
+from tests.support.layout import cells_off_screen
+from tests.support.robot_setup import TEST_PASSWORD
+from tests.support.screenshots import ARTIFACTS
 
 pytestmark = pytest.mark.django_db(transaction=True)
 

@@ -13,8 +13,8 @@ from playwright.sync_api import Browser, Page, expect
 from accounts.services.owners import owner_create
 from portal.celery import app as celery_app
 from smcrypto import sm4
-from tests.conftest import TEST_PASSWORD
-from tests.e2e.conftest import ARTIFACTS, Screenshots
+from tests.support.robot_setup import TEST_PASSWORD
+from tests.support.screenshots import ARTIFACTS, Screenshots
 
 pytestmark = pytest.mark.django_db(transaction=True)
 

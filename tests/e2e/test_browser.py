@@ -29,8 +29,8 @@ from sharing.cache import _key as cache_key
 from sharing.models import Record
 from sharing.storage import envelope_storage
 from smcrypto import envelope
-from tests.conftest import TEST_PASSWORD
-from tests.e2e.conftest import Screenshots
+from tests.support.robot_setup import TEST_PASSWORD
+from tests.support.screenshots import Screenshots
 
 pytestmark = [
     pytest.mark.worker,

@@ -19,7 +19,7 @@ from sharing.exports import export_run
 from sharing.models import Export
 from sharing.selection import RecordSelection
 from sharing.services.uploads import record_create_batch
-from tests.conftest import TEST_PASSWORD
+from tests.support.robot_setup import TEST_PASSWORD
 
 pytestmark = [pytest.mark.browser, pytest.mark.django_db(transaction=True)]
 

@@ -14,8 +14,8 @@ from playwright.sync_api import Browser, Page, expect
 from sharing.models import Grant
 from sharing.scope import scope_commitment
 from sharing.services.grant_chain import grant_sync_on_chain
-from tests.conftest import TEST_PASSWORD
 from tests.pages.conftest import upload  # noqa: F401  (the fixture)
+from tests.support.robot_setup import TEST_PASSWORD
 
 pytestmark = [pytest.mark.browser, pytest.mark.django_db(transaction=True)]
 

@@ -6,8 +6,8 @@ Screenshots go to test-artifacts/e2e/install/.
 import pytest
 from playwright.sync_api import Browser, expect
 
-from tests.conftest import TEST_PASSWORD
-from tests.e2e.conftest import ARTIFACTS
+from tests.support.robot_setup import TEST_PASSWORD
+from tests.support.screenshots import ARTIFACTS
 
 pytestmark = pytest.mark.django_db(transaction=True)
 

@@ -36,13 +36,13 @@ from ros_agent import sim
 from sharing.models import Record
 from sharing.verification import record_open
 from smcrypto import sm2, sm4
-from tests.anchoring_checks import assert_anchored_exactly_once
-from tests.conftest import TEST_PASSWORD
-from tests.e2e.conftest import Screenshots
-from tests.harness import WorkerStack, wait_for
 from tests.ros_agent import conftest as ros_fixtures
-from tests.ros_agent.agent_output import agent_final_stats, spool_queued
 from tests.ros_agent.conftest import python_module, running, stop_process, wait_until
+from tests.support.agent_output import agent_final_stats, spool_queued
+from tests.support.anchoring_checks import assert_anchored_exactly_once
+from tests.support.harness import WorkerStack, wait_for
+from tests.support.robot_setup import TEST_PASSWORD
+from tests.support.screenshots import Screenshots
 
 pytestmark = [
     pytest.mark.worker,

@@ -14,8 +14,8 @@ from playwright.sync_api import Browser, Page, expect
 from accounts.models import Robot
 from sharing.models import Record
 from sharing.services.uploads import record_create
-from tests.conftest import TEST_PASSWORD
-from tests.e2e.layout import cells_off_screen
+from tests.support.layout import cells_off_screen
+from tests.support.robot_setup import TEST_PASSWORD
 
 pytestmark = pytest.mark.django_db(transaction=True)
 

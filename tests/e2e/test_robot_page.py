@@ -19,8 +19,8 @@ from playwright.sync_api import Browser, Page, expect
 from accounts.models import Robot
 from sharing.models import Record
 from sharing.services.uploads import record_create
-from tests.conftest import RobotSetup
 from tests.pages.conftest import image, odometry
+from tests.support.robot_setup import RobotSetup
 
 pytestmark = [pytest.mark.browser, pytest.mark.django_db(transaction=True)]
 

@@ -19,9 +19,9 @@ import yaml
 from ros_agent import pairing
 from ros_agent.config import config_from_mapping
 from smcrypto import sm4
-from tests.fresh_python import fresh_python
-from tests.harness import REPO_ROOT
 from tests.ros_agent.conftest import write_paired_robot_files
+from tests.support.fresh_python import fresh_python
+from tests.support.harness import REPO_ROOT
 
 SYSTEMD = REPO_ROOT / "deploy" / "systemd"
 UNITS = sorted(SYSTEMD.glob("*.service"))

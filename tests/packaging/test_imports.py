@@ -1,6 +1,6 @@
 """Each role's packages import only what its extra of pyproject.toml installs, every extra's
 packages are in its locked set (requirements/ROLE.txt, with hashes), and no runtime code
-imports a test chain or a test tool. Read from the source (tests/source_imports.py) and the
+imports a test chain or a test tool. Read from the source (tests/support/source_imports.py) and the
 files themselves: nothing is installed or run.
 """
 
@@ -15,7 +15,7 @@ import pytest
 from packaging.requirements import Requirement
 from packaging.utils import canonicalize_name
 
-from tests.source_imports import REPO_ROOT, imports, source_files
+from tests.support.source_imports import REPO_ROOT, imports, source_files
 
 PYPROJECT = tomllib.loads((REPO_ROOT / "pyproject.toml").read_text())
 EXTRAS = PYPROJECT["project"]["optional-dependencies"]

@@ -12,7 +12,7 @@ from django.urls import reverse
 
 from authros_verify.__main__ import main as verify_main
 from ros_agent.__main__ import main as agent_main
-from tests.harness import REPO_ROOT
+from tests.support.harness import REPO_ROOT
 
 PYPROJECT = tomllib.loads((REPO_ROOT / "pyproject.toml").read_text())["project"]
 FIRST_SCREEN = 45  # lines

@@ -24,7 +24,7 @@ import pytest
 from django.conf import settings
 
 from tests.authros_verify.conftest import export_of
-from tests.harness import REPO_ROOT
+from tests.support.harness import REPO_ROOT
 
 pytestmark = [pytest.mark.process, pytest.mark.slow, pytest.mark.timeout(1200)]
 
@@ -77,6 +77,8 @@ def role_venv(folder: Path, role: str, wheel: Path, *, system_site_packages: boo
          str(venv)],
         cwd=folder,
     )  # fmt: skip
+    # No bytecode compiled at install (a third of pip's time here, numpy and OpenCV above
+    # all): the commands below compile what they import, as a first run on a robot does.
     pip = [
         str(venv / "bin" / "python"),
         "-m",
@@ -84,6 +86,7 @@ def role_venv(folder: Path, role: str, wheel: Path, *, system_site_packages: boo
         "install",
         "-q",
         "--disable-pip-version-check",
+        "--no-compile",
     ]
     run([*pip, *offline, "--require-hashes", "-r", str(locked)], cwd=folder)
     # Offline and with no other index: the extra's packages must all be in the locked set.

@@ -16,7 +16,7 @@ from accounts.services.owners import owner_create
 from sharing.models import Record
 from sharing.services.uploads import record_create
 from smcrypto import sm2, sm4
-from tests.conftest import TEST_PASSWORD, RobotSetup
+from tests.support.robot_setup import TEST_PASSWORD, RobotSetup
 
 
 def encrypted_key(key: bytes) -> str:

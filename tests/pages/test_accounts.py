@@ -11,8 +11,8 @@ from accounts.keyexchange import portal_sm2_public_key
 from accounts.models import ChainState, Owner
 from accounts.selectors import owner_key_bytes, owner_key_current
 from smcrypto import key_id, sm4
-from tests.conftest import TEST_PASSWORD
 from tests.pages.conftest import encrypted_key
+from tests.support.robot_setup import TEST_PASSWORD
 
 pytestmark = pytest.mark.django_db
 

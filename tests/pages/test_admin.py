@@ -8,7 +8,8 @@ from accounts.models import AccountEvent, OwnerKey, Robot
 from sharing.models import Record, SecurityEvent, Verdict
 from sharing.selectors.access import verdict_latest
 from stack.anvil import free_port
-from tests.conftest import TEST_PASSWORD, tamper
+from tests.support.robot_setup import TEST_PASSWORD
+from tests.support.tampering import tamper
 
 pytestmark = pytest.mark.django_db
 

@@ -13,7 +13,7 @@ from django.test import RequestFactory
 from django.urls import reverse
 
 from alerts.services import webhook_endpoint_create
-from tests.conftest import TEST_PASSWORD
+from tests.support.robot_setup import TEST_PASSWORD
 
 pytestmark = pytest.mark.django_db
 

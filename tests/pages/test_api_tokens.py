@@ -14,7 +14,7 @@ from accounts.selectors import owner_token_by_key
 from accounts.services.api_tokens import owner_token_revoke
 from sharing.models import Grant
 from sharing.services.grants import grant_create
-from tests.conftest import TEST_PASSWORD
+from tests.support.robot_setup import TEST_PASSWORD
 
 pytestmark = pytest.mark.django_db
 

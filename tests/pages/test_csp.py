@@ -15,7 +15,7 @@ from django.template import engines
 from django.urls import URLPattern, URLResolver, get_resolver, reverse
 from django.urls.resolvers import RoutePattern
 
-from tests.conftest import logged_by
+from tests.support.logs import logged_by
 
 pytestmark = pytest.mark.django_db
 

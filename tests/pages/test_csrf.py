@@ -11,8 +11,8 @@ from django.urls import reverse
 from accounts.selectors import owner_key_current
 from accounts.services.robots import robot_create
 from smcrypto import sm4
-from tests.conftest import TEST_PASSWORD
 from tests.pages.conftest import encrypted_key
+from tests.support.robot_setup import TEST_PASSWORD
 
 pytestmark = pytest.mark.django_db
 

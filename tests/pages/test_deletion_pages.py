@@ -6,7 +6,7 @@ from django.urls import reverse
 
 from accounts.models import AccountEvent, Robot
 from accounts.services.robots import robot_create
-from tests.conftest import TEST_PASSWORD
+from tests.support.robot_setup import TEST_PASSWORD
 
 pytestmark = pytest.mark.django_db
 

@@ -17,8 +17,8 @@ from accounts.models import AccountEvent, Owner
 from sharing.services.grants import grant_create
 from sharing.verification import record_open
 from smcrypto import sm4
-from tests.conftest import TEST_PASSWORD
 from tests.pages.conftest import encrypted_key
+from tests.support.robot_setup import TEST_PASSWORD
 
 pytestmark = pytest.mark.django_db
 

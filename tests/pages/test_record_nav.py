@@ -11,8 +11,8 @@ from django.urls import reverse
 from accounts.services.robots import robot_create
 from sharing.grant_terms import grant_terms_make
 from sharing.services.grants import grant_create
-from tests.conftest import RobotSetup
 from tests.pages.conftest import image
+from tests.support.robot_setup import RobotSetup
 
 pytestmark = pytest.mark.django_db
 

@@ -13,8 +13,8 @@ from sharing.models import Record, Verdict
 from sharing.services.anchoring import records_reanchor
 from sharing.services.grants import grant_create, grant_revoke
 from stack.anvil import free_port
-from tests.conftest import tamper
 from tests.pages.conftest import image, odometry
+from tests.support.tampering import tamper
 
 pytestmark = pytest.mark.django_db
 

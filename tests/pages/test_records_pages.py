@@ -16,8 +16,9 @@ from django.utils import timezone
 from accounts.services.robots import robot_create
 from sharing.models import Record, Verdict
 from sharing.services.grants import grant_create
-from tests.conftest import RobotSetup, tamper
 from tests.pages.conftest import fig4, image, odometry
+from tests.support.robot_setup import RobotSetup
+from tests.support.tampering import tamper
 
 pytestmark = pytest.mark.django_db
 

@@ -15,8 +15,9 @@ from accounts.models import Robot
 from sharing.models import Access, Verdict
 from sharing.robot_status import robot_activity
 from sharing.services.grants import grant_create
-from tests.conftest import RobotSetup, tamper
 from tests.pages.conftest import image, odometry
+from tests.support.robot_setup import RobotSetup
+from tests.support.tampering import tamper
 
 pytestmark = pytest.mark.django_db
 

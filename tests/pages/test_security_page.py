@@ -15,7 +15,7 @@ from accounts.services.robots import robot_create
 from sharing.errors import IntegrityCheckFailed
 from sharing.models import SecurityEvent
 from sharing.verification import record_open
-from tests.conftest import tamper
+from tests.support.tampering import tamper
 
 pytestmark = pytest.mark.django_db
 

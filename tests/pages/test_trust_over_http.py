@@ -12,8 +12,8 @@ from django.contrib.auth import get_user_model
 
 from accounts.models import AccountEvent, Owner
 from accounts.services.keys import sm4_key_generate
-from tests.conftest import TEST_PASSWORD
 from tests.pages.conftest import encrypted_key, odometry
+from tests.support.robot_setup import TEST_PASSWORD
 
 pytestmark = pytest.mark.django_db(transaction=True)
 

@@ -4,7 +4,7 @@ import subprocess
 
 import pytest
 
-from tests.fresh_python import fresh_python_run
+from tests.support.fresh_python import fresh_python_run
 
 pytestmark = [pytest.mark.process, pytest.mark.nodb]
 

@@ -16,7 +16,7 @@ from django.urls import reverse
 from accounts.services.owners import owner_create
 from chainworker.models import Deployment
 from smcrypto import sm4
-from tests.conftest import TEST_PASSWORD
+from tests.support.robot_setup import TEST_PASSWORD
 
 pytestmark = pytest.mark.django_db
 

@@ -1,12 +1,12 @@
 """The portal hashes passwords with Django's PBKDF2 at full strength (the test process uses
-fewer iterations, tests/hashers.py; a fresh process has the portal's own settings)."""
+fewer iterations, tests/support/hashers.py; a fresh process has the portal's own settings)."""
 
 import json
 
 import pytest
 from django.contrib.auth.hashers import PBKDF2PasswordHasher
 
-from tests.fresh_python import fresh_python
+from tests.support.fresh_python import fresh_python
 
 pytestmark = [pytest.mark.process, pytest.mark.nodb]
 

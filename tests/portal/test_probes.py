@@ -6,7 +6,7 @@ from django.test import Client
 
 from portal.scrape import state_collector
 from stack.anvil import free_port
-from tests.conftest import logged_by
+from tests.support.logs import logged_by
 
 LOCAL = "127.0.0.1"
 ELSEWHERE = "203.0.113.7"

@@ -30,7 +30,7 @@ from ros_agent.extractors import extract
 from ros_agent.keyring import key_id_hex, write_keys_file
 from smcrypto import sm2, sm4
 from stack.anvil import free_port
-from tests.ros_agent.records_server import RecordsServer
+from tests.support.records_server import RecordsServer
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 OWNER = "alice"

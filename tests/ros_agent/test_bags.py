@@ -26,15 +26,15 @@ from ros_agent.spool import Spool
 from sharing.models import Record
 from stack.anvil import free_port
 from tests.ros_agent.conftest import REPO_ROOT, write_key_file
-from tests.ros_agent.custom_msgs import (
+from tests.support.custom_msgs import (
     INSPECTION,
     INSPECTION_TOPIC,
     MSG_DIR,
     inspection,
     inspection_record,
 )
-from tests.ros_agent.portal_checks import opened_records, robot_config, stamp_time
-from tests.ros_agent.recordings import (
+from tests.support.portal_checks import opened_records, robot_config, stamp_time
+from tests.support.recordings import (
     ODOM,
     TOPICS,
     Sample,

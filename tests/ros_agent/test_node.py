@@ -15,7 +15,6 @@ import pytest
 import yaml
 
 from ros_agent import sim
-from tests.ros_agent.agent_output import agent_final_stats, agent_stats, spool_queued
 from tests.ros_agent.conftest import (
     OWNER,
     REPO_ROOT,
@@ -30,7 +29,8 @@ from tests.ros_agent.conftest import (
     wait_until,
     write_key_file,
 )
-from tests.ros_agent.records_server import RecordsServer
+from tests.support.agent_output import agent_final_stats, agent_stats, spool_queued
+from tests.support.records_server import RecordsServer
 
 pytestmark = pytest.mark.timeout(90)
 

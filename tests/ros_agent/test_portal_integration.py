@@ -31,10 +31,6 @@ from ros_agent import sim
 from sharing.models import Record
 from sharing.verification import record_open
 from smcrypto import sm4
-from tests.anchoring_checks import assert_anchored_exactly_once
-from tests.conftest import TEST_PASSWORD, RobotSetup
-from tests.harness import WorkerStack, wait_for
-from tests.ros_agent.agent_output import agent_final_stats, spool_queued
 from tests.ros_agent.conftest import (
     OWNER,
     RosMaster,
@@ -45,7 +41,11 @@ from tests.ros_agent.conftest import (
     stop_process,
     wait_until,
 )
-from tests.ros_agent.portal_checks import robot_config
+from tests.support.agent_output import agent_final_stats, spool_queued
+from tests.support.anchoring_checks import assert_anchored_exactly_once
+from tests.support.harness import WorkerStack, wait_for
+from tests.support.portal_checks import robot_config
+from tests.support.robot_setup import TEST_PASSWORD, RobotSetup
 
 pytestmark = [
     pytest.mark.worker,

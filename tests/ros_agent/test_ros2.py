@@ -29,7 +29,7 @@ from tests.ros_agent.conftest import (
     stop_process,
     wait_until,
 )
-from tests.ros_agent.custom_msgs import (
+from tests.support.custom_msgs import (
     INSPECTION,
     INSPECTION_TOPIC,
     LEARNED,
@@ -37,8 +37,8 @@ from tests.ros_agent.custom_msgs import (
     inspection,
     inspection_record,
 )
-from tests.ros_agent.portal_checks import opened_records, robot_config, stamp_time
-from tests.ros_agent.recordings import (
+from tests.support.portal_checks import opened_records, robot_config, stamp_time
+from tests.support.recordings import (
     CHATTER,
     ODOM,
     TOPICS,

@@ -11,14 +11,14 @@ import roslib.message
 from ros_agent import ros2msg
 from ros_agent.extractors import extract
 from ros_agent.ros2msg import message_data, ros1_name, ros2_name
-from tests.ros_agent.custom_msgs import (
+from tests.support.custom_msgs import (
     INSPECTION,
     LEARNED,
     MSG_DIR,
     inspection,
     inspection_record,
 )
-from tests.ros_agent.recordings import TOPICS, make_samples, ros1_store, ros2_store
+from tests.support.recordings import TOPICS, make_samples, ros1_store, ros2_store
 
 
 def _as_genpy(msg, slot_type: str | None = None):

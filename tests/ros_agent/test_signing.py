@@ -37,7 +37,7 @@ from tests.ros_agent.conftest import (
     write_key_file,
     write_paired_robot_files,
 )
-from tests.ros_agent.recordings import (
+from tests.support.recordings import (
     TOPICS,
     make_samples,
     ros1_store,
@@ -45,7 +45,7 @@ from tests.ros_agent.recordings import (
     write_ros1_bag,
     write_ros2_bag,
 )
-from tests.ros_agent.records_server import RECORDS_PATH, RecordsServer
+from tests.support.records_server import RECORDS_PATH, RecordsServer
 
 pytestmark = pytest.mark.timeout(120)
 

@@ -12,7 +12,7 @@ from ros_agent.uploader import Outcome, PortalClient, Uploader
 from ros_agent.wrapping import Recorder
 from smcrypto import envelope, sm4
 from tests.ros_agent.conftest import OWNER, ROBOT, TOKEN, chatter_record, wait_until
-from tests.ros_agent.records_server import RECORDS_PATH
+from tests.support.records_server import RECORDS_PATH
 
 DELIVERED, SPLIT, REJECTED, RETRY, EMPTY = (
     Outcome.DELIVERED,

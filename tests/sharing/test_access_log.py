@@ -1,7 +1,7 @@
 """The access log: who viewed an owner's records, when, the verdict and the credential; the
 owner's own views of shared records; filters, pages, CSV and the API.
 
-The views are made straight in the database (tests/sharing/access_log_data.py); the last
+The views are made straight in the database (tests/support/access_log_data.py); the last
 tests check that the real view paths (page, API, admin, trajectory) record the credential.
 """
 
@@ -26,7 +26,7 @@ from sharing.selectors.access import (
     verdict_list_filtered,
 )
 from tests.api.conftest import session_client, token_client
-from tests.sharing.access_log_data import (
+from tests.support.access_log_data import (
     CAROL_TOPIC,
     FORMULA_ROBOT,
     FORMULA_TOKEN,

@@ -13,7 +13,7 @@ from django.urls import reverse
 from accounts.models import ChainActivity
 from accounts.services.robots import robot_create
 from sharing.models import Record
-from tests.conftest import RobotSetup
+from tests.support.robot_setup import RobotSetup
 
 pytestmark = pytest.mark.django_db
 

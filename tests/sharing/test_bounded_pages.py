@@ -14,8 +14,8 @@ from django.urls import reverse
 from sharing import verification
 from sharing.models import Access, Verdict
 from stack.anvil import free_port
-from tests.conftest import tamper
 from tests.pages.conftest import odometry
+from tests.support.tampering import tamper
 
 pytestmark = pytest.mark.django_db
 

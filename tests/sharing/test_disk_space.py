@@ -19,7 +19,7 @@ from sharing.models import Export, Record
 from sharing.services.uploads import record_create
 from sharing.storage import envelope_storage
 from tests.api.conftest import RECORDS, Snapshot, b64, token_client
-from tests.conftest import logged_by
+from tests.support.logs import logged_by
 
 pytestmark = pytest.mark.django_db
 

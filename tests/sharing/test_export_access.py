@@ -26,7 +26,7 @@ from sharing.storage import envelope_storage
 from smcrypto.stream import MAGIC as SEALED_MAGIC
 from tests.api.conftest import session_client
 from tests.authros_verify.conftest import export_files
-from tests.conftest import TEST_PASSWORD
+from tests.support.robot_setup import TEST_PASSWORD
 
 pytestmark = pytest.mark.django_db
 

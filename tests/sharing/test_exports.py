@@ -29,7 +29,8 @@ from sharing.storage import envelope_storage
 from smcrypto import sm2, sm4
 from tests.api.conftest import session_client, token_client
 from tests.authros_verify.conftest import export_files
-from tests.conftest import TEST_PASSWORD, seal_for, tamper
+from tests.support.robot_setup import TEST_PASSWORD, seal_for
+from tests.support.tampering import tamper
 
 pytestmark = pytest.mark.django_db
 

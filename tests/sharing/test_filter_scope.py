@@ -15,7 +15,7 @@ from sharing.selectors.access import ACCESS_LOG_OUTGOING, access_log_filter_choi
 from sharing.selectors.records import robots_visible_to
 from sharing.services.grants import grant_create, grant_revoke
 from sharing.services.uploads import record_create
-from tests.conftest import seal_for
+from tests.support.robot_setup import seal_for
 
 pytestmark = pytest.mark.django_db
 

@@ -16,7 +16,7 @@ from sharing.services.grants import grant_create, grant_revoke
 from sharing.services.uploads import record_create
 from sharing.storage import envelope_storage
 from sharing.verification import records_verify
-from tests.conftest import tamper
+from tests.support.tampering import tamper
 
 pytestmark = pytest.mark.django_db
 

@@ -19,7 +19,8 @@ from sharing.selectors.records import record_list_shared_with, record_list_visib
 from sharing.services.grants import grant_create, grant_revoke, grant_terms_change
 from sharing.verification import records_verify
 from tests.api.conftest import RECORDS, session_client
-from tests.conftest import RobotSetup, chain_time_travel
+from tests.support.anvil_rpc import chain_time_travel
+from tests.support.robot_setup import RobotSetup
 
 pytestmark = pytest.mark.django_db
 

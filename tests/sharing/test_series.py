@@ -17,8 +17,8 @@ from sharing.series import field_value, series_downsample
 from sharing.services.grants import grant_create
 from sharing.verification import records_verify
 from tests.api.conftest import session_client, token_client
-from tests.conftest import tamper
 from tests.pages.conftest import image, odometry
+from tests.support.tampering import tamper
 
 pytestmark = pytest.mark.django_db
 

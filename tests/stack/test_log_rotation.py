@@ -12,7 +12,7 @@ import pytest
 from stack import run as run_module
 from stack.processes import Children, logs_rotate
 from stack.run import Stack, StackConfig
-from tests.harness import wait_for
+from tests.support.harness import wait_for
 
 # A process that writes numbered lines to its stdout (its log) until it is stopped.
 WRITER = (

@@ -24,7 +24,7 @@ from django.conf import settings
 
 from stack.anvil import free_port
 from stack.run import BANNER, STATE_FILE
-from tests.harness import REPO_ROOT, wait_for
+from tests.support.harness import REPO_ROOT, wait_for
 
 pytestmark = [
     pytest.mark.process,

@@ -12,8 +12,8 @@ import requests
 from prometheus_client.parser import text_string_to_metric_families
 
 from sharing.models import Record
-from tests.harness import wait_for
-from tests.worker_robots import registered_robots
+from tests.support.harness import wait_for
+from tests.support.worker_robots import registered_robots
 
 pytestmark = [pytest.mark.worker, pytest.mark.process, pytest.mark.django_db(transaction=True)]
 

@@ -10,8 +10,8 @@ import pytest
 import requests
 
 from sharing.models import Record
-from tests.harness import wait_for
-from tests.worker_robots import registered_robots
+from tests.support.harness import wait_for
+from tests.support.worker_robots import registered_robots
 
 pytestmark = [
     pytest.mark.worker,

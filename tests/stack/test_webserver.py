@@ -18,7 +18,7 @@ import requests
 
 from stack.anvil import free_port
 from stack.processes import REPO_ROOT, WebSizing, web_server
-from tests.harness import wait_for
+from tests.support.harness import wait_for
 
 pytestmark = pytest.mark.process
 

@@ -12,7 +12,7 @@ from kombu import Connection
 
 from portal.celery import app
 from stack.processes import PYTHON, REPO_ROOT
-from tests.harness import wait_for
+from tests.support.harness import wait_for
 
 pytestmark = [pytest.mark.worker, pytest.mark.process, pytest.mark.django_db(transaction=True)]
 

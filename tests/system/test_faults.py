@@ -24,10 +24,10 @@ from sharing.services.grants import grant_create, grant_revoke
 from sharing.services.reconcile import RECONCILE_LOCK, chain_resync
 from sharing.services.uploads import record_create, record_create_batch
 from smcrypto import sm4
-from tests.anchoring_checks import assert_anchored_exactly_once, records_on_chain
-from tests.conftest import RobotSetup
-from tests.harness import WorkerStack, wait_for
-from tests.worker_robots import registered_robots, uploading
+from tests.support.anchoring_checks import assert_anchored_exactly_once, records_on_chain
+from tests.support.harness import WorkerStack, wait_for
+from tests.support.robot_setup import RobotSetup
+from tests.support.worker_robots import registered_robots, uploading
 
 pytestmark = [
     pytest.mark.worker,

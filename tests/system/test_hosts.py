@@ -20,9 +20,9 @@ from core.storage_url import envelope_storage_config
 from sharing.models import Record
 from smcrypto import envelope
 from stack.seaweedfs import start_seaweedfs
-from tests.anchoring_checks import assert_anchored_exactly_once
-from tests.harness import WorkerStack, wait_for
-from tests.worker_robots import registered_robots
+from tests.support.anchoring_checks import assert_anchored_exactly_once
+from tests.support.harness import WorkerStack, wait_for
+from tests.support.worker_robots import registered_robots
 
 pytestmark = [
     pytest.mark.skipif(

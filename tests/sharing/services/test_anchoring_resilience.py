@@ -16,7 +16,7 @@ from sharing.services.anchoring import anchor_item, records_anchor
 from sharing.services.grant_chain import grant_sync_on_chain
 from sharing.services.grants import grant_create, grant_revoke
 from sharing.services.uploads import record_create
-from tests.conftest import blocks_mine
+from tests.support.anvil_rpc import blocks_mine
 
 pytestmark = [pytest.mark.django_db, pytest.mark.usefixtures("records_mode")]
 

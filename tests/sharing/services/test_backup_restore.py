@@ -29,7 +29,7 @@ from sharing.models import Grant, Record
 from sharing.services import backup
 from sharing.storage import envelope_storage
 from stack.anvil import start_anvil
-from tests.conftest import RobotSetup
+from tests.support.robot_setup import RobotSetup
 
 pytestmark = pytest.mark.django_db
 

@@ -35,7 +35,7 @@ from sharing.storage import envelope_storage
 from sharing.verification import record_open, records_verify
 from smcrypto import sm4
 from tests.api.conftest import RECORDS, token_client
-from tests.conftest import TEST_PASSWORD, RobotSetup
+from tests.support.robot_setup import TEST_PASSWORD, RobotSetup
 
 pytestmark = pytest.mark.django_db
 

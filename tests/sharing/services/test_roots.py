@@ -19,7 +19,7 @@ from sharing.verification import records_verify
 from smcrypto import sm3
 from smcrypto.merkle import leaf_hash, root_from_path
 from tests.api.conftest import session_client, token_client
-from tests.conftest import tamper
+from tests.support.tampering import tamper
 
 pytestmark = pytest.mark.django_db
 

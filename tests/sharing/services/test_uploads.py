@@ -17,7 +17,7 @@ from sharing.services import uploads as uploads_module
 from sharing.services.uploads import record_create, record_create_batch
 from sharing.storage import envelope_storage
 from smcrypto import envelope, sm3, sm4
-from tests.conftest import seal_for
+from tests.support.robot_setup import seal_for
 
 pytestmark = pytest.mark.django_db
 

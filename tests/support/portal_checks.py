@@ -9,15 +9,15 @@ import yaml
 
 from sharing.models import Access, Record
 from sharing.verification import records_open
-from tests.harness import wait_for
 from tests.ros_agent.conftest import write_key_file
-from tests.ros_agent.recordings import TOPICS
+from tests.support.harness import wait_for
+from tests.support.recordings import TOPICS
 
 _EPOCH = datetime(1970, 1, 1, tzinfo=UTC)
 
 
 def robot_config(folder: Path, *, url: str, setup, topics=TOPICS, **extra) -> Path:
-    """agent.yaml for the robot of `setup` (tests.conftest.RobotSetup) uploading to `url`."""
+    """agent.yaml for the robot of `setup` (tests.support.robot_setup.RobotSetup) sent to `url`."""
     folder.mkdir(parents=True, exist_ok=True)
     write_key_file(folder / "owner.sm4", setup.key)
     token_file = folder / "robot.token"

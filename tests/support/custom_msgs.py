@@ -12,7 +12,7 @@ from typing import Any
 import numpy as np
 from rosbags.typesys.store import Typestore
 
-MSG_DIR = Path(__file__).resolve().parent / "msgs"
+MSG_DIR = Path(__file__).resolve().parents[1] / "ros_agent" / "msgs"
 INSPECTION = "authros_test_msgs/Inspection"  # as agent.yaml names it
 INSPECTION_TOPIC = "/robot/inspection"
 LEARNED = [

@@ -1,4 +1,4 @@
-"""Loaded by pytest before Django's settings (`-p tests.environment` in pyproject.toml).
+"""Loaded by pytest before Django's settings (`-p tests.support.environment` in pyproject.toml).
 
 The suite uses a Redis database of its own (TEST_REDIS_URL, default db 14), so that tests
 which flush Redis never touch a developer's data, and a Celery queue of its own per test run,

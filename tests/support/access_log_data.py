@@ -25,7 +25,7 @@ from accounts.services.owners import owner_create
 from accounts.services.robots import robot_create
 from sharing.models import Access, Grant, Record, Verdict
 from smcrypto import sm4
-from tests.conftest import TEST_PASSWORD
+from tests.support.robot_setup import TEST_PASSWORD
 
 NOON = datetime(2026, 3, 1, 12, 0, tzinfo=UTC)
 # Names a spreadsheet would run as formulas, if the CSV let them through.

@@ -1,4 +1,4 @@
-"""The suite's tiers, and a guard that keeps them honest (loaded by `-p tests.tiers`).
+"""The suite's tiers, and a guard that keeps them honest (loaded by `-p tests.support.tiers`).
 
 A test is marked by what it needs beyond this process, Redis and the session's anvil:
 
@@ -77,7 +77,10 @@ def pytest_addoption(parser: pytest.Parser) -> None:
         action="append",
         choices=sorted(TIERS),
         default=[],
-        help="run a tier of the suite, or several given again (tests/tiers.py); all without it",
+        help=(
+            "run a tier of the suite, or several given again (tests/support/tiers.py); "
+            "all without it"
+        ),
     )
 
 
@@ -100,8 +103,10 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
             item.add_marker(pytest.mark.process)
         if str(item.path).removeprefix(root).startswith("tests/bench/"):
             item.add_marker(pytest.mark.bench)
-    # The long runs first: started last, one of them would hold a worker after the others end.
-    items.sort(key=lambda item: item.get_closest_marker("slow") is None)
+    # The long runs first, then the tests that start processes (seconds each), then the rest:
+    # started last, a long one would hold a worker after the others end, while short ones
+    # fill the last gaps. The sort is stable: within each group, the order of collection.
+    items.sort(key=_long_first)
     tiers = [TIERS[name] for name in config.getoption("tier")]
     if not tiers:
         return
@@ -112,6 +117,11 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
     if deselected:
         config.hook.pytest_deselected(items=deselected)
         items[:] = selected
+
+
+def _long_first(item: pytest.Item) -> tuple[bool, bool]:
+    starts_processes = any(item.get_closest_marker(mark) for mark in ("process", "browser"))
+    return item.get_closest_marker("slow") is None, not starts_processes
 
 
 @pytest.hookimpl(wrapper=True)
@@ -135,6 +145,6 @@ def pytest_runtest_makereport(item: pytest.Item, call: pytest.CallInfo) -> pytes
         report.longrepr = (
             f"{item.nodeid} started a process ({spawned!r}) without the `process` mark: "
             "mark it (pytestmark = pytest.mark.process) so that it leaves the fast tier "
-            "(tests/tiers.py)"
+            "(tests/support/tiers.py)"
         )
     return report

@@ -1,5 +1,5 @@
-"""Robots for tests with real workers (tests/harness.py): robots whose owners the workers have
-registered on chain, and a robot that keeps uploading while a test breaks something."""
+"""Robots for tests with real workers (tests/support/harness.py): robots whose owners the workers
+have registered on chain, and a robot that keeps uploading while a test breaks something."""
 
 import threading
 import time
@@ -15,8 +15,8 @@ from accounts.services.robots import robot_create
 from sharing.models import Record
 from sharing.services.uploads import record_create
 from smcrypto import sm4
-from tests.conftest import TEST_PASSWORD, RobotSetup
-from tests.harness import wait_for
+from tests.support.harness import wait_for
+from tests.support.robot_setup import TEST_PASSWORD, RobotSetup
 
 
 def registered_robots(count: int) -> list[RobotSetup]:
