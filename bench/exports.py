@@ -162,10 +162,10 @@ def export_once(job: OneExport) -> dict[str, Any]:
     import django
 
     django.setup()
-    from sharing import exports
+    from sharing.exports import run
     from sharing.models import Export
 
-    runner = baseline_module() if job.variant == "in-memory" else exports
+    runner = baseline_module() if job.variant == "in-memory" else run
     checking = CheckTime(runner)
     me = psutil.Process()
     rss_before = me.memory_info().rss

@@ -590,7 +590,7 @@ def _await_verified(
 def _verify(upload: Upload, progress: Any) -> None:
     from django.db import connections
 
-    from sharing.verification import record_open
+    from sharing.verification.opening import record_open
 
     try:
         record_open(record_id=upload.record_id, viewer=upload.robot.owner)

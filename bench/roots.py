@@ -571,7 +571,7 @@ def _profiles(stack: BenchStack, client: Client, token: str, owner: Any) -> dict
     and the worker's check alone."""
     from django.test import Client as DjangoClient
 
-    from sharing.verification import records_verify
+    from sharing.verification.check import records_verify
 
     web = DjangoClient(HTTP_HOST="127.0.0.1")
     bodies = iter(client.bodies(2, BATCH))  # one to warm up with, one to profile: no replay

@@ -547,7 +547,7 @@ def _load_views(
 def _worker_checks(owner: Any, rows: dict[str, dict[str, Any]]) -> None:
     """The worker's check alone (record_verify, in this process), unsigned and signed records
     alternating, WORKER_CHECKS of each: milliseconds, and every verdict verified."""
-    from sharing.verification import records_verify
+    from sharing.verification.check import records_verify
 
     ids = {variant: _variant_ids(owner, variant, WORKER_CHECKS) for variant in VARIANTS}
     order = interleaved(ids["unsigned"], ids["signed"])

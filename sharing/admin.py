@@ -18,7 +18,7 @@ from accounts.errors import IdentityMismatch
 from chainworker.chain import ChainError
 from sharing.anchoring import records_reanchor
 from sharing.models import Access, Grant, Record, SecurityEvent, Verdict
-from sharing.verification import records_verify
+from sharing.verification.check import records_verify
 
 # Re-verification runs in the admin's request: keep a selection small enough to answer.
 REVERIFY_MAX = 200
@@ -226,30 +226,21 @@ class AccessAdmin(ReadOnlyAdmin):
 
 @admin.register(Verdict)
 class VerdictAdmin(ReadOnlyAdmin):
-    list_display = (
-        "record",
-        "viewer",
-        "checked_by",
-        "credential",
-        "outcome",
-        "source",
-        "block_number",
-        "created_at",
-    )
+    list_display = ("record", "access", "outcome", "source", "block_number", "created_at")
     list_filter = (
         "outcome",
-        "credential",
+        "access__credential",
         "source",
-        ("checked_by", admin.EmptyFieldListFilter),
+        ("access__checked_by", admin.EmptyFieldListFilter),
         "created_at",
     )
     search_fields = (
         "record__id",
-        "viewer__user__username",
+        "access__viewer__user__username",
         "computed_digest",
         "chain_digest",
     )
-    list_select_related = ("record__owner__user", "viewer__user", "checked_by")
+    list_select_related = ("record__owner__user", "access__viewer__user")
     readonly_fields = [f.name for f in Verdict._meta.fields]
 
 

@@ -8,7 +8,7 @@ from django.core.exceptions import ValidationError
 from django.db.models import QuerySet
 
 from accounts.models import ChainActivity, Owner, Robot
-from sharing.models import Record, Verdict
+from sharing.models import Credential, Record, Verdict
 from sharing.selection import MAX_TOPIC_LENGTH
 from sharing.selectors import (
     ACCESS_LOG_DIRECTIONS,
@@ -261,7 +261,7 @@ class GrantRevokeForm(forms.Form):
 
 
 class AccessLogFilterForm(PeriodFilterForm):
-    """Filters of the access log (GET), for `verdict_list_filtered`: which side of the log,
+    """Filters of the access log (GET), for `access_list_filtered`: which side of the log,
     who viewed (or whose record), robot, topic, verdict, credential and the time of the view.
 
     `choices` is sharing.selectors.access_log_filter_choices for the side asked for.
@@ -280,7 +280,7 @@ class AccessLogFilterForm(PeriodFilterForm):
     verdict = forms.ChoiceField(required=False, choices=[("", "any"), *Verdict.Outcome.choices])
     credential = forms.ChoiceField(
         required=False,
-        choices=[("", "any"), *((v, label) for v, label in Verdict.Credential.choices if v)],
+        choices=[("", "any"), *((v, label) for v, label in Credential.choices if v)],
     )
 
     def __init__(self, data: object, *, choices: dict[str, QuerySet]) -> None:

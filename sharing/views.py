@@ -60,11 +60,10 @@ from sharing.errors import (
     SharingError,
     VerificationUnavailable,
 )
-from sharing.exports import (
+from sharing.exports.create import export_create, export_rebuild
+from sharing.exports.download import export_current
+from sharing.exports.selection import (
     export_count,
-    export_create,
-    export_current,
-    export_rebuild,
     export_robots_visible,
     export_selection_described,
     export_topics_visible,
@@ -81,7 +80,7 @@ from sharing.forms import (
     RecordFilterForm,
     TopicRangeForm,
 )
-from sharing.models import Access, Grant, Record, Verdict
+from sharing.models import Access, Credential, Grant, Record, Verdict
 from sharing.selectors import (
     ACCESS_LOG_DIRECTIONS,
     access_list_access_log,
@@ -117,7 +116,7 @@ from sharing.services import (
     grants_undo_made_with,
     owner_resolve,
 )
-from sharing.verification import OpenedRecord, record_open, records_open
+from sharing.verification.opening import OpenedRecord, record_open, records_open
 
 RECORDS_PER_PAGE = 25
 # Minutes of anchoring on one page of the audit trail.
@@ -199,7 +198,7 @@ class Refusal:
 def _open_or_refuse(request: HttpRequest, record_id: str) -> OpenedRecord | Refusal:
     try:
         return record_open(
-            record_id=record_id, viewer=request.owner, credential=Verdict.Credential.SESSION
+            record_id=record_id, viewer=request.owner, credential=Credential.SESSION
         )
     except (RecordNotFound, AccessDenied):
         # One answer whether it exists or not (the worker kept the refused view's verdict).
@@ -465,7 +464,7 @@ def record_gallery(request: HttpRequest, record_id: str) -> HttpResponse:
         records=list(page.object_list),
         viewer=request.owner,
         kind=Access.Kind.PAGE,
-        credential=Verdict.Credential.SESSION,
+        credential=Credential.SESSION,
     )
     context["page"] = page
     context["tiles"] = [
@@ -797,7 +796,7 @@ def exports(request: HttpRequest) -> HttpResponse:
                 counted = export_count(requester=owner, **selection)
             else:
                 export = export_create(
-                    requester=owner, credential=Verdict.Credential.SESSION, **selection
+                    requester=owner, credential=Credential.SESSION, **selection
                 )
                 return redirect("export-detail", export_id=export.pk)
         except ExportRefused as exc:
@@ -830,7 +829,7 @@ def export_rebuild_view(request: HttpRequest, export_id: uuid.UUID) -> HttpRespo
         export = export_rebuild(
             requester=request.owner,
             export_id=export_id,
-            credential=Verdict.Credential.SESSION,
+            credential=Credential.SESSION,
         )
     except ExportNotFound:
         raise Http404("no such export of yours") from None

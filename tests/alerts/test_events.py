@@ -16,7 +16,7 @@ from sharing.anchoring import record_chain_mismatch, records_anchor
 from sharing.errors import IntegrityCheckFailed
 from sharing.models import Record
 from sharing.services import grant_create, grant_revoke, record_create
-from sharing.verification import record_open
+from sharing.verification.opening import record_open
 from smcrypto import sm4
 from stack.anvil import start_anvil
 from tests.conftest import TEST_PASSWORD, tamper

@@ -15,7 +15,8 @@ from sharing import services as sharing_services
 from sharing.errors import IntegrityCheckFailed
 from sharing.models import Record, SecurityEvent, Verdict
 from sharing.services import grant_create, record_create
-from sharing.verification import record_open, records_verify
+from sharing.verification.check import records_verify
+from sharing.verification.opening import record_open
 from smcrypto import envelope, provenance, sm2
 from tests.api.conftest import RECORDS, Snapshot, token_client
 

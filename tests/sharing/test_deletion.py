@@ -31,7 +31,8 @@ from sharing.errors import (
 from sharing.models import Grant, Record, Verdict
 from sharing.services import grant_create, owner_resolve
 from sharing.storage import envelope_storage
-from sharing.verification import record_open, records_verify
+from sharing.verification.check import records_verify
+from sharing.verification.opening import record_open
 from smcrypto import sm4
 from tests.api.conftest import RECORDS, token_client
 from tests.conftest import TEST_PASSWORD, RobotSetup

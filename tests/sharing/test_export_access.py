@@ -17,7 +17,8 @@ from django.utils import timezone
 from accounts.models import Owner
 from sharing.backup import portal_backup
 from sharing.deletion import account_delete, records_delete
-from sharing.exports import export_create, exports_sweep
+from sharing.exports.create import export_create
+from sharing.exports.withdraw import exports_sweep
 from sharing.models import Export, ExportRecord, Grant, Record
 from sharing.services import (
     grant_create,

@@ -18,7 +18,7 @@ from sharing.services import (
     record_create,
 )
 from sharing.storage import envelope_storage
-from sharing.verification import records_verify
+from sharing.verification.check import records_verify
 from tests.conftest import tamper
 
 pytestmark = pytest.mark.django_db
@@ -163,7 +163,7 @@ def test_grantee_sees_until_revoked(anchored, make_owner, django_capture_on_comm
     refused = records_verify(record_ids=[record.id], viewer_id=bob.pk)[0]
     assert refused.verdict.outcome == "no_access"
     assert refused.envelope is None
-    assert Verdict.objects.filter(viewer=bob).count() == 3
+    assert Verdict.objects.filter(access__viewer=bob).count() == 3
 
 
 def test_grant_only_in_the_portal_is_not_enough(anchored, make_owner):

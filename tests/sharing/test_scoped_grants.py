@@ -20,7 +20,7 @@ from sharing.selectors import (
     record_list_visible_to,
 )
 from sharing.services import grant_create, grant_revoke, grant_terms_change, grant_terms_make
-from sharing.verification import records_verify
+from sharing.verification.check import records_verify
 from tests.api.conftest import RECORDS, session_client
 from tests.conftest import RobotSetup, chain_time_travel
 

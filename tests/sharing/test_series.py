@@ -14,7 +14,7 @@ from chainworker.chain import AuthROSChain
 from sharing.models import Access, Record, Verdict
 from sharing.series import field_value, series_downsample
 from sharing.services import grant_create, grant_terms_make
-from sharing.verification import records_verify
+from sharing.verification.check import records_verify
 from tests.api.conftest import session_client, token_client
 from tests.conftest import tamper
 from tests.pages.conftest import image, odometry
@@ -178,9 +178,9 @@ def test_scope_limits_the_plot_and_the_gallery_to_what_the_grant_covers(
     outside = client.get(API, _query(other, since=T0, until=T0 + timedelta(minutes=1))).json()
     assert outside["source_records"] == 0
     assert outside["points"] == []
-    assert not Verdict.objects.filter(viewer=bob, record__robot=other_robot).exists()
+    assert not Verdict.objects.filter(access__viewer=bob, record__robot=other_robot).exists()
     assert inside[3].pk not in set(
-        Verdict.objects.filter(viewer=bob).values_list("record", flat=True)
+        Verdict.objects.filter(access__viewer=bob).values_list("record", flat=True)
     )
 
 
