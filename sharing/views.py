@@ -197,9 +197,7 @@ class Refusal:
 
 def _open_or_refuse(request: HttpRequest, record_id: str) -> OpenedRecord | Refusal:
     try:
-        return record_open(
-            record_id=record_id, viewer=request.owner, credential=Credential.SESSION
-        )
+        return record_open(record_id=record_id, viewer=request.owner, credential=Credential.SESSION)
     except (RecordNotFound, AccessDenied):
         # One answer whether it exists or not (the worker kept the refused view's verdict).
         return Refusal("not_found", 404, NOT_VISIBLE)
@@ -795,9 +793,7 @@ def exports(request: HttpRequest) -> HttpResponse:
             if "count" in request.POST:
                 counted = export_count(requester=owner, **selection)
             else:
-                export = export_create(
-                    requester=owner, credential=Credential.SESSION, **selection
-                )
+                export = export_create(requester=owner, credential=Credential.SESSION, **selection)
                 return redirect("export-detail", export_id=export.pk)
         except ExportRefused as exc:
             form.add_error(None, str(exc))

@@ -15,6 +15,7 @@ from sharing.models import Access, Record, Verdict
 from sharing.services import record_create
 from sharing.verification.access import REFUSED_VIEWS_COALESCED
 from sharing.verification.check import records_verify
+from sharing.verification.opening import records_open
 from tests.api.conftest import RECORDS, token_client
 
 pytestmark = pytest.mark.django_db
@@ -101,3 +102,24 @@ def test_refused_views_through_the_api_and_pages_leave_one_row_an_hour(
     for _ in range(2):
         assert own.get(f"{RECORDS}{records[0].pk}/content/").status_code == 200
     assert Access.objects.filter(viewer=setup.owner, kind=Access.Kind.VIEW).count() == 2
+
+
+def test_a_refused_read_of_several_records_is_coalesced_as_a_view_of_one(anchored, make_owner):
+    """One path for N records: a read refused whole is coalesced whatever it holds, and a
+    read of the web (its line open already) leaves no line of its own when coalesced."""
+    setup, records = anchored
+    mallory = make_owner("mallory")
+    ids = [record.pk for record in records]
+    first = records_verify(record_ids=ids, viewer_id=mallory.pk)
+    assert [checked.verdict.outcome for checked in first] == ["no_access", "no_access"]
+    again = records_verify(record_ids=ids, viewer_id=mallory.pk)
+    assert {checked.verdict.pk for checked in again} == {first[-1].verdict.pk}
+    assert Verdict.objects.filter(access__viewer=mallory).count() == 2
+    assert Access.objects.filter(viewer=mallory).count() == 1
+    # A web read of both, coalesced too: its line is gone with it.
+    records_open(records=records, viewer=mallory, kind=Access.Kind.PAGE, credential="session")
+    assert Access.objects.filter(viewer=mallory).count() == 1
+    # The owner's own read of the same records is written each time.
+    records_verify(record_ids=ids, viewer_id=setup.owner.pk)
+    records_verify(record_ids=ids, viewer_id=setup.owner.pk)
+    assert Access.objects.filter(viewer=setup.owner).count() == 2
