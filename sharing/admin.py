@@ -240,7 +240,11 @@ class VerdictAdmin(ReadOnlyAdmin):
         "computed_digest",
         "chain_digest",
     )
-    list_select_related = ("record__owner__user", "access__viewer__user")
+    list_select_related = (
+        "record__owner__user",
+        "access__viewer__user",
+        "access__checked_by",
+    )
     readonly_fields = [f.name for f in Verdict._meta.fields]
 
 

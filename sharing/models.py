@@ -375,7 +375,10 @@ class Verdict(models.Model):
         ordering = ["-created_at"]
 
     def __str__(self) -> str:
-        return f"{self.record_id} checked for access {self.access_id}: {self.outcome}"
+        access = self.access
+        if access.checked_by_id:
+            return f"{self.record_id} checked by operator {access.checked_by}: {self.outcome}"
+        return f"{self.record_id} viewed by {access.viewer}: {self.outcome}"
 
 
 class SecurityEvent(models.Model):
