@@ -13,7 +13,7 @@ in-memory builder it replaced, measured in the same run on the same records.
   worker: it loads the Export row and runs the export task's service, then reports its wall
   time, its CPU time and its peak RSS (getrusage ru_maxrss: the whole process, Django and the
   libraries included), and how much of the time went to the integrity check every view runs
-  (`_verified`: sharing.verification.records_verify, the part issue 35 asks to make one check
+  (`_verified`: sharing.verification.check.records_verify, the part issue 35 asks to make one check
   path for N records; `own rec/s` is the rate without it). Variants:
   - `in-memory` (the baseline): sharing/exports.py as it was before issue 35
     (BASELINE_COMMIT, read with `git show`): every record of the selection in one list, the
@@ -162,10 +162,10 @@ def export_once(job: OneExport) -> dict[str, Any]:
     import django
 
     django.setup()
-    from sharing import exports
+    from sharing.exports import run
     from sharing.models import Export
 
-    runner = baseline_module() if job.variant == "in-memory" else exports
+    runner = baseline_module() if job.variant == "in-memory" else run
     checking = CheckTime(runner)
     me = psutil.Process()
     rss_before = me.memory_info().rss
@@ -195,7 +195,7 @@ def export_once(job: OneExport) -> dict[str, Any]:
 
 class CheckTime:
     """The time an export spends in its integrity check (`_verified`: records_verify, the
-    check every view runs, sharing/verification.py), apart from its own work."""
+    check every view runs, sharing/verification/check.py), apart from its own work."""
 
     def __init__(self, module: types.ModuleType) -> None:
         self.seconds = 0.0

@@ -10,8 +10,8 @@ released together by a barrier and each POSTs its envelopes to `/api/v1/records/
 (Authorization: Token) one after another, each once the previous one was answered: N agents
 with M = 1 is N concurrent uploads, one agent with M = 300 is 300 calls in a row. The bench
 process then watches the database for anchored records and opens each one as soon as it is
-anchored with `sharing.verification.record_open`, which has a worker check the digest on chain: a
-record that opens is *verified*.
+anchored with `sharing.verification.opening.record_open`, which has a worker check the digest on
+chain: a record that opens is *verified*.
 
 Times are wall-clock (time.time()) on this one machine, so they compare with the database's
 anchored_at: response = POST sent to 201 received; to anchored = POST sent to anchored_at; to
@@ -285,7 +285,8 @@ def report_header(name: str, args: argparse.Namespace, started: str) -> dict[str
         "notes": [
             "response = POST sent to 201 received; total response = first POST sent to last "
             "answer; to anchored = POST sent to Record.anchored_at; to verified = POST sent "
-            "to sharing.verification.record_open returning (worker checked the digest on chain).",
+            "to sharing.verification.opening.record_open returning (worker checked the digest "
+            "on chain).",
             "success rate = verified / sent.",
             "every process (anvil, the web server, workers, beat and the agent threads) shares "
             "this machine, and other work may run on it: see load_average_at_start.",
@@ -590,7 +591,7 @@ def _await_verified(
 def _verify(upload: Upload, progress: Any) -> None:
     from django.db import connections
 
-    from sharing.verification import record_open
+    from sharing.verification.opening import record_open
 
     try:
         record_open(record_id=upload.record_id, viewer=upload.robot.owner)

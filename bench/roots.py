@@ -20,7 +20,7 @@ gunicorn as make run serves it, anvil with automine):
   0.1 s), for L seconds; p50 and p95, and the anchoring latency of those records.
 - profile: cProfile of one 100-envelope upload and one view, in this process (Django's test
   client against the stack's database and workers), the top functions by own time; and of
-  the worker's check alone (sharing.verification.record_verify).
+  the worker's check alone (sharing.verification.check.records_verify).
 - limits: SM3 and SM4-GCM over 1 KB per core, the database's insert rate through the upload
   service (no HTTP), the chain's gas per block against the gas of what each mode sends; and the
   portal's CPU for one single-envelope upload, SINGLE_UPLOADS of them one after another, each
@@ -571,7 +571,7 @@ def _profiles(stack: BenchStack, client: Client, token: str, owner: Any) -> dict
     and the worker's check alone."""
     from django.test import Client as DjangoClient
 
-    from sharing.verification import records_verify
+    from sharing.verification.check import records_verify
 
     web = DjangoClient(HTTP_HOST="127.0.0.1")
     bodies = iter(client.bodies(2, BATCH))  # one to warm up with, one to profile: no replay

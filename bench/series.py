@@ -11,7 +11,7 @@ same run on the same records.
   then every record is awaited on chain (records of one batch share a Merkle tree).
 - series (the figure): `GET /api/v1/records/series/?fields=position.x,position.y&points=1000`
   over the whole range with the owner's read token, S times one after another; every record is
-  checked (sharing.verification.records_open: batches of VERIFY_BATCH sent at once to the
+  checked (sharing.verification.opening.records_open: batches of VERIFY_BATCH sent at once to the
   workers, one rootOf per tree, the verdicts in bulk INSERTs), then read and downsampled. p50
   and p95 of the answer time, and the CPU of the web processes and of the workers (the chain
   worker's pool and the verify worker, both of which take verify tasks) per record checked.

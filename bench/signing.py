@@ -28,7 +28,7 @@ hold with signatures.
 - view under load (roots.views_under_load): for each variant, views of its records while one
   robot of that variant uploads 100 records/s (10 per POST every 0.1 s), L/R seconds per round;
   p50 and p95 over the rounds.
-- the worker's check alone (sharing.verification.record_verify, in this process against the
+- the worker's check alone (sharing.verification.check.records_verify, in this process against the
   stack's chain and storage), unsigned and signed records alternating, and SM2 sign and verify
   of one record's signature message on one core: where a signed view's extra time goes.
 
@@ -547,7 +547,7 @@ def _load_views(
 def _worker_checks(owner: Any, rows: dict[str, dict[str, Any]]) -> None:
     """The worker's check alone (record_verify, in this process), unsigned and signed records
     alternating, WORKER_CHECKS of each: milliseconds, and every verdict verified."""
-    from sharing.verification import records_verify
+    from sharing.verification.check import records_verify
 
     ids = {variant: _variant_ids(owner, variant, WORKER_CHECKS) for variant in VARIANTS}
     order = interleaved(ids["unsigned"], ids["signed"])

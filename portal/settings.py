@@ -487,7 +487,7 @@ VERIFY_TIMEOUT = env.float("VERIFY_TIMEOUT", default=30.0)
 # and the most records it may check (every record in range is checked, none skipped).
 SERIES_MAX_RANGE = timedelta(seconds=env.int("SERIES_MAX_RANGE_SECONDS", default=6 * 3600))
 SERIES_MAX_RECORDS = env.int("SERIES_MAX_RECORDS", default=100_000)
-# Exports (sharing/exports.py, docs/export.md): records in one export at most, records checked
+# Exports (sharing/exports/, docs/export.md): records in one export at most, records checked
 # against the chain per run of the integrity check, and hours its files are kept.
 EXPORT_MAX_RECORDS = env.int("EXPORT_MAX_RECORDS", default=2_000_000)
 EXPORT_BATCH = env.int("EXPORT_BATCH", default=200)

@@ -6,20 +6,20 @@ The rows are sharing.models.Access, listed by sharing.selectors.access.access_li
 access_list_filtered; each access's records' verdicts (the integrity trail, one per record and
 check) are summed per access in one query per page or chunk. The CSV is streamed in chunks read
 by keyset (time, id), so its memory does not grow with the log, and no cell can start a
-spreadsheet formula. The REST API (`/api/v1/access-log/`) lists the verdicts themselves.
+spreadsheet formula. The REST API (`/api/v1/access-log/`) lists the same rows, through the same
+selectors, redaction and outcomes.
 """
 
 import csv
 from collections import defaultdict
 from collections.abc import Iterable, Iterator
 from datetime import datetime
-from typing import TypeVar
 
 from django.core.paginator import Page, Paginator
-from django.db.models import Count, Q, QuerySet
+from django.db.models import Count, Max, Q, QuerySet
 
 from accounts.models import Owner
-from sharing.models import Access, Verdict
+from sharing.models import Access, Credential, Verdict
 
 # Rows read from the database at a time while the CSV streams.
 CSV_CHUNK = 500
@@ -27,7 +27,6 @@ CSV_CHUNK = 500
 # and carriage return too, which some spreadsheets strip before looking.
 _FORMULA_STARTS = ("=", "+", "-", "@", "\t", "\r")
 _OUTCOME_LABELS = dict(Verdict.Outcome.choices)
-_Row = TypeVar("_Row", Access, Verdict)
 
 CSV_COLUMNS = [
     "id",
@@ -53,20 +52,20 @@ CSV_COLUMNS = [
 ]
 
 
-def credential_label(access: Access | Verdict) -> str:
-    """The credential an access (or a view) was made with, as the page and the CSV say it."""
-    if access.credential == Verdict.Credential.TOKEN:
+def credential_label(access: Access) -> str:
+    """The credential an access was made with, as the page and the CSV say it."""
+    if access.credential == Credential.TOKEN:
         token = access.token
         if token is None:  # another owner's token (access_log_redacted)
             return "owner API token"
         return f"owner API token “{token.name}” ({token.token_prefix}…)"
-    if access.credential == Verdict.Credential.OPERATOR:
+    if access.credential == Credential.OPERATOR:
         operator = access.checked_by.get_username() if access.checked_by else "a former operator"
         return f"operator check in the admin ({operator})"
     return access.get_credential_display()
 
 
-def access_log_redacted(rows: Iterable[_Row], *, reader: Owner) -> list[_Row]:
+def access_log_redacted(rows: Iterable[Access], *, reader: Owner) -> list[Access]:
     """The rows as `reader` may see them: a grantee's own API token (its name and prefix) is
     the grantee's business; the record's owner learns only that a token was used. Changed
     in memory only."""
@@ -78,22 +77,28 @@ def access_log_redacted(rows: Iterable[_Row], *, reader: Owner) -> list[_Row]:
 
 
 def access_outcomes(accesses: list[Access]) -> list[Access]:
-    """Each access with `outcomes` (outcome -> how many of its records' checks found it) and
-    `outcome` (the one outcome when all agree, else "mixed"), in one query for all."""
+    """Each access with `outcomes` (outcome -> how many of its records' checks found it),
+    `outcome` (the one outcome when all agree, else "mixed"),
+    `verified`, `refused` and `block_number` (the latest block its checks were made against),
+    in one query for all."""
     counts: dict[int, dict[str, int]] = defaultdict(dict)
+    blocks: dict[int, int] = {}
     rows = (
         Verdict.objects.filter(access_id__in=[access.pk for access in accesses])
         .values_list("access_id", "outcome")
-        .annotate(n=Count("id"))
+        .annotate(n=Count("id"), block=Max("block_number"))
         .order_by()
     )
-    for access_id, outcome, n in rows:
+    for access_id, outcome, n, block in rows:
         counts[access_id][outcome] = n
+        if block is not None:
+            blocks[access_id] = max(block, blocks.get(access_id, block))
     for access in accesses:
         access.outcomes = counts.get(access.pk, {})
         access.outcome = next(iter(access.outcomes)) if len(access.outcomes) == 1 else "mixed"
         access.verified = access.outcomes.get(Verdict.Outcome.VERIFIED, 0)
         access.refused = sum(access.outcomes.values()) - access.verified
+        access.block_number = blocks.get(access.pk)
     return accesses
 
 

@@ -29,7 +29,7 @@ from sharing.models import (
     Verdict,
 )
 from sharing.services.anchoring import records_reanchor
-from sharing.verification import records_verify
+from sharing.verification.check import records_verify
 
 # Re-verification runs in the admin's request: keep a selection small enough to answer.
 REVERIFY_MAX = 200
@@ -237,30 +237,25 @@ class AccessAdmin(ReadOnlyAdmin):
 
 @admin.register(Verdict)
 class VerdictAdmin(ReadOnlyAdmin):
-    list_display = (
-        "record",
-        "viewer",
-        "checked_by",
-        "credential",
-        "outcome",
-        "source",
-        "block_number",
-        "created_at",
-    )
+    list_display = ("record", "access", "outcome", "source", "block_number", "created_at")
     list_filter = (
         "outcome",
-        "credential",
+        "access__credential",
         "source",
-        ("checked_by", admin.EmptyFieldListFilter),
+        ("access__checked_by", admin.EmptyFieldListFilter),
         "created_at",
     )
     search_fields = (
         "record__id",
-        "viewer__user__username",
+        "access__viewer__user__username",
         "computed_digest",
         "chain_digest",
     )
-    list_select_related = ("record__owner__user", "viewer__user", "checked_by")
+    list_select_related = (
+        "record__owner__user",
+        "access__viewer__user",
+        "access__checked_by",
+    )
     readonly_fields = [f.name for f in Verdict._meta.fields]
 
 

@@ -11,7 +11,7 @@ from django.core.exceptions import ValidationError
 from django.db.models import QuerySet
 
 from accounts.models import ChainActivity, Owner, Robot
-from sharing.models import Record, Verdict
+from sharing.models import Credential, Record, Verdict
 from sharing.selection import MAX_TOPIC_LENGTH
 from sharing.selectors.access import ACCESS_LOG_DIRECTIONS, ACCESS_LOG_INCOMING, ACCESS_LOG_OUTGOING
 from sharing.selectors.records import RECORD_FILTER_STATUSES, RECORD_SORT_DEFAULT, RECORD_SORTS
@@ -318,7 +318,7 @@ class GrantRevokeForm(forms.Form):
 
 
 class AccessLogFilterForm(PeriodFilterForm):
-    """Filters of the access log (GET), for `verdict_list_filtered`: which side of the log,
+    """Filters of the access log (GET), for `access_list_filtered`: which side of the log,
     who viewed (or whose record), robot, topic, verdict, credential and the time of the view.
 
     `choices` is sharing.selectors.access.access_log_filter_choices for the side asked for.
@@ -337,7 +337,7 @@ class AccessLogFilterForm(PeriodFilterForm):
     verdict = forms.ChoiceField(required=False, choices=[("", "any"), *Verdict.Outcome.choices])
     credential = forms.ChoiceField(
         required=False,
-        choices=[("", "any"), *((v, label) for v, label in Verdict.Credential.choices if v)],
+        choices=[("", "any"), *((v, label) for v, label in Credential.choices if v)],
     )
 
     def __init__(self, data: object, *, choices: dict[str, QuerySet]) -> None:

@@ -1,4 +1,5 @@
-"""Records (envelopes anchored on chain), grants between owners, and integrity verdicts."""
+"""Records (envelopes anchored on chain), grants between owners, the access log (`Access`, one
+line per read, with its records' integrity verdicts), exports."""
 
 import uuid
 
@@ -354,7 +355,8 @@ class Access(models.Model):
 
 
 class Verdict(models.Model):
-    """The outcome of one integrity check at view time: the audit trail of who viewed what."""
+    """The outcome of one record's integrity check at view time: the trail under its Access,
+    which says who read it, when and with which credential (the one access log)."""
 
     class Outcome(models.TextChoices):
         VERIFIED = "verified", "verified"
@@ -367,40 +369,11 @@ class Verdict(models.Model):
         # registered key on chain at its anchoring (or was revoked before it): not genuine.
         SIGNATURE_REFUSED = "signature_refused", "signature not valid"
 
-    Credential = Credential
-
     record = models.ForeignKey(Record, on_delete=models.CASCADE, related_name="verdicts")
-    viewer = models.ForeignKey(Owner, on_delete=models.CASCADE, related_name="verdicts")
-    # An operator's check from the admin console, made with the viewer's (the owner's) rights:
-    # the audit trail must not show it as the owner viewing their data.
-    checked_by = models.ForeignKey(
-        settings.AUTH_USER_MODEL,
-        on_delete=models.SET_NULL,
-        null=True,
-        blank=True,
-        related_name="+",
-        help_text="the operator who ran this check; empty when the viewer viewed the record",
-    )
+    # The access (a view, a page, a plot...) the check was made for: its viewer, record owner,
+    # credential, token and operator are the verdict's.
+    access = models.ForeignKey(Access, on_delete=models.CASCADE, related_name="verdicts")
     outcome = models.CharField(max_length=20, choices=Outcome.choices)
-    # The access log (sharing.access_log): which credential asked for the view, and the
-    # record's owner copied from the record, so that an owner's log is one indexed range.
-    credential = models.CharField(
-        max_length=16,
-        choices=Credential.choices,
-        blank=True,
-        default=Credential.UNKNOWN,
-        help_text="browser session, owner API token or operator; empty: not recorded (older)",
-    )
-    token = models.ForeignKey(
-        OwnerToken, on_delete=models.SET_NULL, null=True, blank=True, related_name="verdicts"
-    )
-    record_owner = models.ForeignKey(
-        Owner, on_delete=models.CASCADE, null=True, blank=True, related_name="verdicts_received"
-    )
-    # The access (a page, a plot...) the check was made for; empty on verdicts from before.
-    access = models.ForeignKey(
-        Access, on_delete=models.CASCADE, null=True, blank=True, related_name="verdicts"
-    )
     computed_digest = models.CharField(max_length=64, blank=True)
     chain_digest = models.CharField(max_length=64, blank=True)
     source = models.CharField(max_length=16, blank=True, help_text="cache or storage")
@@ -409,15 +382,12 @@ class Verdict(models.Model):
 
     class Meta:
         ordering = ["-created_at"]
-        indexes = [
-            models.Index(fields=["record_owner", "-created_at", "-id"], name="verdict_owner_time"),
-            models.Index(fields=["viewer", "-created_at", "-id"], name="verdict_viewer_time"),
-        ]
 
     def __str__(self) -> str:
-        if self.checked_by_id:
-            return f"{self.record_id} checked by operator {self.checked_by}: {self.outcome}"
-        return f"{self.record_id} viewed by {self.viewer}: {self.outcome}"
+        access = self.access
+        if access.checked_by_id:
+            return f"{self.record_id} checked by operator {access.checked_by}: {self.outcome}"
+        return f"{self.record_id} viewed by {access.viewer}: {self.outcome}"
 
 
 class SecurityEvent(models.Model):
@@ -464,7 +434,7 @@ class Export(models.Model):
     requester = models.ForeignKey(Owner, on_delete=models.CASCADE, related_name="exports")
     # The credential that asked for it, as its access-log lines record it.
     credential = models.CharField(
-        max_length=10, choices=Verdict.Credential.choices, blank=True, default=""
+        max_length=10, choices=Credential.choices, blank=True, default=Credential.UNKNOWN
     )
     token = models.ForeignKey(
         OwnerToken, on_delete=models.SET_NULL, null=True, blank=True, related_name="exports"

@@ -26,7 +26,7 @@ from sharing.errors import SeriesRefused, SharingError, VerificationUnavailable
 from sharing.models import Access, Record
 from sharing.selection import RecordSelection
 from sharing.selectors.records import record_list_visible_to
-from sharing.verification import OpenedRecord, records_open
+from sharing.verification.opening import OpenedRecord, records_open
 
 # Fields of one series, and characters of one field's dotted path.
 MAX_FIELDS = 8

@@ -11,8 +11,10 @@ from celery import shared_task
 from accounts.errors import IdentityMismatch
 from chainworker.chain import ChainUnavailable
 from chainworker.work import CHAIN_TASK
-from sharing import disk, exports, verification
+from sharing import disk
+from sharing.exports import run, withdraw
 from sharing.services import anchoring, deletion, grant_chain, reconcile, sweep
+from sharing.verification import check
 
 
 @shared_task(name="sharing.tasks.records_anchor", **CHAIN_TASK)
@@ -67,8 +69,8 @@ VERIFY_TASK = {
 
 
 # One task for any number of records (a record page is one); `accesses` maps record owner ids
-# (as text: JSON) to the Access the web process opened for a read sent in several batches; a
-# read sent in one batch has the worker open its Access, of `kind`, with the verdicts.
+# (as text: JSON) to the Access the web process opened for its read, of `kind`; without it the
+# worker opens the Access with the verdicts.
 @shared_task(name="sharing.tasks.records_verify", **VERIFY_TASK)
 def records_verify(
     record_ids: list[str],
@@ -78,7 +80,7 @@ def records_verify(
     accesses: dict[str, int] | None = None,
     kind: str | None = None,
 ) -> list[dict[str, Any]]:
-    checked = verification.records_verify(
+    checked = check.records_verify(
         record_ids=record_ids,
         viewer_id=viewer_id,
         credential=credential,
@@ -86,23 +88,23 @@ def records_verify(
         kind=kind,
         accesses=None if accesses is None else {int(k): v for k, v in accesses.items()},
     )
-    return [verification.verification_answer(one) for one in checked]
+    return [check.verification_answer(one) for one in checked]
 
 
 # An export runs for as long as its records take; a message delivered twice finds it done.
 @shared_task(name="sharing.tasks.export_run", acks_late=True, soft_time_limit=3600, time_limit=3660)
 def export_run(export_id: str) -> str:
-    return exports.export_run(export_id=export_id).status
+    return run.export_run(export_id=export_id).status
 
 
 @shared_task(name="sharing.tasks.exports_sweep", soft_time_limit=600, time_limit=660)
 def exports_sweep() -> dict[str, int]:
-    return exports.exports_sweep()
+    return withdraw.exports_sweep()
 
 
 @shared_task(name="sharing.tasks.exports_recheck", soft_time_limit=600, time_limit=660)
 def exports_recheck(owner_id: int | None = None) -> int:
-    return exports.exports_recheck(owner_id=owner_id)
+    return withdraw.exports_recheck(owner_id=owner_id)
 
 
 @shared_task(name="sharing.tasks.disk_space_watch", soft_time_limit=30, time_limit=60)

@@ -1,6 +1,6 @@
 """A file sealed with SM4-GCM in segments, written and read in constant memory.
 
-Exports (sharing/exports.py) are stored sealed, never as plaintext at rest: a file of any
+Exports (sharing/exports/run.py) are stored sealed, never as plaintext at rest: a file of any
 size is cut into segments of `segment_size` bytes, each sealed on its own (the STREAM
 construction of Hoang, Reyhanitabar, Rogaway and Vizár, 2015), so that neither the writer nor
 the reader ever holds more than one segment.

@@ -12,7 +12,7 @@ from rest_framework.views import APIView
 
 from accounts.authentication import OwnerCredential, caller_owner
 from core.api_errors import error_responses
-from sharing.access_log import access_log_redacted
+from sharing.access_log import access_log_redacted, access_outcomes
 from sharing.apis.fields import (
     MAX_OWNER_IDENTIFIER,
     OWNER_ONLY,
@@ -22,13 +22,13 @@ from sharing.apis.fields import (
     RecordPagination,
     TextField,
 )
-from sharing.models import Verdict
+from sharing.models import Access, Credential, Verdict
 from sharing.selection import MAX_TOPIC_LENGTH
 from sharing.selectors.access import (
     ACCESS_LOG_DIRECTIONS,
     ACCESS_LOG_INCOMING,
-    verdict_list_access_log,
-    verdict_list_filtered,
+    access_list_access_log,
+    access_list_filtered,
 )
 
 
@@ -41,8 +41,9 @@ class AccessLogTokenSerializer(serializers.Serializer):
 
 
 class AccessLogApi(APIView):
-    """`GET /api/v1/access-log/`: who viewed the caller's records, or the caller's own views of
-    records shared with it; the same rows and filters as the access log page."""
+    """`GET /api/v1/access-log/`: who read the caller's records, or the caller's own reads of
+    records shared with it: the access log page's rows (one per access), with its selectors
+    and filters."""
 
     pagination_class = RecordPagination
 
@@ -71,7 +72,7 @@ class AccessLogApi(APIView):
             choices=Verdict.Outcome.choices, required=False, help_text="the check's outcome"
         )
         credential = serializers.ChoiceField(
-            choices=[value for value in Verdict.Credential.values if value],
+            choices=[value for value in Credential.values if value],
             required=False,
             help_text="the credential the view was made with",
         )
@@ -92,20 +93,35 @@ class AccessLogApi(APIView):
 
         id = serializers.IntegerField()
         viewed_at = serializers.DateTimeField(source="created_at")
-        viewer = serializers.CharField(source="viewer.username")
-        record_owner = serializers.CharField(source="record.owner.username")
-        record = serializers.UUIDField(source="record_id")
-        robot = serializers.UUIDField(source="record.robot_id")
-        robot_name = serializers.CharField(source="record.robot.name")
-        topic = serializers.CharField(source="record.topic")
-        type = serializers.CharField(source="record.data_type", help_text="ROS message type")
-        seq = serializers.IntegerField(source="record.seq")
-        captured_at = serializers.DateTimeField(source="record.captured_at")
-        verdict = serializers.ChoiceField(
-            source="outcome",
-            choices=Verdict.Outcome.choices,
-            help_text="what the check against the chain found",
+        kind = serializers.ChoiceField(
+            choices=Access.Kind.choices,
+            help_text="`view` (a record page or content answer), `page`, `plot`, `export`, "
+            "`check` (an operator's check in the admin console)",
         )
+        records = serializers.IntegerField(source="count", help_text="records it read")
+        viewer = serializers.CharField(source="viewer.username")
+        record_owner = serializers.CharField(source="record_owner.username")
+        record = serializers.UUIDField(
+            source="record_id", allow_null=True, help_text="the record, when it read one"
+        )
+        robot = serializers.UUIDField(
+            source="robot_id", allow_null=True, help_text="when all its records share it"
+        )
+        robot_name = serializers.CharField(source="robot.name", allow_null=True)
+        topic = NullIfBlankCharField(help_text="when all its records share it")
+        type = serializers.CharField(
+            source="record.data_type", allow_null=True, help_text="ROS message type"
+        )
+        seq = serializers.IntegerField(source="record.seq", allow_null=True)
+        captured_at = serializers.DateTimeField(source="record.captured_at", allow_null=True)
+        verdict = serializers.CharField(
+            source="outcome",
+            help_text="what the checks against the chain found: the one outcome of all its "
+            "records (`verified`, `tampered`, `not_anchored_yet`, `no_access`, `deleted`, "
+            "`signature_refused`), else `mixed`",
+        )
+        verified = serializers.IntegerField(help_text="its records found verified")
+        refused = serializers.IntegerField(help_text="its records refused, whatever the reason")
         credential = NullIfBlankCharField(
             help_text="`session`, `token` or `operator` (an operator's check in the admin "
             "console); null for views from before the portal recorded it"
@@ -122,7 +138,7 @@ class AccessLogApi(APIView):
             help_text="the operator, for `operator`",
         )
         block_number = serializers.IntegerField(
-            allow_null=True, help_text="the block the check was made against"
+            allow_null=True, help_text="the latest block its checks were made against"
         )
 
     def get_permissions(self) -> list[BasePermission]:
@@ -132,9 +148,11 @@ class AccessLogApi(APIView):
         operation_id="access_log_list",
         summary="Who viewed your records, and your own views of records shared with you",
         description=(
-            "Every view of a record leaves an integrity verdict; this lists them newest first, "
-            "with the record, the verdict and the credential the view was made with. A "
-            "session, or an owner API token with the `read` scope."
+            "Every read of records (a record's view, a page, a plot, an export, an operator's "
+            "check) is one line per record owner, its records' integrity verdicts under it; "
+            "this lists the lines newest first, as the access log page does, with what the "
+            "checks found and the credential the read was made with. A session, or an owner "
+            "API token with the `read` scope."
         ),
         auth=OWNER_ONLY,
         parameters=[FilterSerializer],
@@ -149,8 +167,11 @@ class AccessLogApi(APIView):
         wanted = dict(filters.validated_data)
         direction = wanted.pop("direction")
         reader = caller_owner(request)
-        verdicts = verdict_list_access_log(reader, direction=direction)
+        accesses = access_list_access_log(reader, direction=direction)
         paginator = self.pagination_class()
-        page = paginator.paginate_queryset(verdict_list_filtered(verdicts, **wanted), request, self)
-        shown = access_log_redacted(page, reader=reader)
+        page = paginator.paginate_queryset(access_list_filtered(accesses, **wanted), request, self)
+        shown = access_outcomes(access_log_redacted(page, reader=reader))
         return paginator.get_paginated_response(self.OutputSerializer(shown, many=True).data)
+
+
+# --- exports ---------------------------------------------------------------------------------

@@ -19,7 +19,7 @@ from sharing.apis.fields import (
     caller_credential,
     record_uuid,
 )
-from sharing.verification import record_open, record_reseal_for
+from sharing.verification.opening import record_open, record_reseal_for
 
 
 class RecordContentApi(APIView):

@@ -25,13 +25,9 @@ from sharing.apis.fields import (
     caller_credential,
 )
 from sharing.errors import ExportNotFound
-from sharing.exports import (
-    export_count,
-    export_create,
-    export_current,
-    export_download,
-    export_rebuild,
-)
+from sharing.exports.create import export_create, export_rebuild
+from sharing.exports.download import export_current, export_download
+from sharing.exports.selection import export_count
 from sharing.models import Export
 from sharing.selectors.exports import export_list_of
 

@@ -21,7 +21,7 @@ from rest_framework.views import APIView
 from accounts.authentication import caller_owner_token, caller_robot
 from accounts.models import OwnerToken
 from sharing.errors import NOT_VISIBLE, RecordNotFound
-from sharing.models import Verdict
+from sharing.models import Credential
 from sharing.selection import (
     MAX_SELECTED_ROBOTS,
     MAX_SELECTED_TOPICS,
@@ -219,4 +219,4 @@ def caller_credential(request: Request) -> tuple[str, OwnerToken | None]:
     """The owner's credential behind a request, as the access log records it: an owner API
     token (with the token), else the browser session."""
     token = caller_owner_token(request)
-    return (Verdict.Credential.SESSION if token is None else Verdict.Credential.TOKEN), token
+    return (Credential.SESSION if token is None else Credential.TOKEN), token

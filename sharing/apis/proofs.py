@@ -26,7 +26,7 @@ from sharing.cache import envelope_fetch
 from sharing.errors import NotAnchoredYet
 from sharing.models import Record
 from sharing.selectors.records import record_list_visible_to, record_proof
-from sharing.verification import record_signature
+from sharing.verification.signature import record_signature
 
 
 class ProofAnchorSerializer(serializers.Serializer):

@@ -16,7 +16,7 @@ from sharing.selectors.records import record_list_shared_with, robots_in_scope_o
 def verdict_latest(record: Record, viewer: Owner) -> Verdict | None:
     """The viewer's most recent integrity verdict on the record (their own views only)."""
     return (
-        record.verdicts.filter(viewer=viewer, checked_by__isnull=True)
+        record.verdicts.filter(access__viewer=viewer, access__checked_by__isnull=True)
         .order_by("-created_at", "-pk")
         .first()
     )
@@ -30,62 +30,6 @@ ACCESS_LOG_DIRECTIONS = [
     (ACCESS_LOG_INCOMING, "views of my data"),
     (ACCESS_LOG_OUTGOING, "my views of data shared with me"),
 ]
-
-
-def verdict_list_access_log(owner: Owner, *, direction: str) -> QuerySet[Verdict]:
-    """The owner's access log, newest first, with everything a row shows in the same query.
-
-    Incoming: every view of the owner's records (Verdict.record_owner, indexed with the
-    time), refused ones included. Outgoing: the owner's own views of other owners' records
-    that access was granted for (a refused one would show the metadata of a record the
-    viewer may not read; an operator's checks are made with the record owner's rights, so
-    they are only ever incoming).
-    """
-    if direction == ACCESS_LOG_INCOMING:
-        verdicts = Verdict.objects.filter(record_owner=owner)
-    elif direction == ACCESS_LOG_OUTGOING:
-        verdicts = Verdict.objects.filter(viewer=owner, checked_by__isnull=True).exclude(
-            Q(record_owner=owner) | Q(outcome=Verdict.Outcome.NO_ACCESS)
-        )
-    else:
-        raise ValueError(f"unknown access log direction {direction!r}")
-    return verdicts.select_related(
-        "viewer__user", "record__robot", "record__owner__user", "token", "checked_by"
-    ).order_by("-created_at", "-id")
-
-
-def verdict_list_filtered(
-    verdicts: QuerySet[Verdict],
-    *,
-    viewer: str | None = None,
-    owner: str | None = None,
-    robot: uuid.UUID | str | None = None,
-    topic: str | None = None,
-    verdict: str | None = None,
-    credential: str | None = None,
-    since: datetime | None = None,
-    until: datetime | None = None,
-) -> QuerySet[Verdict]:
-    """The views that match every filter given (None or empty: not filtered): `viewer` and
-    `owner` (the record's) are usernames, `robot` a robot id, `topic` exact, `verdict` an
-    outcome, `credential` a Verdict.Credential; view times half-open, [since, until)."""
-    if viewer:
-        verdicts = verdicts.filter(viewer__user__username=viewer)
-    if owner:
-        verdicts = verdicts.filter(record_owner__user__username=owner)
-    if robot:
-        verdicts = verdicts.filter(record__robot_id=robot)
-    if topic:
-        verdicts = verdicts.filter(record__topic=topic)
-    if verdict:
-        verdicts = verdicts.filter(outcome=verdict)
-    if credential:
-        verdicts = verdicts.filter(credential=credential)
-    if since is not None:
-        verdicts = verdicts.filter(created_at__gte=since)
-    if until is not None:
-        verdicts = verdicts.filter(created_at__lt=until)
-    return verdicts
 
 
 def access_list_access_log(owner: Owner, *, direction: str) -> QuerySet[Access]:
@@ -127,9 +71,10 @@ def access_list_filtered(
     since: datetime | None = None,
     until: datetime | None = None,
 ) -> QuerySet[Access]:
-    """The accesses that match every filter given (None or empty: not filtered), as
-    verdict_list_filtered for views: `robot` and `topic` those all its records share,
-    `verdict` an outcome of any of its records; access times half-open, [since, until)."""
+    """The accesses that match every filter given (None or empty: not filtered): `viewer` and
+    `owner` (the record's) are usernames, `robot` and `topic` those all its records share,
+    `verdict` an outcome of any of its records, `credential` a Credential; access times
+    half-open, [since, until)."""
     if viewer:
         accesses = accesses.filter(viewer__user__username=viewer)
     if owner:

@@ -11,17 +11,16 @@ from django.views.decorators.http import require_GET, require_http_methods, requ
 from accounts.decorators import no_store, owner_required, page_throttle
 from accounts.models import Owner
 from sharing.errors import ExportNotFound, ExportRefused
-from sharing.exports import (
+from sharing.exports.create import export_create, export_rebuild
+from sharing.exports.download import export_current
+from sharing.exports.selection import (
     export_count,
-    export_create,
-    export_current,
-    export_rebuild,
     export_robots_visible,
     export_selection_described,
     export_topics_visible,
 )
 from sharing.forms import ExportForm
-from sharing.models import Verdict
+from sharing.models import Credential
 from sharing.selectors.exports import export_list_of
 
 
@@ -44,9 +43,7 @@ def exports(request: HttpRequest) -> HttpResponse:
             if "count" in request.POST:
                 counted = export_count(requester=owner, **selection)
             else:
-                export = export_create(
-                    requester=owner, credential=Verdict.Credential.SESSION, **selection
-                )
+                export = export_create(requester=owner, credential=Credential.SESSION, **selection)
                 return redirect("export-detail", export_id=export.pk)
         except ExportRefused as exc:
             form.add_error(None, str(exc))
@@ -78,7 +75,7 @@ def export_rebuild_view(request: HttpRequest, export_id: uuid.UUID) -> HttpRespo
         export = export_rebuild(
             requester=request.owner,
             export_id=export_id,
-            credential=Verdict.Credential.SESSION,
+            credential=Credential.SESSION,
         )
     except ExportNotFound:
         raise Http404("no such export of yours") from None

@@ -32,7 +32,7 @@ from sharing.errors import (
     VerificationUnavailable,
 )
 from sharing.forms import TopicRangeForm
-from sharing.models import Access, Record, Verdict
+from sharing.models import Access, Credential, Record, Verdict
 from sharing.selectors.records import (
     record_get_visible,
     record_list_same_topic,
@@ -40,7 +40,7 @@ from sharing.selectors.records import (
     record_position_in,
 )
 from sharing.series import DEFAULT_POINTS
-from sharing.verification import OpenedRecord, record_open, records_open
+from sharing.verification.opening import OpenedRecord, record_open, records_open
 
 # The trajectory on an odometry record's page: every record of its robot's topic this long
 # before and after it (the range form chooses another), each checked (sharing/series.py).
@@ -68,9 +68,7 @@ class Refusal:
 
 def _open_or_refuse(request: HttpRequest, record_id: str) -> OpenedRecord | Refusal:
     try:
-        return record_open(
-            record_id=record_id, viewer=request.owner, credential=Verdict.Credential.SESSION
-        )
+        return record_open(record_id=record_id, viewer=request.owner, credential=Credential.SESSION)
     except (RecordNotFound, AccessDenied):
         # One answer whether it exists or not (the worker kept the refused view's verdict).
         return Refusal("not_found", 404, NOT_VISIBLE)
@@ -240,7 +238,7 @@ def record_gallery(request: HttpRequest, record_id: str) -> HttpResponse:
         records=list(page.object_list),
         viewer=request.owner,
         kind=Access.Kind.PAGE,
-        credential=Verdict.Credential.SESSION,
+        credential=Credential.SESSION,
     )
     context["page"] = page
     context["tiles"] = [

@@ -23,7 +23,7 @@ from accounts.errors import IdentityMismatch
 from accounts.models import Owner
 from sharing.content import ODOMETRY, Content, content_of
 from sharing.errors import IntegrityCheckFailed
-from sharing.models import Access, Record, Verdict
+from sharing.models import Access, Credential, Record, Verdict
 from sharing.robot_status import (
     RobotActivity,
     robot_activity,
@@ -32,7 +32,7 @@ from sharing.robot_status import (
     robot_of_owner,
 )
 from sharing.selection import iso_utc
-from sharing.verification import OpenedRecord, records_open
+from sharing.verification.opening import OpenedRecord, records_open
 
 # The page checks two records (the latest pose and image): what it costs the worker.
 ROBOT_PAGE_COST = 2
@@ -102,7 +102,7 @@ def _latest_verified(records: list[Record | None], *, viewer: Owner) -> list[Lat
                 records=present,
                 viewer=viewer,
                 kind=Access.Kind.PAGE,
-                credential=Verdict.Credential.SESSION,
+                credential=Credential.SESSION,
             )
         )
     except IdentityMismatch as exc:

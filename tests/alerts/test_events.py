@@ -17,7 +17,7 @@ from sharing.models import Record
 from sharing.services.anchoring import record_chain_mismatch, records_anchor
 from sharing.services.grants import grant_create, grant_revoke
 from sharing.services.uploads import record_create
-from sharing.verification import record_open
+from sharing.verification.opening import record_open
 from smcrypto import sm4
 from stack.anvil import start_anvil
 from tests.support.robot_setup import TEST_PASSWORD

@@ -16,7 +16,8 @@ from sharing.models import Record, SecurityEvent, Verdict
 from sharing.services import uploads as sharing_uploads
 from sharing.services.grants import grant_create
 from sharing.services.uploads import record_create
-from sharing.verification import record_open, records_verify
+from sharing.verification.check import records_verify
+from sharing.verification.opening import record_open
 from smcrypto import envelope, provenance, sm2
 from tests.api.conftest import RECORDS, Snapshot, token_client
 

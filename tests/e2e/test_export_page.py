@@ -15,7 +15,7 @@ from django.utils import timezone
 from playwright.sync_api import Browser, Page, expect
 
 from authros_verify import ChainReader, verify
-from sharing.exports import export_run
+from sharing.exports.run import export_run
 from sharing.models import Export
 from sharing.selection import RecordSelection
 from sharing.services.uploads import record_create_batch

@@ -34,7 +34,7 @@ from accounts.services.owners import owner_create
 from chainworker import services as chain_services
 from ros_agent import sim
 from sharing.models import Record
-from sharing.verification import record_open
+from sharing.verification.opening import record_open
 from smcrypto import sm2, sm4
 from tests.ros_agent import conftest as ros_fixtures
 from tests.ros_agent.conftest import python_module, running, stop_process, wait_until

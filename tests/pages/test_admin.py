@@ -5,7 +5,7 @@ from django.contrib.auth import get_user_model
 from django.urls import reverse
 
 from accounts.models import AccountEvent, OwnerKey, Robot
-from sharing.models import Record, SecurityEvent, Verdict
+from sharing.models import Credential, Record, SecurityEvent, Verdict
 from sharing.selectors.access import verdict_latest
 from stack.anvil import free_port
 from tests.support.robot_setup import TEST_PASSWORD
@@ -53,7 +53,7 @@ def admin_client(client, db):
 @pytest.fixture
 def populated(make_robot, make_owner, upload, django_capture_on_commit_callbacks):
     from sharing.services.grants import grant_create
-    from sharing.verification import record_open
+    from sharing.verification.opening import record_open
 
     alice = make_robot("alice")
     bob = make_owner("bob")
@@ -145,11 +145,11 @@ def test_reverify_records(admin_client, make_robot, upload):
     assert "1 not anchored yet" in html
     assert f"TAMPERED: {bad.pk}" in html
     assert SecurityEvent.objects.filter(record=bad).exists()
-    verdict = Verdict.objects.get(record=good, viewer=alice.owner, outcome="verified")
+    verdict = Verdict.objects.get(record=good, access__viewer=alice.owner, outcome="verified")
     # The operator's check, not the owner viewing their own data.
-    assert str(verdict.checked_by.pk) == admin_client.session["_auth_user_id"]
-    assert verdict.checked_by.is_staff
-    assert verdict.credential == Verdict.Credential.OPERATOR
+    assert str(verdict.access.checked_by.pk) == admin_client.session["_auth_user_id"]
+    assert verdict.access.checked_by.is_staff
+    assert verdict.access.credential == Credential.OPERATOR
     assert "checked by operator" in str(verdict)
     assert verdict_latest(good, alice.owner) is None
     event = AccountEvent.objects.get(owner=alice.owner)

@@ -15,7 +15,7 @@ from django.urls import URLPattern, URLResolver, get_resolver, reverse
 
 from accounts.models import AccountEvent, Owner
 from sharing.services.grants import grant_create
-from sharing.verification import record_open
+from sharing.verification.opening import record_open
 from smcrypto import sm4
 from tests.pages.conftest import encrypted_key
 from tests.support.robot_setup import TEST_PASSWORD

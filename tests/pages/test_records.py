@@ -226,7 +226,7 @@ def test_tampered_record_says_so_and_shows_nothing(client, alice, bob, granted, 
         assert "<h1>TAMPERED</h1>" in html
         assert "secret-frame" not in html
         assert "7.25" not in html
-        verdict = Verdict.objects.filter(record=record, viewer=viewer).latest("created_at")
+        verdict = Verdict.objects.filter(record=record, access__viewer=viewer).latest("created_at")
         assert verdict.outcome == "tampered"
         assert verdict.computed_digest in html
         assert verdict.chain_digest in html
@@ -311,7 +311,7 @@ def test_records_of_others_are_out_of_reach(client, alice, bob, upload):
     html = client.get(reverse("record-detail", args=[record.id])).content.decode()
     assert 'data-verdict="not_found"' in html
     assert str(record.digest) not in html
-    assert Verdict.objects.filter(record=record, viewer=bob, outcome="no_access").exists()
+    assert Verdict.objects.filter(record=record, access__viewer=bob, outcome="no_access").exists()
     assert client.get("/records/not-a-uuid/").status_code == 404
 
 

@@ -12,7 +12,7 @@ from django.utils import timezone
 
 from accounts.lastseen import seen_ago_text
 from accounts.models import Robot
-from sharing.models import Access, Verdict
+from sharing.models import Access, Credential, Verdict
 from sharing.robot_status import robot_activity
 from sharing.services.grants import grant_create
 from tests.pages.conftest import image, odometry
@@ -120,7 +120,9 @@ def test_latest_verified_pose_and_image_and_a_tampered_one(client, alice, upload
     image_part = html.split('data-testid="latest-image"')[1].split("</section>")[0]
     assert 'src="data:image/png;base64,' in image_part
     # Both checked in one run: one access of the page, of two records, in the access log.
-    viewed = Verdict.objects.filter(viewer=alice.owner, credential=Verdict.Credential.SESSION)
+    viewed = Verdict.objects.filter(
+        access__viewer=alice.owner, access__credential=Credential.SESSION
+    )
     assert viewed.filter(outcome="verified").count() == 2
     (access,) = Access.objects.filter(viewer=alice.owner)
     assert (access.kind, access.count, access.credential) == ("page", 2, "session")

@@ -14,7 +14,7 @@ from accounts.services.owners import owner_active_set
 from accounts.services.robots import robot_create
 from sharing.errors import IntegrityCheckFailed
 from sharing.models import SecurityEvent
-from sharing.verification import record_open
+from sharing.verification.opening import record_open
 from tests.support.tampering import tamper
 
 pytestmark = pytest.mark.django_db

@@ -29,7 +29,7 @@ from accounts.services.robots import robot_create
 from chainworker import services as chain_services
 from ros_agent import sim
 from sharing.models import Record
-from sharing.verification import record_open
+from sharing.verification.opening import record_open
 from smcrypto import sm4
 from tests.ros_agent.conftest import (
     OWNER,

@@ -16,14 +16,12 @@ from django.urls import reverse
 from accounts.services.robots import robot_create
 from sharing import access_log
 from sharing.access_log import csv_cell
-from sharing.models import Verdict
+from sharing.models import Credential, Verdict
 from sharing.selectors.access import (
     ACCESS_LOG_INCOMING,
     ACCESS_LOG_OUTGOING,
     access_list_access_log,
     access_list_filtered,
-    verdict_list_access_log,
-    verdict_list_filtered,
 )
 from tests.api.conftest import session_client, token_client
 from tests.support.access_log_data import (
@@ -57,25 +55,25 @@ def _ids(verdicts) -> list[int]:
 
 
 def test_an_owner_sees_every_view_of_their_records_and_nothing_else(world):
-    incoming = verdict_list_access_log(world.alice, direction=ACCESS_LOG_INCOMING)
-    assert _ids(incoming) == world.ids("a4", "a3", "a2", "a1", "old")
-    carol = verdict_list_access_log(world.carol, direction=ACCESS_LOG_INCOMING)
-    assert _ids(carol) == world.ids("c2", "c1")
+    incoming = access_list_access_log(world.alice, direction=ACCESS_LOG_INCOMING)
+    assert _ids(incoming) == world.access_ids("a4", "a3", "a2", "a1", "old")
+    carol = access_list_access_log(world.carol, direction=ACCESS_LOG_INCOMING)
+    assert _ids(carol) == world.access_ids("c2", "c1")
     # Bob owns nothing: nobody viewed his records, and his views are his outgoing side.
-    assert not verdict_list_access_log(world.bob, direction=ACCESS_LOG_INCOMING).exists()
+    assert not access_list_access_log(world.bob, direction=ACCESS_LOG_INCOMING).exists()
 
 
 def test_a_grantee_sees_their_own_views_of_shared_records_apart(world):
     # Refused (a revoked grant): the owner sees the attempt, the grantee nothing of the record.
     refused = view(world.records["odom"], world.bob, 6, outcome=Verdict.Outcome.NO_ACCESS)
-    outgoing = verdict_list_access_log(world.bob, direction=ACCESS_LOG_OUTGOING)
-    assert _ids(outgoing) == world.ids("c1", "a3", "a2")
-    incoming = verdict_list_access_log(world.alice, direction=ACCESS_LOG_INCOMING)
-    assert _ids(incoming)[0] == refused.pk
+    outgoing = access_list_access_log(world.bob, direction=ACCESS_LOG_OUTGOING)
+    assert _ids(outgoing) == world.access_ids("c1", "a3", "a2")
+    incoming = access_list_access_log(world.alice, direction=ACCESS_LOG_INCOMING)
+    assert _ids(incoming)[0] == refused.access_id
     # An owner's views of their own records, and the operator's checks, are incoming only.
-    assert not verdict_list_access_log(world.alice, direction=ACCESS_LOG_OUTGOING).exists()
+    assert not access_list_access_log(world.alice, direction=ACCESS_LOG_OUTGOING).exists()
     with pytest.raises(ValueError, match="direction"):
-        verdict_list_access_log(world.alice, direction="sideways")
+        access_list_access_log(world.alice, direction="sideways")
 
 
 @pytest.mark.parametrize(
@@ -94,11 +92,16 @@ def test_a_grantee_sees_their_own_views_of_shared_records_apart(world):
     ],
 )
 def test_filters(world, filters, expected):
-    incoming = verdict_list_access_log(world.alice, direction=ACCESS_LOG_INCOMING)
-    assert _ids(verdict_list_filtered(incoming, **filters)) == world.ids(*expected)
-    # The page's log, one line per access, filters alike.
     accesses = access_list_access_log(world.alice, direction=ACCESS_LOG_INCOMING)
     assert _ids(access_list_filtered(accesses, **filters)) == world.access_ids(*expected)
+    # The API lists the very same lines, filtered alike.
+    params = {
+        name: value.isoformat() if hasattr(value, "isoformat") else value
+        for name, value in filters.items()
+    }
+    answer = session_client(world.alice).get(API, params)
+    assert answer.status_code == 200, answer.content
+    assert [row["id"] for row in answer.json()["results"]] == world.access_ids(*expected)
 
 
 def test_the_page_log_lists_accesses_of_each_side(world):
@@ -111,11 +114,12 @@ def test_the_page_log_lists_accesses_of_each_side(world):
 
 
 def test_filters_by_robot_and_by_owner(world):
-    incoming = verdict_list_access_log(world.alice, direction=ACCESS_LOG_INCOMING)
-    assert _ids(verdict_list_filtered(incoming, robot=world.arm.pk)) == world.ids("a3", "a1", "old")
-    outgoing = verdict_list_access_log(world.bob, direction=ACCESS_LOG_OUTGOING)
-    assert _ids(verdict_list_filtered(outgoing, owner="carol")) == world.ids("c1")
-    assert _ids(verdict_list_filtered(outgoing, owner="alice")) == world.ids("a3", "a2")
+    incoming = access_list_access_log(world.alice, direction=ACCESS_LOG_INCOMING)
+    by_robot = access_list_filtered(incoming, robot=world.arm.pk)
+    assert _ids(by_robot) == world.access_ids("a3", "a1", "old")
+    outgoing = access_list_access_log(world.bob, direction=ACCESS_LOG_OUTGOING)
+    assert _ids(access_list_filtered(outgoing, owner="carol")) == world.access_ids("c1")
+    assert _ids(access_list_filtered(outgoing, owner="alice")) == world.access_ids("a3", "a2")
 
 
 def test_the_page_lists_who_when_which_record_verdict_and_credential(client, world):
@@ -295,7 +299,8 @@ def test_the_api_lists_the_same_log_for_an_owner_token_with_read(world, make_own
     body = answer.json()
     assert body["count"] == 2
     entry = body["results"][1]
-    assert entry["id"] == world.views["a2"].pk
+    assert entry["id"] == world.views["a2"].access_id
+    assert (entry["kind"], entry["records"], entry["block_number"]) == ("view", 1, 7)
     assert entry["credential"] == "token"
     assert entry["token"] is None  # bob's token: its name and prefix are his
     assert entry["operator"] is None
@@ -303,10 +308,10 @@ def test_the_api_lists_the_same_log_for_an_owner_token_with_read(world, make_own
     assert entry["robot_name"] == FORMULA_ROBOT
     assert entry["verdict"] == "verified"
     old = token_client(key).get(API, {"until": "2026-03-01T00:00Z"}).json()["results"]
-    assert [(row["id"], row["credential"]) for row in old] == [(world.views["old"].pk, None)]
+    assert [(row["id"], row["credential"]) for row in old] == [(world.views["old"].access_id, None)]
     # Bob's outgoing side, with his session.
     outgoing = session_client(world.bob).get(API, {"direction": "outgoing", "owner": "carol"})
-    assert [row["id"] for row in outgoing.json()["results"]] == world.ids("c1")
+    assert [row["id"] for row in outgoing.json()["results"]] == world.access_ids("c1")
     mine = session_client(world.bob).get(API, {"direction": "outgoing", "credential": "token"})
     assert [row["token"] for row in mine.json()["results"]] == [
         {"name": FORMULA_TOKEN, "prefix": world.token.token_prefix}
@@ -329,7 +334,7 @@ def test_the_api_needs_the_read_scope_and_never_a_robot(world, make_owner_token)
 def test_views_record_their_credential(
     alice, bob, upload, client, make_owner_token, django_user_model
 ):
-    from sharing.verification import records_verify
+    from sharing.verification.check import records_verify
 
     record = upload(alice, 1)
     second = upload(alice, 2)
@@ -344,12 +349,16 @@ def test_views_record_their_credential(
     records_verify(
         record_ids=[record.pk, second.pk],
         viewer_id=bob.pk,
-        credential=Verdict.Credential.TOKEN,
+        credential=Credential.TOKEN,
         token_id=token.pk,
     )
     made = list(
         Verdict.objects.order_by("id").values_list(
-            "viewer_id", "record_owner_id", "credential", "token_id", "checked_by_id"
+            "access__viewer_id",
+            "access__record_owner_id",
+            "access__credential",
+            "access__token_id",
+            "access__checked_by_id",
         )
     )
     a, b = alice.owner.pk, bob.pk
@@ -362,9 +371,10 @@ def test_views_record_their_credential(
         (b, a, "token", token.pk, None),
     ]
     with pytest.raises(ValueError, match="token"):
-        records_verify(record_ids=[record.pk], viewer_id=b, credential=Verdict.Credential.TOKEN)[0]
+        records_verify(record_ids=[record.pk], viewer_id=b, credential=Credential.TOKEN)[0]
     assert Verdict.objects.count() == len(made)
-    # And the owner's log lists all of them; bob's outgoing side his own.
-    log = verdict_list_access_log(alice.owner, direction=ACCESS_LOG_INCOMING)
-    assert log.count() == len(made)
-    assert verdict_list_access_log(bob, direction=ACCESS_LOG_OUTGOING).count() == 4
+    # And the owner's log lists all of them, one line per read (the last two records were
+    # one read); bob's outgoing side his own.
+    log = access_list_access_log(alice.owner, direction=ACCESS_LOG_INCOMING)
+    assert log.count() == len(made) - 1
+    assert access_list_access_log(bob, direction=ACCESS_LOG_OUTGOING).count() == 3

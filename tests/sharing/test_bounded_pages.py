@@ -11,8 +11,8 @@ from django.db import connection
 from django.test.utils import CaptureQueriesContext
 from django.urls import reverse
 
-from sharing import verification
 from sharing.models import Access, Verdict
+from sharing.verification import opening
 from stack.anvil import free_port
 from tests.pages.conftest import odometry
 from tests.support.tampering import tamper
@@ -26,13 +26,13 @@ SERIES = "/api/v1/records/series/"
 def sent(monkeypatch):
     """The names of the tasks the web process sends for integrity checks."""
     names: list[str] = []
-    real_dispatch = verification.dispatch
+    real_dispatch = opening.dispatch
 
     def counting(task_name, *args, **kwargs):
         names.append(task_name)
         return real_dispatch(task_name, *args, **kwargs)
 
-    monkeypatch.setattr(verification, "dispatch", counting)
+    monkeypatch.setattr(opening, "dispatch", counting)
     return names
 
 
@@ -72,7 +72,7 @@ def test_a_plot_is_one_check_and_one_insert(client, alice, bob, upload, sent):
         # The tampered pose is refused and left out; the others are plotted.
         assert (body["verified"], body["refused"]) == (5, 1)
         assert [point[1] for point in body["points"]] == [1.0, 2.0, 4.0, 5.0, 6.0]
-        verdicts = Verdict.objects.filter(viewer=viewer).order_by("-pk")[: len(records)]
+        verdicts = Verdict.objects.filter(access__viewer=viewer).order_by("-pk")[: len(records)]
         assert {v.outcome for v in verdicts} == {"verified", "tampered"}
         # One chain head for the batch; a verdict never says a block before its record's.
         assert all(v.block_number >= v.record.block_number for v in verdicts)
@@ -82,7 +82,7 @@ def test_a_plot_is_one_check_and_one_insert(client, alice, bob, upload, sent):
 
 def test_a_long_plot_is_sent_in_batches_side_by_side(client, alice, upload, sent, monkeypatch):
     records = [upload(alice, seq, plaintext=odometry("alice", seq, 0)) for seq in range(1, 6)]
-    monkeypatch.setattr(verification, "VERIFY_BATCH", 2)
+    monkeypatch.setattr(opening, "VERIFY_BATCH", 2)
     client.force_login(alice.owner.user)
     body = client.get(SERIES, _series(records[-1])).json()
     assert sent == ["sharing.tasks.records_verify"] * 3
@@ -101,7 +101,7 @@ def test_a_strangers_plot_checks_nothing_and_learns_nothing(
     body = client.get(SERIES, _series(record)).json()
     assert (body["source_records"], body["points"]) == (0, [])
     assert sent == []
-    assert not Verdict.objects.filter(viewer=stranger).exists()
+    assert not Verdict.objects.filter(access__viewer=stranger).exists()
 
 
 def test_a_record_page_keeps_its_single_check(client, alice, upload, sent):

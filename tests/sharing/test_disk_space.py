@@ -14,7 +14,9 @@ from core.storage_url import envelope_storage_config
 from portal.celery import app as celery_app
 from sharing import disk
 from sharing.disk import DISK_LOW_ALERT, disk_space_watch, portal_disks
-from sharing.exports import EXPORT_STORAGE_PREFIX, export_create, export_run
+from sharing.exports.create import export_create
+from sharing.exports.files import EXPORT_STORAGE_PREFIX
+from sharing.exports.run import export_run
 from sharing.models import Export, Record
 from sharing.services.uploads import record_create
 from sharing.storage import envelope_storage

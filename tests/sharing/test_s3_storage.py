@@ -12,12 +12,12 @@ from accounts.services.robots import robot_retention_set
 from core.storage_url import StorageUrlError, envelope_storage_config
 from sharing.cache import _key as cache_key
 from sharing.errors import StorageUnavailable
-from sharing.exports import export_create
+from sharing.exports.create import export_create
 from sharing.models import Record, Verdict
 from sharing.services.deletion import retention_apply
 from sharing.services.uploads import record_create_batch
 from sharing.storage import DurableS3Storage, envelope_storage
-from sharing.verification import records_verify
+from sharing.verification.check import records_verify
 from smcrypto.sm3 import sm3_hex
 from stack.seaweedfs import SeaweedProcess, start_seaweedfs
 from tests.api.conftest import RECORDS, Snapshot, b64, session_client, token_client

@@ -17,7 +17,7 @@ from sharing.scope import scope_commitment
 from sharing.selectors.grants import grant_count_received, owners_granting
 from sharing.selectors.records import record_list_shared_with, record_list_visible_to
 from sharing.services.grants import grant_create, grant_revoke, grant_terms_change
-from sharing.verification import records_verify
+from sharing.verification.check import records_verify
 from tests.api.conftest import RECORDS, session_client
 from tests.support.anvil_rpc import chain_time_travel
 from tests.support.robot_setup import RobotSetup

@@ -10,7 +10,7 @@ from datetime import UTC, datetime, timedelta, timezone
 import pytest
 
 from sharing.errors import ExportRefused
-from sharing.exports import export_create
+from sharing.exports.create import export_create
 from sharing.models import Record
 from sharing.scope import ScopeError, scope_make
 from sharing.selection import (

@@ -15,7 +15,7 @@ from sharing.grant_terms import grant_terms_make
 from sharing.models import Access, Record, Verdict
 from sharing.series import field_value, series_downsample
 from sharing.services.grants import grant_create
-from sharing.verification import records_verify
+from sharing.verification.check import records_verify
 from tests.api.conftest import session_client, token_client
 from tests.pages.conftest import image, odometry
 from tests.support.tampering import tamper
@@ -179,9 +179,9 @@ def test_scope_limits_the_plot_and_the_gallery_to_what_the_grant_covers(
     outside = client.get(API, _query(other, since=T0, until=T0 + timedelta(minutes=1))).json()
     assert outside["source_records"] == 0
     assert outside["points"] == []
-    assert not Verdict.objects.filter(viewer=bob, record__robot=other_robot).exists()
+    assert not Verdict.objects.filter(access__viewer=bob, record__robot=other_robot).exists()
     assert inside[3].pk not in set(
-        Verdict.objects.filter(viewer=bob).values_list("record", flat=True)
+        Verdict.objects.filter(access__viewer=bob).values_list("record", flat=True)
     )
 
 

@@ -1,5 +1,5 @@
 """A small world of views for the access log tests, made straight in the database (no chain:
-the log only reads verdicts): alice shares with bob; carol shares with bob too.
+the log only reads accesses and their verdicts): alice shares with bob; carol shares with bob too.
 
 Views, oldest first (minutes after NOON; `old` a day before, from before credentials were
 recorded):
@@ -23,7 +23,7 @@ from accounts.models import Owner, OwnerToken, Robot
 from accounts.services.api_tokens import owner_token_create
 from accounts.services.owners import owner_create
 from accounts.services.robots import robot_create
-from sharing.models import Access, Grant, Record, Verdict
+from sharing.models import Access, Credential, Grant, Record, Verdict
 from smcrypto import sm4
 from tests.support.robot_setup import TEST_PASSWORD
 
@@ -49,9 +49,6 @@ class World:
     token: OwnerToken  # bob's
     records: dict[str, Record] = field(default_factory=dict)
     views: dict[str, Verdict] = field(default_factory=dict)
-
-    def ids(self, *names: str) -> list[int]:
-        return [self.views[name].pk for name in names]
 
     def access_ids(self, *names: str) -> list[int]:
         return [self.views[name].access_id for name in names]
@@ -85,7 +82,7 @@ def view(
     minutes: float,
     *,
     outcome: str = Verdict.Outcome.VERIFIED,
-    credential: str = Verdict.Credential.SESSION,
+    credential: str = Credential.SESSION,
     token: OwnerToken | None = None,
     checked_by: object = None,
 ) -> Verdict:
@@ -104,17 +101,7 @@ def view(
         topic=record.topic,
     )
     Access.objects.filter(pk=access.pk).update(created_at=at(minutes))
-    verdict = Verdict.objects.create(
-        access=access,
-        record=record,
-        viewer=viewer,
-        record_owner_id=record.owner_id,
-        outcome=outcome,
-        credential=credential,
-        token=token,
-        checked_by=checked_by,
-        block_number=7,
-    )
+    verdict = Verdict.objects.create(access=access, record=record, outcome=outcome, block_number=7)
     Verdict.objects.filter(pk=verdict.pk).update(created_at=at(minutes))
     verdict.refresh_from_db()
     return verdict
@@ -128,22 +115,14 @@ def plot(records: list[Record], viewer: Owner, minutes: float) -> Access:
         kind=Access.Kind.PLOT,
         viewer=viewer,
         record_owner_id=owner_id,
-        credential=Verdict.Credential.SESSION,
+        credential=Credential.SESSION,
         count=len(records),
         topic=records[0].topic,
         robot_id=records[0].robot_id,
     )
     Access.objects.filter(pk=access.pk).update(created_at=at(minutes))
     Verdict.objects.bulk_create(
-        Verdict(
-            access=access,
-            record=record,
-            viewer=viewer,
-            record_owner_id=owner_id,
-            outcome=Verdict.Outcome.VERIFIED,
-            credential=Verdict.Credential.SESSION,
-            block_number=7,
-        )
+        Verdict(access=access, record=record, outcome=Verdict.Outcome.VERIFIED, block_number=7)
         for record in records
     )
     access.refresh_from_db()
@@ -172,11 +151,11 @@ def access_log_world(*, signed_up: bool = False) -> World:
     private = stored_record(carols, 1, CAROL_TOPIC, "std_msgs/String")
     world.records = {"odom": odom, "camera": camera, "private": private}
     world.views = {
-        "old": view(odom, alice, -24 * 60, credential=Verdict.Credential.UNKNOWN),
+        "old": view(odom, alice, -24 * 60, credential=Credential.UNKNOWN),
         "a1": view(odom, alice, 0),
-        "a2": view(camera, bob, 1, credential=Verdict.Credential.TOKEN, token=token),
+        "a2": view(camera, bob, 1, credential=Credential.TOKEN, token=token),
         "a3": view(odom, bob, 2, outcome=Verdict.Outcome.TAMPERED),
-        "a4": view(camera, alice, 3, credential=Verdict.Credential.OPERATOR, checked_by=operator),
+        "a4": view(camera, alice, 3, credential=Credential.OPERATOR, checked_by=operator),
         "c1": view(private, bob, 4),
         "c2": view(private, carol, 5),
     }

@@ -8,7 +8,7 @@ from pathlib import Path
 import yaml
 
 from sharing.models import Access, Record
-from sharing.verification import records_open
+from sharing.verification.opening import records_open
 from tests.ros_agent.conftest import write_key_file
 from tests.support.harness import wait_for
 from tests.support.recordings import TOPICS

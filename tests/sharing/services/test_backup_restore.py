@@ -98,7 +98,7 @@ def _manage(folder: Path, chain_url: str, *args: str) -> subprocess.CompletedPro
 VERIFY_ALL = """
 import json
 from sharing.models import Grant, Record
-from sharing.verification import records_verify
+from sharing.verification.check import records_verify
 def outcome(record, viewer_id):
     return records_verify(record_ids=[record.id], viewer_id=viewer_id)[0].verdict.outcome
 outcomes = {str(record.id): outcome(record, record.owner_id) for record in Record.objects.all()}

@@ -32,7 +32,8 @@ from sharing.services.deletion import (
 )
 from sharing.services.grants import grant_create
 from sharing.storage import envelope_storage
-from sharing.verification import record_open, records_verify
+from sharing.verification.check import records_verify
+from sharing.verification.opening import record_open
 from smcrypto import sm4
 from tests.api.conftest import RECORDS, token_client
 from tests.support.robot_setup import TEST_PASSWORD, RobotSetup

@@ -17,7 +17,7 @@ from chainworker import services as chain_services
 from chainworker.chain import AnchorItem, bytes32_to_record_id
 from sharing.models import Grant, Record, SecurityEvent, Verdict
 from sharing.services.grants import grant_create, grant_revoke
-from sharing.verification import records_verify
+from sharing.verification.check import records_verify
 from smcrypto import sm4
 
 # Records mode: what the chain holds per record id. Roots: tests/sharing/services/test_roots.py.

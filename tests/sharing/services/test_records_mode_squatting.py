@@ -11,7 +11,7 @@ from chainworker.services import chain_client
 from sharing.models import Record, SecurityEvent, Verdict
 from sharing.services.anchoring import anchor_item
 from sharing.services.uploads import record_create
-from sharing.verification import records_verify
+from sharing.verification.check import records_verify
 from smcrypto import sm3
 
 pytestmark = pytest.mark.django_db

@@ -15,7 +15,7 @@ from sharing.services.grants import grant_create
 from sharing.services.roots import record_path, tree_build
 from sharing.services.uploads import record_create
 from sharing.storage import envelope_storage
-from sharing.verification import records_verify
+from sharing.verification.check import records_verify
 from smcrypto import sm3
 from smcrypto.merkle import leaf_hash, root_from_path
 from tests.api.conftest import session_client, token_client

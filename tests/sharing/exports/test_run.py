@@ -21,8 +21,10 @@ from accounts.models import Robot
 from accounts.services.owners import owner_create
 from accounts.services.robots import robot_create
 from authros_verify import ChainReader, verify
-from sharing.exports import export_create, export_run, exports_sweep
-from sharing.models import Access, Export, Record, Verdict
+from sharing.exports.create import export_create
+from sharing.exports.run import export_run
+from sharing.exports.withdraw import exports_sweep
+from sharing.models import Access, Credential, Export, Record, Verdict
 from sharing.selection import RecordSelection
 from sharing.services.uploads import record_create, record_create_batch
 from sharing.storage import envelope_storage
@@ -230,7 +232,7 @@ def test_an_export_opens_with_independent_ros2_decoders_and_leaves_out_tampered_
     report = verify(bundle, chain=ChainReader(deployed.w3), mcap=mcap, contract=deployed.address)
     assert report.ok, (report.problems, [r.problems for r in report.failed])
     # The check left a verdict per record, as a view does: the audit trail shows the export.
-    assert Verdict.objects.filter(viewer=alice.owner, outcome="verified").count() == 7
+    assert Verdict.objects.filter(access__viewer=alice.owner, outcome="verified").count() == 7
 
     # A record whose stored envelope changed is left out, and listed.
     bad = alice_records[1]
@@ -352,7 +354,7 @@ def test_an_exports_access_log_line_names_the_credential_that_asked(
         assert rebuilt.status == Export.Status.DONE
         line = Access.objects.filter(kind=Access.Kind.EXPORT).latest("pk")
         assert (line.credential, line.token_id) == (credential, token.pk if line.token else None)
-    assert not Access.objects.filter(credential=Verdict.Credential.UNKNOWN).exists()
+    assert not Access.objects.filter(credential=Credential.UNKNOWN).exists()
 
 
 def test_a_bad_selection_is_a_400_or_a_form_error_and_changes_nothing(carol_robot):

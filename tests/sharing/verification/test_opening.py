@@ -4,13 +4,14 @@ import pytest
 
 from accounts.selectors import owner_key_bytes, owner_key_current
 from core.redis_client import get_redis
-from sharing import errors, verification
+from sharing import errors
 from sharing.cache import _key as cache_key
-from sharing.models import Access
+from sharing.models import Access, Verdict
 from sharing.selectors.records import record_get_visible, record_list_visible_to
 from sharing.services.grants import grant_create, grant_revoke
 from sharing.services.uploads import record_create
-from sharing.verification import record_open, record_reseal_for, records_open
+from sharing.verification import check
+from sharing.verification.opening import record_open, record_reseal_for, records_open
 from smcrypto import CryptoError, envelope, sm3
 
 pytestmark = pytest.mark.django_db
@@ -104,7 +105,7 @@ def test_a_view_fetches_and_hashes_the_envelope_once(shared, monkeypatch):
     """The worker fetches and hashes; the view decrypts the bytes the worker checked."""
     alice, _bob, record = shared
     fetches, hashes = [], []
-    real_fetch, real_hash = verification.envelopes_fetch, sm3.sm3_hex
+    real_fetch, real_hash = check.envelopes_fetch, sm3.sm3_hex
 
     def counting_fetch(records):
         fetches.extend(record.pk for record in records)
@@ -114,7 +115,7 @@ def test_a_view_fetches_and_hashes_the_envelope_once(shared, monkeypatch):
         hashes.append(len(data))
         return real_hash(data)
 
-    monkeypatch.setattr(verification, "envelopes_fetch", counting_fetch)
+    monkeypatch.setattr(check, "envelopes_fetch", counting_fetch)
     monkeypatch.setattr(sm3, "sm3_hex", counting_hash)
     opened = record_open(record_id=record.pk, viewer=alice.owner)
     assert opened.plaintext == b'{"K": "odom"}'
@@ -127,7 +128,7 @@ def test_the_view_decrypts_what_the_worker_checked_not_a_later_copy(shared, monk
     """Stored bytes that change after the check are never what is shown."""
     alice, _bob, record = shared
     checked = get_redis().get(cache_key(record.pk))
-    real_verify = verification.records_verify
+    real_verify = check.records_verify
 
     def verify_then_tamper(**kwargs):
         result = real_verify(**kwargs)
@@ -136,7 +137,7 @@ def test_the_view_decrypts_what_the_worker_checked_not_a_later_copy(shared, monk
         get_redis().set(cache_key(record.pk), bytes(changed))
         return result
 
-    monkeypatch.setattr(verification, "records_verify", verify_then_tamper)
+    monkeypatch.setattr(check, "records_verify", verify_then_tamper)
     opened = record_open(record_id=record.pk, viewer=alice.owner)
     assert opened.envelope == checked
     assert opened.plaintext == b'{"K": "odom"}'
@@ -159,4 +160,4 @@ def test_a_refusal_carries_its_record_and_verdict(shared, outcome):
     assert refused.value.record.pk == record.pk
     assert refused.value.record.owner.username == "alice"
     assert refused.value.verdict.outcome == outcome
-    assert refused.value.verdict.viewer_id == viewer.pk
+    assert Verdict.objects.get(pk=refused.value.verdict.pk).access.viewer_id == viewer.pk

@@ -12,8 +12,8 @@ from django.urls import reverse
 from mcap.reader import make_reader
 
 from authros_verify import ChainReader, verify
-from sharing import exports
-from sharing.exports import export_create
+from sharing.exports import run, selection
+from sharing.exports.create import export_create
 from sharing.models import Export
 from sharing.selection import RecordSelection
 from sharing.services.uploads import record_create_batch
@@ -51,13 +51,13 @@ def test_an_export_beyond_5000_records_streams_in_batches_and_verifies(
 ):
     settings.EXPORT_BATCH = 500
     batches: list[int] = []
-    checked = exports._verified
+    checked = run._verified
 
     def counting(batch, *args):
         batches.append(len(batch))
         return checked(batch, *args)
 
-    monkeypatch.setattr(exports, "_verified", counting)
+    monkeypatch.setattr(run, "_verified", counting)
     buffered: list[int] = []
     write = SealedWriter.write
 
@@ -159,7 +159,7 @@ def test_batches_take_every_record_once_in_order_when_capture_times_tie(
     envelopes = [setup.seal(seq, time=time) for seq, time in enumerate(times, start=1)]
     with django_capture_on_commit_callbacks(execute=True):
         record_create_batch(robot=setup.robot, envelopes=envelopes)
-    records = exports.export_records(setup.owner, RecordSelection())
+    records = selection.export_records(setup.owner, RecordSelection())
     for size in (1, 2, 3, 4, 7, 10, 11):
-        taken = [r.seq for batch in exports.export_batches(records, size) for r in batch]
+        taken = [r.seq for batch in run.export_batches(records, size) for r in batch]
         assert taken == list(range(1, len(times) + 1)), size

@@ -13,7 +13,9 @@ from django.utils import timezone
 from sharing.models import Access, Record, Verdict
 from sharing.services.deletion import record_delete
 from sharing.services.uploads import record_create
-from sharing.verification import REFUSED_VIEWS_COALESCED, records_verify
+from sharing.verification.access import REFUSED_VIEWS_COALESCED
+from sharing.verification.check import records_verify
+from sharing.verification.opening import records_open
 from tests.api.conftest import RECORDS, token_client
 
 pytestmark = pytest.mark.django_db
@@ -43,7 +45,9 @@ def test_content_answers_alike_whether_the_record_exists_or_not(
         assert there.status_code == 404
         assert there.json()["error"] == "not_found"
     # The refused content view is still in the access log (the owner's and the viewer's).
-    assert Verdict.objects.filter(record=record, viewer=mallory, outcome="no_access").exists()
+    assert Verdict.objects.filter(
+        record=record, access__viewer=mallory, outcome="no_access"
+    ).exists()
 
 
 def test_a_deleted_record_of_someone_else_is_not_told_apart(
@@ -70,7 +74,7 @@ def test_refused_views_in_a_row_leave_one_row_an_hour(anchored, make_owner):
         for record in records:
             (checked,) = records_verify(record_ids=[record.pk], viewer_id=mallory.pk)
             assert checked.verdict.outcome == "no_access"
-    refused = Verdict.objects.filter(viewer=mallory)
+    refused = Verdict.objects.filter(access__viewer=mallory)
     assert refused.count() == 1
     # An hour later, the next refused view is a row of its own.
     refused.update(created_at=timezone.now() - REFUSED_VIEWS_COALESCED - timedelta(seconds=1))
@@ -91,10 +95,31 @@ def test_refused_views_through_the_api_and_pages_leave_one_row_an_hour(
         for record in records:
             assert api.get(f"{RECORDS}{record.pk}/content/").status_code == 404
             assert client.get(reverse("record-detail", args=[record.pk])).status_code == 404
-    assert Verdict.objects.filter(viewer=mallory).count() == 1
+    assert Verdict.objects.filter(access__viewer=mallory).count() == 1
     assert Access.objects.filter(viewer=mallory).count() == 1
     # The owner's own views are each written.
     own = token_client(make_owner_token(setup.owner, scopes=("read",))[1])
     for _ in range(2):
         assert own.get(f"{RECORDS}{records[0].pk}/content/").status_code == 200
     assert Access.objects.filter(viewer=setup.owner, kind=Access.Kind.VIEW).count() == 2
+
+
+def test_a_refused_read_of_several_records_is_coalesced_as_a_view_of_one(anchored, make_owner):
+    """One path for N records: a read refused whole is coalesced whatever it holds, and a
+    read of the web (its line open already) leaves no line of its own when coalesced."""
+    setup, records = anchored
+    mallory = make_owner("mallory")
+    ids = [record.pk for record in records]
+    first = records_verify(record_ids=ids, viewer_id=mallory.pk)
+    assert [checked.verdict.outcome for checked in first] == ["no_access", "no_access"]
+    again = records_verify(record_ids=ids, viewer_id=mallory.pk)
+    assert {checked.verdict.pk for checked in again} == {first[-1].verdict.pk}
+    assert Verdict.objects.filter(access__viewer=mallory).count() == 2
+    assert Access.objects.filter(viewer=mallory).count() == 1
+    # A web read of both, coalesced too: its line is gone with it.
+    records_open(records=records, viewer=mallory, kind=Access.Kind.PAGE, credential="session")
+    assert Access.objects.filter(viewer=mallory).count() == 1
+    # The owner's own read of the same records is written each time.
+    records_verify(record_ids=ids, viewer_id=setup.owner.pk)
+    records_verify(record_ids=ids, viewer_id=setup.owner.pk)
+    assert Access.objects.filter(viewer=setup.owner).count() == 2

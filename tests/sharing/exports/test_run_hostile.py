@@ -15,7 +15,7 @@ from mcap.reader import make_reader
 
 from authros_verify import ChainReader, verify
 from authros_verify.messages import message_encode
-from sharing.exports import export_create
+from sharing.exports.create import export_create
 from sharing.models import Export
 from sharing.services.uploads import record_create_batch
 from tests.authros_verify.conftest import export_files

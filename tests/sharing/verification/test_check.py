@@ -15,7 +15,7 @@ from sharing.services.anchoring import records_anchor
 from sharing.services.grants import grant_create, grant_revoke
 from sharing.services.uploads import record_create
 from sharing.storage import envelope_storage
-from sharing.verification import records_verify
+from sharing.verification.check import records_verify
 from tests.support.tampering import tamper
 
 pytestmark = pytest.mark.django_db
@@ -160,7 +160,7 @@ def test_grantee_sees_until_revoked(anchored, make_owner, django_capture_on_comm
     refused = records_verify(record_ids=[record.id], viewer_id=bob.pk)[0]
     assert refused.verdict.outcome == "no_access"
     assert refused.envelope is None
-    assert Verdict.objects.filter(viewer=bob).count() == 3
+    assert Verdict.objects.filter(access__viewer=bob).count() == 3
 
 
 def test_grant_only_in_the_portal_is_not_enough(anchored, make_owner):

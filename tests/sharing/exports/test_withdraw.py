@@ -15,7 +15,8 @@ from django.urls import reverse
 from django.utils import timezone
 
 from accounts.models import Owner
-from sharing.exports import export_create, exports_sweep
+from sharing.exports.create import export_create
+from sharing.exports.withdraw import exports_sweep
 from sharing.grant_terms import grant_terms_make
 from sharing.models import Export, ExportRecord, Grant, Record
 from sharing.services.backup import portal_backup
