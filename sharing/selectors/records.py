@@ -3,7 +3,7 @@ record lists' filters and sorts, a record page's neighbours and proof, and the f
 the records a view opens and the worker checks (core/rows.py).
 
 Listing is the portal's view; every read of content is checked on chain again
-(sharing/verification.py)."""
+(sharing/verification/)."""
 
 import uuid
 from datetime import datetime

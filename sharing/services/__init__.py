@@ -1,6 +1,6 @@
 """What sharing does to records and grants: one module per job. Every write of a Record,
 Grant or AnchorRoot row is in one of these modules (the worker's integrity check marks a
-record tampered, sharing/verification.py; an export's rows are sharing/exports.py's).
+record tampered, sharing/verification/tamper.py; an export's rows are sharing/exports/'s).
 
 An action is one transaction; its chain work is queued on commit by task name
 (core.outbox.enqueue) and done by the worker's tasks (sharing/tasks.py), which call

@@ -200,7 +200,7 @@ def grant_terms_change(
             grant, GrantChange.Kind.CHANGED, made_with, made_with_token, before, terms
         )
         transaction.on_commit(lambda: enqueue("sharing.tasks.grant_sync", grant.pk))
-        # The grantee's exports may hold records outside the new terms (sharing/exports.py).
+        # The grantee's exports may hold records outside the new terms (exports/withdraw.py).
         transaction.on_commit(lambda: enqueue(EXPORTS_RECHECK_TASK, grant.grantee_id))
     return grant
 
