@@ -12,12 +12,14 @@ After a nonce error the counter is resynced from the node.
 import logging
 import time
 from collections.abc import Callable, Iterator
-from contextlib import contextmanager, suppress
+from contextlib import contextmanager
 from dataclasses import dataclass
 
 import redis
 from redis.exceptions import LockError, RedisError
 from redis.lock import Lock
+
+from core.locks import LockUnavailable, lock_held
 
 logger = logging.getLogger(__name__)
 
@@ -103,28 +105,25 @@ class RedisNonceManager:
         self, address: str, fetch_from_node: Callable[[str], int]
     ) -> Iterator[NonceReservation]:
         """Hold the sender's lock and yield the next nonce to use."""
-        lock = self._redis.lock(
-            self._key(address) + ":lock",
-            timeout=self._lock_timeout,
-            blocking_timeout=self._blocking_timeout,
-        )
         try:
-            acquired = lock.acquire()
-        except RedisError as exc:
+            with lock_held(
+                self._key(address) + ":lock",
+                timeout=self._lock_timeout,
+                wait=self._blocking_timeout,
+                client=self._redis,
+            ) as lock:
+                if lock is None:
+                    raise NonceLockTimeout(
+                        f"sender {address} stayed locked for {self._blocking_timeout}s"
+                    )
+                try:
+                    stored = self._redis.get(self._key(address))
+                except RedisError as exc:
+                    raise NonceStoreUnavailable(f"cannot read nonce from Redis: {exc}") from exc
+                nonce = self._choose(address, stored, fetch_from_node(address))
+                yield NonceReservation(address, nonce, self, fetch_from_node, lock)
+        except LockUnavailable as exc:  # taking the lock (the block takes none of its own)
             raise NonceStoreUnavailable(f"cannot lock nonce in Redis: {exc}") from exc
-        if not acquired:
-            raise NonceLockTimeout(f"sender {address} stayed locked for {self._blocking_timeout}s")
-        try:
-            try:
-                stored = self._redis.get(self._key(address))
-            except RedisError as exc:
-                raise NonceStoreUnavailable(f"cannot read nonce from Redis: {exc}") from exc
-            nonce = self._choose(address, stored, fetch_from_node(address))
-            yield NonceReservation(address, nonce, self, fetch_from_node, lock)
-        finally:
-            # Expired or unreachable: the lock's own timeout frees it for the next sender.
-            with suppress(LockError, RedisError):
-                lock.release()
 
     def _choose(self, address: str, stored: bytes | None, from_node: int) -> int:
         if stored is None:

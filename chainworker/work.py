@@ -3,10 +3,9 @@ piece (a Redis lock), the error for work whose prerequisite is not on chain yet,
 retry policy of the Celery tasks that run it."""
 
 from collections.abc import Iterator
-from contextlib import contextmanager, suppress
+from contextlib import contextmanager
 
 from celery.exceptions import SoftTimeLimitExceeded
-from redis.exceptions import LockError, RedisError
 from redis.lock import Lock
 
 from chainworker.chain import (
@@ -16,6 +15,7 @@ from chainworker.chain import (
     TransactionDropped,
     TransactionTimeout,
 )
+from core.locks import lock_held
 from core.redis_client import get_redis, redis_key
 
 
@@ -34,14 +34,10 @@ WAITING_FOR_GAS = (
 @contextmanager
 def exclusive(name: str, *, timeout: float = 60.0, wait: float = 30.0) -> Iterator[Lock]:
     """A Redis lock so only one worker does this piece of chain work at a time."""
-    lock = get_redis().lock(redis_key("work", name), timeout=timeout, blocking_timeout=wait)
-    if not lock.acquire():
-        raise ChainWorkNotReady(f"{name} is being worked on by another worker")
-    try:
+    with lock_held(redis_key("work", name), client=get_redis(), timeout=timeout, wait=wait) as lock:
+        if lock is None:
+            raise ChainWorkNotReady(f"{name} is being worked on by another worker")
         yield lock
-    finally:
-        with suppress(LockError, RedisError):
-            lock.release()
 
 
 # Transient: the node, Redis or an earlier step is not there yet. Everything else fails loudly.

@@ -12,10 +12,9 @@ import threading
 from collections.abc import Iterator
 from contextlib import contextmanager, suppress
 
+from redis import Redis
 from redis.exceptions import LockError, RedisError
 from redis.lock import Lock
-
-from core.redis_client import get_redis
 
 logger = logging.getLogger(__name__)
 
@@ -27,7 +26,12 @@ class LockUnavailable(RedisError):
 
 @contextmanager
 def lock_held(
-    key: str, *, timeout: float, wait: float = 0.0, renew_every: float | None = None
+    key: str,
+    *,
+    client: Redis,
+    timeout: float,
+    wait: float = 0.0,
+    renew_every: float | None = None,
 ) -> Iterator[Lock | None]:
     """Hold the Redis lock `key` for up to `timeout` seconds: yields the lock, or None if
     another holder kept it for `wait` seconds (0: one try). A Redis error while taking it is
@@ -35,8 +39,10 @@ def lock_held(
     work; one in the block is the block's own.
 
     With `renew_every`, a thread extends the hold every that many seconds until the block ends.
+    `client` is the Redis to lock in (the process's, core.redis_client.get_redis(), for the
+    portal's work; the chain client's own for its nonces): this module needs no Django.
     """
-    lock = get_redis().lock(
+    lock = client.lock(
         key,
         timeout=timeout,
         blocking_timeout=wait,

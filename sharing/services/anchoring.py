@@ -191,7 +191,9 @@ def _anchor_run(owner_id: int) -> tuple[int, int | None]:
     # Short, and renewed while waiting for receipts, so a killed worker frees it quickly.
     try:
         with lock_held(
-            redis_key("work", f"anchor:{owner_id}"), timeout=settings.ANCHOR_LOCK_TTL
+            redis_key("work", f"anchor:{owner_id}"),
+            client=get_redis(),
+            timeout=settings.ANCHOR_LOCK_TTL,
         ) as lock:
             if lock is None:
                 return 0, None

@@ -41,7 +41,7 @@ from accounts.models import AccountEvent, Owner, Robot
 from accounts.services.owners import owner_close, owner_password_confirm
 from core.locks import LockUnavailable, lock_held
 from core.outbox import enqueue
-from core.redis_client import redis_key
+from core.redis_client import get_redis, redis_key
 from sharing.cache import envelope_cache_evict
 from sharing.errors import NoGrant, NotDeletableYet, NotRecordOwner, RecordNotFound
 from sharing.models import Grant, Record
@@ -209,7 +209,9 @@ def retention_apply(*, now: datetime | None = None) -> dict[str, int]:
     """
     try:
         with lock_held(
-            redis_key("work", RETENTION_LOCK), timeout=settings.RETENTION_LOCK_TTL
+            redis_key("work", RETENTION_LOCK),
+            client=get_redis(),
+            timeout=settings.RETENTION_LOCK_TTL,
         ) as lock:
             if lock is None:
                 return {"skipped": 1}

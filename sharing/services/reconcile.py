@@ -38,7 +38,7 @@ from chainworker.services import (
 from chainworker.work import ChainWorkNotReady
 from core.locks import lock_held
 from core.outbox import enqueue
-from core.redis_client import redis_key
+from core.redis_client import get_redis, redis_key
 from sharing.models import AnchorRoot, Grant, Record, SecurityEvent
 from sharing.scope import scope_commitment
 from sharing.services.anchoring import anchor_schedule, record_chain_mismatch
@@ -99,6 +99,7 @@ def _reconcile_lock(*, wait: float) -> Iterator[None]:
     while the run goes on; ChainWorkNotReady if another run holds it after `wait` seconds."""
     with lock_held(
         redis_key("work", RECONCILE_LOCK),
+        client=get_redis(),
         timeout=RECONCILE_LOCK_TTL,
         wait=wait,
         renew_every=RECONCILE_LOCK_TTL / 3,
