@@ -9,7 +9,7 @@ from celery.exceptions import SoftTimeLimitExceeded
 from redis.exceptions import LockError, RedisError
 from redis.lock import Lock
 
-from chainworker.chain import (
+from chainworker.errors import (
     ChainUnavailable,
     InsufficientFunds,
     NonceError,

@@ -30,7 +30,7 @@ from accounts.selectors import (
     robot_count_active,
 )
 from accounts.services.funding import owner_eoa_gas
-from chainworker.chain import ChainError
+from chainworker.errors import ChainError
 from sharing.models import SecurityEvent
 from sharing.selectors import (
     grant_count_given,

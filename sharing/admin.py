@@ -15,7 +15,7 @@ from django.http import HttpRequest
 
 from accounts.admin import ReadOnlyAdmin, admin_action_record
 from accounts.errors import IdentityMismatch
-from chainworker.chain import ChainError
+from chainworker.errors import ChainError
 from sharing.anchoring import records_reanchor
 from sharing.models import Access, Grant, Record, SecurityEvent, Verdict
 from sharing.verification import records_verify

@@ -40,7 +40,7 @@ from accounts.keywrap import UnwrapFailed, unwrap, wrap
 from accounts.models import Owner, OwnerKey, OwnerToken, Robot
 from authros_verify.bundle import BUNDLE_FORMAT, bundle_entry_line, bundle_write
 from authros_verify.messages import message_encode, message_log_time
-from chainworker.chain import ChainError
+from chainworker.errors import ChainError
 from chainworker.services import chain_client
 from core.outbox import enqueue
 from sharing.disk import disk_room_check

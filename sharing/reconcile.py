@@ -27,7 +27,7 @@ from redis.exceptions import LockError, RedisError
 
 from accounts.models import ChainState, Owner
 from accounts.services.registration import owners_chain_reset, owners_reconcile
-from chainworker.chain import AuthROSChain
+from chainworker.client import AuthROSChain
 from chainworker.services import (
     IDENTITY_RESET,
     IDENTITY_SAME,

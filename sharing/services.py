@@ -30,7 +30,8 @@ from accounts.selectors import (
 )
 from accounts.services.activity import chain_activity_record
 from alerts.services import grant_received_alert, grant_revoked_alert
-from chainworker.chain import InsufficientFunds, TransactionReverted, TxResult
+from chainworker.codec import TxResult
+from chainworker.errors import InsufficientFunds, TransactionReverted
 from chainworker.services import chain_client, chain_work_check
 from chainworker.work import WAITING_FOR_GAS, ChainWorkNotReady, exclusive
 from core.commits import commits_durable

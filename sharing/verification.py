@@ -34,7 +34,8 @@ from accounts.identity import owner_identity_check
 from accounts.models import Owner, OwnerKey, OwnerToken
 from accounts.selectors import owner_key_by_id, owner_key_bytes, owner_key_current
 from alerts.services import record_tampered_alert
-from chainworker.chain import AuthROSChain, OnChainRoot, RobotKeyOnChain
+from chainworker.client import AuthROSChain
+from chainworker.codec import OnChainRoot, RobotKeyOnChain
 from chainworker.services import chain_client, chain_head
 from core.outbox import dispatch
 from sharing.cache import envelope_cache_evict, envelopes_fetch

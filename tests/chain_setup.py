@@ -11,7 +11,8 @@ from datetime import UTC, datetime
 from eth_account import Account
 from eth_account.signers.local import LocalAccount
 
-from chainworker.chain import AnchorItem, AuthROSChain
+from chainworker.client import AuthROSChain
+from chainworker.codec import AnchorItem
 from smcrypto import key_commitment, sm3, sm4
 
 

@@ -12,7 +12,7 @@ from mcap.writer import CompressionType, Writer
 
 from accounts.selectors import owner_eoa_account
 from authros_verify import ChainReader, bundle_digest, bundle_serialise
-from chainworker.chain import AuthROSChain
+from chainworker.client import AuthROSChain
 from sharing.exports import export_create, export_download
 from sharing.models import Export
 from sharing.services import record_create_batch

@@ -8,22 +8,24 @@ from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 import pytest
 from eth_account import Account
 
-from chainworker import chain as chain_module
-from chainworker.chain import (
+from chainworker import sender as chain_sender
+from chainworker.client import AuthROSChain
+from chainworker.codec import (
     AnchorItem,
-    AuthROSChain,
-    ChainUnavailable,
-    ContractNotDeployed,
-    InsufficientFunds,
-    NodeRefused,
-    TransactionDropped,
-    TransactionReverted,
     bytes32_to_data_type,
     bytes32_to_record_id,
     chain_time_to_datetime,
     data_type_to_bytes32,
     datetime_to_chain_time,
     record_id_to_bytes32,
+)
+from chainworker.errors import (
+    ChainUnavailable,
+    ContractNotDeployed,
+    InsufficientFunds,
+    NodeRefused,
+    TransactionDropped,
+    TransactionReverted,
 )
 from smcrypto import key_commitment, sm3, sm4
 from stack.anvil import free_port
@@ -237,7 +239,7 @@ def test_send_without_waiting_then_wait(chain, registered_owner):
 def test_nonce_counter_ahead_of_node_is_resynced(
     chain, registered_owner, redis_client, monkeypatch
 ):
-    monkeypatch.setattr(chain_module, "DROPPED_CHECK_INTERVAL", 0.1)
+    monkeypatch.setattr(chain_sender, "DROPPED_CHECK_INTERVAL", 0.1)
     chain.data_upload(registered_owner, _item())
     key = chain.nonces._key(registered_owner.address)
     # A fresh counter far ahead of the node: the node holds the transaction behind the gap,
@@ -270,7 +272,7 @@ def test_a_send_the_node_already_has_is_not_signed_again(chain, registered_owner
     """The node accepted the transaction but its answer was lost; our retry hears "already
     known". That transaction is sent: signing it again with the next nonce would send it twice.
     """
-    real_rpc = chain._rpc_lean
+    real_rpc = chain.rpc.request
     sent: list[str] = []
 
     def accepted_then_already_known(method, params, *, label):
@@ -282,7 +284,7 @@ def test_a_send_the_node_already_has_is_not_signed_again(chain, registered_owner
             raise NodeRefused(label, "already known")
         return answer
 
-    monkeypatch.setattr(chain, "_rpc_lean", accepted_then_already_known)
+    monkeypatch.setattr(chain.rpc, "request", accepted_then_already_known)
     nonce = chain._pending_nonce(registered_owner.address)
     tx_hash = chain.data_upload(registered_owner, _item(), wait=False)
     assert chain.wait_for_receipt(tx_hash)["status"] == 1

@@ -12,9 +12,8 @@ import requests
 from eth_account import Account
 from web3 import Web3
 
-from chainworker.chain import (
-    ANCHOR_ROOT_GAS,
-    AuthROSChain,
+from chainworker.client import ANCHOR_ROOT_GAS, AuthROSChain
+from chainworker.errors import (
     ChainUnavailable,
     ContractNotDeployed,
     InsufficientFunds,
@@ -22,8 +21,8 @@ from chainworker.chain import (
     TransactionDropped,
     TransactionReverted,
     TransactionTimeout,
-    rpc_session,
 )
+from chainworker.rpc import rpc_session
 from smcrypto import key_commitment, sm4
 from stack.anvil import start_anvil
 from tests.chain_setup import anchor_item, make_registered_owner
@@ -50,7 +49,7 @@ def _upload_from_another_process(url, redis_url, address, owner_key, count, queu
     owner = Account.from_key(owner_key)
     sent = []
     refusals = _NonceRefusals()
-    logging.getLogger("chainworker.chain").addHandler(refusals)
+    logging.getLogger("chainworker.sender").addHandler(refusals)
     try:
         for _ in range(count):
             item = anchor_item()
@@ -373,7 +372,7 @@ def test_a_receipt_the_node_cannot_tell_yet_is_asked_again(anvil, redis_client, 
     owner = make_registered_owner(client, operator)
     tx_hash = client.anchor_root(owner, b"\x06" * 32, 3, wait=False)
     refusals = []
-    lean = client._rpc_lean
+    lean = client.rpc.request
 
     def indexing_at_first(method, params, *, label):
         if method == "eth_getTransactionReceipt" and len(refusals) < 2:
@@ -381,7 +380,7 @@ def test_a_receipt_the_node_cannot_tell_yet_is_asked_again(anvil, redis_client, 
             raise NodeRefused(label, "transaction indexing is in progress")
         return lean(method, params, label=label)
 
-    monkeypatch.setattr(client, "_rpc_lean", indexing_at_first)
+    monkeypatch.setattr(client.rpc, "request", indexing_at_first)
     client.poll_interval = 0.01
     receipt = client.wait_for_receipt(tx_hash, timeout=10)
     assert len(refusals) == 2
