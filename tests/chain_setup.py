@@ -1,7 +1,7 @@
 """What tests of the chain client set up on a node: an owner registered on the contract, and
 an anchor item for a new record.
 
-No Django here: tests/chainworker/test_chain_anvil.py sends from processes it spawns, which
+No Django here: tests/chainworker/test_sender_anvil.py sends from processes it spawns, which
 import the test module and this one, and no portal app.
 """
 
