@@ -8,6 +8,9 @@ through `chainworker.rpc.NodeRpc`); every write one transaction sent by
 account with nonces from `chainworker.nonces`, so any number of processes may send. Events are
 read from the node's logs, filtered by topic there. This module does not import Django:
 `chainworker.services.chain_client()` builds the client from settings.
+
+A little over 500 lines: one short method for each of the contract's functions and event
+queries, which would read worse split apart; what they build on is in the modules above.
 """
 
 from __future__ import annotations
