@@ -36,7 +36,7 @@ def service_check(
     if not databases or DEFAULT_DB_ALIAS not in databases or not _migrated():
         return []
     from accounts.services.portal_secrets import secrets_verify
-    from chainworker.chain import ChainError
+    from chainworker.errors import ChainError
     from chainworker.services import operator_verify
 
     messages: list[checks.CheckMessage] = [

@@ -20,7 +20,8 @@ from accounts.errors import IdentityMismatch
 from accounts.events import account_event_record
 from accounts.models import AccountEvent, ChainState, Owner, OwnerKey
 from accounts.selectors import owner_keys
-from chainworker.chain import AuthROSChain, ChainError
+from chainworker.client import AuthROSChain
+from chainworker.errors import ChainError
 from chainworker.services import chain_client
 from core.redis_client import get_redis, redis_key
 

@@ -88,7 +88,7 @@ def owner_by_identifier(identifier: str) -> Owner | None:
 
 
 def owner_balance_wei(owner: Owner) -> int:
-    """The balance of the owner's EOA on chain; raises chainworker.chain.ChainError when the
+    """The balance of the owner's EOA on chain; raises chainworker.errors.ChainError when the
     node cannot be asked."""
     return chain_client().balance(owner.eoa_address)
 

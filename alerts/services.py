@@ -48,7 +48,7 @@ from alerts.selectors import (
     webhook_endpoints_of,
 )
 from alerts.webhooks import webhook_post, webhook_signature, webhook_url_check
-from chainworker.chain import ChainError
+from chainworker.errors import ChainError
 from chainworker.services import chain_client
 from core.outbox import enqueue
 

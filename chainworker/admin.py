@@ -11,7 +11,7 @@ from django.urls import URLPattern, path
 from redis.exceptions import RedisError
 
 from chainworker.backlog import backlog_counts
-from chainworker.chain import ChainError
+from chainworker.errors import ChainError
 from chainworker.gas import LowBalance, low_balances
 from chainworker.models import Deployment, OperatorAlert
 from chainworker.services import chain_status, operator_gas

@@ -17,7 +17,8 @@ from eth_account import Account
 from eth_account.signers.local import LocalAccount
 from redis.exceptions import RedisError
 
-from chainworker.chain import AuthROSChain, ContractNotDeployed
+from chainworker.client import AuthROSChain
+from chainworker.errors import ContractNotDeployed
 from chainworker.models import Deployment, OperatorAlert
 from chainworker.selectors import deployment_active
 from chainworker.work import ChainWorkNotReady, exclusive

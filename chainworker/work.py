@@ -8,7 +8,7 @@ from contextlib import contextmanager
 from celery.exceptions import SoftTimeLimitExceeded
 from redis.lock import Lock
 
-from chainworker.chain import (
+from chainworker.errors import (
     ChainUnavailable,
     InsufficientFunds,
     NonceError,

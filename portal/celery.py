@@ -114,7 +114,7 @@ def worker_refuse_misconfigured(**kwargs: object) -> None:
 def _service_problems_in_own_thread() -> list[str]:
     """The checks, in a thread of their own: the database connection they open is not reused
     by the pool's processes forked from this one (the chain node's session drops its
-    connections in a forked child: chainworker.chain.rpc_session)."""
+    connections in a forked child: chainworker.rpc.rpc_session)."""
     outcome: list[str] = []
 
     def check() -> None:

@@ -23,7 +23,7 @@ from django.conf import settings
 from django.db import connections
 from redis import Redis
 
-from chainworker.chain import connect
+from chainworker.rpc import connect
 from core.redis_url import redis_client_for
 from sharing.storage import envelope_storage
 

@@ -30,7 +30,7 @@ from accounts.selectors import (
     robot_count_active,
 )
 from accounts.services.funding import owner_eoa_gas
-from chainworker.chain import ChainError
+from chainworker.errors import ChainError
 from sharing.models import SecurityEvent
 from sharing.selectors.activity import security_events_of
 from sharing.selectors.grants import grant_count_given, grant_count_received

@@ -16,7 +16,7 @@ from django.http import HttpRequest
 
 from accounts.admin import ReadOnlyAdmin, admin_action_record, shown_fields
 from accounts.errors import IdentityMismatch
-from chainworker.chain import ChainError
+from chainworker.errors import ChainError
 from sharing.models import (
     Access,
     AnchorRoot,

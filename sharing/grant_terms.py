@@ -15,7 +15,7 @@ from datetime import UTC, datetime, timedelta
 from django.utils import timezone
 
 from accounts.models import Owner, Robot
-from chainworker.chain import OnChainGrant
+from chainworker.codec import OnChainGrant
 from sharing.errors import InvalidGrantTerms
 from sharing.models import Grant
 from sharing.scope import ScopeError, expiry_seconds, scope_commitment, scope_make

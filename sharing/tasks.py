@@ -9,7 +9,7 @@ from typing import Any
 from celery import shared_task
 
 from accounts.errors import IdentityMismatch
-from chainworker.chain import ChainUnavailable
+from chainworker.errors import ChainUnavailable
 from chainworker.work import CHAIN_TASK
 from sharing import disk
 from sharing.exports import run, withdraw

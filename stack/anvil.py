@@ -54,7 +54,7 @@ ZERO_GAS_ARGS = ("--base-fee", "0", "--gas-price", "0", "--disable-min-priority-
 # A node that keeps only its latest blocks' transactions keeps only this many blocks' states,
 # in memory: anvil otherwise writes every older state under ~/.foundry/anvil/tmp, tens of GB
 # in a day of uploads, and leaves them there when it stops. Enough to replay a failed
-# transaction at its parent block (chain.py's _explain_failure).
+# transaction at its parent block (chainworker/sender.py's _explain_failure).
 KEPT_STATES = 64
 
 _OS_NAMES = {"Linux": "linux", "Darwin": "darwin", "Windows": "win32"}

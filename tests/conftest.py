@@ -21,9 +21,9 @@ from accounts.services.api_tokens import owner_token_create
 from accounts.services.owners import owner_create
 from accounts.services.pairing import robot_pairing_answer, robot_pairing_request
 from accounts.services.robots import robot_create
-from chainworker import chain as chain_module
+from chainworker import sender as chain_sender
 from chainworker import services as chain_services
-from chainworker.chain import AuthROSChain
+from chainworker.client import AuthROSChain
 from portal.celery import app as celery_app
 from portal.middleware import service_checks_forget
 from smcrypto import sm2, sm4
@@ -247,8 +247,13 @@ def make_robot(make_owner):
 _NO_DATABASE = (
     "tests/smcrypto/",
     "tests/contracts/",
-    "tests/chainworker/test_chain.py",
-    "tests/chainworker/test_chain_anvil.py",
+    "tests/chainworker/test_client.py",
+    "tests/chainworker/test_client_anvil.py",
+    "tests/chainworker/test_codec.py",
+    "tests/chainworker/test_rpc.py",
+    "tests/chainworker/test_rpc_anvil.py",
+    "tests/chainworker/test_sender.py",
+    "tests/chainworker/test_sender_anvil.py",
     "tests/ros_agent/test_config.py",
     "tests/ros_agent/test_extractors.py",
     "tests/ros_agent/test_node.py",
@@ -330,7 +335,7 @@ def blocks_lost(isolated_portal, monkeypatch, eager_retries):
     from an older state does. The portal's nonce counters are then ahead of the node: a send
     meets the gap at its receipt wait (asked every 0.1 s here, not 5 s) and its task retries
     inline, as a worker would."""
-    monkeypatch.setattr(chain_module, "DROPPED_CHECK_INTERVAL", 0.1)
+    monkeypatch.setattr(chain_sender, "DROPPED_CHECK_INTERVAL", 0.1)
 
     @contextmanager
     def lose() -> Iterator[None]:

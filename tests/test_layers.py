@@ -169,7 +169,7 @@ def test_the_check_sees_a_forbidden_import(tmp_path):
     source.write_text("import os\n\ndef f():\n    from sharing import services\n")
     assert list(imports(source)) == [("os", False, 1), ("sharing.services", True, 4)]
     edges, _local = _graph()
-    assert "chainworker.chain" in edges["sharing.services.anchoring"]
+    assert "chainworker.client" in edges["sharing.services.anchoring"]
 
 
 def test_the_check_sees_a_task_sent_by_name(tmp_path):

@@ -17,7 +17,8 @@ from eth_account.signers.local import LocalAccount
 
 from accounts.models import ChainActivity, ChainState, EoaFunding, Owner
 from accounts.services.activity import chain_activity_record
-from chainworker.chain import AuthROSChain, ChainError, InsufficientFunds
+from chainworker.client import AuthROSChain
+from chainworker.errors import ChainError, InsufficientFunds
 from chainworker.gas import LowBalance
 from chainworker.models import OperatorAlert
 from chainworker.services import (

@@ -25,7 +25,8 @@ from accounts.models import Approval, ChainActivity, ChainState, Owner, OwnerKey
 from accounts.selectors import owner_eoa_account
 from accounts.services.activity import chain_activity_record
 from accounts.services.funding import eoa_fund, eoa_funding_amount, gas_sweep
-from chainworker.chain import AuthROSChain, InsufficientFunds
+from chainworker.client import AuthROSChain
+from chainworker.errors import InsufficientFunds
 from chainworker.services import (
     chain_client,
     chain_work_check,

@@ -21,7 +21,8 @@ from django.db import transaction
 from accounts.models import ChainState, Robot
 from accounts.selectors import owner_eoa_account
 from accounts.services.registration import owner_chain_ready
-from chainworker.chain import InsufficientFunds, RobotKeyOnChain, TransactionReverted
+from chainworker.codec import RobotKeyOnChain
+from chainworker.errors import InsufficientFunds, TransactionReverted
 from chainworker.services import chain_client, chain_work_check
 from chainworker.work import ChainWorkNotReady, exclusive
 from core.outbox import enqueue

@@ -28,7 +28,7 @@ from accounts.keywrap import wrap
 from accounts.models import Owner, OwnerKey
 from authros_verify.bundle import BUNDLE_FORMAT, bundle_entry_line, bundle_write
 from authros_verify.messages import message_encode, message_log_time
-from chainworker.chain import ChainError
+from chainworker.errors import ChainError
 from chainworker.services import chain_client
 from sharing.disk import disk_room_check
 from sharing.errors import SharingError

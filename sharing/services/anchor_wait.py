@@ -16,7 +16,8 @@ from web3.types import TxReceipt
 
 from accounts.models import ChainState, Owner
 from alerts.services import anchoring_failed_alert
-from chainworker.chain import AuthROSChain, TransactionTimeout
+from chainworker.client import AuthROSChain
+from chainworker.errors import TransactionTimeout
 from chainworker.work import WAITING_FOR_GAS
 from core.locks import lock_renew
 from core.outbox import enqueue

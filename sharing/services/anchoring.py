@@ -28,9 +28,9 @@ from accounts.selectors import owner_eoa_account
 from accounts.services.activity import chain_activity_record
 from accounts.services.robot_keys import robot_key_revocations_release
 from alerts.services import anchoring_failed_alert
-from chainworker.chain import (
-    AnchorItem,
-    AuthROSChain,
+from chainworker.client import AuthROSChain
+from chainworker.codec import AnchorItem
+from chainworker.errors import (
     ChainUnavailable,
     InsufficientFunds,
     TransactionDropped,

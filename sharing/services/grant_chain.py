@@ -16,7 +16,8 @@ from accounts.models import ChainActivity, ChainState
 from accounts.selectors import owner_eoa_account
 from accounts.services.activity import chain_activity_record
 from alerts.services import grant_received_alert
-from chainworker.chain import InsufficientFunds, TransactionReverted, TxResult
+from chainworker.codec import TxResult
+from chainworker.errors import InsufficientFunds, TransactionReverted
 from chainworker.services import chain_client, chain_work_check
 from chainworker.work import WAITING_FOR_GAS, ChainWorkNotReady, exclusive
 from core.outbox import enqueue

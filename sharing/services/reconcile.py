@@ -25,7 +25,7 @@ from django.utils import timezone
 
 from accounts.models import ChainState, Owner
 from accounts.services.registration import owners_chain_reset, owners_reconcile
-from chainworker.chain import AuthROSChain
+from chainworker.client import AuthROSChain
 from chainworker.services import (
     IDENTITY_RESET,
     IDENTITY_SAME,

@@ -33,8 +33,8 @@ from redis.lock import Lock
 from accounts.models import ChainActivity, Owner
 from accounts.selectors import owner_eoa_account
 from accounts.services.activity import chain_activity_record
-from chainworker.chain import (
-    AuthROSChain,
+from chainworker.client import AuthROSChain
+from chainworker.errors import (
     ChainUnavailable,
     InsufficientFunds,
     TransactionDropped,

@@ -23,7 +23,8 @@ from django.db import transaction
 
 from accounts.identity import owner_identity_check
 from accounts.models import Owner, OwnerKey
-from chainworker.chain import AuthROSChain, OnChainRoot, RobotKeyOnChain
+from chainworker.client import AuthROSChain
+from chainworker.codec import OnChainRoot, RobotKeyOnChain
 from chainworker.services import chain_client, chain_head
 from sharing.cache import envelopes_fetch
 from sharing.models import Access, Credential, Grant, Record, Verdict

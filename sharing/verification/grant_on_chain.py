@@ -9,7 +9,7 @@ The comparison of the portal's terms with the chain's is
 import logging
 
 from accounts.models import Owner
-from chainworker.chain import AuthROSChain
+from chainworker.client import AuthROSChain
 from sharing.grant_terms import grant_on_chain_matches
 from sharing.models import Grant, Record
 from sharing.selectors.grants import grant_live

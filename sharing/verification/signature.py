@@ -6,7 +6,7 @@ verdict (the check is sharing.verification.check's)."""
 
 from typing import Any
 
-from chainworker.chain import AuthROSChain
+from chainworker.client import AuthROSChain
 from sharing.models import Record
 from smcrypto import envelope, sm2
 

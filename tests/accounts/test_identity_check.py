@@ -16,7 +16,7 @@ from accounts.models import AccountEvent, ChainState, Owner
 from accounts.selectors import owner_eoa_account, owner_key_current
 from accounts.services.keys import key_rotate
 from accounts.services.registration import owner_register_on_chain
-from chainworker.chain import AuthROSChain
+from chainworker.client import AuthROSChain
 from chainworker.services import chain_client, contract_deploy
 from portal.celery import app as celery_app
 from sharing.models import Record

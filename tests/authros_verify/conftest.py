@@ -12,7 +12,7 @@ from mcap.writer import CompressionType, Writer
 
 from accounts.selectors import owner_eoa_account
 from authros_verify import ChainReader, bundle_digest, bundle_serialise
-from chainworker.chain import AuthROSChain
+from chainworker.client import AuthROSChain
 from sharing.exports.create import export_create
 from sharing.exports.download import export_download
 from sharing.models import Export

@@ -16,7 +16,7 @@ from authros_verify import ChainReader, record_line_index, verify
 from authros_verify.__main__ import main
 from authros_verify.abi import ABI
 from chainworker import services as chain_services
-from chainworker.chain import ContractArtifact
+from chainworker.codec import ContractArtifact
 from stack.anvil import start_anvil
 from tests.authros_verify.conftest import export_of
 from tests.support.harness import REPO_ROOT

@@ -6,7 +6,8 @@ import dataclasses
 import pytest
 from eth_account import Account
 
-from chainworker.chain import RobotKeyOnChain, TransactionReverted
+from chainworker.codec import RobotKeyOnChain
+from chainworker.errors import TransactionReverted
 from smcrypto import sm2, sm3
 from tests.support.chain_setup import make_registered_owner
 

@@ -14,7 +14,7 @@ from django.utils import timezone
 
 from accounts.models import ChainActivity
 from chainworker import services as chain_services
-from chainworker.chain import TransactionTimeout
+from chainworker.errors import TransactionTimeout
 from chainworker.models import OperatorAlert
 from chainworker.services import CHAIN_STALLED_ALERT, chain_stall_forget, chain_stalled
 from chainworker.work import ChainWorkNotReady

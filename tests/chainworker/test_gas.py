@@ -23,7 +23,8 @@ from accounts.services.keys import key_rotate, sm4_key_generate
 from accounts.services.owners import owner_create
 from accounts.services.registration import chain_work_sweep
 from chainworker import services as chain_services
-from chainworker.chain import AuthROSChain, InsufficientFunds
+from chainworker.client import AuthROSChain
+from chainworker.errors import InsufficientFunds
 from chainworker.models import OperatorAlert
 from chainworker.work import WAITING_FOR_GAS
 from portal.celery import app as celery_app

@@ -10,7 +10,7 @@ from django.urls import reverse
 
 from accounts.models import DEFAULT_TOPICS, Robot
 from accounts.selectors import owner_balance_wei, owner_key_current, robot_by_token
-from chainworker.chain import ChainError
+from chainworker.errors import ChainError
 from chainworker.services import chain_client
 from ros_agent.config import config_from_mapping
 from sharing.models import Grant

@@ -4,7 +4,7 @@ import pytest
 from celery.exceptions import SoftTimeLimitExceeded
 
 from accounts import tasks as accounts_tasks
-from chainworker.chain import ChainUnavailable, NonceError, TransactionTimeout
+from chainworker.errors import ChainUnavailable, NonceError, TransactionTimeout
 from chainworker.work import ChainWorkNotReady
 from portal.celery import app
 from sharing import tasks as sharing_tasks

@@ -10,7 +10,7 @@ from django.db import connection
 from django.test.utils import CaptureQueriesContext
 from django.urls import reverse
 
-from chainworker.chain import AuthROSChain
+from chainworker.client import AuthROSChain
 from sharing.grant_terms import grant_terms_make
 from sharing.models import Access, Record, Verdict
 from sharing.series import field_value, series_downsample

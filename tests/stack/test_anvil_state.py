@@ -16,7 +16,7 @@ from eth_account import Account
 from web3 import Web3
 from web3.exceptions import Web3RPCError
 
-from chainworker.chain import AuthROSChain
+from chainworker.client import AuthROSChain
 from stack.anvil import KEPT_STATES, AnvilProcess, StateKeeper, start_anvil
 from stack.run import ANVIL_STATE_INTERVAL, ANVIL_TRANSACTION_BLOCKS
 from tests.support.chain_setup import anchor_item, make_registered_owner

@@ -4,7 +4,8 @@ mode: its tree's root, anchored once by its owner's account, its proof folding t
 
 from collections import Counter
 
-from chainworker.chain import AuthROSChain, record_id_to_bytes32
+from chainworker.client import AuthROSChain
+from chainworker.codec import record_id_to_bytes32
 from sharing.models import AnchorRoot, Record
 from sharing.services.roots import record_path
 from smcrypto.merkle import leaf_hash, root_from_path

@@ -1,7 +1,7 @@
 """What tests of the chain client set up on a node: an owner registered on the contract, and
 an anchor item for a new record.
 
-No Django here: tests/chainworker/test_chain_anvil.py sends from processes it spawns, which
+No Django here: tests/chainworker/test_sender_anvil.py sends from processes it spawns, which
 import the test module and this one, and no portal app.
 """
 
@@ -11,7 +11,8 @@ from datetime import UTC, datetime
 from eth_account import Account
 from eth_account.signers.local import LocalAccount
 
-from chainworker.chain import AnchorItem, AuthROSChain
+from chainworker.client import AuthROSChain
+from chainworker.codec import AnchorItem
 from smcrypto import key_commitment, sm3, sm4
 
 

@@ -17,7 +17,7 @@ from accounts.models import ChainState, EoaFunding, Owner
 from accounts.services.funding import TOPUP_REASON
 from accounts.services.keys import key_rotate
 from chainworker import services as chain_services
-from chainworker.chain import ChainError
+from chainworker.errors import ChainError
 from core.redis_client import get_redis, redis_key
 from sharing.models import Grant, Record
 from sharing.services.grants import grant_create, grant_revoke

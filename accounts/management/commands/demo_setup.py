@@ -23,7 +23,7 @@ from accounts.selectors import owner_by_username, robot_by_token
 from accounts.services.keys import sm4_key_generate
 from accounts.services.owners import owner_create
 from accounts.services.registration import owner_register_on_chain
-from chainworker.chain import ChainError
+from chainworker.errors import ChainError
 
 ROBOT_FOLDER = "robot"
 

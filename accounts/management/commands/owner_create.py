@@ -32,7 +32,7 @@ from accounts.selectors import owner_key_current
 from accounts.services.keys import sm4_key_generate
 from accounts.services.owners import owner_create
 from accounts.services.registration import owner_register_on_chain
-from chainworker.chain import ChainError
+from chainworker.errors import ChainError
 from chainworker.services import chain_client
 from chainworker.work import TRANSIENT
 

@@ -5,7 +5,7 @@ from typing import Any
 
 from django.core.management.base import BaseCommand, CommandError, CommandParser
 
-from chainworker.chain import ChainError
+from chainworker.errors import ChainError
 from chainworker.services import contract_deploy
 
 

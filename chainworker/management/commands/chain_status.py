@@ -8,7 +8,7 @@ from typing import Any
 from django.core.management.base import BaseCommand, CommandError, CommandParser
 from web3 import Web3
 
-from chainworker.chain import ChainError
+from chainworker.errors import ChainError
 from chainworker.services import chain_status
 
 

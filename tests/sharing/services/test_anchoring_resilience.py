@@ -7,7 +7,7 @@ import pytest
 
 from accounts.models import ChainState
 from accounts.selectors import owner_eoa_account
-from chainworker.chain import ChainUnavailable, TransactionDropped, TransactionReverted
+from chainworker.errors import ChainUnavailable, TransactionDropped, TransactionReverted
 from chainworker.work import CHAIN_TASK, ChainWorkNotReady
 from core.redis_client import get_redis, redis_key
 from sharing.models import Grant, Record

@@ -14,7 +14,7 @@ from accounts.models import ChainState, OwnerKey
 from accounts.selectors import owner_eoa_account
 from accounts.services.keys import key_rotate
 from chainworker import services as chain_services
-from chainworker.chain import AnchorItem, bytes32_to_record_id
+from chainworker.codec import AnchorItem, bytes32_to_record_id
 from sharing.models import Grant, Record, SecurityEvent, Verdict
 from sharing.services.grants import grant_create, grant_revoke
 from sharing.verification.check import records_verify

@@ -8,7 +8,7 @@ import pytest
 
 from accounts.selectors import owner_eoa_account
 from chainworker import services as chain_services
-from chainworker.chain import ChainUnavailable
+from chainworker.errors import ChainUnavailable
 from sharing.models import AnchorRoot, Grant, Record, Verdict
 from sharing.services.anchoring import records_anchor
 from sharing.services.grants import grant_create
@@ -218,9 +218,9 @@ def test_a_view_folds_the_proof_and_asks_the_chain_once(anchored, deployed, monk
     setup, record = anchored
     records_verify(record_ids=[record.id], viewer_id=setup.owner.pk)[0]  # warms head and identity
     calls = []
-    real_call, real_head = deployed._call_lean, deployed.latest_block
+    real_call, real_head = deployed._read, deployed.latest_block
     monkeypatch.setattr(
-        deployed, "_call_lean", lambda name, *a: calls.append(name) or real_call(name, *a)
+        deployed, "_read", lambda name, *a: calls.append(name) or real_call(name, *a)
     )
     monkeypatch.setattr(deployed, "latest_block", lambda: calls.append("head") or real_head())
     verification = records_verify(record_ids=[record.id], viewer_id=setup.owner.pk)[0]

@@ -1,28 +1,23 @@
-"""The chain client against a real anvil node: several processes sending at once."""
+"""Sending against a real anvil node: several processes sending at once, receipts that do
+not come, transactions the node lost, confirmations, a send's requests and refusals."""
 
 import json
 import logging
 import multiprocessing
-import threading
 import uuid
 
 import pytest
 import redis
 import requests
 from eth_account import Account
-from web3 import Web3
 
-from chainworker.chain import (
-    ANCHOR_ROOT_GAS,
-    AuthROSChain,
-    ChainUnavailable,
-    ContractNotDeployed,
+from chainworker.client import ANCHOR_ROOT_GAS, AuthROSChain
+from chainworker.errors import (
     InsufficientFunds,
     NodeRefused,
     TransactionDropped,
     TransactionReverted,
     TransactionTimeout,
-    rpc_session,
 )
 from smcrypto import key_commitment, sm4
 from stack.anvil import start_anvil
@@ -34,14 +29,6 @@ SENDER_PROCESSES = 4
 UPLOADS_PER_PROCESS = 15
 
 
-def _deployed(url: str, redis_client: redis.Redis) -> tuple[AuthROSChain, Account]:
-    client = AuthROSChain(url, redis_client=redis_client, receipt_timeout=30)
-    operator = Account.create()
-    assert client.dev_faucet(operator.address, 10**21)
-    client.deploy(operator)
-    return client, operator
-
-
 def _upload_from_another_process(url, redis_url, address, owner_key, count, queue) -> None:
     """Runs in a child process: its own client, the same EOA as the other children."""
     client = AuthROSChain(
@@ -50,7 +37,7 @@ def _upload_from_another_process(url, redis_url, address, owner_key, count, queu
     owner = Account.from_key(owner_key)
     sent = []
     refusals = _NonceRefusals()
-    logging.getLogger("chainworker.chain").addHandler(refusals)
+    logging.getLogger("chainworker.sender").addHandler(refusals)
     try:
         for _ in range(count):
             item = anchor_item()
@@ -75,24 +62,10 @@ class _NonceRefusals(logging.Handler):
             self.count += 1
 
 
-def test_full_contract_flow_over_http(anvil, redis_client):
-    client, operator = _deployed(anvil.url, redis_client)
-    owner = make_registered_owner(client, operator)
-    viewer = make_registered_owner(client, operator)
-    item = anchor_item()
-    result = client.data_upload(owner, item)
-    assert result.events[0].name == "DataUploaded"
-    assert client.data_query(item.record_id, owner=owner.address).digest == item.digest
-    client.authority_grant(owner, viewer.address)
-    assert client.has_access(owner.address, viewer.address)
-    with pytest.raises(TransactionReverted) as refused:
-        client.authority_grant(owner, viewer.address)
-    assert refused.value.error_name == "AlreadyGranted"
-    assert client.client_version.lower().startswith("anvil")
-
-
-def test_concurrent_senders_in_several_processes_share_nonces(anvil, redis_client, settings):
-    client, operator = _deployed(anvil.url, redis_client)
+def test_concurrent_senders_in_several_processes_share_nonces(
+    deploy_on, anvil, redis_client, settings
+):
+    client, operator = deploy_on(anvil.url)
     owner = make_registered_owner(client, operator)
     context = multiprocessing.get_context("spawn")
     queue = context.Queue()
@@ -130,9 +103,9 @@ def test_concurrent_senders_in_several_processes_share_nonces(anvil, redis_clien
     )
 
 
-def test_receipt_timeout_when_nothing_is_mined(redis_client, tmp_path):
+def test_receipt_timeout_when_nothing_is_mined(deploy_on, redis_client, tmp_path):
     with start_anvil() as node:
-        client, operator = _deployed(node.url, redis_client)
+        client, operator = deploy_on(node.url)
         owner = make_registered_owner(client, operator)
         client.w3.provider.make_request("evm_setAutomine", [False])
         tx_hash = client.data_upload(owner, anchor_item(), wait=False)
@@ -144,13 +117,14 @@ def test_receipt_timeout_when_nothing_is_mined(redis_client, tmp_path):
 
 
 def test_a_transaction_the_node_lost_or_holds_behind_a_nonce_gap_is_not_waited_for(
+    deploy_on,
     redis_client,
 ):
     """A node that lost a sender's transaction (a restart without its pool, lost blocks) never
     mines the ones sent after it with the next nonces: the wait for their receipt ends at once,
     the nonce counter goes back to the node's count, and the next send is mined."""
     with start_anvil() as node:
-        client, operator = _deployed(node.url, redis_client)
+        client, operator = deploy_on(node.url)
         owner = make_registered_owner(client, operator)
         client.w3.provider.make_request("evm_setAutomine", [False])
         lost = client.data_upload(owner, anchor_item(), wait=False)
@@ -172,136 +146,13 @@ def test_a_transaction_the_node_lost_or_holds_behind_a_nonce_gap_is_not_waited_f
         assert client.data_query(item.record_id, owner=owner.address) is not None
 
 
-def test_confirmations_are_awaited(redis_client):
+def test_confirmations_are_awaited(deploy_on, redis_client):
     with start_anvil(block_time=0.5) as node:
-        client, operator = _deployed(node.url, redis_client)
+        client, operator = deploy_on(node.url)
         owner = make_registered_owner(client, operator)
         client.confirmations = 2
         result = client.data_upload(owner, anchor_item())
         assert client.latest_block() >= result.block_number + 2
-
-
-def test_node_going_away_raises_chain_unavailable(redis_client):
-    node = start_anvil()
-    client, _operator = _deployed(node.url, redis_client)
-    node.stop()
-    with pytest.raises(ChainUnavailable):
-        client.record_count()
-    assert not client.is_connected()
-    assert Web3.is_checksum_address(client.address)
-
-
-def test_a_read_is_one_request_to_the_node(anvil, redis_client, monkeypatch):
-    """web3 asks for the chain id before an eth_call; it is asked once per connection, so a
-    view's rootOf or dataQuery is one HTTP request."""
-    client, operator = _deployed(anvil.url, redis_client)
-    owner = make_registered_owner(client, operator)
-    item = anchor_item()
-    client.data_upload(owner, item)
-    client.anchor_root(owner, b"\x02" * 32, 5)
-    client.data_query(
-        item.record_id, owner=owner.address
-    )  # the connection has asked its chain id by now
-    methods = []
-    session_post = requests.Session.post
-
-    def post(session, url, *args, **kwargs):
-        methods.append(kwargs["json"]["method"] if "json" in kwargs else kwargs.get("data"))
-        return session_post(session, url, *args, **kwargs)
-
-    monkeypatch.setattr(requests.Session, "post", post)
-    assert client.data_query(item.record_id, owner=owner.address).digest == item.digest
-    assert client.root_of(owner.address, b"\x01" * 32) is None
-    anchored = client.root_of(owner.address, b"\x02" * 32)
-    assert anchored.size == 5
-    assert anchored.sender == owner.address
-    assert len(methods) == 3
-    assert all(b"eth_call" in m if isinstance(m, bytes) else m == "eth_call" for m in methods)
-
-
-def test_the_views_read_at_an_address_without_code_is_contract_not_deployed(anvil, redis_client):
-    """rootOf goes past web3's contract layer over HTTP: an empty answer (a reset chain) is
-    still ContractNotDeployed, not a crash."""
-    client = AuthROSChain(anvil.url, redis_client=redis_client)
-    client.use_contract(Account.create().address)
-    with pytest.raises(ContractNotDeployed):
-        client.root_of(Account.create().address, b"\x01" * 32)
-
-
-def test_the_nodes_session_reads_the_environment_once_and_is_shared_by_threads(
-    anvil, redis_client, monkeypatch
-):
-    """Proxies and CA bundle from the environment when the client is made, not at every call
-    (requests would read every variable again); one session for all of a process's threads."""
-    monkeypatch.setenv("HTTP_PROXY", "http://proxy.invalid:3128")
-    monkeypatch.setenv("NO_PROXY", "127.0.0.1,localhost")
-    monkeypatch.setenv("REQUESTS_CA_BUNDLE", "/etc/ssl/certs/ca-certificates.crt")
-    assert rpc_session("http://10.1.2.3:8545").proxies == {"http": "http://proxy.invalid:3128"}
-    assert rpc_session("http://10.1.2.3:8545").verify == "/etc/ssl/certs/ca-certificates.crt"
-    assert rpc_session(anvil.url).proxies == {}  # NO_PROXY names it
-
-    client, operator = _deployed(anvil.url, redis_client)
-    owner = make_registered_owner(client, operator)
-    environment_read = []
-    real_proxies = requests.utils.get_environ_proxies
-    monkeypatch.setattr(
-        requests.utils,
-        "get_environ_proxies",
-        lambda *a, **k: environment_read.append(a) or real_proxies(*a, **k),
-    )
-    sessions = set()
-    session_post = requests.Session.post
-
-    def post(session, url, *args, **kwargs):
-        sessions.add(id(session))
-        return session_post(session, url, *args, **kwargs)
-
-    monkeypatch.setattr(requests.Session, "post", post)
-    threads = [
-        threading.Thread(target=client.root_of, args=(owner.address, b"\x01" * 32))
-        for _ in range(4)
-    ]
-    for thread in threads:
-        thread.start()
-    for thread in threads:
-        thread.join()
-    client.anchor_root(owner, b"\x03" * 32, 2)
-    assert client.last_root_of(owner.address) == b"\x03" * 32
-    assert environment_read == []
-    assert len(sessions) == 1
-
-
-def _forked_reads(client: AuthROSChain, owner: str, answers) -> None:
-    """In a forked child: the pool it inherited is empty, and its reads get their answers."""
-    session = client.w3.provider._request_session_manager._explicit_session
-    inherited = len(session.adapters["http://"].poolmanager.pools)
-    results = [client.last_root_of(owner) for _ in range(30)]
-    answers.put((inherited, {result.hex() for result in results}))
-
-
-def test_a_process_forked_after_a_call_opens_its_own_connections(anvil, redis_client):
-    """Celery's pool processes fork from a parent that checked the chain: a connection they
-    shared would hand each of them the other's answers."""
-    client, operator = _deployed(anvil.url, redis_client)
-    owner = make_registered_owner(client, operator)
-    client.anchor_root(owner, b"\x07" * 32, 3)
-    session = client.w3.provider._request_session_manager._explicit_session
-    assert client.last_root_of(owner.address) == b"\x07" * 32
-    assert len(session.adapters["http://"].poolmanager.pools) == 1  # a connection is open
-    context = multiprocessing.get_context("fork")
-    answers = context.Queue()
-    children = [
-        context.Process(target=_forked_reads, args=(client, owner.address, answers))
-        for _ in range(3)
-    ]
-    for child in children:
-        child.start()
-    # Meanwhile the parent reads too, on the connection it kept.
-    assert {type(client.w3.eth.block_number) for _ in range(30)} == {int}
-    outcomes = [answers.get(timeout=60) for _ in children]
-    for child in children:
-        child.join(timeout=60)
-    assert outcomes == [(0, {"07" * 32})] * 3
 
 
 def _methods_of(kwargs: dict) -> list[str] | str:
@@ -311,13 +162,13 @@ def _methods_of(kwargs: dict) -> list[str] | str:
 
 
 def test_a_send_is_one_batch_the_nonce_the_transaction_and_its_receipt(
-    anvil, redis_client, monkeypatch
+    deploy_on, anvil, redis_client, monkeypatch
 ):
     """A contract transaction to a real node is encoded and signed here: the estimate and the
     fees (this anvil charges for gas) in one batch, then the pending nonce, the raw transaction
     and its receipt, each one request past web3's formatters, the receipt formatted as web3
     formats it."""
-    client, operator = _deployed(anvil.url, redis_client)
+    client, operator = deploy_on(anvil.url)
     owner = make_registered_owner(client, operator)
     methods = []
     session_post = requests.Session.post
@@ -343,10 +194,10 @@ def test_a_send_is_one_batch_the_nonce_the_transaction_and_its_receipt(
     assert 0 < result.gas_used < ANCHOR_ROOT_GAS
 
 
-def test_a_refused_send_says_why(anvil, redis_client):
+def test_a_refused_send_says_why(deploy_on, anvil, redis_client):
     """The node's refusals of a lean send: the contract's custom error with its arguments,
     and an account that cannot pay for gas (this anvil charges for gas)."""
-    client, operator = _deployed(anvil.url, redis_client)
+    client, operator = deploy_on(anvil.url)
     owner = make_registered_owner(client, operator)
     first = client.anchor_root(owner, b"\x01" * 32, 1)
     assert first.events[0].args["prevRoot"] == bytes(32)
@@ -366,14 +217,16 @@ def test_a_refused_send_says_why(anvil, redis_client):
     assert not client.is_registered(poor.address)
 
 
-def test_a_receipt_the_node_cannot_tell_yet_is_asked_again(anvil, redis_client, monkeypatch):
+def test_a_receipt_the_node_cannot_tell_yet_is_asked_again(
+    deploy_on, anvil, redis_client, monkeypatch
+):
     """A node that refuses a receipt for now (geth while it indexes transactions) is asked
     again at the next poll rather than failing the send."""
-    client, operator = _deployed(anvil.url, redis_client)
+    client, operator = deploy_on(anvil.url)
     owner = make_registered_owner(client, operator)
     tx_hash = client.anchor_root(owner, b"\x06" * 32, 3, wait=False)
     refusals = []
-    lean = client._rpc_lean
+    lean = client.rpc.request
 
     def indexing_at_first(method, params, *, label):
         if method == "eth_getTransactionReceipt" and len(refusals) < 2:
@@ -381,9 +234,60 @@ def test_a_receipt_the_node_cannot_tell_yet_is_asked_again(anvil, redis_client, 
             raise NodeRefused(label, "transaction indexing is in progress")
         return lean(method, params, label=label)
 
-    monkeypatch.setattr(client, "_rpc_lean", indexing_at_first)
+    monkeypatch.setattr(client.rpc, "request", indexing_at_first)
     client.poll_interval = 0.01
     receipt = client.wait_for_receipt(tx_hash, timeout=10)
     assert len(refusals) == 2
     assert receipt["status"] == 1
     assert "0x" + bytes(receipt["transactionHash"]).hex() == tx_hash
+
+
+def test_a_deploy_and_a_transfer_are_built_as_a_contract_call_is(deploy_on, anvil, monkeypatch):
+    """One builder for every send: a deployment's estimate and fees in one batch, a transfer's
+    fees in one (its gas is known), each then the nonce, the raw transaction and its receipt."""
+    client, operator = deploy_on(anvil.url)
+    methods = []
+    session_post = requests.Session.post
+
+    def post(session, url, *args, **kwargs):
+        methods.append(_methods_of(kwargs))
+        return session_post(session, url, *args, **kwargs)
+
+    monkeypatch.setattr(requests.Session, "post", post)
+    deployed = client.deploy(operator)
+    assert methods[:3] == [
+        ["eth_getBlockByNumber", "eth_gasPrice", "eth_maxPriorityFeePerGas", "eth_estimateGas"],
+        "eth_getTransactionCount",
+        "eth_sendRawTransaction",
+    ]
+    assert client.has_code(client.address)
+    assert client.admin() == operator.address
+    assert deployed.block_number > 0
+    assert client.record_count() == 0
+    methods.clear()
+    payee = Account.create()
+    client.transfer(operator, payee.address, 12345)
+    assert methods[:3] == [
+        ["eth_getBlockByNumber", "eth_gasPrice", "eth_maxPriorityFeePerGas"],
+        "eth_getTransactionCount",
+        "eth_sendRawTransaction",
+    ]
+    assert client.balance(payee.address) == 12345
+
+
+def test_a_transaction_that_reverts_when_mined_is_named_by_its_replay(deploy_on, anvil):
+    """Sent without an estimate, a root the chain refuses is mined and fails: the wait replays
+    it as an eth_call at its parent block and names the contract's error."""
+    client, operator = deploy_on(anvil.url)
+    owner = make_registered_owner(client, operator)
+    client.anchor_root(owner, b"\x01" * 32, 1)
+    tx_hash = client.anchor_root(
+        owner, b"\x02" * 32, 1, prev_root=b"\x09" * 32, wait=False, estimate=False
+    )
+    with pytest.raises(TransactionReverted) as refused:
+        client.wait_for_receipt(tx_hash, function="anchorRoot")
+    assert refused.value.error_name == "WrongPrevRoot"
+    assert refused.value.error_args == {"expected": b"\x01" * 32, "given": b"\x09" * 32}
+    assert refused.value.tx_hash == tx_hash
+    assert refused.value.function == "anchorRoot"
+    assert client.last_root_of(owner.address) == b"\x01" * 32

@@ -1,32 +1,16 @@
-"""The chain client against the session's anvil, over the JSON-RPC path production runs."""
+"""The client's reads, writes and events of the contract by name, against the session's anvil
+over the JSON-RPC path production runs."""
 
-import threading
 import uuid
 from datetime import UTC, datetime
-from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 
 import pytest
 from eth_account import Account
 
-from chainworker import chain as chain_module
-from chainworker.chain import (
-    AnchorItem,
-    AuthROSChain,
-    ChainUnavailable,
-    ContractNotDeployed,
-    InsufficientFunds,
-    NodeRefused,
-    TransactionDropped,
-    TransactionReverted,
-    bytes32_to_data_type,
-    bytes32_to_record_id,
-    chain_time_to_datetime,
-    data_type_to_bytes32,
-    datetime_to_chain_time,
-    record_id_to_bytes32,
-)
+from chainworker.client import AuthROSChain
+from chainworker.codec import AnchorItem, record_id_to_bytes32
+from chainworker.errors import ContractNotDeployed, TransactionReverted
 from smcrypto import key_commitment, sm3, sm4
-from stack.anvil import free_port
 from tests.support.chain_setup import make_registered_owner
 
 
@@ -37,31 +21,6 @@ def _item(data_type: str = "nav_msgs/Odometry") -> AnchorItem:
         time=datetime(2026, 11, 21, 14, 0, 0, 123456, tzinfo=UTC),
         data_type=data_type,
     )
-
-
-def test_record_id_is_uuid_left_aligned_and_zero_padded():
-    record_id = uuid.UUID("12345678-1234-5678-1234-567812345678")
-    raw = record_id_to_bytes32(record_id)
-    assert raw == record_id.bytes + bytes(16)
-    assert bytes32_to_record_id(raw) == record_id
-
-
-def test_data_type_fits_or_is_hashed():
-    assert data_type_to_bytes32("nav_msgs/Odometry") == b"nav_msgs/Odometry".ljust(32, b"\0")
-    assert bytes32_to_data_type(data_type_to_bytes32("sensor_msgs/Image")) == "sensor_msgs/Image"
-    long_type = "geometry_msgs/PoseWithCovarianceStamped"
-    hashed = data_type_to_bytes32(long_type)
-    assert len(hashed) == 32
-    assert hashed != long_type.encode()[:32]
-    with pytest.raises(ValueError, match="non-empty"):
-        data_type_to_bytes32("")
-
-
-def test_chain_time_keeps_microseconds():
-    moment = datetime(2026, 11, 21, 14, 0, 0, 123456, tzinfo=UTC)
-    assert chain_time_to_datetime(datetime_to_chain_time(moment)) == moment
-    with pytest.raises(ValueError, match="timezone"):
-        datetime_to_chain_time(datetime(2026, 1, 1))
 
 
 def test_deploy_makes_operator_admin(chain, operator):
@@ -225,136 +184,10 @@ def test_events_naming_an_address_are_filtered_by_the_node(chain, operator, regi
         chain.events_naming(viewer.address, {"Registered": ("commitment",)})
 
 
-def test_send_without_waiting_then_wait(chain, registered_owner):
-    items = [_item() for _ in range(5)]
-    hashes = [chain.data_upload(registered_owner, i, wait=False) for i in items]
-    assert len(set(hashes)) == 5
-    for tx_hash in hashes:
-        assert chain.wait_for_receipt(tx_hash)["status"] == 1
-    assert chain.record_count() == 5
-
-
-def test_nonce_counter_ahead_of_node_is_resynced(
-    chain, registered_owner, redis_client, monkeypatch
-):
-    monkeypatch.setattr(chain_module, "DROPPED_CHECK_INTERVAL", 0.1)
-    chain.data_upload(registered_owner, _item())
-    key = chain.nonces._key(registered_owner.address)
-    # A fresh counter far ahead of the node: the node holds the transaction behind the gap,
-    # the wait says it will never be mined, and the counter is resynced from the node.
-    redis_client.set(key, "999:9999999999")
-    with pytest.raises(TransactionDropped):
-        chain.data_upload(registered_owner, _item())
-    chain.data_upload(registered_owner, _item())
-    assert chain.record_count() == 2
-
-
-def test_stale_counter_ahead_of_node_yields_to_the_node(chain, registered_owner, redis_client):
-    key = chain.nonces._key(registered_owner.address)
-    redis_client.set(key, "50:1000")  # written long ago: those transactions were dropped
-    chain.data_upload(registered_owner, _item())
-    assert chain.record_count() == 1
-
-
-def test_lagging_node_is_covered_by_the_counter(chain, registered_owner):
-    next_nonce = chain._pending_nonce(registered_owner.address)
-    chain.nonces.forget(registered_owner.address)
-    with chain.nonces.reserve(registered_owner.address, lambda _addr: next_nonce - 1) as slot:
-        assert slot.nonce == next_nonce - 1  # no counter yet: trust the node
-        slot.commit()
-    with chain.nonces.reserve(registered_owner.address, lambda _addr: 0) as slot:
-        assert slot.nonce == next_nonce  # counter is fresh and ahead of a lagging node
-
-
-def test_a_send_the_node_already_has_is_not_signed_again(chain, registered_owner, monkeypatch):
-    """The node accepted the transaction but its answer was lost; our retry hears "already
-    known". That transaction is sent: signing it again with the next nonce would send it twice.
-    """
-    real_rpc = chain._rpc_lean
-    sent: list[str] = []
-
-    def accepted_then_already_known(method, params, *, label):
-        if method != "eth_sendRawTransaction":
-            return real_rpc(method, params, label=label)
-        sent.append(params[0])
-        answer = real_rpc(method, params, label=label)
-        if len(sent) == 1:
-            raise NodeRefused(label, "already known")
-        return answer
-
-    monkeypatch.setattr(chain, "_rpc_lean", accepted_then_already_known)
-    nonce = chain._pending_nonce(registered_owner.address)
-    tx_hash = chain.data_upload(registered_owner, _item(), wait=False)
-    assert chain.wait_for_receipt(tx_hash)["status"] == 1
-    assert chain.w3.eth.get_transaction(tx_hash)["nonce"] == nonce
-    chain.data_upload(registered_owner, _item())  # the next send takes the next nonce
-    assert len(sent) == 2
-    assert chain.record_count() == 2
-    assert chain._pending_nonce(registered_owner.address) == nonce + 2
-
-
-def test_a_send_whose_nonce_lock_expired_does_not_happen(
-    chain, registered_owner, monkeypatch, redis_client
-):
-    """Another process may have taken the sender's lock and the nonce: sending would collide."""
-    key = chain.nonces._key(registered_owner.address) + ":lock"
-    real_sign = registered_owner.sign_transaction
-
-    def slow_sign(tx):
-        redis_client.delete(key)  # our lock expired while we were slow
-        return real_sign(tx)
-
-    monkeypatch.setattr(registered_owner, "sign_transaction", slow_sign)
-    with pytest.raises(ChainUnavailable, match="lost the nonce lock"):
-        chain.data_upload(registered_owner, _item())
-    assert chain.record_count() == 0
-
-
-def test_a_node_behind_a_proxy_answering_503_is_unavailable(redis_client):
-    class Overloaded(BaseHTTPRequestHandler):
-        def do_POST(self):
-            self.send_response(503)
-            self.send_header("Content-Length", "0")
-            self.end_headers()
-
-        def log_message(self, *args):
-            pass
-
-    server = ThreadingHTTPServer(("127.0.0.1", 0), Overloaded)
-    threading.Thread(target=server.serve_forever, daemon=True).start()
-    try:
-        client = AuthROSChain(f"http://127.0.0.1:{server.server_port}", redis_client=redis_client)
-        with pytest.raises(ChainUnavailable, match="HTTP error"):
-            client.latest_block()
-    finally:
-        server.shutdown()
-        server.server_close()
-
-
-def test_unfunded_sender_gets_insufficient_funds(chain):
-    pauper = Account.create()
-    with pytest.raises(InsufficientFunds):
-        chain.transfer(pauper, chain.address, 1)
-
-
 def test_no_contract_means_contract_not_deployed(isolated_portal, redis_client):
     client = AuthROSChain(isolated_portal, redis_client=redis_client)
     with pytest.raises(ContractNotDeployed):
         client.data_query(uuid.uuid4(), owner="0x" + "11" * 20)
-
-
-def test_unreachable_node_raises_chain_unavailable(redis_client):
-    client = AuthROSChain(f"http://127.0.0.1:{free_port()}", redis_client=redis_client)
-    assert not client.is_connected()
-    with pytest.raises(ChainUnavailable):
-        client.latest_block()
-    with pytest.raises(ChainUnavailable):
-        client.chain_id  # noqa: B018
-
-
-def test_unsupported_url_is_refused(redis_client):
-    with pytest.raises(ValueError, match="unsupported chain URL"):
-        AuthROSChain("ftp://example.invalid", redis_client=redis_client)
 
 
 def test_a_read_at_an_address_without_code_is_contract_not_deployed(chain):
@@ -364,16 +197,3 @@ def test_a_read_at_an_address_without_code_is_contract_not_deployed(chain):
         chain.commitment_of(Account.create().address)
     with pytest.raises(ContractNotDeployed):  # the lean read of every view, too
         chain.root_of(Account.create().address, b"\x01" * 32)
-
-
-def test_a_reset_chain_is_told_from_the_old_one_by_its_genesis(
-    isolated_portal, fresh_chain, settings, redis_client
-):
-    """A reset chain has the same chain id and a genesis of its own, even when made within the
-    second anvil dates its genesis to: the client's chain key (its nonce namespace) changes."""
-    before = AuthROSChain(isolated_portal, redis_client=redis_client)
-    fresh_chain()
-    after = AuthROSChain(settings.CHAIN_RPC_URL, redis_client=redis_client)
-    assert after.chain_id == before.chain_id
-    assert after.genesis_hash != before.genesis_hash
-    assert after.chain_key != before.chain_key
