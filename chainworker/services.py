@@ -1,6 +1,13 @@
 """The chain layer's own actions: the one client per process, the operator account,
-deploying the contract once per chain, and the status an operator reads. Nothing here knows
-owners, records or grants: the apps that own them call down into this layer."""
+deploying the contract once per chain, the status an operator reads, operator alerts, the
+chain's identity (a reset is told from the genesis) and a stalled chain. Nothing here knows
+owners, records or grants: the apps that own them call down into this layer.
+
+It is over 500 lines because its parts call each other both ways: the stall check needs the
+client and the operator alerts, while chain_work_check and chain_status need the stall verdict.
+Split in two, they would import each other; a split wants the client and the alerts in a
+module of their own below the rest first.
+"""
 
 import json
 import logging
