@@ -51,7 +51,7 @@ install_python_packages() {
   # (`make lock`); pip refuses a download whose hash differs.
   if [ ! -f $STAMP_DIR/requirements ] || [ requirements/dev.txt -nt $STAMP_DIR/requirements ]; then
     log "installing Python packages (requirements/dev.txt)"
-    $VENV/bin/python -m pip install -q --disable-pip-version-check --require-hashes --no-compile \
+    $VENV/bin/python -m pip install -q --disable-pip-version-check --require-hashes \
       -r requirements/dev.txt
     touch $STAMP_DIR/requirements
   fi
