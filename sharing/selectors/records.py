@@ -260,12 +260,6 @@ _RECORD_TO_OPEN = FixedSelect(
 )
 
 
-# Anchor_root is read whole (its leaves too): one record's tree, not worth a second query.
-_RECORD_TO_CHECK = FixedSelect(
-    Record, related=("owner", "robot", "anchor_root"), where="t0.id = %s", params_of=("id",)
-)
-
-
 def records_to_check(records: QuerySet[Record]) -> QuerySet[Record]:
     """The records with what the check reads of each: the owner, the robot (a signed record's
     key) and the tree, each read once for all the records that share it (no joins), a tree's
@@ -273,12 +267,6 @@ def records_to_check(records: QuerySet[Record]) -> QuerySet[Record]:
     return records.select_related(None).prefetch_related(
         "owner", "robot", Prefetch("anchor_root", AnchorRoot.objects.defer("leaves"))
     )
-
-
-def record_to_check(record_id: uuid.UUID) -> Record | None:
-    """The record the worker checks, with its owner, robot and tree, in one fixed query (the
-    view of one record, the most frequent check)."""
-    return _RECORD_TO_CHECK.fetch_one(record_id)
 
 
 def record_to_open(record_id: uuid.UUID) -> Record | None:
