@@ -84,6 +84,10 @@ class Record(models.Model):
     # The robot key that signed the envelope (its `signer` header: SM3 of the robot's SM2 public
     # key, hex), checked at upload; blank for an unsigned record (a robot added by hand).
     signer = models.CharField(max_length=64, blank=True)
+    # Provenance v2 (DESIGN.md): the record's place in its signer's count of the topic, under
+    # the robot's batch signature; null for a v1 or unsigned record. A (signer, topic,
+    # topic_seq) is stored once, ever: tombstones keep theirs, so a gap names its reason.
+    topic_seq = models.BigIntegerField(null=True, blank=True)
     size = models.PositiveIntegerField()
     storage_name = models.CharField(max_length=255)
     status = models.CharField(max_length=16, choices=Status.choices, default=Status.PENDING)
@@ -123,6 +127,12 @@ class Record(models.Model):
         ordering = ["-captured_at"]
         constraints = [
             models.UniqueConstraint(fields=["robot", "seq"], name="record_seq_unique_per_robot"),
+            # Also the completeness answer's index: a stream's records in count order.
+            models.UniqueConstraint(
+                fields=["signer", "topic", "topic_seq"],
+                condition=models.Q(topic_seq__isnull=False),
+                name="record_topic_seq_unique_per_signer",
+            ),
         ]
         indexes = [
             models.Index(fields=["status", "created_at"], name="record_status_created"),

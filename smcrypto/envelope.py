@@ -6,7 +6,9 @@ ciphertext || tag (16). The AAD is every byte before the ciphertext.
 
 A robot's signature travels in the header (DESIGN.md "Provenance"): `signer` (64 lowercase
 hex) and `sig` (128 lowercase hex), both or neither, authenticated like every header field.
-Their shape is checked here; the signature itself by smcrypto.provenance.
+A record signed as one of a batch (provenance v2) also carries `sig_index`, `sig_size`,
+`sig_path` and `topic_seq` (DESIGN.md "Provenance v2"). Their shape is checked here; the
+signature itself by smcrypto.provenance.
 """
 
 import hmac
@@ -37,6 +39,10 @@ MAX_HEADER_DEPTH = 32
 HEADER_FIELDS = ("owner", "robot", "seq", "time", "topic", "type")
 # the robot's signature: field name -> its length in lowercase hex digits
 SIGNATURE_FIELDS = {"signer": 64, "sig": 128}
+# a batch signature's place (provenance v2): a header with `sig_size` is v2
+BATCH_FIELDS = ("sig_index", "sig_size", "sig_path")
+MAX_BATCH_SIZE = 2**20  # records under one batch signature
+MAX_BATCH_PATH = 21  # hashes in the audit path of a tree of MAX_BATCH_SIZE leaves, and one spare
 MAX_SEQ = 2**63 - 1
 KEY_COMMITMENT_DOMAIN = b"AuthROS/key-commitment/v1"
 
@@ -70,6 +76,19 @@ class EnvelopeInfo:
     def sig(self) -> str | None:
         """The robot's signature r||s (128 hex), None for an unsigned record."""
         return self.header.get("sig")
+
+    @property
+    def provenance(self) -> str:
+        """How the record is signed: "v2" (one signature per batch), "v1" (its own) or
+        "unsigned"; read from the envelope itself, never from a label beside it."""
+        return provenance_format(self.header)
+
+
+def provenance_format(header: Mapping[str, Any]) -> str:
+    """ "v2" for a header with `sig_size`, "v1" for one with `sig` alone, else "unsigned"."""
+    if "sig_size" in header:
+        return "v2"
+    return "v1" if "sig" in header else "unsigned"
 
 
 def seal(
@@ -292,6 +311,41 @@ def _check_signature_fields(header: dict[str, Any]) -> None:
                 f"envelope header field {name!r} must be "
                 f"{SIGNATURE_FIELDS[name]} lowercase hex digits"
             )
+    if "topic_seq" in header:
+        topic_seq = header["topic_seq"]
+        if type(topic_seq) is not int or not 0 <= topic_seq <= MAX_SEQ:
+            raise MalformedEnvelope(
+                f"envelope header field 'topic_seq' must be an integer 0..{MAX_SEQ}"
+            )
+    batch = [name for name in BATCH_FIELDS if name in header]
+    if not batch:
+        return
+    lacking = [
+        name for name in (*BATCH_FIELDS, *SIGNATURE_FIELDS, "topic_seq") if name not in header
+    ]
+    if lacking:
+        raise MalformedEnvelope(
+            "a record signed in a batch carries signer, sig, sig_index, sig_size, sig_path "
+            f"and topic_seq; this one has no {', '.join(lacking)}"
+        )
+    size, index, path = header["sig_size"], header["sig_index"], header["sig_path"]
+    if type(size) is not int or not 1 <= size <= MAX_BATCH_SIZE:
+        raise MalformedEnvelope(
+            f"envelope header field 'sig_size' must be an integer 1..{MAX_BATCH_SIZE}"
+        )
+    if type(index) is not int or not 0 <= index < size:
+        raise MalformedEnvelope(
+            "envelope header field 'sig_index' must be an integer 0..sig_size-1"
+        )
+    if (
+        not isinstance(path, str)
+        or len(path) % 64
+        or len(path) > 64 * MAX_BATCH_PATH
+        or _LOWER_HEX.fullmatch(path) is None
+    ):
+        raise MalformedEnvelope(
+            "envelope header field 'sig_path' must be lowercase hex, 64 digits per hash"
+        )
 
 
 def _check_time(value: Any) -> None:
