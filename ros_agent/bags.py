@@ -55,8 +55,7 @@ from ros_agent.ros2msg import (
     ros2_name,
 )
 from ros_agent.salvage import salvage_reader
-from ros_agent.spool import SpoolError
-from ros_agent.spool import _write_durably as write_durably
+from ros_agent.spool import SpoolError, write_durably
 from ros_agent.wrapping import capture_time
 from smcrypto import envelope
 

@@ -3,7 +3,7 @@
     python -m ros_agent pair --portal https://portal.example.org --name arm-3 [--dir DIR]
 
 1. The robot makes an SM2 key pair; the private key goes to `robot.sm2` (mode 0600) and never
-   leaves the robot, which signs every record it seals with it (ros_agent.sealing).
+   leaves the robot, which signs every batch it uploads with it (ros_agent.batches).
 2. It asks the portal (`POST /api/v1/robot-pairings/`) with its name and public key, and gets
    a request id, a secret only it knows (kept in `pairing.json`, 0600, so that a pair command
    that was interrupted carries on), a short code and the key's fingerprint. It prints the

@@ -1,5 +1,6 @@
 """The agent's path from a message to the portal, built once from the config: Recorder (seal
-into the spool, signed when the robot is paired), Spool (on disk), Uploader (to the portal).
+into the spool), Spool (on disk), Uploader (to the portal; for a paired robot each batch is
+signed once, and its records numbered, before it leaves: ros_agent.batches).
 The rospy node (ros_agent.node), the ROS 2 agent (ros_agent.ros2) and the import of
 recordings (ros_agent.bags) all use it as it is."""
 
@@ -37,7 +38,8 @@ def pipeline_build(
     config: AgentConfig, *, flush_interval: float | None = None, backoff_max: float | None = None
 ) -> Pipeline:
     """Spool, Uploader and Recorder for the robot of `config` (SpoolError if the spool is held
-    by another agent); `flush_interval` and `backoff_max` override the config's."""
+    by another agent, or its record counters are unreadable); `flush_interval` and
+    `backoff_max` override the config's."""
     counters = AgentCounters()
     spool = Spool(config.spool_dir, max_bytes=config.spool_max_bytes)
     client = PortalClient(
@@ -48,23 +50,25 @@ def pipeline_build(
         timeout=config.request_timeout,
     )
     keyring, key_updater = key_parts(config, client)
-    signing_key = robot_signing_key(config)
-    uploader = Uploader(
-        spool=spool,
-        client=client,
-        keyring=keyring if key_updater else None,
-        key_updater=key_updater,
-        counters=counters,
-        batch_size=config.batch_size,
-        batch_max_bytes=config.batch_max_bytes,
-        flush_interval=config.flush_interval if flush_interval is None else flush_interval,
-        backoff_max=config.backoff_max if backoff_max is None else backoff_max,
-        signing_key=signing_key,
-    )
+    try:
+        uploader = Uploader(
+            spool=spool,
+            client=client,
+            keyring=keyring if key_updater else None,
+            key_updater=key_updater,
+            counters=counters,
+            batch_size=config.batch_size,
+            batch_max_bytes=config.batch_max_bytes,
+            flush_interval=config.flush_interval if flush_interval is None else flush_interval,
+            backoff_max=config.backoff_max if backoff_max is None else backoff_max,
+            signing_key=robot_signing_key(config),
+        )
+    except BaseException:
+        spool.close()
+        raise
     recorder = Recorder(
         spool=spool,
         keyring=keyring,
-        signing_key=signing_key,
         owner=config.owner,
         robot=config.robot,
         counters=counters,

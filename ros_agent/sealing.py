@@ -1,14 +1,15 @@
-"""Sealing a record as this robot: the agent's one way to make an envelope.
+"""Sealing a record as this robot, and the robot's signing key.
 
-Under the owner's current SM4 key, and for a paired robot signed with its pairing key (the SM2
-key pair `python -m ros_agent pair` made, whose private key never leaves the robot): the
-header gains `signer` and `sig` over the header and the plaintext (DESIGN.md "Provenance:
-robots sign what they capture", smcrypto.provenance). A robot set up by hand (a key file and
-a token, no pairing key) seals its records unsigned, and the portal shows them as unsigned.
+The agent seals what it captures under the owner's current SM4 key, unsigned
+(wrapping.Recorder: the live ROS 1 node, the ROS 2 agent, the import of recordings). A paired
+robot's signature comes later, once per upload batch (provenance v2, ros_agent.batches), with
+its pairing key (the SM2 key pair `python -m ros_agent pair` made, whose private key never
+leaves the robot). A robot set up by hand (a key file and a token, no pairing key) never
+signs, and the portal shows its records as unsigned.
 
-Used by wrapping.Recorder (the live ROS 1 node, the ROS 2 agent, the import of recordings) and
-by the uploader when it re-seals spooled envelopes under a rotated key (signed again, so that
-an envelope spooled unsigned before the robot was paired leaves signed too).
+`seal_record` with a signing key signs one record on its own (provenance v1, DESIGN.md
+"Provenance: robots sign what they capture"): what paired agents sent before v2, which the
+portal keeps verifying, kept to make such records (the benchmarks measure v1 beside v2).
 """
 
 from collections.abc import Mapping
@@ -42,8 +43,9 @@ def seal_record(
     plaintext: bytes,
     signing_key: RobotSigningKey | None,
 ) -> bytes:
-    """The envelope of one record under the owner's `key`: signed with `signing_key` when
-    there is one (replacing a signature the header carried), else sealed as `header` is."""
+    """The envelope of one record under the owner's `key`: signed on its own (v1) with
+    `signing_key` when there is one (replacing a signature the header carried), else sealed
+    as `header` is."""
     if signing_key is not None:
         header = provenance.sign_header(
             signing_key.private_key, signing_key.public_key, header, plaintext

@@ -5,6 +5,7 @@ Layout of the spool directory (one agent at a time holds `lock`):
     queue/00000000000000000042.env     envelopes waiting for the portal, by sequence number
     rejected/000...042.env (+ .json)   envelopes the portal refused, with its answer
     seq                                the highest sequence number that may have been used
+    topic_seq                          a paired robot's record counters (ros_agent.batches)
 
 Every file is written to a temporary name, fsync'd, renamed into place and its directory
 fsync'd, so after a crash a file is either whole or absent (leftover temporaries are removed
@@ -110,10 +111,22 @@ class Spool:
             data = build(seq)
             if self._queued_bytes + self._rejected_bytes + len(data) > self.max_bytes:
                 return None
-            _write_durably(self._queue_dir, _name(seq), data)
+            write_durably(self._queue_dir, _name(seq), data)
             self._queue.append((seq, len(data)))
             self._queued_bytes += len(data)
             return seq
+
+    def head_while(self, keep: Callable[[SpoolItem], bool]) -> list[SpoolItem]:
+        """The oldest queued items as long as `keep` holds for each, read one at a time (so
+        that a long queue is not read whole to find its first few signed envelopes)."""
+        with self._lock:
+            items: list[SpoolItem] = []
+            for seq, _ in self._queue:
+                item = SpoolItem(seq, (self._queue_dir / _name(seq)).read_bytes())
+                if not keep(item):
+                    break
+                items.append(item)
+            return items
 
     def peek(self, limit: int, *, max_bytes: int | None = None) -> list[SpoolItem]:
         """The oldest queued items, at most `limit` and `max_bytes` (but at least one)."""
@@ -138,14 +151,14 @@ class Spool:
             _fsync_directory(self._queue_dir)
 
     def replace(self, seq: int, data: bytes) -> None:
-        """Put `data` in place of the queued envelope `seq` (re-sealed under a new key), durably:
-        after a crash the file holds the old envelope or the new one."""
+        """Put `data` in place of the queued envelope `seq` (signed with its batch, or re-sealed
+        under a new key), durably: after a crash the file holds the old envelope or the new one."""
         with self._lock:
             index = next((i for i, (queued, _) in enumerate(self._queue) if queued == seq), None)
             if index is None:
                 raise SpoolError(f"seq {seq} is not queued")
             size = self._queue[index][1]
-            _write_durably(self._queue_dir, _name(seq), data)
+            write_durably(self._queue_dir, _name(seq), data)
             self._queue[index] = (seq, len(data))
             self._queued_bytes += len(data) - size
 
@@ -156,13 +169,25 @@ class Spool:
             self._check_head(items)
             for item in items:
                 name = _name(item.seq)
-                _write_durably(self._rejected_dir, name + ".json", note)
+                write_durably(self._rejected_dir, name + ".json", note)
                 os.replace(self._queue_dir / name, self._rejected_dir / name)
                 _, size = self._queue.popleft()
                 self._queued_bytes -= size
                 self._rejected_bytes += size
             _fsync_directory(self._rejected_dir)
             _fsync_directory(self._queue_dir)
+
+    def state_read(self, name: str) -> bytes | None:
+        """A small file of state kept beside `seq` (its bytes, None if there is none yet)."""
+        try:
+            return (self.directory / name).read_bytes()
+        except FileNotFoundError:
+            return None
+
+    def state_write(self, name: str, data: bytes) -> None:
+        """Write a small file of state beside `seq`, durably: a crash leaves the old or the new."""
+        with self._lock:
+            write_durably(self.directory, name, data)
 
     def close(self) -> None:
         with self._lock:
@@ -181,7 +206,7 @@ class Spool:
         seq = self._next_seq
         if seq > self._reserved:
             self._reserved = seq + SEQ_RESERVATION - 1
-            _write_durably(self.directory, "seq", f"{self._reserved}\n".encode())
+            write_durably(self.directory, "seq", f"{self._reserved}\n".encode())
         self._next_seq = seq + 1
         return seq
 
@@ -221,7 +246,8 @@ def _remove_temporaries(folder: Path) -> None:
                 os.unlink(entry.path)
 
 
-def _write_durably(folder: Path, name: str, data: bytes) -> None:
+def write_durably(folder: Path, name: str, data: bytes) -> None:
+    """Write `name` in `folder` through a synced temporary file and a rename: whole or absent."""
     temporary = folder / f"{_TEMP_PREFIX}{name}-{uuid.uuid4().hex}"
     fd = os.open(temporary, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
     try:

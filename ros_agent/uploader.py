@@ -23,11 +23,17 @@ one `{"id", "digest", "status"}` per envelope. What the uploader does with each 
 A later envelope is never sent before an earlier one: the head of the queue is retried until
 it is delivered or refused.
 
+A paired robot signs each batch once before it leaves (provenance v2, ros_agent.batches): its
+envelopes are numbered (`topic_seq`), signed and written back to the spool, so a retry, a
+split or a resend after a crash sends the very bytes signed first. A record refused for good
+keeps its number, and the portal will show it as missing: the log says which.
+
 Every answer to a paired robot's upload names the owner's current key (header
 `AuthROS-Key-Id`); when it sees another id than its own it fetches the new key at once
 (`key_updater`), so that what it records from then on is sealed under it. A rotation never
 sends anything to rejected/: envelopes captured before it are accepted under the old key, the
-others re-sealed.
+others re-sealed, header, signature and `topic_seq` unchanged (a batch signature does not
+cover the key an envelope is sealed under).
 """
 
 import base64
@@ -45,9 +51,10 @@ from typing import Any
 import requests
 
 from ros_agent import LOGGER_NAME
+from ros_agent.batches import BatchSigner
 from ros_agent.counters import AgentCounters, worth_logging
 from ros_agent.keyring import Keyring
-from ros_agent.sealing import RobotSigningKey, seal_record
+from ros_agent.sealing import RobotSigningKey
 from ros_agent.spool import Spool, SpoolItem
 from smcrypto import CryptoError, envelope
 
@@ -169,13 +176,21 @@ class Uploader:
         signing_key: RobotSigningKey | None = None,
     ) -> None:
         """`key_updater` (a paired robot's) fetches the owner's current key into `keyring`:
-        True when it got one, False when the portal refused, None without an answer. What it
-        re-seals under a new key is signed again with `signing_key` (the robot's)."""
-        if (keyring is None) != (key_updater is None):
+        True when it got one, False when the portal refused, None without an answer. With
+        `signing_key` (a paired robot's) each batch is signed once before it leaves, its
+        envelopes opened with `keyring`'s keys; SpoolError if the spool's record counters
+        are unreadable."""
+        if key_updater is not None and keyring is None:
             raise ValueError("a key updater needs the keyring it updates")
+        if signing_key is not None and keyring is None:
+            raise ValueError("signing batches needs the keyring their envelopes are sealed under")
         self._keyring = keyring
         self._key_updater = key_updater
-        self._signing_key = signing_key
+        self._batch_signer = (
+            BatchSigner(spool=spool, keyring=keyring, signing_key=signing_key)
+            if signing_key is not None and keyring is not None
+            else None
+        )
         self._key_asked_for: str | None = None
         self._spool = spool
         self._client = client
@@ -265,6 +280,17 @@ class Uploader:
         items = self._next_batch()
         if not items:
             return Outcome.EMPTY
+        if self._batch_signer is not None:
+            try:
+                items = self._batch_signer.ready(items)
+            except OSError as exc:
+                logger.error(
+                    "cannot write the signed batch from seq %d to the spool %s: %s; kept, retrying",
+                    items[0].seq,
+                    self._spool.directory,
+                    exc,
+                )
+                return Outcome.RETRY
         answer = self._client.upload([item.envelope for item in items])
         return self._settle(items, answer)
 
@@ -351,8 +377,9 @@ class Uploader:
 
     def _reseal(self, items: list[SpoolItem]) -> Outcome | None:
         """The portal refused envelopes sealed under a key it no longer takes for them: fetch
-        the current key and re-seal, in the spool, those we hold the old key of. RETRY when
-        the key cannot be fetched now; None when nothing could be re-sealed."""
+        the current key and re-seal, in the spool, those we hold the old key of, their header
+        as it is (a batch's signature and `topic_seq` stay). RETRY when the key cannot be
+        fetched now; None when nothing could be re-sealed."""
         if self._key_updater() is None:
             return Outcome.RETRY
         current_id, key = self._keyring.current()
@@ -367,7 +394,7 @@ class Uploader:
             except CryptoError as exc:
                 logger.error("cannot re-seal seq %d: %s", item.seq, exc)
                 continue
-            self._spool.replace(item.seq, seal_record(key, header, plaintext, self._signing_key))
+            self._spool.replace(item.seq, envelope.seal(key, header, plaintext))
             resealed += 1
         if not resealed:
             return None
@@ -417,6 +444,19 @@ class Uploader:
             self._spool.directory,
             failed,
         )
+        for item in items:
+            try:
+                header = envelope.read_header(item.envelope).header
+            except CryptoError:
+                continue
+            if "topic_seq" in header:
+                logger.error(
+                    "topic_seq %d of %s (seq %d) will never reach the portal: a gap in this "
+                    "robot's records that the portal will show as missing",
+                    header["topic_seq"],
+                    header["topic"],
+                    item.seq,
+                )
 
     def _retry(self, items: list[SpoolItem], answer: PortalAnswer, *, level: int) -> Outcome:
         if worth_logging(self._failures + 1):

@@ -5,7 +5,8 @@ Plaintext (compact UTF-8 JSON):
      "Topic": topic}
 Envelope header: owner, robot, topic, type, seq (from the spool's counter), time (the same
 capture time as "Time": the message's header stamp, or the time it was received when it has
-no stamp), and for a paired robot `signer` and `sig` (ros_agent.sealing).
+no stamp). Unsigned: a paired robot signs each upload batch once, before it leaves, and numbers
+its records then (ros_agent.batches).
 """
 
 import json
@@ -76,8 +77,9 @@ class Recorder:
         on_spooled: Callable[[], None] = lambda: None,
     ) -> None:
         """Seals under `keyring`'s current key at each message (a paired robot's keyring
-        changes when the owner rotates), or under the one `key`; signed with `signing_key`
-        (a paired robot's), unsigned without."""
+        changes when the owner rotates), or under the one `key`; unsigned, unless given a
+        `signing_key`: then each record is signed on its own (provenance v1, which the agent
+        no longer sends; the benchmarks measure it beside v2)."""
         if (key is None) == (keyring is None):
             raise ValueError("give the key or the keyring")
         self._spool = spool
