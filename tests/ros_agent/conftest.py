@@ -1,5 +1,6 @@
-"""Fixtures for the agent: its owner's key, a paired robot's files, an in-test records
-endpoint, a real ROS master, a DDS domain of its own on this machine.
+"""Fixtures for the agent: its owner's key, a paired robot's files and key, an in-test records
+endpoint (one that requires the paired robot's signature too), the agent's yaml, a real ROS
+master, a DDS domain of its own on this machine.
 
 rospy allows one init_node per process, so every node under test (agent, simulator,
 `rostopic pub`) runs in a subprocess against a `rosmaster --core` on a free port, with
@@ -24,11 +25,13 @@ from pathlib import Path
 
 import genpy
 import pytest
+import yaml
 
 from ros_agent import dds, sim
 from ros_agent.extractors import extract
 from ros_agent.keyring import key_id_hex, write_keys_file
-from smcrypto import sm2, sm4
+from ros_agent.sealing import RobotSigningKey
+from smcrypto import envelope, provenance, sm2, sm4
 from stack.anvil import free_port
 from tests.support.records_server import RecordsServer
 
@@ -56,6 +59,79 @@ def portal(owner_key: bytes) -> Iterator[RecordsServer]:
     server.start()
     yield server
     server.stop()
+
+
+@pytest.fixture
+def pairing_key(tmp_path: Path, owner_key: bytes) -> RobotSigningKey:
+    """The robot's pairing key pair, its files written in tmp_path as pairing leaves them."""
+    return RobotSigningKey.of(write_paired_robot_files(tmp_path, owner_key))
+
+
+@pytest.fixture
+def signing_portal(owner_key: bytes, pairing_key: RobotSigningKey) -> Iterator[RecordsServer]:
+    """The records endpoint of a paired robot: every envelope must carry its signature."""
+    server = RecordsServer(
+        token=TOKEN,
+        key=owner_key,
+        owner=OWNER,
+        robot=ROBOT,
+        robot_public_key=pairing_key.public_key,
+    )
+    server.start()
+    yield server
+    server.stop()
+
+
+def agent_yaml(
+    folder: Path, portal: RecordsServer, topics: list[tuple[str, str]], *, paired: bool, **extra
+) -> Path:
+    """agent.yaml in `folder` for the in-test `portal`: a paired robot's (the files of
+    `pairing_key`) or one set up by hand (`alice.sm4`); its spool in `folder/spool`."""
+    keys = (
+        {"sm2_key_file": "robot.sm2", "keys_file": "owner-keys.json"}
+        if paired
+        else {"key_file": "alice.sm4"}
+    )
+    settings = {
+        "portal_url": portal.url,
+        "token": TOKEN,
+        "robot": ROBOT,
+        "owner": OWNER,
+        "topics": [{"name": name, "type": ros_type} for name, ros_type in topics],
+        "spool_dir": "spool",
+        **keys,
+        **extra,
+    }
+    path = folder / "agent.yaml"
+    path.write_text(yaml.safe_dump(settings))
+    return path
+
+
+def assert_batch_signed(
+    portal: RecordsServer, key: RobotSigningKey, *, at_least: int = 1
+) -> dict[str, list[int]]:
+    """Every record `portal` stored is signed in a batch (provenance v2) by `key` and verifies
+    on its own; every upload it took carries one batch signature; per topic, in the order
+    stored, topic_seq counts 0, 1, 2, ... without a gap or a repeat. Returns the topic_seqs
+    per topic."""
+    assert len(portal.records) >= at_least
+    by_seq = {}
+    for stored in portal.records:
+        info = envelope.read_header(stored.envelope)
+        assert info.provenance == "v2", info.header
+        assert info.signer == provenance.key_hash(key.public_key)
+        header, plaintext = envelope.open(portal.key, stored.envelope)
+        provenance.signature_check(key.public_key, header, plaintext)
+        by_seq[stored.seq] = header
+    for upload in portal.uploads:
+        if upload.status == 201:
+            assert len({by_seq[seq]["sig"] for seq in upload.seqs}) == 1, upload
+    streams: dict[str, list[int]] = {}
+    for stored in portal.records:
+        streams.setdefault(stored.header["topic"], []).append(stored.header["topic_seq"])
+    for topic, numbers in streams.items():
+        assert numbers == list(range(len(numbers))), (topic, numbers)
+    return streams
 
 
 def write_key_file(path: Path, key: bytes, mode: int = 0o600) -> Path:
