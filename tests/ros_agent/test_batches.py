@@ -10,6 +10,7 @@ disk already: each is synced before the next step), and the agent built again fr
 folder.
 """
 
+import errno
 import json
 import logging
 from pathlib import Path
@@ -184,6 +185,36 @@ def test_a_crash_in_the_middle_of_the_reseal_writes_loses_no_number_and_reuses_n
     streams = assert_batch_signed(signing_portal, pairing_key, at_least=8)
     assert streams == {CHATTER: [0, 1, 2, 3, 4], STATUS: [0, 1, 2]}
     assert _counters_file(tmp_path) == {_signer(pairing_key): {CHATTER: 5, STATUS: 3}}
+
+
+def test_a_write_failing_in_the_middle_of_the_reseal_is_retried_without_a_reuse(
+    tmp_path, pairing_key, signing_portal, caplog
+):
+    """A full disk while the batch is written back: nothing leaves; the envelopes written
+    signed leave first as they are, the others are signed after them, numbered on."""
+    agent = _agent(tmp_path, signing_portal)
+    seqs = _publish(agent, CHATTER, CHATTER, STATUS, CHATTER)
+    replace, calls = agent.spool.replace, []
+
+    def replace_failing_once(seq: int, data: bytes) -> None:
+        calls.append(seq)
+        if len(calls) == 3:
+            raise OSError(errno.ENOSPC, "No space left on device")
+        replace(seq, data)
+
+    agent.spool.replace = replace_failing_once
+    try:
+        with caplog.at_level(logging.ERROR, logger=LOGGER_NAME):
+            assert agent.uploader.deliver_next() is Outcome.RETRY
+        assert signing_portal.uploads == []
+        assert agent.uploader.drain() is Outcome.EMPTY
+    finally:
+        agent.spool.close()
+
+    assert "cannot write the signed batch" in caplog.text
+    assert _sent(signing_portal) == [seqs[:2], seqs[2:]]
+    streams = assert_batch_signed(signing_portal, pairing_key, at_least=4)
+    assert streams == {CHATTER: [0, 1, 2], STATUS: [0]}
 
 
 def test_an_outage_and_a_lost_confirmation_resend_the_same_signed_bytes(
