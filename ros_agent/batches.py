@@ -61,10 +61,6 @@ class BatchSigner:
         # numbers written into envelopes but not yet into the file (a crash between the two)
         self._unrecorded = self._next != recorded
 
-    def next_topic_seq(self, topic: str, signer: str | None = None) -> int:
-        """The number the next record of `topic` gets under `signer` (this robot's key)."""
-        return self._next.get((signer or self.signer, topic), 0)
-
     def ready(self, items: list[SpoolItem]) -> list[SpoolItem]:
         """The batch to send of the head `items` (the oldest queued, in order), every
         number in it recorded: the envelopes at its front this key signed already, as they
