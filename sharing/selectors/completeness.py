@@ -12,6 +12,7 @@ records checks it from their signed headers (authros-verify --complete).
     streams = record_streams(records)   # records: a reader's scope and window, tombstones in
 """
 
+import uuid
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
 from datetime import datetime
@@ -20,7 +21,10 @@ from itertools import groupby
 from django.db.models import Count, F, Max, Min, Q, QuerySet, Window
 from django.db.models.functions import Lag
 
+from accounts.models import Owner
 from sharing.models import Record
+from sharing.selection import RecordSelection
+from sharing.selectors.records import record_list_visible_to
 
 GAP_MISSING = "missing"
 GAP_DELETED = "deleted"
@@ -235,6 +239,39 @@ def _gap_add(gaps: list[Gap], gap: Gap) -> None:
         gaps[-1] = Gap(before.start, gap.end, gap.reason, at)
     else:
         gaps.append(gap)
+
+
+def completeness_visible_to(
+    viewer: Owner,
+    *,
+    robot: uuid.UUID | str | None = None,
+    topic: str | None = None,
+    since: datetime | None = None,
+    until: datetime | None = None,
+) -> Completeness:
+    """The completeness of the window [since, until) of captures that `viewer` may see (their
+    own records and, of a live grant, those in its scope: record_list_visible_to, tombstones
+    included), of one robot and one topic if given. A robot or topic outside the viewer's
+    scope answers as one that does not exist: no stream."""
+    window = RecordSelection.from_filters(robot=robot, topic=topic, since=since, until=until)
+    return record_streams(window.apply(record_list_visible_to(viewer)))
+
+
+def gap_around(
+    records: QuerySet[Record], stream: Stream, gap: Gap
+) -> tuple[datetime | None, datetime | None]:
+    """The capture times of the records on either side of `gap` in `records` (the window it
+    was found in: both are there, live or tombstones), for a link to the list around it."""
+    around = dict(
+        records.filter(
+            signer=stream.signer, topic=stream.topic, topic_seq__in=(gap.start - 1, gap.end + 1)
+        )
+        .order_by()
+        .values_list("topic_seq", "captured_at")
+    )
+    before, after = around.get(gap.start - 1), around.get(gap.end + 1)
+    # Both are there whenever the gap came from these records; either missing, the other.
+    return (before or after), (after or before)
 
 
 def streams_missing(completeness: Completeness) -> Iterable[Stream]:
