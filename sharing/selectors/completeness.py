@@ -257,6 +257,30 @@ def completeness_visible_to(
     return record_streams(window.apply(record_list_visible_to(viewer)))
 
 
+def record_list_window(
+    records: QuerySet[Record],
+    *,
+    robot: uuid.UUID | str | None = None,
+    topic: str | None = None,
+    data_type: str | None = None,
+    since: datetime | None = None,
+    until: datetime | None = None,
+    owner: str | None = None,
+    **_others: object,
+) -> QuerySet[Record]:
+    """The window of a record list's filters, tombstones included and whatever the status
+    filter (a page's anchoring status is no gap): what the list's completeness is read from.
+    Other filters (`status`) are not part of a window."""
+    window = RecordSelection.from_filters(robot=robot, topic=topic, since=since, until=until).apply(
+        records
+    )
+    if data_type:
+        window = window.filter(data_type=data_type)
+    if owner:
+        window = window.filter(owner__user__username=owner)
+    return window
+
+
 def gap_around(
     records: QuerySet[Record], stream: Stream, gap: Gap
 ) -> tuple[datetime | None, datetime | None]:
