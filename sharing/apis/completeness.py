@@ -16,6 +16,7 @@ from core.api_errors import error_responses
 from sharing.apis.fields import OWNER_ONLY, READ, ROBOT_REFUSED, TextField
 from sharing.selection import MAX_TOPIC_LENGTH
 from sharing.selectors.completeness import GAP_REASONS, completeness_visible_to
+from sharing.services.completeness import records_missing_alerts_raise
 
 GAP_SCHEMA = {
     "type": "object",
@@ -111,7 +112,9 @@ class RecordCompletenessApi(APIView):
             "rows, checked by anyone holding the window's records (`authros-verify "
             "--complete`). Numbers before the first or after the last record of the window "
             "are not in it. A robot or topic outside the caller's scope answers as one that "
-            "does not exist: no stream. A session or an owner API token with the `read` scope."
+            "does not exist: no stream. A `missing` gap alerts the robot's owner (alert "
+            "`records_missing`, once per gap). A session or an owner API token with the "
+            "`read` scope."
         ),
         auth=OWNER_ONLY,
         parameters=[InputSerializer],
@@ -130,4 +133,6 @@ class RecordCompletenessApi(APIView):
         given = self.InputSerializer(data=request.query_params.dict())
         given.is_valid(raise_exception=True)
         completeness = completeness_visible_to(caller_owner(request), **given.validated_data)
+        # A gap no deletion explains is told to the robot's owner, once per gap.
+        records_missing_alerts_raise(completeness)
         return Response(completeness.as_json())

@@ -15,6 +15,7 @@ from sharing.apis.completeness import STREAMS_SCHEMA, UNCOUNTED_SCHEMA
 from sharing.apis.fields import OWNER_ONLY, READ, ROBOT_REFUSED, TextField, caller_credential
 from sharing.selection import MAX_TOPIC_LENGTH
 from sharing.series import DEFAULT_POINTS, MAX_FIELDS, MAX_POINTS, series_of, series_query_make
+from sharing.services.completeness import records_missing_alerts_raise
 
 
 class RecordSeriesApi(APIView):
@@ -127,4 +128,6 @@ class RecordSeriesApi(APIView):
         series = series_of(
             viewer=caller_owner(request), query=query, credential=credential, token=token
         )
+        # A gap no deletion explains is told to the robot's owner, once per gap.
+        records_missing_alerts_raise(series.completeness)
         return Response(series.as_json())

@@ -284,18 +284,17 @@ def record_list_window(
 def gap_around(
     records: QuerySet[Record], stream: Stream, gap: Gap
 ) -> tuple[datetime | None, datetime | None]:
-    """The capture times of the records on either side of `gap` in `records` (the window it
-    was found in: both are there, live or tombstones), for a link to the list around it."""
+    """The capture times that bound `gap` in `records` (the window it was found in), for a
+    link to the list that shows it: of a missing gap the records on either side (there are
+    rows there, live or tombstones: that is how the gap was found); of a deletion its first
+    and last tombstone. None for an end not found (records that are not the gap's window)."""
+    ends = (gap.start - 1, gap.end + 1) if gap.reason == GAP_MISSING else (gap.start, gap.end)
     around = dict(
-        records.filter(
-            signer=stream.signer, topic=stream.topic, topic_seq__in=(gap.start - 1, gap.end + 1)
-        )
+        records.filter(signer=stream.signer, topic=stream.topic, topic_seq__in=ends)
         .order_by()
         .values_list("topic_seq", "captured_at")
     )
-    before, after = around.get(gap.start - 1), around.get(gap.end + 1)
-    # Both are there whenever the gap came from these records; either missing, the other.
-    return (before or after), (after or before)
+    return around.get(ends[0]), around.get(ends[1])
 
 
 def streams_missing(completeness: Completeness) -> Iterable[Stream]:

@@ -103,13 +103,14 @@ def completeness_shown(window: QuerySet[Record], *, list_url: str) -> Completene
 
 
 def _link(window: QuerySet[Record], list_url: str, stream: Stream, gap: Gap) -> str:
-    """The list of the stream's records from the one before the gap to the one after it (the
-    tombstones of a deletion with the status filter "deleted"), times to the second."""
-    before, after = gap_around(window, stream, gap)
+    """The list of the stream's records from the one before a missing gap to the one after it,
+    or of a deletion's tombstones (with the status filter "deleted"), times to the second (a
+    robot's clock may run back: the earlier of the two first)."""
+    ends = [moment for moment in gap_around(window, stream, gap) if moment is not None]
     query: dict[str, str] = {"robot": stream.robot_id, "topic": stream.topic}
-    if before is not None and after is not None:
-        query["since"] = _second(before).strftime(_FILTER_TIME)
-        query["until"] = (_second(after) + timedelta(seconds=1)).strftime(_FILTER_TIME)
+    if ends:
+        query["since"] = _second(min(ends)).strftime(_FILTER_TIME)
+        query["until"] = (_second(max(ends)) + timedelta(seconds=1)).strftime(_FILTER_TIME)
     if gap.reason != GAP_MISSING:
         query["status"] = RECORD_STATUS_DELETED
     return f"{list_url}?{urlencode(query)}"
