@@ -1,10 +1,10 @@
 """Every record counted, in Chromium (issue 44), on a desktop (1280x900) and a phone (390x844):
 the record list names a missing gap as a warning, its link leads to the records around it, and
 nothing overflows sideways, a long topic's name included; the robot page says the same of its
-last hour.
+last hour, and its trajectory plot (the series' `streams`) of its range.
 
-Records are uploaded as the robot sends them (anchored inline on the session's anvil); their
-`topic_seq` and `signer` are then set on the rows, as the v2 ingest stores them: the pages read
+Records are uploaded as a paired robot sends them (signed, anchored inline on the session's
+anvil); their `topic_seq` is then set on the rows, as the v2 ingest stores it: the pages read
 rows. A record lost behind the portal's back is its row and stored envelope removed.
 """
 
@@ -19,24 +19,24 @@ from playwright.sync_api import Browser, Page, expect
 from sharing.models import Record
 from sharing.services.uploads import record_create
 from sharing.storage import envelope_storage
+from tests.pages.conftest import odometry
 from tests.support.robot_setup import RobotSetup
 
 pytestmark = [pytest.mark.browser, pytest.mark.django_db(transaction=True)]
 
 # A long topic, as camera drivers name theirs: its gap's words must wrap, not widen the page.
 LONG = "/robot/camera/front_left/image_rect_color/compressed_for_the_operator_console_stream"
-SIGNER = "c" * 64
 
 
 def _stream(setup: RobotSetup, topic: str, count: int, *, first_seq: int) -> list[Record]:
-    start = timezone.now() - timedelta(minutes=20)
+    start = timezone.now() - timedelta(minutes=5)
     made = []
     for number in range(count):
         time = (start + timedelta(seconds=number)).isoformat().replace("+00:00", "Z")
-        record = record_create(
-            robot=setup.robot, data=setup.seal(first_seq + number, time=time, topic=topic)
-        )
-        Record.objects.filter(pk=record.pk).update(signer=SIGNER, topic_seq=number)
+        plaintext = odometry(setup.owner.username, float(number), float(number) / 2)
+        data = setup.seal(first_seq + number, time=time, topic=topic, plaintext=plaintext)
+        record = record_create(robot=setup.robot, data=data)
+        Record.objects.filter(pk=record.pk).update(topic_seq=number)
         made.append(record)
     return made
 
@@ -52,9 +52,9 @@ def _no_horizontal_overflow(page: Page) -> None:
 
 
 def test_a_missing_gap_on_the_record_list_and_robot_page(
-    live_server, make_robot, client, browser: Browser, artifacts: Path
+    live_server, make_paired_robot, client, browser: Browser, artifacts: Path
 ):
-    alice = make_robot("alice")
+    alice = make_paired_robot("alice")
     odom = _stream(alice, "/robot/odom", 8, first_seq=1)
     long = _stream(alice, LONG, 3, first_seq=20)
     for record in odom[3:6]:
@@ -107,6 +107,14 @@ def test_a_missing_gap_on_the_record_list_and_robot_page(
             "Last hour: 7 records, 4 missing"
         )
         expect(section.get_by_test_id("gap")).to_have_count(2)
+        # Its trajectory plot (the series API over the last 10 minutes) says so too.
+        plot = page.get_by_test_id("robot-plot")
+        expect(plot).to_have_attribute("data-state", "ready", timeout=30_000)
+        expect(plot).to_have_attribute("data-missing", "3")
+        expect(plot).to_have_attribute("data-verified", "5")
+        expect(plot.locator(".series-plot-status")).to_contain_text(
+            "3 records of the robot's count missing"
+        )
         _no_horizontal_overflow(page)
         page.screenshot(path=artifacts / f"completeness-robot-{name}.png", full_page=True)
         context.close()
