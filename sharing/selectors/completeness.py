@@ -122,11 +122,12 @@ def record_streams(records: QuerySet[Record]) -> Completeness:
     """The completeness of `records` (a reader's scope and window, tombstones included: a
     deletion is a reason, not a gap).
 
-    Three reads in the database, whatever the window holds: each stream's first, last and
-    counts (one aggregate); then, only when some stream has fewer rows than numbers, the rows
-    that follow a skipped number (LAG over the stream index); and, only when some stream has
-    tombstones, the tombstones in order, joined into runs. A complete window of any size is
-    the aggregate alone; the rows read in Python are the tombstones, never the live records.
+    At most four queries, whatever the window holds: each stream's first, last and counts
+    (one aggregate); then, only when some stream has fewer rows than numbers, the rows that
+    follow a skipped number (LAG over the stream index); only when some stream has tombstones,
+    the tombstones in order, joined into runs; and the count of the uncounted. A complete
+    window of any size is the aggregate and the count; the rows read in Python are the
+    tombstones and the skips, never the live records.
     """
     counted = records.filter(topic_seq__isnull=False).order_by()
     spans = _spans(counted)

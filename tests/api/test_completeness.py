@@ -154,9 +154,9 @@ def test_an_owner_token_with_read_reads_it_and_a_revoked_one_is_refused(
 def test_a_grantee_reads_it_within_its_scope_only(
     alice,
     odom,
-    upload,
+    upload,  # noqa: F811
     make_owner,
-    django_capture_on_commit_callbacks,  # noqa: F811
+    django_capture_on_commit_callbacks,
 ):
     stream_upload(upload, alice, 3, topic="/robot/scan")
     bob, carol = make_owner("bob"), make_owner("carol")
@@ -209,12 +209,14 @@ def test_the_answer_is_a_few_queries_whatever_the_window_holds(alice, upload):  
     lost(made[5])
     record_delete(owner=alice.owner, record_id=made[8].pk, actor=alice.owner.user)
     client = session_client(alice.owner)
-    client.get(API)  # the session's first request reads more of it than the next ones
+    # The session's first request reads more of it than the next ones, and alerts the gap.
+    client.get(API)
     with CaptureQueriesContext(connection) as few:
         client.get(API)
     more_made = stream_upload(upload, alice, 12, start=T0 + timedelta(minutes=1), first=12)
     lost(more_made[3])
     record_delete(owner=alice.owner, record_id=more_made[6].pk, actor=alice.owner.user)
+    client.get(API)  # alerts the new missing gap (tests/pages/test_completeness_pages.py)
     with CaptureQueriesContext(connection) as more:
         client.get(API)
     assert len(more) == len(few)
@@ -239,3 +241,19 @@ def test_the_series_carries_the_streams_of_its_range(alice, odom):
         API, {key: query[key] for key in ("robot", "topic", "since", "until")}
     )
     assert completeness.json()["streams"] == body["streams"]
+
+
+def test_an_owner_above_the_rate_limit_gets_429(alice, settings):
+    settings.REST_FRAMEWORK = {
+        **settings.REST_FRAMEWORK,
+        "DEFAULT_THROTTLE_RATES": {
+            **settings.REST_FRAMEWORK["DEFAULT_THROTTLE_RATES"],
+            "user": "2/minute",
+        },
+    }
+    client = session_client(alice.owner)
+    assert [client.get(API).status_code for _ in range(2)] == [200, 200]
+    answer = client.get(API)
+    assert answer.status_code == 429
+    assert answer.json()["error"] == "rate_limited"
+    assert 0 < int(answer["Retry-After"]) <= 60
