@@ -181,3 +181,23 @@ def test_a_window_too_long_for_a_page_says_so(client, alice, odom, monkeypatch):
         "In this selection (every page, any status): 5 records, more than the 3 this page counts."
     )
     assert 'data-testid="gap"' not in html
+
+
+def test_records_no_signer_counts_are_said_uncounted(client, alice, upload):
+    for seq in (1, 2, 3):
+        upload(alice, seq)  # signed as provenance v1: no topic_seq
+    client.force_login(alice.owner.user)
+    html = client.get(reverse("records")).content.decode()
+    assert _text(html, "completeness-summary") == (
+        "In this selection (every page, any status): 3 records, none of them counted by the "
+        "robot (signed before provenance v2, or unsigned): whether any is missing cannot be told."
+    )
+
+
+def test_the_status_filter_is_no_gap(client, alice, odom):
+    # Pending, anchored or tampered is how a record stands, not whether it is there: the
+    # window's count is the same whatever the status asked for.
+    client.force_login(alice.owner.user)
+    for status in ("anchored", "pending", "tampered"):
+        html = client.get(reverse("records"), {"status": status}).content.decode()
+        assert [reason for reason, _ in _gaps(html)] == ["missing", "deleted"], status
