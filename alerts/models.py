@@ -16,6 +16,7 @@ class AlertKind(models.TextChoices):
     GRANT_REVOKED = "grant_revoked", "Someone revoked your access"
     ROBOT_SILENT = "robot_silent", "A robot went silent"
     GAS_LOW = "gas_low", "Your account is low on gas"
+    RECORDS_MISSING = "records_missing", "Records of a robot are missing"
     TEST = "test", "A test alert"
 
 

@@ -1,6 +1,7 @@
 """Reads of alerts: an owner's choices, endpoints and delivery log, and what the watch looks at."""
 
 import uuid
+from collections.abc import Iterable
 from dataclasses import dataclass
 from datetime import datetime, timedelta
 
@@ -68,6 +69,16 @@ def robots_silent(*, now: datetime) -> list[SilentRobot]:
 
 def alert_conditions_open(kind: str) -> QuerySet[AlertCondition]:
     return AlertCondition.objects.filter(kind=kind, resolved_at__isnull=True)
+
+
+def alert_subjects_open(kind: str, subjects: Iterable[str]) -> set[str]:
+    """Which of these subjects of `kind` were alerted already (their condition open): one
+    read, so that a page that finds them again writes nothing."""
+    return set(
+        alert_conditions_open(kind)
+        .filter(subject__in=list(subjects))
+        .values_list("subject", flat=True)
+    )
 
 
 def owners_watching_gas() -> list[AlertPreferences]:

@@ -7,6 +7,7 @@ watched conditions (a silent robot, low gas) are checked by the beat task `alert
 alert once per episode: an open AlertCondition holds back the next alert until the state ends.
 """
 
+import hashlib
 import json
 import logging
 import secrets
@@ -193,6 +194,49 @@ def grant_revoked_alert(*, grantee: Owner, owner: Owner) -> Alert | None:
         subject=owner.user.username,
         summary=f"{owner.user.username} revoked your access to their records.",
         detail={"revoked_by": owner.user.username, "revoked_by_eoa": owner.eoa_address},
+    )
+
+
+def records_missing_subject(*, robot_id: uuid.UUID | str, signer: str, topic: str, gap: str) -> str:
+    """The subject of one missing gap (`gap` is "from-to"): the robot, then a digest of the
+    stream, at most 100 characters however long the topic."""
+    stream = hashlib.sha256(f"{signer}\x00{topic}".encode()).hexdigest()[:16]
+    return f"{robot_id}:{stream}:{gap}"[:100]
+
+
+def records_missing_alert(
+    *,
+    owner: Owner,
+    robot_id: uuid.UUID | str,
+    robot: str,
+    signer: str,
+    topic: str,
+    first: int,
+    last: int,
+) -> Alert | None:
+    """Records `first`..`last` of a robot's stream (its key `signer`, one topic) are gone
+    without a deletion that explains them: the portal has nothing for numbers the robot
+    signed. Once per gap, ever (its condition stays open: the numbers do not come back)."""
+    count = last - first + 1
+    numbers = f"#{first}" if count == 1 else f"#{first} to #{last}"
+    return alert_raise(
+        owner=owner,
+        kind=AlertKind.RECORDS_MISSING,
+        subject=records_missing_subject(
+            robot_id=robot_id, signer=signer, topic=topic, gap=f"{first}-{last}"
+        ),
+        summary=f"{count} record{'s' if count != 1 else ''} of {robot} missing on "
+        f"{topic[:100]} ({numbers}): the robot sent and signed them, the portal holds nothing "
+        "for them and no deletion explains it.",
+        detail={
+            "robot": str(robot_id),
+            "name": robot,
+            "topic": topic,
+            "signer": signer,
+            "from": first,
+            "to": last,
+        },
+        once=True,
     )
 
 

@@ -6,6 +6,7 @@ from drf_spectacular.views import SpectacularAPIView, SpectacularSwaggerSplitVie
 from accounts.apis import RobotKeyApi, RobotPairingCollectApi, RobotPairingsApi, Sm2PublicKeyApi
 from core.api_errors import api_not_found
 from sharing.apis.access import AccessLogApi
+from sharing.apis.completeness import RecordCompletenessApi
 from sharing.apis.content import RecordContentApi
 from sharing.apis.exports import (
     ExportCountApi,
@@ -31,6 +32,7 @@ v1 = [
     path("robot-key/", RobotKeyApi.as_view(), name="robot-key"),
     path("records/", RecordsApi.as_view(), name="records"),
     path("records/series/", RecordSeriesApi.as_view(), name="records-series"),
+    path("records/completeness/", RecordCompletenessApi.as_view(), name="records-completeness"),
     path("records/<str:record_id>/", RecordDetailApi.as_view(), name="record-detail"),
     path("records/<str:record_id>/content/", RecordContentApi.as_view(), name="record-content"),
     path("records/<str:record_id>/proof/", RecordProofApi.as_view(), name="record-proof"),

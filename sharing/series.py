@@ -19,12 +19,14 @@ from dataclasses import dataclass
 from datetime import datetime
 
 from django.conf import settings
+from django.db.models import QuerySet
 
 from accounts.models import Owner, OwnerToken
 from sharing.content import Uninterpretable, document_parse
 from sharing.errors import SeriesRefused, SharingError, VerificationUnavailable
 from sharing.models import Access, Record
 from sharing.selection import RecordSelection
+from sharing.selectors.completeness import Completeness, record_streams
 from sharing.selectors.records import record_list_visible_to
 from sharing.verification.opening import OpenedRecord, records_open
 
@@ -61,6 +63,8 @@ class Series:
     verified: int  # of them, checked and verified
     refused: int  # of them, refused by the check: never plotted
     without_values: int  # verified, but holding none of the fields as a number
+    # The range's streams, first to last topic_seq and every gap (tombstones give reasons).
+    completeness: Completeness
 
     def as_json(self) -> dict[str, object]:
         return {
@@ -70,6 +74,7 @@ class Series:
             "verified": self.verified,
             "refused": self.refused,
             "without_values": self.without_values,
+            **self.completeness.as_json(),
         }
 
 
@@ -119,14 +124,20 @@ def _is_path(field: str) -> bool:
     )
 
 
-def series_records(viewer: Owner, query: SeriesQuery) -> list[Record]:
-    """Every record of the range the viewer may see (own, or in a live grant's scope), oldest
-    first. SeriesRefused when they are more than SERIES_MAX_RECORDS."""
+def series_window(viewer: Owner, query: SeriesQuery) -> QuerySet[Record]:
+    """The range's records the viewer may see (own, or in a live grant's scope), tombstones
+    included: what its completeness is read from."""
     selection = RecordSelection.of(
         robots=[query.robot], topics=[query.topic], since=query.since, until=query.until
     )
+    return selection.apply(record_list_visible_to(viewer))
+
+
+def series_records(viewer: Owner, query: SeriesQuery) -> list[Record]:
+    """Every record of the range the viewer may see (own, or in a live grant's scope), oldest
+    first. SeriesRefused when they are more than SERIES_MAX_RECORDS."""
     in_range = (
-        selection.apply(record_list_visible_to(viewer))
+        series_window(viewer, query)
         .live()
         # One owner instance for all its records (its key is looked up per owner), no joins.
         .select_related(None)
@@ -145,8 +156,9 @@ def series_of(
     *, viewer: Owner, query: SeriesQuery, credential: str, token: OwnerToken | None = None
 ) -> Series:
     """The series of the query for the viewer: every record in range checked (one access of
-    kind "plot"), the verified ones' fields, downsampled to at most `query.points` rows.
-    VerificationUnavailable if the worker could not check them all."""
+    kind "plot"), the verified ones' fields, downsampled to at most `query.points` rows, and
+    the range's streams with their gaps (record_streams). VerificationUnavailable if the
+    worker could not check them all."""
     records = series_records(viewer, query)
     results = records_open(
         records=records,
@@ -168,6 +180,7 @@ def series_of(
         verified=len(opened),
         refused=len(results) - len(opened),
         without_values=len(rows) - len(plotted),
+        completeness=record_streams(series_window(viewer, query)),
     )
 
 

@@ -11,9 +11,11 @@ from rest_framework.views import APIView
 
 from accounts.authentication import OwnerCredential, caller_owner
 from core.api_errors import error_responses
+from sharing.apis.completeness import STREAMS_SCHEMA, UNCOUNTED_SCHEMA
 from sharing.apis.fields import OWNER_ONLY, READ, ROBOT_REFUSED, TextField, caller_credential
 from sharing.selection import MAX_TOPIC_LENGTH
 from sharing.series import DEFAULT_POINTS, MAX_FIELDS, MAX_POINTS, series_of, series_query_make
+from sharing.services.completeness import records_missing_alerts_raise
 
 
 class RecordSeriesApi(APIView):
@@ -71,6 +73,8 @@ class RecordSeriesApi(APIView):
                 "type": "integer",
                 "description": "verified records holding none of the fields as a number",
             },
+            "streams": STREAMS_SCHEMA,
+            "uncounted": UNCOUNTED_SCHEMA,
         },
     }
 
@@ -82,8 +86,10 @@ class RecordSeriesApi(APIView):
             "read (its own, or within a live grant's scope) is checked against the chain like "
             "a content read; the verified ones' fields are answered, downsampled to at most "
             "`points` rows by keeping each field's lowest and highest value per slice of time "
-            "(never by skipping records). The whole answer is one line of the access log "
-            "(kind `plot`). A session or an owner API token with the `read` scope."
+            "(never by skipping records). `streams` says, as `/api/v1/records/completeness/` "
+            "for this robot, topic and range, whether any record is missing and why. The "
+            "whole answer is one line of the access log (kind `plot`). A session or an owner "
+            "API token with the `read` scope."
         ),
         auth=OWNER_ONLY,
         parameters=[InputSerializer, FIELDS],
@@ -122,4 +128,6 @@ class RecordSeriesApi(APIView):
         series = series_of(
             viewer=caller_owner(request), query=query, credential=credential, token=token
         )
+        # A gap no deletion explains is told to the robot's owner, once per gap.
+        records_missing_alerts_raise(series.completeness)
         return Response(series.as_json())

@@ -21,6 +21,8 @@ anchoring.py, grant_chain.py, sweep.py, reconcile.py and deletion.py.
 - reconcile.py: what the database says is on chain compared with the chain and repaired.
 - deletion.py: records deleted (one, a selection, a robot's retention) and whole accounts,
   their ciphertext purged.
+- completeness.py: records missing from a stream (a gap no deletion explains) told to the
+  robot's owner, once per gap (records_missing_alerts_raise).
 - backup.py: a portal's database, envelopes and secrets backed up to a folder and restored.
 
 Import from the module that does the job; this package re-exports nothing.

@@ -1,15 +1,18 @@
 """The record lists: the owner's own records, and those shared with the owner, filtered,
-sorted and a page at a time."""
+sorted and a page at a time, with what is missing in the window the filters select
+(sharing/views/completeness.py)."""
 
 from django.core.paginator import Paginator
 from django.db.models import QuerySet
 from django.http import HttpRequest, HttpResponse
 from django.shortcuts import render
+from django.urls import reverse
 from django.views.decorators.http import require_GET
 
 from accounts.decorators import owner_required, page_throttle
 from sharing.forms import RecordFilterForm
 from sharing.models import Record
+from sharing.selectors.completeness import record_list_window
 from sharing.selectors.grants import owners_granting
 from sharing.selectors.records import (
     record_list_filtered,
@@ -18,6 +21,7 @@ from sharing.selectors.records import (
     record_list_sorted,
     robots_visible_to,
 )
+from sharing.views.completeness import completeness_shown
 from sharing.views.filters import say_left_out
 
 RECORDS_PER_PAGE = 25
@@ -57,4 +61,9 @@ def _record_list(request: HttpRequest, records: QuerySet[Record], *, shared: boo
     # 5 ms for 100,000 records of one owner on SQLite, less than the page's own query.
     page = Paginator(filtered, RECORDS_PER_PAGE).get_page(request.GET.get("page"))
     context["page"] = page
+    # Is anything missing in the window the filters select (any status, deletions named).
+    context["completeness"] = completeness_shown(
+        record_list_window(records, **form.filters()),
+        list_url=reverse("shared" if shared else "records"),
+    )
     return render(request, "sharing/records.html", context)

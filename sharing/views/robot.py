@@ -1,5 +1,5 @@
 """The robot page: is one robot of the owner alive, what it sends, its latest verified pose and
-image, and a plot of its recent trajectory.
+image, a plot of its recent trajectory, and whether any record of the last hour is missing.
 
 Only the robot's owner sees it; anyone else gets the 404 of a robot that does not exist. The
 numbers come from sharing/robot_status.py; the pose and image go through the integrity check
@@ -15,6 +15,7 @@ from datetime import timedelta
 
 from django.http import Http404, HttpRequest, HttpResponse
 from django.shortcuts import render
+from django.urls import reverse
 from django.utils import timezone
 from django.views.decorators.http import require_GET
 
@@ -25,6 +26,7 @@ from sharing.content import ODOMETRY, Content, content_of
 from sharing.errors import IntegrityCheckFailed
 from sharing.models import Access, Credential, Record, Verdict
 from sharing.robot_status import (
+    HOUR,
     RobotActivity,
     robot_activity,
     robot_latest_image_record,
@@ -32,7 +34,9 @@ from sharing.robot_status import (
     robot_of_owner,
 )
 from sharing.selection import iso_utc
+from sharing.selectors.records import record_list_owned
 from sharing.verification.opening import OpenedRecord, records_open
+from sharing.views.completeness import completeness_shown
 
 # The page checks two records (the latest pose and image): what it costs the worker.
 ROBOT_PAGE_COST = 2
@@ -43,6 +47,8 @@ PLOT_REFRESH_SECONDS = 5
 # loads the page again for a newer verified pose and image (two integrity checks each time).
 STATUS_POLL_SECONDS = 5
 LATEST_REFRESH_SECONDS = 30
+# The page says whether any record of this window (the rates' last hour) is missing.
+COMPLETENESS_WINDOW = HOUR
 
 
 @dataclass(frozen=True)
@@ -69,6 +75,11 @@ def robot_page(request: HttpRequest, robot_id: uuid.UUID) -> HttpResponse:
         [robot_latest_pose_record(robot), robot_latest_image_record(robot)], viewer=owner
     )
     odometry_topic = pose.record.topic if pose is not None else _topic_of_type(activity, ODOMETRY)
+    # Is any record of the last hour missing: the window of the rates (capture time, no end).
+    completeness = completeness_shown(
+        record_list_owned(owner).filter(robot=robot, captured_at__gte=now - COMPLETENESS_WINDOW),
+        list_url=reverse("records"),
+    )
     context = {
         "robot": robot,
         "activity": activity,
@@ -80,6 +91,8 @@ def robot_page(request: HttpRequest, robot_id: uuid.UUID) -> HttpResponse:
         "plot_refresh_seconds": PLOT_REFRESH_SECONDS,
         "poll_seconds": STATUS_POLL_SECONDS,
         "latest_refresh_seconds": LATEST_REFRESH_SECONDS,
+        "completeness": completeness,
+        "completeness_since": (now - COMPLETENESS_WINDOW).strftime("%Y-%m-%d %H:%M"),
     }
     return no_store(render(request, "sharing/robot_detail.html", context))
 

@@ -2,8 +2,9 @@
  * The robot page's status keeps itself up to date: [data-robot-status] names the status API
  * (GET /api/v1/robots/{id}/status/) and how often to ask it. The answer replaces the "last
  * seen" text (worded by the server) and the table of messages per second per topic.
- * [data-robot-latest] (the latest verified pose and image) is taken from the page loaded again
- * every data-refresh-seconds: the server checks them against the chain each time.
+ * [data-robot-latest] (the latest verified pose and image) and #robot-completeness (is any record
+ * of the last hour missing) are taken from the page loaded again every data-refresh-seconds:
+ * the server checks the pose and image against the chain, and counts the hour, each time.
  * While the tab is hidden nothing is asked; it asks again at once when it is shown. After a
  * failed answer it waits twice as long each time (at most 2 minutes), then goes back to the
  * usual pace once an answer comes.
@@ -110,9 +111,13 @@
         return response.text();
       })
       .then(function (html) {
-        var fresh = new DOMParser().parseFromString(html, "text/html").getElementById(latest.id);
-        var now = document.getElementById(latest.id);
-        if (fresh && now) { now.replaceWith(document.importNode(fresh, true)); }
+        var page = new DOMParser().parseFromString(html, "text/html");
+        // The latest pose and image, and the last hour's completeness, as the server has them now.
+        [latest.id, "robot-completeness"].forEach(function (id) {
+          var fresh = page.getElementById(id);
+          var now = document.getElementById(id);
+          if (fresh && now) { now.replaceWith(document.importNode(fresh, true)); }
+        });
         latestWait = latestPace;
         scheduleLatest(latestWait);
       })

@@ -24,7 +24,9 @@
  * An element added later is plotted by window.AuthROSSeriesPlot.start(element).
  * The browser's session authenticates the call (a GET: no CSRF token needed). The element gets
  * an <svg> that scales to its width (readable from 390 px up) and a status line; its
- * data-state becomes "loading", "ready" or "error", and data-verified / data-refused the counts.
+ * data-state becomes "loading", "ready" or "error", and data-verified / data-refused the counts;
+ * data-missing how many records of the range's streams are missing (the series' `streams`),
+ * which the status line says, with how many were deleted.
  */
 (function () {
   "use strict";
@@ -246,7 +248,27 @@
     if (answer.points.length < answer.verified - answer.without_values) {
       text += "; " + answer.points.length + " points keep each slice's lowest and highest values";
     }
+    var gone = gaps(answer);
+    if (gone.missing) {
+      text += "; " + gone.missing + " record" + (gone.missing === 1 ? "" : "s") +
+        " of the robot's count missing (no deletion explains " + (gone.missing === 1 ? "it" : "them") + ")";
+    }
+    if (gone.deleted) {
+      text += "; " + gone.deleted + " deleted";
+    }
     return text + ".";
+  }
+
+  // How many numbers of the range's streams (provenance v2's topic_seq) are missing, and how
+  // many were deleted (by the owner or the retention policy): the series' `streams`.
+  function gaps(answer) {
+    var found = { missing: 0, deleted: 0 };
+    (answer.streams || []).forEach(function (stream) {
+      stream.gaps.forEach(function (gap) {
+        found[gap.reason === "missing" ? "missing" : "deleted"] += gap.to - gap.from + 1;
+      });
+    });
+    return found;
   }
 
   function load(element) {
@@ -272,6 +294,7 @@
         }
         element.dataset.verified = answer.verified;
         element.dataset.refused = answer.refused;
+        element.dataset.missing = gaps(answer).missing;
         element.dataset.state = "ready";
         statusLine.textContent = status(element, answer);
       })

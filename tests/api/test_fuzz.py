@@ -195,6 +195,7 @@ def _excluded_checks(operation: Any, identity: Identity) -> list[Callable]:
         "exports_create",
         "exports_count",
         "records_series",
+        "records_completeness",
         "access_log_list",
     ):
         # Valid by the schema yet refused with 400 by design: random bytes are no envelope
@@ -202,7 +203,7 @@ def _excluded_checks(operation: Any, identity: Identity) -> list[Callable]:
         # owner's and a window before 1970 holds no capture (`invalid_grant_terms`), random hex
         # is no point on the SM2 curve (`invalid_pairing_request`), a random robot id or topic
         # selects no record (`invalid_selection`, also when only counted), and a period may
-        # not end before it starts (`invalid_request`) nor, for a series, be longer than
-        # SERIES_MAX_RANGE (`invalid_series`).
+        # not end before it starts (`invalid_request`, a series' and a completeness window's
+        # too) nor, for a series, be longer than SERIES_MAX_RANGE (`invalid_series`).
         excluded.append(checks.positive_data_acceptance)
     return excluded

@@ -50,6 +50,8 @@ DELETION_OPERATIONS = {("/api/v1/records/{record_id}/", "delete")}
 SERIES_OPERATIONS = {("/api/v1/records/series/", "get")}
 # Added by issue 35 (the robot page): a robot's last contact and rates.
 ROBOT_STATUS_OPERATIONS = {("/api/v1/robots/{robot_id}/status/", "get")}
+# Added by issue 44: every record counted, each stream's gaps with their reasons.
+COMPLETENESS_OPERATIONS = {("/api/v1/records/completeness/", "get")}
 
 
 def test_the_schema_validates_without_warnings(tmp_path: Path):
@@ -79,6 +81,7 @@ def test_the_served_schema_lists_exactly_the_fixed_endpoints(client):
         | DELETION_OPERATIONS
         | SERIES_OPERATIONS
         | ROBOT_STATUS_OPERATIONS
+        | COMPLETENESS_OPERATIONS
     )
     assert schema["paths"]["/api/v1/robot-key/"]["get"]["security"] == [{"robotToken": []}]
     for path in ("/api/v1/robot-pairings/", "/api/v1/robot-pairings/{pairing_id}/collect/"):
@@ -107,6 +110,7 @@ def test_the_served_schema_lists_exactly_the_fixed_endpoints(client):
         ("/api/v1/access-log/", "get"),
         ("/api/v1/records/{record_id}/", "delete"),
         ("/api/v1/records/series/", "get"),
+        ("/api/v1/records/completeness/", "get"),
     ]:
         assert schema["paths"][path][method]["security"] == owner_only, (path, method)
     for path in ("/api/v1/records/", "/api/v1/records/{record_id}/"):
