@@ -583,8 +583,9 @@ def _plot(report: dict[str, Any], path: Path) -> None:
     )  # fmt: skip
     left.set_xticks(range(len(variants)), variants)
     left.set_yscale("log")
+    left.set_ylim(top=max(row["p50_s"] for row in rows) * 10)  # room for the legend
     left.set_ylabel(f"p50 seconds for {rows[0]['records']:,} records (log)")
-    left.legend(fontsize=7)
+    left.legend(fontsize=7, loc="upper left")
     bars = [(variant, path_name) for variant in variants for path_name in ("per record", "series")]
     labels = [f"{variant}\n{path_name}" for variant, path_name in bars]
     for offset, key, label in (
@@ -598,7 +599,8 @@ def _plot(report: dict[str, Any], path: Path) -> None:
             label=label,
         )
     right.set_xticks(range(len(bars)), labels, fontsize=7)
-    right.set_ylabel("CPU ms per record checked")
+    right.set_yscale("log")
+    right.set_ylabel("CPU ms per record checked (log)")
     right.legend(fontsize=8)
     backend = report.get("settings", {}).get("sm2_backend")
     save_figure(

@@ -302,3 +302,31 @@ def test_the_signing_section_says_when_every_goal_still_holds(tmp_path):
     text = _signing_report(tmp_path, rows, goals_met)
 
     assert "With signatures, issue 13's ingest and view goals all still hold in this run." in text
+
+
+def test_the_signing_section_sets_v2_beside_signed_where_the_run_has_it(tmp_path):
+    rows = [
+        _signing_row("unsigned", ingest_per_s=4000.0, seal_per_s=10000.0),
+        _signing_row("signed", ingest_per_s=1400.0, seal_per_s=1000.0),
+        _signing_row(
+            "v2",
+            ingest_per_s=2000.0,
+            seal_per_s=5000.0,
+            worker_check_batch_ms_per_record=0.25,
+            seal_per_s_rounds=[5000.0, 4000.0],
+        ),
+    ]
+    signing.ratios(rows)
+    goals_met = {row["signing"]: signing.goals_met(row) for row in rows}
+
+    text = _signing_report(tmp_path, rows, goals_met, sm2={"sm2_sign_batch_ms": 3.5})
+
+    assert "| figure | unsigned | signed | signed / unsigned | v2 | v2 / unsigned |" in text
+    ingest = "| ingest, 1 KB envelopes/s (100 per POST) | 4000 | 1400 | 0.35x | 2000 | 0.50x |"
+    assert ingest in text
+    assert "| sealing alone, 1 KB envelopes/s (100 a batch) | 10000 | 1000 | 0.10x | 5000 |" in text
+    assert "With one signature per batch (v2), issue 13's goals **not met**" in text
+    assert "Sealing a 1 KB envelope alone: unsigned 0.100 ms, signed 1.000 ms, v2 0.200 ms." in text
+    assert "a v2 batch of 100 (its tree and one signature) 3.500 ms" in text
+    assert "V2: 30000 envelopes" in text
+    assert "no Recorder figure (the agent signs per record); sealing alone per round 5000, " in text
