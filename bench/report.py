@@ -1020,6 +1020,19 @@ def _signing_costs(
             )
             + "."
         )
+    by_backend = report.get("sm2_by_backend") or {}
+    if by_backend:
+        parts.append(
+            "By SM2 backend (smcrypto.sm2, each in a fresh interpreter; the ones that import "
+            "here): "
+            + "; ".join(
+                f"`{name}` sign {_num(costs.get('sm2_sign_header_ms'), 3)} ms, verify "
+                f"{_num(costs.get('sm2_verify_header_ms'), 3)} ms, a v2 batch of 100 "
+                f"{_num(costs.get('sm2_sign_batch_ms'), 3)} ms"
+                for name, costs in by_backend.items()
+            )
+            + "."
+        )
     extra = []
     for kind, label in (("odometry", "an odometry envelope"), ("image", "an image envelope")):
         ours, theirs = signed.get(f"agent_{kind}_per_s"), unsigned.get(f"agent_{kind}_per_s")

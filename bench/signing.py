@@ -54,6 +54,7 @@ import argparse
 import base64
 import copy
 import itertools
+import os
 import shutil
 import statistics
 import sys
@@ -377,6 +378,30 @@ def sm2_backend() -> str:
     from smcrypto import sm2
 
     return sm2.BACKEND
+
+
+def sm2_costs_by_backend(repeat: int = SM2_REPEAT) -> dict[str, dict[str, float]]:
+    """sm2_costs in a fresh interpreter for each SM2 backend that imports here, chosen as an
+    operator chooses it (AUTHROS_SM2_BACKEND): what a robot or an auditor without Tongsuo
+    (an ARM64 one) pays per record signed and verified, and per batch signed."""
+    from smcrypto import sm2
+
+    costs = {}
+    saved = os.environ.get(sm2.BACKEND_VARIABLE)
+    try:
+        for name in sm2.BACKENDS:
+            try:
+                sm2.backend_load(name)
+            except ImportError:
+                continue
+            os.environ[sm2.BACKEND_VARIABLE] = name
+            costs[name] = run_in_child(sm2_costs, repeat)
+    finally:
+        if saved is None:
+            os.environ.pop(sm2.BACKEND_VARIABLE, None)
+        else:
+            os.environ[sm2.BACKEND_VARIABLE] = saved
+    return costs
 
 
 def sm2_costs(repeat: int = SM2_REPEAT) -> dict[str, float]:
@@ -757,6 +782,7 @@ def main(argv: list[str]) -> int:
     print("== agent: Recorder (unsigned, signed) and sealing alone (and v2)", flush=True)
     agent = agent_rates(args.agent_seconds, args.rounds)
     crypto = sm2_costs()
+    by_backend = sm2_costs_by_backend()
     run = SigningRun(
         clients=args.clients,
         owners=min(args.owners, args.clients),
@@ -796,6 +822,7 @@ def main(argv: list[str]) -> int:
     }
     report["notes"] = NOTES
     report["sm2"] = crypto
+    report["sm2_by_backend"] = by_backend
     report["goals"] = ISSUE_13_GOALS
     report["results"] = rows
     report["goals_met"] = {row["signing"]: goals_met(row) for row in rows}

@@ -5,6 +5,7 @@ made-up signing.json. No stack starts here."""
 
 import base64
 import json
+import os
 import uuid
 from types import SimpleNamespace
 
@@ -15,6 +16,8 @@ from bench.roots import Client
 from ros_agent import sim
 from ros_agent.sealing import RobotSigningKey
 from smcrypto import envelope, provenance, sm2, sm4
+
+BACKEND_AT_START = os.environ.get(sm2.BACKEND_VARIABLE)
 
 
 def test_the_variants_take_turns_going_first():
@@ -330,3 +333,15 @@ def test_the_signing_section_sets_v2_beside_signed_where_the_run_has_it(tmp_path
     assert "a v2 batch of 100 (its tree and one signature) 3.500 ms" in text
     assert "V2: 30000 envelopes" in text
     assert "no Recorder figure (the agent signs per record); sealing alone per round 5000, " in text
+
+
+@pytest.mark.process
+def test_sm2_costs_are_measured_on_each_backend_that_imports_each_in_its_own_interpreter():
+    costs = signing.sm2_costs_by_backend(repeat=2)
+
+    assert {"tongsuo", "gmssl"} <= set(costs) <= set(sm2.BACKENDS)
+    for figures in costs.values():
+        assert set(figures) == {"sm2_sign_header_ms", "sm2_verify_header_ms", "sm2_sign_batch_ms"}
+    # the pure-Python fallback is the slow one: that is what it is measured for
+    assert costs["gmssl"]["sm2_verify_header_ms"] > costs["tongsuo"]["sm2_verify_header_ms"]
+    assert os.environ.get(sm2.BACKEND_VARIABLE) == BACKEND_AT_START  # put back as it was
