@@ -24,16 +24,17 @@ tests/smcrypto/test_sm2.py runs every test against each backend present and each
 others both ways.
 
 Constant time. Tongsuo's multiplications by a secret scalar use OpenSSL's constant-time ladder.
-gmssl's do not (a double-and-add that branches on every bit, on Python integers whose
-operations take time by their values), nor, as far as its package says, need gmssl-fast's.
-That matters where a secret scalar is multiplied and someone can time it many times: signing on
-a robot (the nonce k of every batch signature; timing leaks of nonces, gathered over many
-signatures, recover the private key) and, far less often, a robot's decryption of its pairing
-token and owner key with its pairing key, and the public key derived from it at start. One
-signature per batch rather than per record leaves a hundred times fewer signatures to time,
-but a robot whose other processes may be hostile should run Tongsuo (x86_64) or keep them
-apart. Verification handles only public data (the key, the message, the signature), so the
-portal, `authros-verify` and every check are unaffected by the backend's timing.
+gmssl's do not: a double-and-add that branches on every bit of the scalar, on Python integers
+whose operations take time by their values. gmssl-fast's package promises nothing either way,
+so take it as not constant-time too. That matters where a secret scalar is multiplied and
+someone can time it, many times: signing on a robot (the nonce k of each batch signature;
+timing leaks of nonces, gathered over many signatures, give away the private key) and, far
+less often, the robot's decryption of its pairing token and owner keys with its pairing key,
+and the public key derived from that key at start. One signature per batch rather than per
+record leaves about a hundred times fewer signatures to time, not none: a robot on which
+hostile code may run beside the agent should use Tongsuo (x86_64) or keep that code off the
+machine. Verification handles only public data (the key, the message, the signature), so the
+portal's checks and `authros-verify` lose nothing to the backend's timing, only speed.
 """
 
 import importlib
