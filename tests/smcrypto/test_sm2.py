@@ -6,6 +6,7 @@ chooses, and what AUTHROS_SM2_BACKEND forces, is seen in fresh interpreters."""
 
 import json
 import os
+import platform
 import random
 import re
 import shutil
@@ -698,6 +699,17 @@ def test_a_forced_backend_that_cannot_load_is_an_import_error_not_a_fallback() -
     run = _import_choice(forced="openssl")
     assert run.returncode != 0
     assert "must be one of tongsuo, gmssl-fast, gmssl, not 'openssl'" in run.stderr
+
+
+@pytest.mark.skipif(
+    (sys.platform, platform.machine()) != ("linux", "x86_64"),
+    reason="tongsuopy has wheels for Linux x86_64 (and macOS) only",
+)
+def test_tongsuo_imports_where_it_has_a_wheel() -> None:
+    """Where every install has it, Tongsuo's backend is never skipped as absent: an error in
+    it fails here instead of quietly leaving the portal on a slower backend."""
+    assert sm2.backend_load("tongsuo").NAME == "tongsuo"
+    assert "tongsuo" in PRESENT
 
 
 def test_backend_names_the_one_in_use() -> None:
