@@ -1,6 +1,7 @@
 """What every benchmark does the same way: run its configurations one after another, each in a
 fresh interpreter; divide by the batch-size-1 baseline; print a table; write JSON, CSV and PNG;
-seal a record as a robot's agent does (ros_agent.sealing: signed for a paired robot).
+seal a record as a robot's agent does (ros_agent.sealing: signed for a paired robot), or a
+batch signed once (provenance v2).
 """
 
 import argparse
@@ -20,6 +21,7 @@ from bench import run_in_child
 from core.redis_url import redis_target
 from ros_agent import sealing
 from ros_agent.sealing import RobotSigningKey
+from smcrypto import envelope, provenance
 
 PLAINTEXT_BYTES = 1024
 # Redis databases a benchmark never flushes: the development one and the test suite's.
@@ -147,16 +149,10 @@ def write_results(
     print(f"results: {results_dir}/{name}.json, {name}.csv, {name}.png")
 
 
-def seal_record(
-    robot: Any,
-    key: bytes,
-    *,
-    seq: int,
-    plaintext_bytes: int = PLAINTEXT_BYTES,
-    signing_key: RobotSigningKey | None = None,
-) -> bytes:
-    """Fig. 4's JSON record padded to plaintext_bytes, sealed as the robot's agent seals it:
-    signed with `signing_key` (a paired robot's), unsigned without (a robot added by hand)."""
+def record_plaintext(
+    robot: Any, *, seq: int, plaintext_bytes: int = PLAINTEXT_BYTES
+) -> tuple[dict[str, Any], bytes]:
+    """Fig. 4's JSON record padded to plaintext_bytes, captured now: (header, plaintext)."""
     now = datetime.now(tz=UTC).isoformat().replace("+00:00", "Z")
     header = {
         "owner": robot.owner.username,
@@ -170,4 +166,39 @@ def seal_record(
     record.update(Type=header["type"], Topic=header["topic"])
     filler = max(plaintext_bytes - len(json.dumps(record).encode()), 0)
     record["K"]["pad"] = secrets.token_hex(filler // 2 + 1)[:filler]
-    return sealing.seal_record(key, header, json.dumps(record).encode(), signing_key)
+    return header, json.dumps(record).encode()
+
+
+def seal_record(
+    robot: Any,
+    key: bytes,
+    *,
+    seq: int,
+    plaintext_bytes: int = PLAINTEXT_BYTES,
+    signing_key: RobotSigningKey | None = None,
+) -> bytes:
+    """Fig. 4's JSON record padded to plaintext_bytes, sealed as the robot's agent seals it:
+    signed with `signing_key` (a paired robot's), unsigned without (a robot added by hand)."""
+    header, plaintext = record_plaintext(robot, seq=seq, plaintext_bytes=plaintext_bytes)
+    return sealing.seal_record(key, header, plaintext, signing_key)
+
+
+def seal_batch(
+    key: bytes,
+    records: Sequence[tuple[Mapping[str, Any], bytes]],
+    signing_key: RobotSigningKey,
+    *,
+    first_topic_seq: int,
+) -> list[bytes]:
+    """The envelopes of one upload batch signed once (provenance v2, smcrypto.provenance
+    .sign_batch): each record's header gains its `topic_seq` (first_topic_seq, then on by one:
+    the caller counts per topic from 0) and the batch's signature and its place in it."""
+    numbered = [
+        ({**header, "topic_seq": first_topic_seq + number}, plaintext)
+        for number, (header, plaintext) in enumerate(records)
+    ]
+    headers = provenance.sign_batch(signing_key.private_key, signing_key.public_key, numbered)
+    return [
+        envelope.seal(key, header, plaintext)
+        for header, (_, plaintext) in zip(headers, numbered, strict=True)
+    ]

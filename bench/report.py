@@ -811,6 +811,7 @@ def _section_roots(results: Path) -> str | None:
 SIGNING_FIGURES = (
     ("agent, nav_msgs/Odometry, envelopes/s", "agent_odometry_per_s", 0, None),
     ("agent, 320x240 sensor_msgs/Image, envelopes/s", "agent_image_per_s", 1, None),
+    ("sealing alone, 1 KB envelopes/s (100 a batch)", "seal_per_s", 0, None),
     ("ingest, 1 KB envelopes/s (100 per POST)", "ingest_per_s", 0, "ingest_per_s"),
     ("web CPU per envelope ingested, ms", "ingest_web_cpu_ms_per_envelope", 3, None),
     ("verified view p50, idle, ms", "view_idle_p50_ms", 1, "view_idle_p50_ms"),
@@ -818,18 +819,25 @@ SIGNING_FIGURES = (
     ("verified view p50, at 100 records/s, ms", "view_load_p50_ms", 1, None),
     ("verified view p95, at 100 records/s, ms", "view_load_p95_ms", 1, "view_load_p95_ms"),
     ("the worker's check alone, p50, ms", "worker_check_p50_ms", 2, None),
+    (
+        "the worker's check of one upload (100), ms per record",
+        "worker_check_batch_ms_per_record",
+        3,
+        None,
+    ),
 )
 SIGNING_HIGHER = ("ingest_per_s",)
 
 
 def _section_signing(results: Path) -> str | None:
     """Robot signatures against none (issue 34): the agent's, the ingest's and the view's
-    figures for both, the ratio, and issue 13's ingest and view goals judged for each."""
+    figures for each variant (unsigned, signed per record and, where the run has it, v2 signed
+    per batch), the ratios, and issue 13's ingest and view goals judged for each."""
     report = _load(results, "signing")
     if report is None:
         return None
     rows = {row["signing"]: row for row in report["results"]}
-    unsigned, signed = rows.get("unsigned", {}), rows.get("signed", {})
+    unsigned, signed, v2 = rows.get("unsigned", {}), rows.get("signed", {}), rows.get("v2", {})
     goals, met = report["goals"], report.get("goals_met", {})
     verdicts = {True: "met", False: "**not met**", None: "not measured"}
 
@@ -841,33 +849,48 @@ def _section_signing(results: Path) -> str | None:
     def verdict(variant: str, key: str | None) -> str:
         return "-" if key is None else verdicts[met.get(variant, {}).get(key)]
 
+    columns: list[Column] = [
+        ("figure", lambda f: f["figure"]),
+        ("unsigned", lambda f: _num(unsigned.get(f["key"]), f["digits"])),
+        ("signed", lambda f: _num(signed.get(f["key"]), f["digits"])),
+        ("signed / unsigned", lambda f: _ratio(signed.get(f"{f['key']}_ratio_vs_unsigned"))),
+    ]
+    if v2:
+        columns += [
+            ("v2", lambda f: _num(v2.get(f["key"]), f["digits"])),
+            ("v2 / unsigned", lambda f: _ratio(v2.get(f"{f['key']}_ratio_vs_unsigned"))),
+        ]
+    columns += [
+        ("issue 13 goal", lambda f: goal(f["goal"])),
+        ("unsigned: goal", lambda f: verdict("unsigned", f["goal"])),
+        ("signed: goal", lambda f: verdict("signed", f["goal"])),
+        *([("v2: goal", lambda f: verdict("v2", f["goal"]))] if v2 else []),
+    ]
     table = _table(
         [dict(zip(("figure", "key", "digits", "goal"), f, strict=True)) for f in SIGNING_FIGURES],
-        (
-            ("figure", lambda f: f["figure"]),
-            ("unsigned", lambda f: _num(unsigned.get(f["key"]), f["digits"])),
-            ("signed", lambda f: _num(signed.get(f["key"]), f["digits"])),
-            ("signed / unsigned", lambda f: _ratio(signed.get(f"{f['key']}_ratio_vs_unsigned"))),
-            ("issue 13 goal", lambda f: goal(f["goal"])),
-            ("unsigned: goal", lambda f: verdict("unsigned", f["goal"])),
-            ("signed: goal", lambda f: verdict("signed", f["goal"])),
-        ),
+        columns,
     )
     settings = report["settings"]
     quick = " Quick (smoke) run." if settings.get("quick") else ""
     rounds = settings["rounds"]
-    missed = [
-        figure
-        for figure, _key, _digits, goal_key in SIGNING_FIGURES
-        if goal_key is not None and met.get("signed", {}).get(goal_key) is not True
-    ]
-    judged = (
-        "With signatures, issue 13's ingest and view goals all still hold in this run."
-        if not missed
-        else "With signatures, issue 13's goals **not met** (or not measured) in this run: "
-        + "; ".join(missed)
-        + "."
-    )
+
+    def judged_for(variant: str, label: str) -> str:
+        missed = [
+            figure
+            for figure, _key, _digits, goal_key in SIGNING_FIGURES
+            if goal_key is not None and met.get(variant, {}).get(goal_key) is not True
+        ]
+        if not missed:
+            return f"{label}, issue 13's ingest and view goals all still hold in this run."
+        return (
+            f"{label}, issue 13's goals **not met** (or not measured) in this run: "
+            + "; ".join(missed)
+            + "."
+        )
+
+    judged = judged_for("signed", "With signatures")
+    if v2:
+        judged += " " + judged_for("v2", "With one signature per batch (v2)")
     lines = [
         "## Robot signatures against none (issue 34; no paper figure)\n",
         f"**Our run:** {_machine(report)}{quick}"
@@ -878,8 +901,21 @@ def _section_signing(results: Path) -> str | None:
         )
         + "\n",
         "One run, unsigned (robots added by hand) as the baseline beside signed (paired robots, "
-        "each key registered on chain by its owner's EOA before the first upload). "
-        "**Agent:** the agent's Recorder (extract, Fig. 4 record, seal, sign when paired, "
+        "each key registered on chain by its owner's EOA before the first upload"
+        + (
+            "; `signed` is provenance v1, one SM2 signature per record, and `v2` paired robots "
+            "that sign each POST of envelopes once as one batch, each header with its "
+            "`topic_seq`"
+            if v2
+            else ""
+        )
+        + "). "
+        + (
+            f"SM2 through smcrypto.sm2's `{settings['sm2_backend']}` backend. "
+            if settings.get("sm2_backend")
+            else ""
+        )
+        + "**Agent:** the agent's Recorder (extract, Fig. 4 record, seal, sign when paired, "
         "append durably to its spool) records one message after another for "
         f"{settings['agent_seconds']:g} s per kind, variant and round, in this process before "
         "the stack starts. **Portal:** one fresh `make run` stack "
@@ -890,19 +926,25 @@ def _section_signing(results: Path) -> str | None:
         f"at a time for up to {settings['ingest_seconds']:g} s as fast as they are answered, "
         "then every record is awaited on chain. Views: "
         f"{settings['idle_views']} `GET /api/v1/records/{{id}}/content/` of each variant's "
-        "anchored records, the two alternating one after another (the worker checks each at "
+        "anchored records, the variants alternating one after another (the worker checks each at "
         "every view: for a signed record also `robotKeyOf` and the SM2 signature), then, for "
         f"each variant, {settings['load_seconds']:g} s of views of its records while one of its "
         "robots uploads 100 records/s. Every phase ran in "
         f"{rounds} round{'s' if rounds != 1 else ''}, the order of the variants alternating; "
         "agent and ingest figures are the median round's, view percentiles are over every "
-        "view. The worker's check alone is `record_verify` in the benchmark's process. Ratios "
-        "are signed over unsigned of this run.\n",
+        "view. The worker's check alone is `record_verify` in the benchmark's process"
+        + (
+            ", one record at a time and the 100 records of one upload at once (a v2 batch's "
+            "signature verified once)"
+            if v2
+            else ""
+        )
+        + ". Ratios are each variant's over unsigned of this run.\n",
         table,
         f"{judged}\n",
-        _signing_counts(unsigned, signed),
-        _signing_costs(unsigned, signed, report),
-        _signing_machine(unsigned, signed),
+        _signing_counts(unsigned, signed, v2),
+        _signing_costs(unsigned, signed, report, v2),
+        _signing_machine(unsigned, signed, v2),
     ]
     notes = report.get("notes", [])
     if notes:
@@ -911,14 +953,16 @@ def _section_signing(results: Path) -> str | None:
     return "\n".join(line for line in lines if line)
 
 
-def _signing_counts(unsigned: dict[str, Any], signed: dict[str, Any]) -> str:
+def _signing_counts(
+    unsigned: dict[str, Any], signed: dict[str, Any], v2: dict[str, Any] | None = None
+) -> str:
     """What each variant sent and what became of it, every round's figure, each envelope's size."""
 
     def rounds(values: list[float | None] | None, digits: int) -> str:
         return ", ".join(_num(value, digits) for value in values or [])
 
     parts = []
-    for name, row in (("Unsigned", unsigned), ("Signed", signed)):
+    for name, row in (("Unsigned", unsigned), ("Signed", signed), ("V2", v2 or {})):
         if not row:
             continue
         parts.append(
@@ -932,9 +976,19 @@ def _signing_counts(unsigned: dict[str, Any], signed: dict[str, Any]) -> str:
                 if row.get("ingest_seconds_rounds")
                 else ""
             )
-            + "; agent per round odometry "
-            f"{rounds(row.get('agent_odometry_per_s_rounds'), 0)}/s, images "
-            f"{rounds(row.get('agent_image_per_s_rounds'), 1)}/s; "
+            + (
+                "; agent per round odometry "
+                f"{rounds(row.get('agent_odometry_per_s_rounds'), 0)}/s, images "
+                f"{rounds(row.get('agent_image_per_s_rounds'), 1)}/s"
+                if row.get("agent_odometry_per_s_rounds")
+                else "; no Recorder figure (the agent signs per record)"
+            )
+            + (
+                f"; sealing alone per round {rounds(row['seal_per_s_rounds'], 0)}/s"
+                if row.get("seal_per_s_rounds")
+                else ""
+            )
+            + "; "
             f"{row.get('view_idle_count')} idle and {row.get('view_load_count')} loaded views, "
             f"{(row.get('view_idle_errors') or 0) + (row.get('view_load_errors') or 0)} not "
             f"answered 200; {row.get('worker_checks')} worker checks, verdicts "
@@ -943,7 +997,12 @@ def _signing_counts(unsigned: dict[str, Any], signed: dict[str, Any]) -> str:
     return " ".join(parts) + "\n" if parts else ""
 
 
-def _signing_costs(unsigned: dict[str, Any], signed: dict[str, Any], report: dict[str, Any]) -> str:
+def _signing_costs(
+    unsigned: dict[str, Any],
+    signed: dict[str, Any],
+    report: dict[str, Any],
+    v2: dict[str, Any] | None = None,
+) -> str:
     """Where a signature's time goes: SM2 on one core beside the extra time per envelope the
     agent and the web spent, and per check the worker spent."""
     sm2 = report.get("sm2", {})
@@ -952,7 +1011,27 @@ def _signing_costs(unsigned: dict[str, Any], signed: dict[str, Any], report: dic
         parts.append(
             f"SM2 on one core (smcrypto.provenance, one 1 KB record): sign "
             f"{_num(sm2.get('sm2_sign_header_ms'), 3)} ms, verify "
-            f"{_num(sm2.get('sm2_verify_header_ms'), 3)} ms."
+            f"{_num(sm2.get('sm2_verify_header_ms'), 3)} ms"
+            + (
+                f"; a v2 batch of 100 (its tree and one signature) "
+                f"{_num(sm2['sm2_sign_batch_ms'], 3)} ms"
+                if sm2.get("sm2_sign_batch_ms") is not None
+                else ""
+            )
+            + "."
+        )
+    by_backend = report.get("sm2_by_backend") or {}
+    if by_backend:
+        parts.append(
+            "By SM2 backend (smcrypto.sm2, each in a fresh interpreter; the ones that import "
+            "here): "
+            + "; ".join(
+                f"`{name}` sign {_num(costs.get('sm2_sign_header_ms'), 3)} ms, verify "
+                f"{_num(costs.get('sm2_verify_header_ms'), 3)} ms, a v2 batch of 100 "
+                f"{_num(costs.get('sm2_sign_batch_ms'), 3)} ms"
+                for name, costs in by_backend.items()
+            )
+            + "."
         )
     extra = []
     for kind, label in (("odometry", "an odometry envelope"), ("image", "an image envelope")):
@@ -967,14 +1046,35 @@ def _signing_costs(unsigned: dict[str, Any], signed: dict[str, Any], report: dic
         extra.append(f"{_num(check[0] - check[1], 2)} ms more for the worker's check (p50)")
     if extra:
         parts.append("Signed against unsigned: " + "; ".join(extra) + ".")
+    if v2:
+        more = []
+        for label, row in (("unsigned", unsigned), ("signed", signed), ("v2", v2)):
+            rate = row.get("seal_per_s")
+            if rate:
+                more.append(f"{label} {_num(1000 / rate, 3)} ms")
+        if more:
+            parts.append("Sealing a 1 KB envelope alone: " + ", ".join(more) + ".")
+        batch = [
+            f"{label} {_num(row.get('worker_check_batch_ms_per_record'), 3)} ms"
+            for label, row in (("unsigned", unsigned), ("signed", signed), ("v2", v2))
+            if row.get("worker_check_batch_ms_per_record") is not None
+        ]
+        if batch:
+            parts.append(
+                "The worker's check of one upload's 100 records at once, per record: "
+                + ", ".join(batch)
+                + "."
+            )
     return " ".join(parts) + "\n" if parts else ""
 
 
-def _signing_machine(unsigned: dict[str, Any], signed: dict[str, Any]) -> str:
+def _signing_machine(
+    unsigned: dict[str, Any], signed: dict[str, Any], v2: dict[str, Any] | None = None
+) -> str:
     """How busy the machine was with others' work during the phases."""
     shares = [
         share
-        for row in (unsigned, signed)
+        for row in (unsigned, signed, v2 or {})
         for share in (
             *(row.get("ingest_others_share_rounds") or []),
             *(row.get("load_others_share_rounds") or []),
@@ -1022,6 +1122,8 @@ def _section_series(results: Path) -> str | None:
     report = _load(results, "series")
     if report is None:
         return None
+    if "variant" in report["results"][0]:
+        return _section_series_variants(report)
     baseline, series = report["results"]
     settings = report["settings"]
     answers = series["answers"]
@@ -1082,6 +1184,83 @@ def _section_series(results: Path) -> str | None:
         f"a floor of {floor:.1f} s under its answer on {cores} cores with nothing else running "
         "(the CPU divided by the cores).\n",
         *([SERIES_SIGNED_FINDING] if signed else []),
+        "![Series against per record](results/series.png)\n",
+    ]
+    return "\n".join(lines)
+
+
+SERIES_VARIANTS = {
+    "unsigned": "a robot added by hand (nothing signed)",
+    "signed": "a paired robot signing every record (provenance v1: one SM2 verification per "
+    "record at every check)",
+    "v2": "a paired robot signing each upload batch of 500 once (provenance v2: one SM2 "
+    "verification per batch at every check, each record's path folded to its batch's root)",
+}
+
+
+def _section_series_variants(report: dict[str, Any]) -> str:
+    """The series section of a run with a robot per variant (unsigned, signed, v2): for each
+    the one check path against one check per record, and each against unsigned."""
+    rows = report["results"]
+    settings = report["settings"]
+    variants = list(dict.fromkeys(row["variant"] for row in rows))
+    by = {(row["variant"], row["path"]): row for row in rows}
+    quick = " Quick (smoke) run." if settings.get("quick") else ""
+    backend = settings.get("sm2_backend")
+    robots = "; ".join(
+        f"`{variant}`: {SERIES_VARIANTS.get(variant, variant)}" for variant in variants
+    )
+    first = by[(variants[0], "series")]
+    sample = by[(variants[0], "per record")]["sample"]
+    records = settings["records"]
+    lines = [
+        "## A series of every record over 30 minutes: one check path (issue 35; no paper figure)\n",
+        f"**Our run:** {_machine(report)}{quick} Load average at the end "
+        f"{report.get('load_average_at_end')}.\n",
+        f"One `make run` stack (ANCHOR_MODE=root, anvil automine), one owner, one robot per "
+        f"variant ({robots}); each robot's {settings['records']:,} odometry records 0.1 s apart "
+        "(the agent's Fig. 4 JSON of nav_msgs/Odometry, about 1 KB), stored "
+        f"{settings.get('per_post', 500)} at a time through the upload service and anchored"
+        + (f"; SM2 through smcrypto.sm2's `{backend}` backend" if backend else "")
+        + ". **Series**: `GET /api/v1/records/series/?fields=position.x,position.y&points=1000` "
+        f"over the whole range with the owner's read token, {first['rounds']} rounds, each one "
+        "read of each robot (the order turning by round); every record checked, read and "
+        f"downsampled. **Per record** (same run, same records): {sample} records of each robot "
+        "read one at a time through `GET /api/v1/records/{id}/content/`; its time for the whole "
+        f"range is the sample's p50 per record times {records:,}. "
+        "CPU is the web processes' and the workers' over each read, per record checked.\n",
+        "| variant | path | p50 s | p95 s | web CPU ms/record | workers CPU ms/record | "
+        "x per record (p50) | x unsigned (p50) | x unsigned (CPU web, workers) | others' share |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for row in rows:
+        p95 = "-" if row["p95_s"] is None else f"{row['p95_s']:.2f}"
+        lines.append(
+            f"| {row['variant']} | {row['path']} | {row['p50_s']:.2f} | {p95} | "
+            f"{row['web_cpu_ms_per_record']:.3f} | {row['workers_cpu_ms_per_record']:.3f} | "
+            f"{_ratio(row.get('p50_ratio_vs_per_record'))} | "
+            f"{_ratio(row.get('p50_ratio_vs_unsigned'))} | "
+            f"{_ratio(row.get('web_cpu_ratio_vs_unsigned'))}, "
+            f"{_ratio(row.get('workers_cpu_ratio_vs_unsigned'))} | "
+            f"{_pct(row['others_cpu_share'])} |"
+        )
+    met = report.get("goal_met", {})
+    judged = ", ".join(
+        f"{variant} **{'met' if met.get(variant) else 'not met'}**" for variant in variants
+    )
+    counted = "; ".join(
+        f"{variant}: {by[(variant, 'series')]['answers'][0]['source_records']:,} records, "
+        f"{by[(variant, 'series')]['answers'][0]['verified']:,} verified, "
+        f"{by[(variant, 'series')]['answers'][0]['refused']} refused, "
+        f"{by[(variant, 'series')]['trees']} trees"
+        for variant in variants
+    )
+    lines += [
+        "",
+        f"The goal (p50 of a series at most {report['goal_p50_s']:.0f} s on this 2-core machine"
+        + (f", for 18,000 records: this run has {records:,}" if records != 18_000 else "")
+        + f"): {judged}. Each answer counted ({counted}). Load average at start "
+        f"{report['load_average_at_start']}, at end {report['load_average_at_end']}.\n",
         "![Series against per record](results/series.png)\n",
     ]
     return "\n".join(lines)

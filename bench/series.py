@@ -1,43 +1,50 @@
 """A series over 30 minutes of a robot's odometry, every record checked (issue 35; no paper
 figure): the one check path for N records against today's per-record path, measured in the
-same run on the same records.
+same run on the same records, for each variant of robot: `unsigned` (added by hand), `signed`
+(paired, provenance v1: one SM2 signature per record, as the demo robot signed until v2) and
+`v2` (paired, one signature per upload batch of 500, each header carrying its `topic_seq`,
+counted per topic from 0).
 
 - one fresh `make run` stack (bench/stack.py: granian as make run serves it, anvil with
   automine, ANCHOR_MODE=root, the chain worker and the verify-queue worker), one owner
-  registered on chain with one robot added by hand.
-- the demo robot's odometry: R records 0.1 s apart (10 Hz, the simulated robot's rate), the
-  agent's Fig. 4 JSON of nav_msgs/Odometry (position on a circle, orientation, velocities,
-  covariances: about 1 KB of plaintext), sealed under the owner's key and POSTed 500 at a time;
-  then every record is awaited on chain (records of one batch share a Merkle tree).
+  registered on chain with one robot per variant (the paired ones' keys confirmed on chain).
+- the demo robot's odometry, for each robot: R records 0.1 s apart (10 Hz, the simulated
+  robot's rate), the agent's Fig. 4 JSON of nav_msgs/Odometry (position on a circle,
+  orientation, velocities, covariances: about 1 KB of plaintext), sealed under the owner's key
+  (and signed as the variant signs) and stored 500 at a time through the upload service
+  (record_create_batch: what the REST upload runs); then every record is awaited on chain
+  (records of one batch share a Merkle tree).
 - series (the figure): `GET /api/v1/records/series/?fields=position.x,position.y&points=1000`
-  over the whole range with the owner's read token, S times one after another; every record is
-  checked (sharing.verification.opening.records_open: batches of VERIFY_BATCH sent at once to the
-  workers, one rootOf per tree, the verdicts in bulk INSERTs), then read and downsampled. p50
-  and p95 of the answer time, and the CPU of the web processes and of the workers (the chain
-  worker's pool and the verify worker, both of which take verify tasks) per record checked.
-- per record (the baseline, today's path for every record that is not in a batch): P records
-  spread evenly over the range, each read once through `GET /api/v1/records/{id}/content/`, one
-  after another: one task, one verdict, one chain read per record. Its time for the whole
-  range is P's mean times R (the sample keeps the run short; every view is the same work), and
-  its CPU per record is measured over the sample.
+  over the whole range with the owner's read token, S rounds one after another, each round one
+  read of each variant's robot (the order turning by round); every record is checked
+  (sharing.verification.opening.records_open: batches of VERIFY_BATCH sent at once to the
+  workers, one rootOf per tree, each distinct robot signature verified once, the verdicts in
+  bulk INSERTs), then read and downsampled. p50 and p95 of the answer time, and the CPU of the
+  web processes and of the workers (the chain worker's pool and the verify worker, both of
+  which take verify tasks) per record checked.
+- per record (the baseline path, today's for every record that is not in a batch): P records
+  of each robot spread evenly over the range, each read once through
+  `GET /api/v1/records/{id}/content/`, one after another: one task, one verdict, one chain read
+  per record. Its time for the whole range is P's median times R (the sample keeps the run
+  short; every view is the same work), and its CPU per record is measured over the sample.
 
-Ratios are series over per record. The goal (issue 35): p50 at most 2 s for 18,000 records on
-the 2-core machine. Figures, not assertions: other work on the machine shows in the load
-averages and in `others_cpu_share`.
+Ratios: series over per record of the same variant, and each variant over unsigned on the same
+path. The goal (issue 35): p50 at most 2 s for 18,000 records on the 2-core machine. Figures,
+not assertions: other work on the machine shows in the load averages and in
+`others_cpu_share`.
 
-Run: `python -m bench series [--records 18000] [--quick]`. Writes bench/results/series.json,
-series.csv and series.png.
+Run: `python -m bench series [--records 18000] [--variants unsigned,signed,v2] [--quick]`.
+Writes bench/results/series.json, series.csv and series.png.
 """
 
 import argparse
-import base64
 import json
 import math
 import statistics
 import sys
 import tempfile
 import time
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from datetime import UTC, datetime, timedelta
 from pathlib import Path
@@ -47,18 +54,20 @@ import psutil
 import requests
 
 from bench import MAKE_RUN_ANCHOR_MAX_WAIT, RESULTS_DIR, now_iso, run_in_child, summarize
-from bench.common import print_table, write_results
+from bench.common import print_table, seal_batch, write_results
 from bench.plotting import machine_line, plt, save_figure
 from bench.rest import BENCH_REDIS_URL, report_header
 from bench.roots import view_times, viewer_token
 from bench.stack import BenchStack, StackOptions, owners_register, run_finished
 
 NAME = "series"
+VARIANTS = ("unsigned", "signed", "v2")  # the first is the baseline of the variants' ratios
 GOAL_P50_S = 2.0
 PER_POST = 500
 RATE_HZ = 10.0  # the simulated robot's odometry rate
 TOPIC = "/odom"
 FIELDS = (
+    "variant",
     "path",
     "records",
     "p50_s",
@@ -70,8 +79,12 @@ FIELDS = (
     "p50_ratio_vs_per_record",
     "web_cpu_ratio_vs_per_record",
     "workers_cpu_ratio_vs_per_record",
+    "p50_ratio_vs_unsigned",
+    "web_cpu_ratio_vs_unsigned",
+    "workers_cpu_ratio_vs_unsigned",
 )
 COLUMNS = (
+    ("variant", "variant", ""),
     ("path", "path", ""),
     ("records", "records", "d"),
     ("p50 s", "p50_s", ".2f"),
@@ -80,6 +93,7 @@ COLUMNS = (
     ("workers ms/rec", "workers_cpu_ms_per_record", ".3f"),
     ("others", "others_cpu_share", ".2f"),
     ("x p50", "p50_ratio_vs_per_record", ".3f"),
+    ("x unsigned", "p50_ratio_vs_unsigned", ".2f"),
 )
 
 
@@ -95,13 +109,13 @@ class SeriesRun:
     block_time: float | None = None
     batch_max: int = 100
     max_wait: float = MAKE_RUN_ANCHOR_MAX_WAIT
-    signed: bool = True  # a paired robot's records, as the demo robot's (else added by hand)
+    variants: tuple[str, ...] = VARIANTS
 
     def describe(self) -> str:
-        signed = "signed by a paired robot" if self.signed else "of a robot added by hand"
         return (
-            f"series of {self.records} odometry records {signed} ({self.series_rounds} reads) "
-            f"against {self.per_record_sample} reads one record at a time"
+            f"series of {self.records} odometry records of each of {', '.join(self.variants)} "
+            f"({self.series_rounds} reads each) against {self.per_record_sample} reads one "
+            "record at a time"
         )
 
 
@@ -175,45 +189,50 @@ def _await_anchored(stack: BenchStack, run: SeriesRun, robot: Any) -> None:
     stack.wait_for(anchored, "records not anchored", timeout=900)
 
 
-def _store_signed(
-    stack: BenchStack, run: SeriesRun, robot: Any, key: bytes, signing_key: Any
-) -> datetime:
-    """R odometry records 0.1 s apart, sealed and signed as the paired robot's agent does and
-    stored PER_POST at a time through the upload service (record_create_batch: what the REST
-    upload runs), every one awaited on chain. The capture time of the first."""
+def _store(
+    run: SeriesRun, robot: Any, key: bytes, signing_key: Any, variant: str, start: datetime
+) -> None:
+    """R odometry records 0.1 s apart from `start`, sealed as the variant's agent seals them
+    (unsigned, signed one by one, or signed once per batch with topic_seq from 0) and stored
+    PER_POST at a time through the upload service (record_create_batch: what the REST upload
+    runs)."""
     from ros_agent import sealing
     from sharing.services.uploads import record_create_batch
 
-    start = _series_start(run)
+    topic_seq = 0
     for batch in _odometry_batches(run, robot, start):
-        envelopes = [
-            sealing.seal_record(key, header, plaintext, signing_key) for header, plaintext in batch
-        ]
+        if variant == "v2":
+            envelopes = seal_batch(key, batch, signing_key, first_topic_seq=topic_seq)
+            topic_seq += len(batch)
+        else:
+            envelopes = [
+                sealing.seal_record(key, header, plaintext, signing_key)
+                for header, plaintext in batch
+            ]
         record_create_batch(robot=robot, envelopes=envelopes)
-    _await_anchored(stack, run, robot)
-    return start
 
 
-def _upload(stack: BenchStack, run: SeriesRun, robot: Any, key: bytes, token: str) -> datetime:
-    """R odometry records 0.1 s apart, ending now, POSTed PER_POST at a time; every one awaited
-    on chain. The capture time of the first."""
-    from smcrypto import envelope
+def _paired_robot(stack: BenchStack, owner: Any, name: str) -> tuple[Any, Any]:
+    """A robot of the owner's paired as the agent pairs (its key pair made here, the request
+    approved by the owner), once its key is confirmed on chain; with its signing key."""
+    from accounts.models import ChainState, Robot
+    from accounts.services.pairing import robot_pairing_answer, robot_pairing_request
+    from ros_agent.sealing import RobotSigningKey
+    from smcrypto import sm2
 
-    start = _series_start(run)
-    session = requests.Session()
-    session.headers["Authorization"] = f"Token {token}"
-    for batch in _odometry_batches(run, robot, start):
-        envelopes = [
-            base64.b64encode(envelope.seal(key, header, plaintext)).decode()
-            for header, plaintext in batch
-        ]
-        answer = session.post(
-            f"{stack.web_url}/api/v1/records/", json={"envelopes": envelopes}, timeout=120
-        )
-        answer.raise_for_status()
-    session.close()
-    _await_anchored(stack, run, robot)
-    return start
+    private_key, public_key = sm2.generate_keypair()
+    pairing, _secret = robot_pairing_request(name=name, public_key=public_key)
+    pairing = robot_pairing_answer(owner=owner, code=pairing.code, approve=True, actor=owner.user)
+
+    def confirmed() -> bool:
+        state = Robot.objects.get(pk=pairing.robot_id).key_chain_state
+        if state == ChainState.FAILED:
+            raise RuntimeError(f"the robot key was not registered:\n{stack.log_tail()}")
+        return state == ChainState.CONFIRMED
+
+    stack.wait_for(confirmed, "robot key not on chain")
+    robot = Robot.objects.select_related("owner__user").get(pk=pairing.robot_id)
+    return robot, RobotSigningKey.of(private_key)
 
 
 class _Cpu:
@@ -245,7 +264,8 @@ class _Cpu:
 
 
 def measure(run: SeriesRun) -> dict[str, Any]:
-    """One stack: the records, then the series reads and the per-record reads."""
+    """One stack: each variant's robot and records, then the series reads (the variants in
+    turn each round) and each variant's per-record reads."""
     stack = BenchStack(
         StackOptions(
             block_time=None,
@@ -258,86 +278,120 @@ def measure(run: SeriesRun) -> dict[str, Any]:
         ),
         Path(tempfile.mkdtemp(prefix="authros-bench-series-")),
     )
-    row: dict[str, Any] = {}
+    found: dict[str, Any] = {}
     try:
         stack.start()
         from accounts.services.robots import robot_create
         from sharing.models import Record
 
-        uploaded = time.perf_counter()
-        if run.signed:
-            from bench.exports import _paired_robot
-
-            odometry_robot, key, signing_key = _paired_robot(stack)
-            robot = odometry_robot
-            start = _store_signed(stack, run, odometry_robot, key, signing_key)
-        else:
-            ((robot, key),) = owners_register(stack, 1)
-            odometry_robot, robot_token = robot_create(owner=robot.owner, name="odometry")
-            start = _upload(stack, run, odometry_robot, key, robot_token)
-        row["upload_and_anchor_s"] = time.perf_counter() - uploaded
+        ((hand_robot, key),) = owners_register(stack, 1)
+        owner = hand_robot.owner
+        robots: dict[str, Any] = {}
+        start = _series_start(run)
+        for variant in run.variants:
+            print(f"== {run.records} records, {variant}", file=sys.stderr, flush=True)
+            stored = time.perf_counter()
+            if variant == "unsigned":
+                robot, _token = robot_create(owner=owner, name="odometry-unsigned")
+                signing_key = None
+            else:
+                robot, signing_key = _paired_robot(stack, owner, f"odometry-{variant}")
+            _store(run, robot, key, signing_key, variant, start)
+            _await_anchored(stack, run, robot)
+            robots[variant] = robot
+            found[variant] = {"upload_and_anchor_s": time.perf_counter() - stored}
         until = start + timedelta(seconds=run.records / RATE_HZ)
-        token = viewer_token(robot.owner)
+        token = viewer_token(owner)
         cpu = _Cpu(stack)
-        row["series"] = _series_reads(stack, run, cpu, odometry_robot, token, start, until)
-        ids = list(
-            Record.objects.filter(robot=odometry_robot)
-            .order_by("captured_at")
-            .values_list("pk", flat=True)
-        )
-        step = max(len(ids) // run.per_record_sample, 1)
-        sample = [str(pk) for pk in ids[::step][: run.per_record_sample]]
-        row["per_record"] = _per_record_reads(stack, run, cpu, token, sample)
-        row["trees"] = (
-            Record.objects.filter(robot=odometry_robot).values("anchor_root").distinct().count()
-        )
+        series = _series_reads(stack, run, cpu, robots, token, start, until)
+        for variant, robot in robots.items():
+            ids = list(
+                Record.objects.filter(robot=robot)
+                .order_by("captured_at")
+                .values_list("pk", flat=True)
+            )
+            step = max(len(ids) // run.per_record_sample, 1)
+            sample = [str(pk) for pk in ids[::step][: run.per_record_sample]]
+            found[variant] |= {
+                "series": series[variant],
+                "per_record": _per_record_reads(stack, run, cpu, token, sample),
+                "trees": Record.objects.filter(robot=robot)
+                .values("anchor_root")
+                .distinct()
+                .count(),
+            }
     finally:
         stack.stop()
-    return run_finished(row, stack, keep_logs=run.keep_logs)
+    return run_finished({"variants": found}, stack, keep_logs=run.keep_logs)
+
+
+def series_orders(rounds: int, variants: Sequence[str]) -> Iterator[tuple[str, ...]]:
+    """The variants' order in each round of series reads, turned by one each round, so that
+    none always reads first (on a cooler machine) or last."""
+    for number in range(rounds):
+        turn = number % len(variants)
+        yield (*variants[turn:], *variants[:turn])
 
 
 def _series_reads(
     stack: BenchStack,
     run: SeriesRun,
     cpu: _Cpu,
-    robot: Any,
+    robots: dict[str, Any],
     token: str,
     since: datetime,
     until: datetime,
-) -> dict[str, Any]:
+) -> dict[str, dict[str, Any]]:
+    """run.series_rounds rounds of one series read of each robot, one after another: per
+    variant the answer times, what each answer counted, and the CPU per record checked over
+    its own reads."""
     session = requests.Session()
     session.headers["Authorization"] = f"Token {token}"
-    query = {
-        "robot": str(robot.pk),
-        "topic": TOPIC,
-        "fields": "position.x,position.y",
-        "since": since.isoformat(),
-        "until": until.isoformat(),
-        "points": "1000",
-    }
-    times, answers = [], []
-    before = cpu.take()
-    for _ in range(run.series_rounds):
-        sent = time.perf_counter()
-        answer = session.get(f"{stack.web_url}/api/v1/records/series/", params=query, timeout=600)
-        times.append(time.perf_counter() - sent)
-        answer.raise_for_status()
-        body = answer.json()
-        answers.append(
-            {key: body[key] for key in ("source_records", "verified", "refused")}
-            | {"points": len(body["points"])}
-        )
-    spent = cpu.spent(before, cpu.take())
+    times: dict[str, list[float]] = {variant: [] for variant in robots}
+    answers: dict[str, list[dict[str, Any]]] = {variant: [] for variant in robots}
+    spent: dict[str, dict[str, float]] = {}
+    for order in series_orders(run.series_rounds, list(robots)):
+        for variant in order:
+            query = {
+                "robot": str(robots[variant].pk),
+                "topic": TOPIC,
+                "fields": "position.x,position.y",
+                "since": since.isoformat(),
+                "until": until.isoformat(),
+                "points": "1000",
+            }
+            before = cpu.take()
+            sent = time.perf_counter()
+            answer = session.get(
+                f"{stack.web_url}/api/v1/records/series/", params=query, timeout=600
+            )
+            times[variant].append(time.perf_counter() - sent)
+            delta = cpu.spent(before, cpu.take())
+            total = spent.setdefault(variant, dict.fromkeys(delta, 0.0))
+            for name, value in delta.items():
+                total[name] += value
+            answer.raise_for_status()
+            body = answer.json()
+            answers[variant].append(
+                {key: body[key] for key in ("source_records", "verified", "refused")}
+                | {"points": len(body["points"])}
+            )
     session.close()
-    checked = sum(answer["source_records"] for answer in answers)
-    return {
-        "seconds": times,
-        "answers": answers,
-        "records_checked": checked,
-        "web_cpu_ms_per_record": spent["web"] * 1000 / checked,
-        "workers_cpu_ms_per_record": spent["workers"] * 1000 / checked,
-        "others_cpu_share": spent["others_share"],
-    }
+    found = {}
+    for variant in robots:
+        checked = sum(answer["source_records"] for answer in answers[variant])
+        used = spent[variant]
+        found[variant] = {
+            "seconds": times[variant],
+            "answers": answers[variant],
+            "records_checked": checked,
+            "web_cpu_ms_per_record": used["web"] * 1000 / checked,
+            "workers_cpu_ms_per_record": used["workers"] * 1000 / checked,
+            # the machine's cores over the reads' wall time, less the stack's and ours
+            "others_cpu_share": max(used["machine"] - used["stack"] - used["bench"], 0.0)
+            / (used["wall"] * psutil.cpu_count()),
+        }
+    return found
 
 
 def _per_record_reads(
@@ -357,50 +411,84 @@ def _per_record_reads(
 
 
 def _rows(measured: dict[str, Any], run: SeriesRun) -> list[dict[str, Any]]:
-    series, single = measured["series"], measured["per_record"]
-    stats = summarize(series["seconds"])  # seconds in, the same unit out
-    one = statistics.mean(single["seconds"])
-    baseline = {
-        "path": "per record",
-        "records": run.records,
-        # Every view is the same work: the whole range at the sample's mean per record.
-        "p50_s": statistics.median(single["seconds"]) * run.records,
-        "p95_s": None,
-        "mean_s": one * run.records,
-        "web_cpu_ms_per_record": single["web_cpu_ms_per_record"],
-        "workers_cpu_ms_per_record": single["workers_cpu_ms_per_record"],
-        "others_cpu_share": single["others_cpu_share"],
-        "sample": single["records_checked"],
-        "sample_p50_ms": statistics.median(single["seconds"]) * 1000,
-        "failed": single["failed"],
-    }
-    row = {
-        "path": "series",
-        "records": run.records,
-        "p50_s": stats["median_ms"],
-        "p95_s": stats["p95_ms"],
-        "mean_s": stats["mean_ms"],
-        "web_cpu_ms_per_record": series["web_cpu_ms_per_record"],
-        "workers_cpu_ms_per_record": series["workers_cpu_ms_per_record"],
-        "others_cpu_share": series["others_cpu_share"],
-        "answers": series["answers"],
-        "rounds": len(series["seconds"]),
-    }
-    for key in ("p50", "web_cpu", "workers_cpu"):
-        source = {"p50": "p50_s", "web_cpu": "web_cpu_ms_per_record"}.get(
-            key, "workers_cpu_ms_per_record"
-        )
-        row[f"{key}_ratio_vs_per_record"] = row[source] / baseline[source]
-        baseline[f"{key}_ratio_vs_per_record"] = 1.0
-    return [baseline, row]
+    """Per variant a per-record row and a series row, with their ratios: series over per
+    record of the variant, and each row over unsigned's row of the same path."""
+    rows = []
+    for variant, found in measured["variants"].items():
+        series, single = found["series"], found["per_record"]
+        stats = summarize(series["seconds"])  # seconds in, the same unit out
+        baseline = {
+            "variant": variant,
+            "path": "per record",
+            "records": run.records,
+            # Every view is the same work: the whole range at the sample's p50 per record.
+            "p50_s": statistics.median(single["seconds"]) * run.records,
+            "p95_s": None,
+            "mean_s": statistics.mean(single["seconds"]) * run.records,
+            "web_cpu_ms_per_record": single["web_cpu_ms_per_record"],
+            "workers_cpu_ms_per_record": single["workers_cpu_ms_per_record"],
+            "others_cpu_share": single["others_cpu_share"],
+            "sample": single["records_checked"],
+            "sample_p50_ms": statistics.median(single["seconds"]) * 1000,
+            "failed": single["failed"],
+        }
+        row = {
+            "variant": variant,
+            "path": "series",
+            "records": run.records,
+            "p50_s": stats["median_ms"],
+            "p95_s": stats["p95_ms"],
+            "mean_s": stats["mean_ms"],
+            "web_cpu_ms_per_record": series["web_cpu_ms_per_record"],
+            "workers_cpu_ms_per_record": series["workers_cpu_ms_per_record"],
+            "others_cpu_share": series["others_cpu_share"],
+            "answers": series["answers"],
+            "rounds": len(series["seconds"]),
+            "trees": found["trees"],
+            "upload_and_anchor_s": found["upload_and_anchor_s"],
+        }
+        for key, source in RATIO_SOURCES.items():
+            row[f"{key}_ratio_vs_per_record"] = _ratio(row[source], baseline[source])
+            baseline[f"{key}_ratio_vs_per_record"] = 1.0
+        rows += [baseline, row]
+    ratios_vs_unsigned(rows)
+    return rows
+
+
+RATIO_SOURCES = {
+    "p50": "p50_s",
+    "web_cpu": "web_cpu_ms_per_record",
+    "workers_cpu": "workers_cpu_ms_per_record",
+}
+
+
+def ratios_vs_unsigned(rows: list[dict[str, Any]]) -> None:
+    """Each row's figures over the unsigned row of its path, as "<key>_ratio_vs_unsigned"
+    (None without an unsigned row)."""
+    unsigned = {row["path"]: row for row in rows if row["variant"] == "unsigned"}
+    for row in rows:
+        base = unsigned.get(row["path"])
+        for key, source in RATIO_SOURCES.items():
+            row[f"{key}_ratio_vs_unsigned"] = (
+                _ratio(row[source], base[source]) if base is not None else None
+            )
+
+
+def _ratio(value: float | None, baseline: float | None) -> float | None:
+    return value / baseline if value is not None and baseline else None
 
 
 def main(argv: list[str]) -> int:
     parser = argparse.ArgumentParser(prog="python -m bench series", description=__doc__)
     parser.add_argument("--records", type=int, default=18_000, help="30 min at 10 Hz (18,000)")
-    parser.add_argument("--rounds", type=int, default=5, help="series reads (default 5)")
+    parser.add_argument("--rounds", type=int, default=5, help="series reads of each (default 5)")
     parser.add_argument(
-        "--sample", type=int, default=300, help="records read one at a time (default 300)"
+        "--sample", type=int, default=300, help="records read one at a time, each (default 300)"
+    )
+    parser.add_argument(
+        "--variants",
+        default=",".join(VARIANTS),
+        help=f"robots to measure, comma-separated, of {', '.join(VARIANTS)} (all)",
     )
     parser.add_argument("--workers", type=int, default=2, help="chain worker pool processes")
     parser.add_argument("--web-workers", type=int, default=0, help="0: as make run sizes it")
@@ -408,14 +496,14 @@ def main(argv: list[str]) -> int:
     parser.add_argument("--results-dir", type=Path, default=RESULTS_DIR)
     parser.add_argument("--keep-logs", action="store_true")
     parser.add_argument("--quick", action="store_true", help="smoke run with small numbers")
-    parser.add_argument(
-        "--unsigned",
-        action="store_true",
-        help="a robot added by hand (no robot signatures to check), instead of a paired one",
-    )
     args = parser.parse_args(argv)
+    variants = tuple(dict.fromkeys(name.strip() for name in args.variants.split(",") if name))
+    if not variants or set(variants) - set(VARIANTS):
+        parser.error(f"--variants takes names of {', '.join(VARIANTS)}")
     if args.quick:
         args.records, args.rounds, args.sample = 1_000, 2, 30
+    if min(args.records, args.rounds, args.sample) < 1:
+        parser.error("--records, --rounds and --sample must be at least 1")
     run = SeriesRun(
         records=args.records,
         series_rounds=args.rounds,
@@ -424,7 +512,7 @@ def main(argv: list[str]) -> int:
         web_workers=args.web_workers,
         redis_url=args.redis_url,
         keep_logs=args.keep_logs,
-        signed=not args.unsigned,
+        variants=tuple(variant for variant in VARIANTS if variant in variants),
     )
     started = now_iso()
     report = report_header(
@@ -442,6 +530,8 @@ def main(argv: list[str]) -> int:
     )
     print(f"== {run.describe()}", file=sys.stderr, flush=True)
     measured = run_in_child(measure, run)
+    from smcrypto import sm2
+
     report["settings"] |= {
         "records": run.records,
         "rate_hz": RATE_HZ,
@@ -452,46 +542,72 @@ def main(argv: list[str]) -> int:
         "per_post": PER_POST,
         "anchor_mode": "root",
         "chain": "anvil, automine",
-        "signed": run.signed,
+        "variants": list(run.variants),
+        "sm2_backend": sm2.BACKEND,
     }
     report["goal_p50_s"] = GOAL_P50_S
     report["measured"] = measured
     report["results"] = _rows(measured, run)
     report["load_average_at_end"] = [round(load, 2) for load in psutil.getloadavg()]
-    report["goal_met"] = report["results"][1]["p50_s"] <= GOAL_P50_S
+    report["goal_met"] = {
+        row["variant"]: row["p50_s"] <= GOAL_P50_S
+        for row in report["results"]
+        if row["path"] == "series"
+    }
     print_table(report, COLUMNS)
-    # The unsigned run is a comparison: it does not take the place of the demo robot's.
-    name = NAME if run.signed else f"{NAME}-unsigned"
-    write_results(name, report, FIELDS, args.results_dir, plot=_plot)
+    write_results(NAME, report, FIELDS, args.results_dir, plot=_plot)
     return 0
 
 
 def _plot(report: dict[str, Any], path: Path) -> None:
-    baseline, series = report["results"]
-    figure, (left, right) = plt.subplots(1, 2, figsize=(9, 3.6))
-    names = ["per record\n(sample x N)", "series\n(one check path)"]
-    left.bar(names, [baseline["p50_s"], series["p50_s"]], color=["#8c959f", "#0969da"])
+    rows = report["results"]
+    variants = list(dict.fromkeys(row["variant"] for row in rows))
+    by = {(row["variant"], row["path"]): row for row in rows}
+    figure, (left, right) = plt.subplots(1, 2, figsize=(11, 3.8))
+    width = 0.38
+    for offset, path_name, color in (
+        (-width / 2, "per record", "#8c959f"),
+        (width / 2, "series", "#0969da"),
+    ):
+        left.bar(
+            [x + offset for x in range(len(variants))],
+            [by[(variant, path_name)]["p50_s"] for variant in variants],
+            width=width,
+            color=color,
+            label="per record (sample x N)" if path_name == "per record" else "series",
+        )
     left.axhline(report["goal_p50_s"], color="#cf222e", linestyle="--", linewidth=1)
-    left.text(1.4, report["goal_p50_s"], " goal 2 s", va="bottom", fontsize=8, color="#cf222e")
+    left.text(
+        len(variants) - 0.5, report["goal_p50_s"], " goal 2 s", va="bottom", fontsize=8,
+        color="#cf222e",
+    )  # fmt: skip
+    left.set_xticks(range(len(variants)), variants)
     left.set_yscale("log")
-    left.set_ylabel(f"p50 seconds for {series['records']:,} records (log)")
-    width = 0.35
+    left.set_ylim(top=max(row["p50_s"] for row in rows) * 10)  # room for the legend
+    left.set_ylabel(f"p50 seconds for {rows[0]['records']:,} records (log)")
+    left.legend(fontsize=7, loc="upper left")
+    bars = [(variant, path_name) for variant in variants for path_name in ("per record", "series")]
+    labels = [f"{variant}\n{path_name}" for variant, path_name in bars]
     for offset, key, label in (
         (-width / 2, "web_cpu_ms_per_record", "web"),
         (width / 2, "workers_cpu_ms_per_record", "workers"),
     ):
         right.bar(
-            [x + offset for x in range(2)],
-            [baseline[key], series[key]],
+            [x + offset for x in range(len(bars))],
+            [by[bar][key] for bar in bars],
             width=width,
             label=label,
         )
-    right.set_xticks(range(2), names)
-    right.set_ylabel("CPU ms per record checked")
+    right.set_xticks(range(len(bars)), labels, fontsize=7)
+    right.set_yscale("log")
+    right.set_ylabel("CPU ms per record checked (log)")
     right.legend(fontsize=8)
+    backend = report.get("settings", {}).get("sm2_backend")
     save_figure(
         figure,
         path,
-        f"A series of {series['records']:,} odometry records, every one checked, against one "
-        f"check per record\n{machine_line(report)}",
+        f"A series of {rows[0]['records']:,} odometry records of each robot, every one checked, "
+        "against one check per record"
+        + (f" (SM2: {backend})" if backend else "")
+        + f"\n{machine_line(report)}",
     )

@@ -5,6 +5,7 @@ made-up signing.json. No stack starts here."""
 
 import base64
 import json
+import os
 import uuid
 from types import SimpleNamespace
 
@@ -16,9 +17,17 @@ from ros_agent import sim
 from ros_agent.sealing import RobotSigningKey
 from smcrypto import envelope, provenance, sm2, sm4
 
+BACKEND_AT_START = os.environ.get(sm2.BACKEND_VARIABLE)
+
 
 def test_the_variants_take_turns_going_first():
-    assert list(signing.round_orders(3)) == [
+    assert list(signing.round_orders(4)) == [
+        ("unsigned", "signed", "v2"),
+        ("signed", "v2", "unsigned"),
+        ("v2", "unsigned", "signed"),
+        ("unsigned", "signed", "v2"),
+    ]
+    assert list(signing.round_orders(3, ("unsigned", "signed"))) == [
         ("unsigned", "signed"),
         ("signed", "unsigned"),
         ("unsigned", "signed"),
@@ -35,6 +44,7 @@ def test_the_figure_of_the_rounds_is_their_median_and_none_if_one_measured_nothi
 def test_views_of_two_variants_alternate_and_their_times_are_told_apart():
     order = signing.interleaved(["u1", "u2", "u3"], ["s1", "s2"])
     assert order == ["u1", "s1", "u2", "s2"]
+    assert signing.interleaved(["u1", "u2"], ["s1", "s2"], ["b1"]) == ["u1", "s1", "b1"]
 
     # Views go round and round the ids (view_times with `until`): the sixth is u2 again.
     times = [1.0, 10.0, 2.0, 20.0, 3.0, 30.0]
@@ -109,6 +119,39 @@ def test_a_signed_clients_bodies_are_signed_and_numbered_on():
         assert provenance.verify_header(signing_key.public_key, header, plaintext)
 
 
+def test_a_v2_clients_bodies_are_each_one_batch_signed_once_topic_seq_counting_from_0():
+    robot, key = _robot(), sm4.generate_key()
+    signing_key = RobotSigningKey.of(sm2.generate_keypair()[0])
+    client = signing.BatchClient(robot, key, "token", signing_key=signing_key)
+
+    size = signing._envelope_bytes(client)  # sealed by a copy: uses up no number
+    bodies = client.bodies(2, 3)
+
+    sealed = [
+        [envelope.open(key, base64.b64decode(text)) for text in body["envelopes"]]
+        for body in bodies
+    ]
+    headers = [header for batch in sealed for header, _ in batch]
+    assert [header["seq"] for header in headers] == [1, 2, 3, 4, 5, 6]
+    assert [header["topic_seq"] for header in headers] == [0, 1, 2, 3, 4, 5]
+    assert size > len(base64.b64decode(bodies[0]["envelopes"][0]))  # a path of 100, not of 3
+    for batch in sealed:
+        assert {header["sig"] for header, _ in batch} == {batch[0][0]["sig"]}
+        assert [(h["sig_index"], h["sig_size"]) for h, _ in batch] == [(0, 3), (1, 3), (2, 3)]
+        claims = [provenance.signature_claim(signing_key.public_key, h, p) for h, p in batch]
+        assert len(set(claims)) == 1  # one SM2 verification for the batch
+        assert provenance.claims_hold(claims) == [True, True, True]
+    assert envelope.read_header(base64.b64decode(bodies[0]["envelopes"][0])).provenance == "v2"
+
+
+@pytest.mark.parametrize("variant", signing.VARIANTS)
+def test_sealing_alone_is_measured_for_every_variant(variant):
+    key = sm4.generate_key()
+    signing_key = None if variant == "unsigned" else RobotSigningKey.of(sm2.generate_keypair()[0])
+
+    assert signing.seal_rate(variant, key, signing_key, 0.01) > 0
+
+
 @pytest.mark.parametrize("kind", signing.AGENT_KINDS)
 def test_the_agents_recorder_is_measured_signed_and_unsigned(kind):
     messages = signing._agent_messages(sim)[kind]
@@ -122,7 +165,7 @@ def test_the_agents_recorder_is_measured_signed_and_unsigned(kind):
 def test_sm2_costs_are_milliseconds_of_sign_and_verify():
     costs = signing.sm2_costs(repeat=3)
 
-    assert set(costs) == {"sm2_sign_header_ms", "sm2_verify_header_ms"}
+    assert set(costs) == {"sm2_sign_header_ms", "sm2_verify_header_ms", "sm2_sign_batch_ms"}
     assert all(0 < value < 1000 for value in costs.values())
 
 
@@ -262,3 +305,43 @@ def test_the_signing_section_says_when_every_goal_still_holds(tmp_path):
     text = _signing_report(tmp_path, rows, goals_met)
 
     assert "With signatures, issue 13's ingest and view goals all still hold in this run." in text
+
+
+def test_the_signing_section_sets_v2_beside_signed_where_the_run_has_it(tmp_path):
+    rows = [
+        _signing_row("unsigned", ingest_per_s=4000.0, seal_per_s=10000.0),
+        _signing_row("signed", ingest_per_s=1400.0, seal_per_s=1000.0),
+        _signing_row(
+            "v2",
+            ingest_per_s=2000.0,
+            seal_per_s=5000.0,
+            worker_check_batch_ms_per_record=0.25,
+            seal_per_s_rounds=[5000.0, 4000.0],
+        ),
+    ]
+    signing.ratios(rows)
+    goals_met = {row["signing"]: signing.goals_met(row) for row in rows}
+
+    text = _signing_report(tmp_path, rows, goals_met, sm2={"sm2_sign_batch_ms": 3.5})
+
+    assert "| figure | unsigned | signed | signed / unsigned | v2 | v2 / unsigned |" in text
+    ingest = "| ingest, 1 KB envelopes/s (100 per POST) | 4000 | 1400 | 0.35x | 2000 | 0.50x |"
+    assert ingest in text
+    assert "| sealing alone, 1 KB envelopes/s (100 a batch) | 10000 | 1000 | 0.10x | 5000 |" in text
+    assert "With one signature per batch (v2), issue 13's goals **not met**" in text
+    assert "Sealing a 1 KB envelope alone: unsigned 0.100 ms, signed 1.000 ms, v2 0.200 ms." in text
+    assert "a v2 batch of 100 (its tree and one signature) 3.500 ms" in text
+    assert "V2: 30000 envelopes" in text
+    assert "no Recorder figure (the agent signs per record); sealing alone per round 5000, " in text
+
+
+@pytest.mark.process
+def test_sm2_costs_are_measured_on_each_backend_that_imports_each_in_its_own_interpreter():
+    costs = signing.sm2_costs_by_backend(repeat=2)
+
+    assert {"tongsuo", "gmssl"} <= set(costs) <= set(sm2.BACKENDS)
+    for figures in costs.values():
+        assert set(figures) == {"sm2_sign_header_ms", "sm2_verify_header_ms", "sm2_sign_batch_ms"}
+    # the pure-Python fallback is the slow one: that is what it is measured for
+    assert costs["gmssl"]["sm2_verify_header_ms"] > costs["tongsuo"]["sm2_verify_header_ms"]
+    assert os.environ.get(sm2.BACKEND_VARIABLE) == BACKEND_AT_START  # put back as it was

@@ -35,7 +35,9 @@ ROLES = {
 FROM_DEBIAN = {"agent": {"rospy", "roslib", "genpy", "nav_msgs", "sensor_msgs", "std_msgs"}}
 # Chains and tools for tests only: no runtime module may import them.
 TEST_ONLY = {"eth_tester", "evm", "pytest", "hypothesis", "schemathesis", "playwright",
-             "aiosmtpd", "gmssl", "mcap_ros2", "matplotlib"}  # fmt: skip
+             "aiosmtpd", "mcap_ros2", "matplotlib"}  # fmt: skip
+# Installed by an operator who wants it, in no extra: smcrypto.sm2 uses it when it imports.
+OPTIONAL = {"gmssl_fast"}
 _PIN = re.compile(r"^([A-Za-z0-9][A-Za-z0-9._-]*)==\S+ \\$", re.MULTILINE)
 
 
@@ -82,6 +84,7 @@ def test_a_roles_packages_import_only_what_its_extra_installs(role):
         module: where
         for module, where in third_party_modules(role_files(role)).items()
         if module not in FROM_DEBIAN.get(role, set())
+        and module not in OPTIONAL
         and not {canonicalize_name(d) for d in distributions.get(module, [module])} & allowed
     }
     assert outside == {}, f"imported by the {role} but not in its extra"

@@ -1,18 +1,26 @@
-"""SM2: GM/T 0003.5 examples, agreement with gmssl and sm-crypto both ways (our backend is
-Tongsuo, gmssl the pure-Python reference), gmssl's key-stripping bug, ASN.1 edge cases."""
+"""SM2: GM/T 0003.5 examples, agreement with gmssl and sm-crypto both ways, gmssl's
+key-stripping bug, ASN.1 edge cases; each test of smcrypto.sm2's calls against every backend
+present here (Tongsuo, gmssl-fast if installed, the pure-Python fallback always), switched in
+this process, and every backend against every other both ways. Which backend an import
+chooses, and what AUTHROS_SM2_BACKEND forces, is seen in fresh interpreters."""
 
 import json
 import os
+import platform
 import random
 import re
 import shutil
 import subprocess
+import sys
+from collections.abc import Iterator
+from contextlib import contextmanager
+from itertools import permutations
 from pathlib import Path
 
 import pytest
 from gmssl.sm2 import CryptSM2, default_ecc_table
 
-from smcrypto import sm2
+from smcrypto import _sm2_curve, _sm2_gmssl, sm2
 from smcrypto.errors import CryptoError, DecryptionError, InvalidKey
 from smcrypto.sm3 import sm3_digest
 
@@ -40,6 +48,56 @@ KAT_CIPHERTEXT = (
     "59983C18F809E262923C53AEC295D30383B54E39D609D160AFCB1908D0BD8766"
     "21886CA989CA9C7D58087307CA93092D651EFA"
 ).lower()
+
+
+def _present(name: str) -> bool:
+    try:
+        sm2.backend_load(name)
+    except ImportError:
+        return False
+    return True
+
+
+PRESENT = [name for name in sm2.BACKENDS if _present(name)]
+# The fallback is a dependency of every install: never skipped. The others may be absent (no
+# Tongsuo wheel on aarch64; gmssl-fast is optional).
+BACKEND_PARAMS = [
+    pytest.param(
+        name,
+        marks=()
+        if name in PRESENT or name == "gmssl"
+        else pytest.mark.skip(reason=f"{name} does not import here"),
+    )
+    for name in sm2.BACKENDS
+]
+PAIRS = [
+    pytest.param(
+        first,
+        second,
+        marks=()
+        if {first, second} <= {*PRESENT, "gmssl"}
+        else pytest.mark.skip(reason="a backend of the pair does not import here"),
+    )
+    for first, second in permutations(sm2.BACKENDS, 2)
+]
+
+
+@contextmanager
+def _using(name: str) -> Iterator[None]:
+    """smcrypto.sm2's calls on the named backend for the block, as if it had been chosen."""
+    saved = sm2._backend, sm2.BACKEND
+    sm2._backend = sm2.backend_load(name)
+    sm2.BACKEND = sm2._backend.NAME
+    try:
+        yield
+    finally:
+        sm2._backend, sm2.BACKEND = saved
+
+
+@pytest.fixture(params=BACKEND_PARAMS)
+def backend(request: pytest.FixtureRequest) -> Iterator[str]:
+    with _using(request.param):
+        yield request.param
 
 
 def _gmssl(private_key: str, public_key_hex: str) -> CryptSM2:
@@ -88,42 +146,51 @@ def _private_keys_with_x_prefixes(prefixes: tuple[str, ...]) -> dict[str, int]:
     return found
 
 
-def test_kat_public_key() -> None:
+def test_kat_public_key(backend: str) -> None:
     assert sm2.public_key_from_private(KAT_PRIVATE) == KAT_PUBLIC
     assert sm2.public_key_from_private(KAT_PRIVATE.lower()) == KAT_PUBLIC
 
 
-def test_kat_signature_verifies() -> None:
+def test_kat_signature_verifies(backend: str) -> None:
     assert sm2.verify(KAT_PUBLIC, b"message digest", KAT_SIGNATURE)
     assert sm2.verify(KAT_PUBLIC[2:], b"message digest", KAT_SIGNATURE.upper())
     assert not sm2.verify(KAT_PUBLIC, b"message digesT", KAT_SIGNATURE)
 
 
 def test_kat_signature_from_the_fixed_nonce() -> None:
-    """The reference reproduces the standard's signature (Tongsuo takes no chosen nonce)."""
+    """The reference and the pure-Python backend reproduce the standard's signature from its
+    nonce (Tongsuo and gmssl-fast take no chosen nonce: their signatures are checked by
+    verification, here and against each other)."""
     signer = _gmssl(KAT_PRIVATE, KAT_PUBLIC)
     assert signer.sign_with_sm3(b"message digest", KAT_K) == KAT_SIGNATURE
+    r, s = _sm2_gmssl.sign(int(KAT_PRIVATE, 16), b"message digest", nonce=int(KAT_K, 16))
+    assert f"{r:064x}{s:064x}" == KAT_SIGNATURE
 
 
 def test_kat_encryption_from_the_fixed_nonce() -> None:
     """The layout our decryption reads is the standard's: C1 (x||y) || C3 || C2."""
     ciphertext = _textbook_encrypt(KAT_PUBLIC, b"encryption standard", int(KAT_K, 16))
     assert ciphertext == KAT_CIPHERTEXT
+    ours = _sm2_gmssl.encrypt(KAT_PUBLIC[2:], b"encryption standard", ephemeral=int(KAT_K, 16))
+    assert ours.hex() == KAT_CIPHERTEXT
 
 
 def test_the_curve_is_the_references() -> None:
-    for name, value in (("p", sm2._P), ("a", sm2._A), ("b", sm2._B), ("n", sm2._N)):
+    curve = _sm2_curve
+    for name, value in (("p", curve.P), ("a", curve.A), ("b", curve.B), ("n", curve.N)):
         assert int(default_ecc_table[name], 16) == value
+    assert (curve.G_X, curve.G_Y) == G
+    assert curve.on_curve(bytes.fromhex(default_ecc_table["g"]))
 
 
-def test_kat_decryption_with_and_without_04_prefix() -> None:
+def test_kat_decryption_with_and_without_04_prefix(backend: str) -> None:
     assert KAT_CIPHERTEXT.startswith("04")  # x itself starts with 04: the ambiguous case
     assert sm2.decrypt(KAT_PRIVATE, KAT_CIPHERTEXT) == b"encryption standard"
     assert sm2.decrypt(KAT_PRIVATE, "04" + KAT_CIPHERTEXT) == b"encryption standard"
     assert sm2.decrypt(KAT_PRIVATE, KAT_CIPHERTEXT.upper()) == b"encryption standard"
 
 
-def test_generate_keypair_format() -> None:
+def test_generate_keypair_format(backend: str) -> None:
     private, public = sm2.generate_keypair()
     assert len(private) == 64
     assert len(public) == 130
@@ -132,7 +199,7 @@ def test_generate_keypair_format() -> None:
     assert sm2.public_key_from_private(private) == public
 
 
-def test_many_keypairs_round_trip() -> None:
+def test_many_keypairs_round_trip(backend: str) -> None:
     """64 keys: about 1 in 8 has an x that gmssl's lstrip would corrupt."""
     strippable = 0
     for index in range(64):
@@ -144,7 +211,7 @@ def test_many_keypairs_round_trip() -> None:
             assert sm2.verify(public, message, sm2.sign(private, message))
 
 
-def test_keys_whose_x_starts_with_04_40_00() -> None:
+def test_keys_whose_x_starts_with_04_40_00(backend: str) -> None:
     found = _private_keys_with_x_prefixes(("04", "40", "00"))
     for prefix, secret in found.items():
         private = f"{secret:064x}"
@@ -163,7 +230,7 @@ def test_keys_whose_x_starts_with_04_40_00() -> None:
             assert _gmssl(private, public).decrypt(bytes.fromhex(ciphertext)) == b"secret"
 
 
-def test_gmssl_decrypts_ours_and_we_decrypt_gmssl() -> None:
+def test_gmssl_decrypts_ours_and_we_decrypt_gmssl(backend: str) -> None:
     rng = random.Random(32918)
     for _ in range(6):
         private, public = sm2.generate_keypair()
@@ -175,7 +242,7 @@ def test_gmssl_decrypts_ours_and_we_decrypt_gmssl() -> None:
         assert sm2.decrypt(private, theirs) == message
 
 
-def test_gmssl_verifies_ours_and_we_verify_gmssl() -> None:
+def test_gmssl_verifies_ours_and_we_verify_gmssl(backend: str) -> None:
     for index in range(4):
         private, public = sm2.generate_keypair()
         message = bytes([index]) * (index * 40)
@@ -184,7 +251,7 @@ def test_gmssl_verifies_ours_and_we_verify_gmssl() -> None:
         assert sm2.verify(public, message, theirs)
 
 
-def test_ciphertexts_whose_c1_has_short_coordinates() -> None:
+def test_ciphertexts_whose_c1_has_short_coordinates(backend: str) -> None:
     """x or y below 2**248 is a shorter ASN.1 INTEGER for Tongsuo; one-byte messages too."""
     private, public = sm2.generate_keypair()
     point, ephemeral = _affine_double(G), 2
@@ -204,12 +271,14 @@ def test_ciphertexts_whose_c1_has_short_coordinates() -> None:
 @pytest.mark.parametrize("coordinate", [0, 1, 0x7F, 0x80, 2**248 - 1, 2**255, P - 1])
 @pytest.mark.parametrize("length", [1, 127, 128, 255, 256, 70000])
 def test_the_asn1_ciphertext_round_trips(coordinate: int, length: int) -> None:
+    """Tongsuo's backend speaks DER to Tongsuo (the others take C1C3C2 as it is)."""
+    tongsuo = pytest.importorskip("smcrypto._sm2_tongsuo")
     c3, c2 = bytes(range(32)), bytes(length)
-    der = sm2._ciphertext_to_der(coordinate, P - 1 - coordinate, c3, c2)
-    assert sm2._ciphertext_from_der(der) == (coordinate, P - 1 - coordinate, c3, c2)
+    der = tongsuo._ciphertext_to_der(coordinate, P - 1 - coordinate, c3, c2)
+    assert tongsuo._ciphertext_from_der(der) == (coordinate, P - 1 - coordinate, c3, c2)
 
 
-def test_one_byte_messages_round_trip_and_gmssl_reads_them() -> None:
+def test_one_byte_messages_round_trip_and_gmssl_reads_them(backend: str) -> None:
     private, public = sm2.generate_keypair()
     for value in range(0, 256, 5):
         ciphertext = sm2.encrypt(public, bytes([value]))
@@ -218,21 +287,21 @@ def test_one_byte_messages_round_trip_and_gmssl_reads_them() -> None:
         assert _gmssl(private, public).decrypt(bytes.fromhex(ciphertext)) == bytes([value])
 
 
-def test_a_key_stream_of_zeros_starts_over_with_a_new_k(monkeypatch) -> None:
+def test_a_key_stream_of_zeros_starts_over_with_a_new_k(backend: str, monkeypatch) -> None:
     """GB/T 32918.4 A5: Tongsuo hands back C2 = M when the KDF gives zeros; encrypt asks again,
-    so that standard decryptors (gmssl refuses it) read every ciphertext."""
-    real = sm2._pkey_crypt
+    whichever the backend, so that standard decryptors (gmssl refuses it) read every
+    ciphertext."""
+    real = sm2._backend.encrypt
     answers = []
 
-    def zero_key_stream_first(key, data, *, encrypt):
-        der = real(key, data, encrypt=encrypt)
+    def zero_key_stream_first(public_key_xy, data):
+        raw = real(public_key_xy, data)
         if not answers:
-            x, y, c3, _c2 = sm2._ciphertext_from_der(der)
-            der = sm2._ciphertext_to_der(x, y, c3, data)  # as if t were all zeros
-        answers.append(der)
-        return der
+            raw = raw[:96] + data  # as if t were all zeros
+        answers.append(raw)
+        return raw
 
-    monkeypatch.setattr(sm2, "_pkey_crypt", zero_key_stream_first)
+    monkeypatch.setattr(sm2._backend, "encrypt", zero_key_stream_first)
     private, public = sm2.generate_keypair()
     ciphertext = sm2.encrypt(public, b"\xd7")
     assert len(answers) >= 2  # asked again (a third time, one run in 256)
@@ -240,7 +309,7 @@ def test_a_key_stream_of_zeros_starts_over_with_a_new_k(monkeypatch) -> None:
     assert sm2.decrypt(private, ciphertext) == b"\xd7"
 
 
-def test_tampered_ciphertext_is_decryption_error_where_gmssl_returns_garbage() -> None:
+def test_tampered_ciphertext_is_decryption_error_where_gmssl_returns_garbage(backend: str) -> None:
     private, public = sm2.generate_keypair()
     ciphertext = bytearray.fromhex(sm2.encrypt(public, b"attack at dawn"))
     for index in (0, 63, 64, 95, 96, len(ciphertext) - 1):
@@ -254,14 +323,14 @@ def test_tampered_ciphertext_is_decryption_error_where_gmssl_returns_garbage() -
     assert _gmssl(private, public).decrypt(bytes(tampered_c3)) == b"attack at dawn"
 
 
-def test_wrong_private_key_is_decryption_error() -> None:
+def test_wrong_private_key_is_decryption_error(backend: str) -> None:
     _, public = sm2.generate_keypair()
     other_private, _ = sm2.generate_keypair()
     with pytest.raises(DecryptionError, match="C3 check failed"):
         sm2.decrypt(other_private, sm2.encrypt(public, b"x"))
 
 
-def test_a_wrong_key_says_so_when_x_starts_with_04() -> None:
+def test_a_wrong_key_says_so_when_x_starts_with_04(backend: str) -> None:
     """Such a ciphertext is read twice (with and without a `04` marker): the refusal is the
     reading whose C1 is on the curve, not the other one (1 ciphertext in 256; it made a
     pairing test fail once)."""
@@ -275,29 +344,29 @@ def test_a_wrong_key_says_so_when_x_starts_with_04() -> None:
     "ciphertext",
     ["", "0", "zz" * 100, "04", KAT_CIPHERTEXT[:-1], KAT_CIPHERTEXT[:192], " " + KAT_CIPHERTEXT],
 )
-def test_malformed_ciphertext_is_decryption_error(ciphertext: str) -> None:
+def test_malformed_ciphertext_is_decryption_error(backend: str, ciphertext: str) -> None:
     with pytest.raises(DecryptionError):
         sm2.decrypt(KAT_PRIVATE, ciphertext)
 
 
-def test_non_string_ciphertext_is_decryption_error() -> None:
+def test_non_string_ciphertext_is_decryption_error(backend: str) -> None:
     with pytest.raises(DecryptionError):
         sm2.decrypt(KAT_PRIVATE, bytes.fromhex(KAT_CIPHERTEXT))
 
 
-def test_c1_off_the_curve_is_decryption_error() -> None:
+def test_c1_off_the_curve_is_decryption_error(backend: str) -> None:
     raw = bytearray.fromhex(KAT_CIPHERTEXT)
     raw[10] ^= 0x80
     with pytest.raises(DecryptionError, match="not a point on the SM2 curve"):
         sm2.decrypt(KAT_PRIVATE, raw.hex())
 
 
-def test_encrypt_empty_message_refused() -> None:
+def test_encrypt_empty_message_refused(backend: str) -> None:
     with pytest.raises(CryptoError, match="empty"):
         sm2.encrypt(KAT_PUBLIC, b"")
 
 
-def test_sign_and_verify_empty_message() -> None:
+def test_sign_and_verify_empty_message(backend: str) -> None:
     assert sm2.verify(KAT_PUBLIC, b"", sm2.sign(KAT_PRIVATE, b""))
 
 
@@ -305,7 +374,7 @@ def test_sign_and_verify_empty_message() -> None:
     "private_key",
     ["", "00" * 32, f"{N - 1:064x}", f"{N:064x}", "f" * 64, "g" * 64, "1" * 63, "1" * 65, 5],
 )
-def test_invalid_private_key(private_key: str) -> None:
+def test_invalid_private_key(backend: str, private_key: str) -> None:
     for call in (
         lambda: sm2.public_key_from_private(private_key),
         lambda: sm2.sign(private_key, b"x"),
@@ -329,7 +398,7 @@ def test_invalid_private_key(private_key: str) -> None:
         b"\x04" * 65,
     ],
 )
-def test_invalid_public_key(public_key: str) -> None:
+def test_invalid_public_key(backend: str, public_key: str) -> None:
     for call in (
         lambda: sm2.encrypt(public_key, b"x"),
         lambda: sm2.verify(public_key, b"x", KAT_SIGNATURE),
@@ -354,11 +423,11 @@ def test_invalid_public_key(public_key: str) -> None:
         None,
     ],
 )
-def test_malformed_signature_is_false(signature: str) -> None:
+def test_malformed_signature_is_false(backend: str, signature: str) -> None:
     assert sm2.verify(KAT_PUBLIC, b"message digest", signature) is False
 
 
-def test_signature_flips_are_false() -> None:
+def test_signature_flips_are_false(backend: str) -> None:
     raw = bytearray.fromhex(KAT_SIGNATURE)
     for index in (0, 31, 32, 63):
         tampered = bytearray(raw)
@@ -389,7 +458,7 @@ console.log(JSON.stringify({
     reason="needs node and the pinned npm sm-crypto (npm ci)",
 )
 @pytest.mark.process
-def test_interoperates_with_browser_sm_crypto() -> None:
+def test_interoperates_with_browser_sm_crypto(backend: str) -> None:
     private, public = sm2.generate_keypair()
     message = bytes(range(256)) * 2
     request = {
@@ -455,7 +524,7 @@ def _claims_of_every_kind() -> tuple[list[tuple[str, bytes, str]], list[bool]]:
     return claims, expected
 
 
-def test_many_signatures_verified_at_once_answer_each_as_verify_does() -> None:
+def test_many_signatures_verified_at_once_answer_each_as_verify_does(backend: str) -> None:
     """verify_many cuts the claims into one slice per core, checked in threads side by side:
     each answer is still its own claim's, in order, as verify() answers it."""
     claims, expected = _claims_of_every_kind()
@@ -465,7 +534,7 @@ def test_many_signatures_verified_at_once_answer_each_as_verify_does() -> None:
     assert sm2.verify_many([]) == []
 
 
-def test_many_signatures_are_verified_in_a_forked_process_too() -> None:
+def test_many_signatures_are_verified_in_a_forked_process_too(backend: str) -> None:
     """A worker forked after its parent used the pool gets its own threads (a fork inherits
     none): verify_many answers there, not waiting for threads that do not exist."""
     claims, expected = _claims_of_every_kind()
@@ -480,3 +549,174 @@ def test_many_signatures_are_verified_in_a_forked_process_too() -> None:
     os.close(write)
     _, status = os.waitpid(child, 0)
     assert (os.read(read, 1), status) == (b"1", 0)
+
+
+# --- every backend against every other ----------------------------------------------------------
+
+
+def _keys_for_crossing() -> list[tuple[str, str]]:
+    """The standard's key, one whose x starts with 04 (gmssl's stripping bug, and C1's two
+    readings) and a fresh one."""
+    secret = _private_keys_with_x_prefixes(("04",))["04"]
+    private = f"{secret:064x}"
+    return [
+        (KAT_PRIVATE.lower(), KAT_PUBLIC),
+        (private, sm2.public_key_from_private(private)),
+        sm2.generate_keypair(),
+    ]
+
+
+@pytest.mark.parametrize(("first", "second"), PAIRS)
+def test_each_backend_verifies_and_decrypts_what_another_made(first: str, second: str) -> None:
+    """Sign with one, verify with the other; encrypt with one, decrypt with the other; the
+    same public key from both. Messages cross gmssl-fast's 255-byte limit (longer ones take
+    the pure-Python path inside it)."""
+    for private, public in _keys_for_crossing():
+        with _using(first):
+            made_public = sm2.public_key_from_private(private)
+        with _using(second):
+            assert sm2.public_key_from_private(private) == made_public == public
+        for length in (0, 1, 32, 255, 256, 300):
+            message = bytes(range(256))[: length % 256] + b"\xaa" * max(length - 256, 0)
+            with _using(first):
+                signature = sm2.sign(private, message)
+                ciphertext = sm2.encrypt(public, message) if message else None
+            with _using(second):
+                assert sm2.verify(public, message, signature)
+                assert not sm2.verify(public, message + b"!", signature)
+                if ciphertext is not None:
+                    assert sm2.decrypt(private, ciphertext) == message
+                    assert sm2.decrypt(private, "04" + ciphertext) == message
+
+
+@pytest.mark.parametrize(("first", "second"), PAIRS)
+def test_a_changed_ciphertext_is_refused_alike(first: str, second: str) -> None:
+    """Made by one backend and changed (C1, C3, C2), refused by the other with the same
+    DecryptionError as the maker would raise: the reasons are smcrypto.sm2's own."""
+    private, public = sm2.generate_keypair()
+    for length in (20, 300):
+        with _using(first):
+            ciphertext = bytearray.fromhex(sm2.encrypt(public, b"m" * length))
+        for index in (10, 70, 100, len(ciphertext) - 1):
+            tampered = bytearray(ciphertext)
+            tampered[index] ^= 0x01
+            errors = []
+            for name in (first, second):
+                with _using(name), pytest.raises(DecryptionError) as refused:
+                    sm2.decrypt(private, tampered.hex())
+                errors.append(str(refused.value))
+            assert errors[0] == errors[1]
+
+
+def _crafted_signatures(secret: int, public_key_xy: str) -> dict[str, tuple[int, int]]:
+    """Two signatures that only the holder of the key could make, built to reach the corners
+    of verification: s·G = t·Q (the sum is a doubling) and s·G = -t·Q (the sum is the point at
+    infinity), t = r + s. Neither holds over any message a digest e would give."""
+    n = _sm2_curve.N
+    r = 0x1234567
+    doubling = r * secret * pow(1 - secret, -1, n) % n  # s = t·d
+    infinity = -r * secret * pow(1 + secret, -1, n) % n  # s = -t·d
+    return {"doubling": (r, doubling), "infinity": (r, infinity)}
+
+
+def test_signatures_at_the_corners_of_verification_are_false(backend: str) -> None:
+    """gmssl's own verify reads a Jacobian x as affine on a doubling and fails on infinity;
+    every backend here answers False to both, as Tongsuo does."""
+    private, public = sm2.generate_keypair()
+    secret = int(private, 16)
+    for corner, (r, s) in _crafted_signatures(secret, public[2:]).items():
+        assert (r + s) % _sm2_curve.N, corner
+        assert sm2.verify(public, b"data", f"{r:064x}{s:064x}") is False, corner
+    r, s = _crafted_signatures(secret, public[2:])["infinity"]
+    with pytest.raises(TypeError):  # the reference: why the fallback does its own point sum
+        _gmssl(private, public).verify(f"{r:064x}{s:064x}", sm3_digest(b"data"))
+
+
+def test_the_fallback_point_sum_doubles_and_reaches_infinity() -> None:
+    double = _sm2_gmssl._point_add(G, G)
+    assert double == _affine_double(G)
+    assert _sm2_gmssl._point_add(double, G) == _affine_add(double, G)
+    assert _sm2_gmssl._point_add(G, (G[0], P - G[1])) is None
+    assert _sm2_gmssl._point_add(None, G) == G
+
+
+# --- which backend an import chooses (fresh interpreters) ------------------------------------
+
+CHOSEN = """
+import sys
+for blocked in sys.argv[1:]:
+    sys.modules[blocked] = None  # as if not installed
+from smcrypto import sm2
+private, public = sm2.generate_keypair()
+assert sm2.verify(public, b"x", sm2.sign(private, b"x"))
+assert sm2.decrypt(private, sm2.encrypt(public, b"x")) == b"x"
+print(sm2.BACKEND)
+"""
+
+
+def _import_choice(*blocked: str, forced: str | None = None) -> subprocess.CompletedProcess:
+    env = {key: value for key, value in os.environ.items() if key != sm2.BACKEND_VARIABLE}
+    if forced is not None:
+        env[sm2.BACKEND_VARIABLE] = forced
+    return subprocess.run(
+        [sys.executable, "-c", CHOSEN, *blocked],
+        capture_output=True,
+        text=True,
+        cwd=REPO,
+        env=env,
+        timeout=120,
+    )
+
+
+@pytest.mark.process
+def test_the_import_takes_the_first_backend_that_imports() -> None:
+    """Tongsuo where it imports; without it gmssl-fast if installed; without either the
+    pure-Python fallback, which then signs, verifies, encrypts and decrypts."""
+    cases = [
+        ((), PRESENT[0]),
+        (("tongsuopy",), next(name for name in PRESENT if name != "tongsuo")),
+        (("tongsuopy", "gmssl_fast"), "gmssl"),
+    ]
+    for blocked, expected in cases:
+        run = _import_choice(*blocked)
+        assert (run.returncode, run.stdout.strip()) == (0, expected), run.stderr
+
+
+@pytest.mark.process
+def test_the_environment_variable_forces_a_backend() -> None:
+    for name in PRESENT:
+        run = _import_choice(forced=name)
+        assert (run.returncode, run.stdout.strip()) == (0, name), run.stderr
+    run = _import_choice("tongsuopy", forced="gmssl")
+    assert (run.returncode, run.stdout.strip()) == (0, "gmssl"), run.stderr
+
+
+@pytest.mark.process
+def test_a_forced_backend_that_cannot_load_is_an_import_error_not_a_fallback() -> None:
+    run = _import_choice("tongsuopy", forced="tongsuo")
+    assert run.returncode != 0
+    assert "ImportError: AUTHROS_SM2_BACKEND=tongsuo" in run.stderr
+    run = _import_choice(forced="openssl")
+    assert run.returncode != 0
+    assert "must be one of tongsuo, gmssl-fast, gmssl, not 'openssl'" in run.stderr
+
+
+@pytest.mark.skipif(
+    (sys.platform, platform.machine()) != ("linux", "x86_64"),
+    reason="tongsuopy has wheels for Linux x86_64 (and macOS) only",
+)
+def test_tongsuo_imports_where_it_has_a_wheel() -> None:
+    """Where every install has it, Tongsuo's backend is never skipped as absent: an error in
+    it fails here instead of quietly leaving the portal on a slower backend."""
+    assert sm2.backend_load("tongsuo").NAME == "tongsuo"
+    assert "tongsuo" in PRESENT
+
+
+def test_backend_names_the_one_in_use() -> None:
+    assert sm2.BACKEND == sm2._backend.NAME
+    assert sm2.BACKEND in sm2.BACKENDS
+    forced = os.environ.get(sm2.BACKEND_VARIABLE)
+    expected = forced or PRESENT[0]
+    assert expected == sm2.BACKEND
+    with pytest.raises(ImportError, match="must be one of"):
+        sm2.backend_load("tongsuo ")
