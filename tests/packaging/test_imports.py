@@ -38,7 +38,8 @@ TEST_ONLY = {"eth_tester", "evm", "pytest", "hypothesis", "schemathesis", "playw
              "aiosmtpd", "mcap_ros2", "matplotlib"}  # fmt: skip
 # Installed by an operator who wants it, in no extra: smcrypto.sm2 uses it when it imports.
 OPTIONAL = {"gmssl_fast"}
-_PIN = re.compile(r"^([A-Za-z0-9][A-Za-z0-9._-]*)==\S+ \\$", re.MULTILINE)
+# a pin, with an environment marker or not (tongsuopy only where it has a wheel)
+_PIN = re.compile(r"^([A-Za-z0-9][A-Za-z0-9._-]*)==\S+(?: ;[^\\\n]*)? \\$", re.MULTILINE)
 
 
 def extra_distributions(extra: str) -> set[str]:
