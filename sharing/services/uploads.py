@@ -23,6 +23,7 @@ from typing import NoReturn
 
 from django.conf import settings
 from django.db import IntegrityError, transaction
+from django.db.models import Q
 from django.utils import timezone
 from redis.exceptions import RedisError
 
@@ -220,9 +221,18 @@ def _topic_seqs_unused(robot: Robot, checked: Sequence[_CheckedUpload]) -> None:
     }
     if not wanted:
         return
-    stored = Record.objects.filter(
-        signer=robot.key_hash, topic_seq__in={topic_seq for _topic, topic_seq in wanted}
-    ).values_list("topic", "topic_seq")
+    by_topic: dict[str, list[int]] = {}
+    for topic, topic_seq in wanted:
+        by_topic.setdefault(topic, []).append(topic_seq)
+    # One range of the (signer, topic, topic_seq) index per topic of the upload.
+    places = Q()
+    for topic, topic_seqs in by_topic.items():
+        places |= Q(topic=topic, topic_seq__in=topic_seqs)
+    stored = (
+        Record.objects.filter(signer=robot.key_hash)
+        .filter(places)
+        .values_list("topic", "topic_seq")
+    )
     for place in stored:
         if place in wanted:
             upload = wanted[place]
