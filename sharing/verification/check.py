@@ -242,11 +242,11 @@ def robot_signs(robot: Robot) -> bool:
     stored, and whoever can write a row can blank it). A robot is paired from its making: an
     approved pairing makes a new Robot with its key (accounts.services.pairing), and nothing
     gives a key to a robot added by hand later, so a robot with a key has signed every record
-    it ever uploaded. (The one exception, envelopes stored unsigned before robots signed by a
-    robot paired before then, whose key accounts migration 0008 filled in, is refused too: a
-    rule "unsigned is fine if anchored before the key reached the chain" would let whoever
-    runs the portal, who sends that key's registration, hold it back and anchor unsigned
-    records meanwhile.)"""
+    it ever uploaded. Not decided from the chain: the one exception, records stored unsigned
+    by a robot paired before robots signed (accounts migration 0008 gave such robots their
+    key's hash), is refused too, because a rule "unsigned is fine if anchored before the key
+    reached the chain" would let whoever runs the portal, who sends that key's registration,
+    hold it back and anchor unsigned records meanwhile."""
     return bool(robot.key_hash or robot.public_key)
 
 
@@ -273,7 +273,10 @@ def _provenance_claim(
     except (CryptoError, OwnerKey.DoesNotExist):  # anchored, yet not an envelope of its key
         return False
     reads.opened[record.pk] = header, plaintext
-    signer = robot.key_hash or provenance.key_hash(robot.public_key)
+    try:
+        signer = robot.key_hash or provenance.key_hash(robot.public_key)
+    except CryptoError:  # a public key on record that is not an SM2 point
+        return False
     if header.get("signer") != signer or not _row_agrees(record, header):
         return False  # unsigned (the audit's record written under a paired robot), or not its
     on_chain = reads.robot_key_of(signer)
