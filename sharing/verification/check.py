@@ -296,9 +296,12 @@ def _provenance_claim(
 
 def _row_agrees(record: Record, header: dict) -> bool:
     """Whether the record's row states what its anchored envelope's header says: the signer,
-    and a v2 record's topic_seq (none for v1). The completeness answer counts rows."""
-    topic_seq = header["topic_seq"] if envelope.provenance_format(header) == "v2" else None
-    return record.signer == header.get("signer", "") and record.topic_seq == topic_seq
+    and for a v2 record the topic_seq under its signature (the completeness answer counts
+    rows: a v2 row renumbered or unnumbered is refused). A v1 header numbers nothing, so a
+    v1 row's number is not checked here; the ingest stores none."""
+    if record.signer != header.get("signer", ""):
+        return False
+    return envelope.provenance_format(header) != "v2" or record.topic_seq == header["topic_seq"]
 
 
 def _anchored_check(
