@@ -71,6 +71,20 @@ class SequenceConflict(SharingError):
         self.detail = detail or {}
 
 
+class TopicSeqReused(SharingError):
+    """A v2 record's `topic_seq` that its signer and topic used already, for a record stored
+    before (tombstones keep theirs) or another of the same upload (DESIGN.md "Provenance v2":
+    never reused): a robot that lost its counter, or its key in other hands. Nothing of the
+    upload is stored; the owner is told (a SecurityEvent)."""
+
+    code = "topic_seq_reused"
+    http_status = 409
+
+    def __init__(self, message: str, *, detail: dict[str, Any] | None = None) -> None:
+        super().__init__(message)
+        self.detail = detail or {}
+
+
 class OwnerNotFound(SharingError):
     code = "owner_not_found"
     http_status = 404

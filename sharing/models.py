@@ -412,6 +412,11 @@ class SecurityEvent(models.Model):
         UNSIGNED_UPLOAD = "unsigned_upload", "a paired robot's upload without a signature"
         FOREIGN_SIGNER = "foreign_signer", "upload signed by a key that is not the robot's"
         BAD_SIGNATURE = "bad_signature", "upload whose signature does not match its content"
+        # DESIGN.md "Provenance v2": a (signer, topic, topic_seq) is used once, ever.
+        TOPIC_SEQ_REUSED = (
+            "topic_seq_reused",
+            "a robot's record number on a topic (topic_seq) used again",
+        )
 
     kind = models.CharField(max_length=32, choices=Kind.choices)
     record = models.ForeignKey(Record, on_delete=models.SET_NULL, null=True, blank=True)

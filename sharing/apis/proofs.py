@@ -1,5 +1,6 @@
 """`/api/v1/records/{id}/proof/`: a record's anchoring proof (the audit path, the anchor,
-the stored envelope and the robot's signature), to check it without the portal."""
+the stored envelope and the robot's signature; for a v2 record its batch and topic_seq), to
+check it without the portal."""
 
 import base64
 import contextlib
@@ -26,7 +27,7 @@ from sharing.cache import envelope_fetch
 from sharing.errors import NotAnchoredYet
 from sharing.models import Record
 from sharing.selectors.records import record_list_visible_to, record_proof
-from sharing.verification.signature import record_signature
+from sharing.verification.signature import record_batch, record_signature
 
 
 class ProofAnchorSerializer(serializers.Serializer):
@@ -52,6 +53,23 @@ class ProofSignatureSerializer(serializers.Serializer):
     )
     key_added_block = serializers.IntegerField(allow_null=True)
     key_revoked_block = serializers.IntegerField(allow_null=True, help_text="null: live")
+
+
+class ProofBatchSerializer(serializers.Serializer):
+    class Meta:
+        ref_name = "ProofBatch"
+
+    sig_index = serializers.IntegerField(help_text="the record's leaf index in its batch")
+    sig_size = serializers.IntegerField(help_text="the number of records the batch signed")
+    sig_path = serializers.CharField(
+        help_text="the leaf's audit path in the batch's tree: 64 lowercase hex per hash, "
+        "concatenated, leaf side first (RFC 9162 2.1.3), as the envelope's header carries it"
+    )
+    root = serializers.CharField(
+        allow_null=True,
+        help_text="the batch root the record's leaf folds to, lowercase hex: what `sig` is "
+        "over (DESIGN.md Provenance v2); null if it does not fold",
+    )
 
 
 class RecordProofApi(APIView):
@@ -82,6 +100,16 @@ class RecordProofApi(APIView):
         signature = ProofSignatureSerializer(
             allow_null=True, help_text="the robot's signature; null for an unsigned record"
         )
+        batch = ProofBatchSerializer(
+            required=False,
+            help_text="a v2 record's place in the batch its robot signed once (absent for v1 "
+            "and unsigned records, and once the record is deleted)",
+        )
+        topic_seq = serializers.IntegerField(
+            required=False,
+            help_text="a v2 record's number in its signer's count of its topic (absent for v1 "
+            "and unsigned records, and once the record is deleted)",
+        )
 
     @extend_schema(
         operation_id="records_proof",
@@ -94,8 +122,11 @@ class RecordProofApi(APIView):
             "`signature` the robot's: SM3 of public_key must be signer, the SM2 signature over "
             "the record's plaintext must hold (DESIGN.md Provenance), and robotKeyOf(signer) "
             "must name the owner, added at or before the anchoring block and not revoked by "
-            "then. For the owner or a grantee (a session, or an owner API token with the `read` "
-            "scope)."
+            "then. A v2 record (DESIGN.md Provenance v2) adds `batch` and `topic_seq`: its leaf "
+            "folded up `batch.sig_path` at `batch.sig_index` in a tree of `batch.sig_size` "
+            'gives `batch.root`, and `sig` holds over "AuthROS/batch-signature/v2" || 0x00 '
+            "|| sig_size (8 bytes, big-endian) || root. For the owner or a grantee (a session, "
+            "or an owner API token with the `read` scope)."
         ),
         auth=OWNER_ONLY,
         parameters=[RECORD_ID],
@@ -133,4 +164,8 @@ class RecordProofApi(APIView):
                 data, _source = envelope_fetch(record)
                 proof["envelope"] = base64.b64encode(data).decode("ascii")
                 proof["signature"] = record_signature(record, data, client)
+                batch = record_batch(record, data)
+                if batch is not None:
+                    proof["topic_seq"] = batch.pop("topic_seq")
+                    proof["batch"] = batch
         return Response(self.OutputSerializer(proof).data)

@@ -198,7 +198,10 @@ class RecordsApi(APIView):
         description=(
             "Each envelope must parse, name this robot and its owner in its header, be sealed "
             "under the owner's current key (or one rotated within the last hour), and carry a "
-            "seq above every earlier one of this robot. A batch is stored all or nothing. "
+            "seq above every earlier one of this robot. A paired robot's envelopes carry its "
+            "signature: v2 (one signature per batch, each record with its place in the batch "
+            "and its topic_seq) or v1 (one per envelope, older agents); each distinct batch "
+            "signature is verified once. A batch is stored all or nothing. "
             "`envelope` answers one result, `envelopes` a list in the same order."
         ),
         auth=ROBOT_ONLY,
@@ -227,10 +230,16 @@ class RecordsApi(APIView):
                 "increasing within the batch)",
                 e403="`permission_denied` (not a robot token), `header_mismatch` (another "
                 "owner or robot), `unknown_key` (not the owner's current key), "
-                "`forged_envelope` (does not open under the owner's key)",
+                "`forged_envelope` (does not open under the owner's key), `signature_refused` "
+                "(a paired robot's envelope unsigned, signed by another key, or whose signature "
+                "does not hold: for v2, a record that does not fold to its batch's signed root, "
+                "or a wrong sig_index or sig_size; the whole upload is refused)",
                 e409="`replayed_sequence`: these very envelopes are stored already (a lost 201); "
                 "`sequence_conflict`: a seq not above the robot's last one, with other data "
                 "(the owner is told: a robot that lost its state, or a stolen token and key); "
+                "`topic_seq_reused`: a v2 record's topic_seq its robot's key used already for "
+                "the topic (a record stored before, deleted or not, or another of the upload): "
+                "nothing is stored and the owner is told; "
                 "`identity_check_failed`: the owner's key commitment on chain differs from "
                 "the key the portal holds (an operator must look)",
                 e503="`storage_unavailable`: the upload could not be stored durably (nothing "

@@ -5,6 +5,12 @@ acknowledged. Each envelope must parse, name its robot and owner, open under one
 keys, carry the robot's signature if the robot is paired, and a sequence number above every
 earlier one of the robot; a refusal that may be an attack is a SecurityEvent. Anchoring
 (sharing/services/anchoring.py) is queued on commit and retried by the sweep (sweep.py).
+
+A paired robot signs each upload batch once (DESIGN.md "Provenance v2"; v1, one signature per
+envelope, from older agents): the signatures of an upload are verified together, each distinct
+one once (provenance.claims_hold), so a batch costs one SM2 verification. Each v2 record's
+`topic_seq` is stored, once ever per (signer, topic): a number used again, by a record stored
+before (a tombstone too) or twice in one upload, refuses the whole upload.
 """
 
 import logging
@@ -16,7 +22,8 @@ from datetime import UTC, datetime, timedelta
 from typing import NoReturn
 
 from django.conf import settings
-from django.db import transaction
+from django.db import IntegrityError, transaction
+from django.db.models import Q
 from django.utils import timezone
 from redis.exceptions import RedisError
 
@@ -37,12 +44,14 @@ from sharing.errors import (
     SequenceConflict,
     SignatureRefused,
     StorageUnavailable,
+    TopicSeqReused,
     UnknownKey,
 )
 from sharing.models import Record, SecurityEvent
 from sharing.services.anchoring import anchor_schedule_queued
 from sharing.storage import envelope_storage, envelopes_save
 from smcrypto import CryptoError, envelope, provenance, sm3
+from smcrypto.errors import SignatureInvalid, SignerMismatch
 
 logger = logging.getLogger(__name__)
 security_log = logging.getLogger("authros.security")
@@ -65,6 +74,9 @@ class _CheckedUpload:
     captured_at: datetime
     digest: str  # SM3 of data, hex
     signer: str  # the robot key that signed it (hex), or "" (a robot added by hand)
+    # The robot's signature left to verify (with the others of the upload), None if unsigned.
+    claim: provenance.SignatureClaim | None
+    topic_seq: int | None  # a v2 record's place in its signer's count of the topic
 
 
 def record_create(*, robot: Robot, data: bytes) -> Record:
@@ -89,7 +101,11 @@ def record_create_batch(*, robot: Robot, envelopes: Sequence[bytes]) -> list[Rec
     Each must parse, name this robot and its owner, be sealed under the owner's current key
     (or one retired after the envelope's capture time, or, for a robot not paired, within
     KEY_ROTATION_GRACE) with a valid tag, and carry a sequence number above every earlier one
-    of this robot.
+    of this robot. A paired robot's must hold its signature (v1, or v2: each record folding
+    to its batch's signed root), every signature verified once; a v2 record's `topic_seq`
+    must be unused for its signer and topic, in the database and in the upload (409
+    TopicSeqReused and a SecurityEvent). An exact resend of stored envelopes is answered
+    ReplayedSequence first, as before there were topic_seqs: the agent counts it delivered.
     """
     if not envelopes:
         raise InvalidEnvelope("no envelopes in the upload")
@@ -101,6 +117,8 @@ def record_create_batch(*, robot: Robot, envelopes: Sequence[bytes]) -> list[Rec
     seqs = [c.header["seq"] for c in checked]
     if seqs != sorted(set(seqs)):
         raise InvalidEnvelope("sequence numbers in one upload must strictly increase")
+    _signatures_hold(robot, checked)
+    _topic_seqs_distinct(robot, checked)
     disk_room_check(sum(len(upload.data) for upload in checked))
     # The files first, durable before the transaction starts: the robot's row lock (and
     # SQLite's write lock) is then held for the rows alone, not for a disk sync. Files of an
@@ -109,37 +127,20 @@ def record_create_batch(*, robot: Robot, envelopes: Sequence[bytes]) -> list[Rec
         envelope_storage(), [(f"{robot.owner_id}/{c.record_id}.env", c.data) for c in checked]
     )
     try:
-        with transaction.atomic():
-            # Moving the robot's last seq on is the check and the row lock in one statement:
-            # it only moves when every seq of the upload is above it.
-            moved = _ROBOT_SEQ_MOVE.run((seqs[-1], timezone.now()), (robot.pk, seqs[0]))
-            if not moved:
-                last_seq = Robot.objects.values_list("last_seq", flat=True).get(pk=robot.pk)
-                _sequence_check(robot, checked, last_seq=last_seq)
-            records = [
-                Record(
-                    id=upload.record_id,
-                    owner_id=robot.owner_id,
-                    robot=robot,
-                    topic=upload.header["topic"],
-                    data_type=upload.header["type"],
-                    seq=upload.header["seq"],
-                    captured_at=upload.captured_at,
-                    key_id=upload.key.key_id,
-                    digest=upload.digest,
-                    signer=upload.signer,
-                    size=len(upload.data),
-                    storage_name=name,
-                )
-                for upload, name in zip(checked, names, strict=True)
-            ]
-            _RECORD_INSERT.insert(records)
-            transaction.on_commit(lambda: _after_upload(robot.owner_id, checked))
+        try:
+            records = _records_insert(robot, checked, seqs, names)
+        except IntegrityError:
+            # Another upload stored one of these numbers between this one's checks and its
+            # insert (two uploads at once): answered as if it had been stored first.
+            _stored_conflict_check(robot, checked)
+            raise
     except BaseException as refused:
         # Nothing of a refused or failed upload stays behind, not even its files.
         _files_forget(names)
         if isinstance(refused, SequenceConflict):
             _sequence_conflict_alarm(robot, refused.detail)  # outside the refused transaction
+        elif isinstance(refused, TopicSeqReused):
+            _topic_seq_reused_alarm(robot, refused.detail)
         raise
     # The robot drops its copies once answered: the rows must outlive a power loss too. (Not
     # in the block above: the rows are committed, so their files stay whatever happens here;
@@ -152,6 +153,127 @@ def record_create_batch(*, robot: Robot, envelopes: Sequence[bytes]) -> list[Rec
             "the portal could not make the upload durable; send it again"
         ) from exc
     return records
+
+
+def _records_insert(
+    robot: Robot, checked: Sequence[_CheckedUpload], seqs: Sequence[int], names: Sequence[str]
+) -> list[Record]:
+    """The upload's rows, in one transaction: the robot's last seq moved on (the sequence
+    check, and the robot's row lock), then its topic_seqs checked against those stored (under
+    that lock, so an upload of the same robot committed meanwhile is seen), then the records."""
+    with transaction.atomic():
+        # Moving the robot's last seq on is the check and the row lock in one statement:
+        # it only moves when every seq of the upload is above it. An exact resend is answered
+        # here (replayed_sequence), before its topic_seqs, which are its own, are looked at.
+        moved = _ROBOT_SEQ_MOVE.run((seqs[-1], timezone.now()), (robot.pk, seqs[0]))
+        if not moved:
+            last_seq = Robot.objects.values_list("last_seq", flat=True).get(pk=robot.pk)
+            _sequence_check(robot, checked, last_seq=last_seq)
+        _topic_seqs_unused(robot, checked)
+        records = [
+            Record(
+                id=upload.record_id,
+                owner_id=robot.owner_id,
+                robot=robot,
+                topic=upload.header["topic"],
+                data_type=upload.header["type"],
+                seq=upload.header["seq"],
+                captured_at=upload.captured_at,
+                key_id=upload.key.key_id,
+                digest=upload.digest,
+                signer=upload.signer,
+                topic_seq=upload.topic_seq,
+                size=len(upload.data),
+                storage_name=name,
+            )
+            for upload, name in zip(checked, names, strict=True)
+        ]
+        _RECORD_INSERT.insert(records)
+        transaction.on_commit(lambda: _after_upload(robot.owner_id, checked))
+    return records
+
+
+def _topic_seqs_distinct(robot: Robot, checked: Sequence[_CheckedUpload]) -> None:
+    """TopicSeqReused if two records of the upload hold one place of one topic's count."""
+    seen: set[tuple[str, int]] = set()
+    for upload in checked:
+        if upload.topic_seq is None:
+            continue
+        place = (upload.header["topic"], upload.topic_seq)
+        if place in seen:
+            detail = _topic_seq_detail(robot, upload, within_upload=True)
+            _topic_seq_reused_alarm(robot, detail)
+            raise TopicSeqReused(
+                f"topic_seq {upload.topic_seq} of {upload.header['topic']} is in this upload "
+                "twice: each number of a topic is used once",
+                detail=detail,
+            )
+        seen.add(place)
+
+
+def _topic_seqs_unused(robot: Robot, checked: Sequence[_CheckedUpload]) -> None:
+    """TopicSeqReused if a record of the upload takes a place of its topic's count that a
+    record stored before holds (deleted or not: a tombstone keeps its number)."""
+    wanted = {
+        (upload.header["topic"], upload.topic_seq): upload
+        for upload in checked
+        if upload.topic_seq is not None
+    }
+    if not wanted:
+        return
+    by_topic: dict[str, list[int]] = {}
+    for topic, topic_seq in wanted:
+        by_topic.setdefault(topic, []).append(topic_seq)
+    # One range of the (signer, topic, topic_seq) index per topic of the upload.
+    places = Q()
+    for topic, topic_seqs in by_topic.items():
+        places |= Q(topic=topic, topic_seq__in=topic_seqs)
+    stored = (
+        Record.objects.filter(signer=robot.key_hash)
+        .filter(places)
+        .values_list("topic", "topic_seq")
+    )
+    for place in stored:
+        if place in wanted:
+            upload = wanted[place]
+            raise TopicSeqReused(
+                f"topic_seq {upload.topic_seq} of {upload.header['topic']} is stored already "
+                "with another record: a number of a topic is used once, ever (a robot that "
+                "lost its counter, or its key in other hands)",
+                detail=_topic_seq_detail(robot, upload, within_upload=False),
+            )
+
+
+def _stored_conflict_check(robot: Robot, checked: Sequence[_CheckedUpload]) -> None:
+    """After the database refused the upload's rows (a unique constraint): raise what the
+    upload would have been answered had the other upload been stored first, if that is it."""
+    last_seq = Robot.objects.values_list("last_seq", flat=True).get(pk=robot.pk)
+    if last_seq >= checked[0].header["seq"]:
+        _sequence_check(robot, checked, last_seq=last_seq)
+    _topic_seqs_unused(robot, checked)
+
+
+def _topic_seq_detail(robot: Robot, upload: _CheckedUpload, *, within_upload: bool) -> dict:
+    return {
+        "robot": str(robot.id),
+        "signer": upload.signer,
+        "topic": upload.header["topic"],
+        "topic_seq": upload.topic_seq,
+        "seq": upload.header["seq"],
+        "within_upload": within_upload,
+    }
+
+
+def _topic_seq_reused_alarm(robot: Robot, detail: dict) -> None:
+    SecurityEvent.objects.create(
+        kind=SecurityEvent.Kind.TOPIC_SEQ_REUSED, owner=robot.owner, detail=detail
+    )
+    security_log.warning(
+        "robot %s uploaded topic_seq %s of %s, a number used already",
+        detail["robot"],
+        detail["topic_seq"],
+        detail["topic"],
+    )
 
 
 def _sequence_check(robot: Robot, checked: Sequence[_CheckedUpload], *, last_seq: int) -> NoReturn:
@@ -280,19 +402,26 @@ def _check_upload(robot: Robot, data: bytes, keys: _UploadKeys) -> _CheckedUploa
     if captured_at < EPOCH:
         # The chain stores capture times as unsigned microseconds since 1970.
         raise InvalidEnvelope("the capture time must be 1970-01-01T00:00:00Z or later")
-    signer = _signature_check(robot, header, plaintext)
+    signer, claim = _signature_claim(robot, header, plaintext)
+    topic_seq = header["topic_seq"] if envelope.provenance_format(header) == "v2" else None
     data = bytes(data)
-    return _CheckedUpload(uuid.uuid4(), data, header, key, captured_at, sm3.sm3_hex(data), signer)
+    return _CheckedUpload(
+        uuid.uuid4(), data, header, key, captured_at, sm3.sm3_hex(data), signer, claim, topic_seq
+    )
 
 
-def _signature_check(robot: Robot, header: dict, plaintext: bytes) -> str:
-    """The robot key that signed the envelope (DESIGN.md "Provenance"), "" for a robot added by
-    hand that signs nothing. A paired robot's envelope must carry `signer` and `sig`, name the
-    robot's own key, and its signature must hold over the plaintext; a robot added by hand has
-    no key, so an envelope of its naming one is refused too. Each refusal is a SecurityEvent."""
+def _signature_claim(
+    robot: Robot, header: dict, plaintext: bytes
+) -> tuple[str, provenance.SignatureClaim | None]:
+    """The robot key that signed the envelope (DESIGN.md "Provenance", v1 or v2 as its header
+    says) and its signature left to verify (`_signatures_hold`), or ("", None) for a robot
+    added by hand that signs nothing. A paired robot's envelope must carry `signer` and `sig`
+    and name the robot's own key; a v2 one must fold up its batch path to a root its signature
+    can be over; a robot added by hand has no key, so an envelope of its naming one is refused
+    too. Each refusal is a SecurityEvent."""
     signed = "signer" in header or "sig" in header
     if not robot.key_hash and not signed:
-        return ""
+        return "", None
     if not signed:
         _signature_refused(robot, header, SecurityEvent.Kind.UNSIGNED_UPLOAD)
         raise SignatureRefused(
@@ -309,15 +438,45 @@ def _signature_check(robot: Robot, header: dict, plaintext: bytes) -> str:
             "this robot's key could not be registered on chain for its owner: pair the robot "
             "again (a new key)"
         )
-    if not provenance.verify_header(robot.public_key, header, plaintext):
-        _signature_refused(robot, header, SecurityEvent.Kind.BAD_SIGNATURE)
-        raise SignatureRefused("the envelope's robot signature does not match its content")
-    return robot.key_hash
+    try:
+        return robot.key_hash, provenance.signature_claim(robot.public_key, header, plaintext)
+    except SignerMismatch:
+        _signature_refused(robot, header, SecurityEvent.Kind.FOREIGN_SIGNER)
+        raise SignatureRefused("the envelope is signed by a key that is not this robot's") from None
+    except SignatureInvalid as exc:
+        _signature_refused(robot, header, SecurityEvent.Kind.BAD_SIGNATURE, reason=str(exc))
+        raise SignatureRefused(
+            f"the envelope's robot signature cannot hold: {exc}; nothing of the upload is stored"
+        ) from None
 
 
-def _signature_refused(robot: Robot, header: dict, kind: str) -> None:
-    detail = {"robot": str(robot.id), "seq": header["seq"], "topic": header["topic"]}
+def _signatures_hold(robot: Robot, checked: Sequence[_CheckedUpload]) -> None:
+    """Verify the upload's robot signatures together, each distinct one once (the records of
+    one v2 batch make one: one SM2 verification a batch). One that does not hold refuses the
+    whole upload, with a SecurityEvent naming the first record it refuses: its content, its
+    place in the batch (sig_index, sig_size, sig_path) or the batch's signature is not what
+    the robot signed."""
+    signed = [upload for upload in checked if upload.claim is not None]
+    if not signed:
+        return
+    holds = provenance.claims_hold([upload.claim for upload in signed])
+    refused = [upload for upload, held in zip(signed, holds, strict=True) if not held]
+    if not refused:
+        return
+    first = refused[0]
+    _signature_refused(robot, first.header, SecurityEvent.Kind.BAD_SIGNATURE, refused=len(refused))
+    raise SignatureRefused(
+        f"the robot signature of {len(refused)} of the {len(checked)} envelopes does not match "
+        f"their content or their place in their batch (first: seq {first.header['seq']}); "
+        "nothing of the upload is stored"
+    )
+
+
+def _signature_refused(robot: Robot, header: dict, kind: str, **more: object) -> None:
+    detail = {"robot": str(robot.id), "seq": header["seq"], "topic": header["topic"], **more}
     if isinstance(header.get("signer"), str):
         detail["signer"] = header["signer"][:64]
+    if envelope.provenance_format(header) == "v2":
+        detail.update(sig_index=header["sig_index"], sig_size=header["sig_size"])
     SecurityEvent.objects.create(kind=kind, owner=robot.owner, detail=detail)
     security_log.warning("upload refused (%s): robot %s seq %s", kind, robot.id, header["seq"])

@@ -22,7 +22,7 @@ from typing import Any
 from django.db import transaction
 
 from accounts.identity import owner_identity_check
-from accounts.models import Owner, OwnerKey
+from accounts.models import Owner, OwnerKey, Robot
 from chainworker.client import AuthROSChain
 from chainworker.codec import OnChainRoot, RobotKeyOnChain
 from chainworker.services import chain_client, chain_head
@@ -235,37 +235,73 @@ def _verdict_block(head: int, record: Record) -> int:
     return max(head, record.block_number or 0)
 
 
+def robot_signs(robot: Robot) -> bool:
+    """Whether every record of the robot must carry its signature: a paired robot's always.
+
+    Read from the robot, never from the record's row (its `signer` column says what the upload
+    stored, and whoever can write a row can blank it). A robot is paired from its making: an
+    approved pairing makes a new Robot with its key (accounts.services.pairing), and nothing
+    gives a key to a robot added by hand later, so a robot with a key has signed every record
+    it ever uploaded. Not decided from the chain: the one exception, records stored unsigned
+    by a robot paired before robots signed (accounts migration 0008 gave such robots their
+    key's hash), is refused too, because a rule "unsigned is fine if anchored before the key
+    reached the chain" would let whoever runs the portal, who sends that key's registration,
+    hold it back and anchor unsigned records meanwhile."""
+    return bool(robot.key_hash or robot.public_key)
+
+
 def _provenance_claim(
     record: Record, data: bytes, reads: _ChainReads
 ) -> provenance.SignatureClaim | bool:
-    """DESIGN.md "Provenance": the anchored envelope names the signer the record was stored
-    with; a signed record's key is its owner's on chain (robotKeyOf), added at or before the
-    record's anchoring block and not revoked by then, hashes to `signer`, and its signature
-    holds over the decrypted content: the signature left to verify (a SignatureClaim), or
-    whether the record holds without one. An unsigned record (a robot added by hand) holds as
-    unsigned: pages and answers say so, never "genuine"."""
-    if not record.signer:
-        return not envelope.read_header(data).header.get("signer", "")
+    """DESIGN.md "Provenance" (v1) and "Provenance v2": a paired robot's record (robot_signs)
+    must be signed, its anchored envelope naming the robot's own key; that key is its owner's
+    on chain (robotKeyOf), added at or before the record's anchoring block and not revoked by
+    then, and the signature holds over the decrypted content (v2: the record folds up its
+    batch path to the root the batch's signature is over). The signature left to verify (a
+    SignatureClaim, equal for the records of one batch, so that claims_hold verifies a batch
+    once), or whether the record holds without one. A record of a robot added by hand holds
+    as unsigned when its envelope names no signer: pages and answers say so, never "genuine".
+    v1 or v2 is the anchored envelope's header's (provenance.signature_claim); nothing here
+    reads signedness or format from the record's row, which must agree with the envelope
+    (its signer and, for v2, its topic_seq, which the count of records is made from)."""
+    robot = record.robot
+    if not robot_signs(robot):
+        header = envelope.read_header(data).header
+        return envelope.provenance_format(header) == "unsigned" and not record.signer
     try:
         header, plaintext = envelope.open(reads.keys.of(record), data)
     except (CryptoError, OwnerKey.DoesNotExist):  # anchored, yet not an envelope of its key
         return False
     reads.opened[record.pk] = header, plaintext
-    on_chain = reads.robot_key_of(record.signer)
-    public_key = record.robot.public_key
+    try:
+        signer = robot.key_hash or provenance.key_hash(robot.public_key)
+    except CryptoError:  # a public key on record that is not an SM2 point
+        return False
+    if header.get("signer") != signer or not _row_agrees(record, header):
+        return False  # unsigned (the audit's record written under a paired robot), or not its
+    on_chain = reads.robot_key_of(signer)
     if not (
-        header.get("signer", "") == record.signer
-        and on_chain.owner is not None
+        on_chain.owner is not None
         and on_chain.owner.lower() == record.owner.eoa_address.lower()
         and record.block_number is not None
         and on_chain.live_at(record.block_number)
-        and public_key
+        and robot.public_key
     ):
         return False
     try:
-        return provenance.signature_claim(public_key, header, plaintext)
+        return provenance.signature_claim(robot.public_key, header, plaintext)
     except SignatureInvalid:
         return False
+
+
+def _row_agrees(record: Record, header: dict) -> bool:
+    """Whether the record's row states what its anchored envelope's header says: the signer,
+    and for a v2 record the topic_seq under its signature (the completeness answer counts
+    rows: a v2 row renumbered or unnumbered is refused). A v1 header numbers nothing, so a
+    v1 row's number is not checked here; the ingest stores none."""
+    if record.signer != header.get("signer", ""):
+        return False
+    return envelope.provenance_format(header) != "v2" or record.topic_seq == header["topic_seq"]
 
 
 def _anchored_check(

@@ -169,7 +169,7 @@ def test_a_record_forged_with_the_owners_key_and_account_fails_every_check(
     the owner's account, skipping the upload's check: without the robot's private key the
     record is never genuine."""
     setup = make_paired_robot("alice")
-    monkeypatch.setattr(sharing_uploads, "_signature_check", lambda robot, *_: robot.key_hash)
+    monkeypatch.setattr(sharing_uploads, "_signatures_hold", lambda robot, checked: None)
     with django_capture_on_commit_callbacks(execute=True):
         record = record_create(robot=setup.robot, data=forge(setup, 1))
     record.refresh_from_db()
@@ -233,7 +233,7 @@ def test_a_check_of_many_records_refuses_exactly_the_forged_ones_among_them(
     """The signatures of one check are verified side by side on every core: each verdict is
     still its own record's, the forged ones refused wherever they stand in the batch."""
     setup = make_paired_robot("alice")
-    monkeypatch.setattr(sharing_uploads, "_signature_check", lambda robot, *_: robot.key_hash)
+    monkeypatch.setattr(sharing_uploads, "_signatures_hold", lambda robot, checked: None)
     forged = {1, 9, 16, 23}
     envelopes = [
         _signed_over_other_content(setup, seq) if seq in forged else setup.seal(seq)
