@@ -14,6 +14,7 @@ docs/export.md describes the bundle and every check.
 from authros_verify.bundle import (
     BUNDLE_FORMAT,
     BUNDLE_FORMAT_V1,
+    BUNDLE_FORMAT_V2,
     bundle_digest,
     bundle_serialise,
     record_line_index,
@@ -22,16 +23,20 @@ from authros_verify.chain import ChainReader, ChainUnreachable
 from authros_verify.check import RecordResult, Report, verify
 from authros_verify.keys import RegisteredKey, robot_keys
 from authros_verify.record import RecordCheck, record_check
+from authros_verify.streams import Gap, StreamReport
 
 __all__ = [
     "BUNDLE_FORMAT",
     "BUNDLE_FORMAT_V1",
+    "BUNDLE_FORMAT_V2",
     "ChainReader",
     "ChainUnreachable",
+    "Gap",
     "RecordCheck",
     "RecordResult",
     "RegisteredKey",
     "Report",
+    "StreamReport",
     "bundle_digest",
     "bundle_serialise",
     "record_check",
