@@ -75,11 +75,11 @@ def export_main(argv: list[str]) -> int:
     )
     args = parser.parse_args(argv)
     try:
-        bundle = args.bundle.read_bytes()
-        if args.mcap and not args.mcap.is_file():
-            raise OSError(f"{args.mcap} is not a file")
+        for given in (args.bundle, args.mcap):
+            if given is not None and not given.is_file():
+                raise OSError(f"{given} is not a file")
         report = verify(
-            bundle,
+            args.bundle,
             chain=ChainReader.from_url(args.rpc),
             mcap=args.mcap,
             contract=args.contract,

@@ -16,6 +16,8 @@ not passed as unsigned. The records that hold are counted per stream by their si
 import io
 import json
 import re
+from collections.abc import Iterable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO, Any
@@ -163,21 +165,59 @@ class Report:
 
 
 def verify(
-    bundle: bytes,
+    bundle: bytes | Path,
     *,
     chain: ChainReader,
     mcap: bytes | Path | IO[bytes] | None = None,
     contract: str | None = None,
     chain_id: int | None = None,
 ) -> Report:
-    """Check the bundle's bytes (and the MCAP file, if given: its bytes, its path, or a binary
-    file at its start, read as a stream) against the chain.
+    """Check the bundle (its bytes, or its path) and the MCAP file, if given (its bytes, its
+    path, or a binary file at its start), against the chain.
 
-    `contract` and `chain_id` are what the verifier knows independently (the portal's
-    published contract); without them the bundle's own are checked for consistency only.
-    Raises ChainUnreachable if the node cannot be asked; OSError if the MCAP file cannot be
-    read.
+    A bundle in its canonical form (every line its own, as the portal writes it) is read line
+    by line, twice (its form and digest, then each record), never held whole; one that is not
+    is read whole, so that the record whose line changed is named. The MCAP file is read as a
+    stream (`_mcap_messages`). `contract` and `chain_id` are what the verifier knows
+    independently (the portal's published contract); without them the bundle's own are
+    checked for consistency only. Raises ChainUnreachable if the node cannot be asked; OSError
+    if a file cannot be read.
     """
+    with _lines_of(bundle) as lines:
+        form = _form_read(lines)
+    if form is None:
+        data = bundle if isinstance(bundle, bytes) else bundle.read_bytes()
+        return _verify_whole(data, chain=chain, mcap=mcap, contract=contract, chain_id=chain_id)
+    report = Report()
+    document = form.head
+    if not form.digest_holds:
+        report.problems.append("the bundle's digest (bundle_sm3) does not match its content")
+    _check_fields(report, document)
+    head = _check_head(report, document, chain, contract, chain_id)
+    messages = _mcap_messages(report, document, mcap)
+
+    def entries() -> Iterator[tuple[RecordResult, Any]]:
+        with _lines_of(bundle) as lines:
+            for index, line in enumerate(_record_lines(lines)):
+                entry = _strict_json(line.removesuffix(b","))
+                result = RecordResult(index, str(entry.get("record")))
+                report.records.append(result)
+                yield result, entry
+
+    _check_records(report, entries(), document, head, chain, messages)
+    return report
+
+
+def _verify_whole(
+    bundle: bytes,
+    *,
+    chain: ChainReader,
+    mcap: bytes | Path | IO[bytes] | None,
+    contract: str | None,
+    chain_id: int | None,
+) -> Report:
+    """The check of a bundle read whole: one that is not in its canonical form line by line
+    (a changed byte, even one that breaks the JSON, is traced to the record on its line)."""
     report = Report()
     try:
         document = _strict_json(bundle)
@@ -196,11 +236,26 @@ def verify(
     _check_form(report, bundle, document)
     head = _check_head(report, document, chain, contract, chain_id)
     messages = _mcap_messages(report, document, mcap)
+    pairs = zip(report.records, entries, strict=True)
+    _check_records(report, pairs, document, head, chain, messages)
+    return report
+
+
+def _check_records(
+    report: Report,
+    entries: Iterable[tuple[RecordResult, Any]],
+    document: dict,
+    head: "_Head",
+    chain: ChainReader,
+    messages: dict | None,
+) -> None:
+    """Check each record (keeping its result, never its entry), count the records that hold
+    in their streams, and name the MCAP messages no record names."""
     fields = RECORD_FIELDS_OF.get(document.get("format"), RECORD_FIELDS)
     sequences: dict[int, list[RecordResult]] = {}
     signatures = Signatures()
     numbered: list[tuple[RecordResult, tuple[str, str, str, int]]] = []
-    for result, entry in zip(report.records, entries, strict=True):
+    for result, entry in entries:
         try:
             counted = _check_record(entry, head, chain, messages, fields, signatures)
             result.signed = counted.signed
@@ -227,18 +282,121 @@ def verify(
         report.problems.append(f"the bundle's streams (the portal's completeness): {exc}")
         report.streams = tally.reports(None, [])
     if messages is not None:
-        named = {entry["mcap"]["sequence"] for entry in entries if _has_sequence(entry)}
-        extra = sorted(set(messages) - named)
+        extra = sorted(set(messages) - set(sequences))
         if extra:
             report.problems.append(f"the MCAP file has messages no record names: {extra[:5]}")
-    return report
+
+
+# --- the bundle read line by line ------------------------------------------------------------
+
+
+@contextmanager
+def _lines_of(bundle: bytes | Path) -> Iterator[Iterator[bytes]]:
+    """The bundle's lines, each with its line break (the last one without, if the bundle
+    does not end with one), read from its bytes or its file."""
+    if isinstance(bundle, bytes | bytearray):
+        yield iter(io.BytesIO(bundle))
+        return
+    with bundle.open("rb") as source:
+        yield iter(source)
+
+
+def _record_lines(lines: Iterator[bytes]) -> Iterator[bytes]:
+    """The record lines of a bundle whose form holds (_form_read): after the head and
+    `"records":[`, before `]}`."""
+    for number, line in enumerate(lines):
+        if number < 2:
+            continue
+        if line == b"]}\n":
+            return
+        yield line.removesuffix(b"\n")
+
+
+@dataclass(frozen=True)
+class _Form:
+    head: dict  # every top-level field but `records`
+    digest_holds: bool
+
+
+def _form_read(lines: Iterator[bytes]) -> _Form | None:
+    """The head of a bundle whose every line is in its canonical form (bundle_serialise's,
+    record by record), and whether `bundle_sm3` is the digest of its content, computed as the
+    lines go by; None if any line is not (then the bundle is read whole to name it)."""
+    lines = (_unbroken(line) for line in lines)
+    try:
+        first = next(lines)
+        head = _strict_json(first[:-1] + b"}") if first.endswith(b",") else None
+        if not isinstance(head, dict) or "records" in head:
+            return None
+        if (bundle_entry_line(head)[:-1] + ",").encode("ascii") != first:
+            return None
+        if next(lines) != b'"records":[':
+            return None
+        body = {name: value for name, value in head.items() if name != "bundle_sm3"}
+        names = sorted([*body, "records"])
+        hasher = sm3_hasher()
+        hasher.update(b"{")
+        after = names[names.index("records") + 1 :]
+        for position, name in enumerate(names[: names.index("records")]):
+            hasher.update((("," if position else "") + _field(name, body[name])).encode("ascii"))
+        hasher.update(("," if names[0] != "records" else "").encode("ascii") + b'"records":[')
+        count, pending = 0, None  # a record's line is known to be the last at the next line
+        for line in lines:
+            if line == b"]}":
+                break
+            if pending is not None:
+                if not pending.endswith(b","):
+                    return None
+                _entry_hashed(hasher, pending[:-1], first_entry=count == 0)
+                count += 1
+            pending = line
+        else:
+            return None  # no closing line
+        if pending is not None:
+            if pending.endswith(b","):
+                return None
+            _entry_hashed(hasher, pending, first_entry=count == 0)
+        if next(lines, None) is not None:
+            return None
+        hasher.update(b"]")
+        for name in after:
+            hasher.update(("," + _field(name, body[name])).encode("ascii"))
+        hasher.update(b"}")
+    except (StopIteration, UnicodeDecodeError, ValueError, _NotCanonical):
+        return None
+    return _Form(head, head.get("bundle_sm3") == "0x" + hasher.finalize().hex())
+
+
+class _NotCanonical(Exception):
+    """A line is not the one the bundle's serialisation makes."""
+
+
+def _unbroken(line: bytes) -> bytes:
+    """A line without its line break; every line of a bundle has one."""
+    if not line.endswith(b"\n"):
+        raise _NotCanonical
+    return line[:-1]
+
+
+def _field(name: str, value: Any) -> str:
+    return bundle_entry_line({name: value})[1:-1]
+
+
+def _entry_hashed(hasher: Any, line: bytes, *, first_entry: bool) -> None:
+    """A record's line (without its comma), checked to be its record's one serialisation,
+    added to the digest."""
+    entry = _strict_json(line)
+    if not isinstance(entry, dict) or bundle_entry_line(entry).encode("ascii") != line:
+        raise _NotCanonical
+    hasher.update(line if first_entry else b"," + line)
 
 
 # --- the bundle as a whole -------------------------------------------------------------------
 
 
 def _check_form(report: Report, bundle: bytes, document: dict) -> None:
-    """The bytes are the one serialisation of what they hold, and hold what the digest says."""
+    """The bytes are the one serialisation of what they hold, and hold what the digest says
+    (a bundle read whole)."""
     canonical = bundle_serialise(document)
     if canonical != bundle:
         offset = next(
@@ -251,16 +409,22 @@ def _check_form(report: Report, bundle: bytes, document: dict) -> None:
             report.records[index].problems.append(
                 f"its line in the bundle was altered (byte {offset})"
             )
+    _check_fields(report, document)
+    if document.get("bundle_sm3") != bundle_digest(document):
+        report.problems.append("the bundle's digest (bundle_sm3) does not match its content")
+
+
+def _check_fields(report: Report, document: dict) -> None:
+    """The bundle's top-level fields are its format's, and the format one the check knows
+    (`records` assumed: a bundle read line by line has them)."""
     fields = BUNDLE_FIELDS_OF.get(document.get("format"), BUNDLE_FIELDS)
-    if set(document) != fields:
+    if set(document) | {"records"} != fields:
         report.problems.append(f"the bundle's fields are not {sorted(fields)}")
     if document.get("format") not in RECORD_FIELDS_OF:
         report.problems.append(
             f"the bundle's format is not {BUNDLE_FORMAT} "
             f"(or the older {BUNDLE_FORMAT_V2}, {BUNDLE_FORMAT_V1})"
         )
-    if document.get("bundle_sm3") != bundle_digest(document):
-        report.problems.append("the bundle's digest (bundle_sm3) does not match its content")
 
 
 @dataclass(frozen=True)
