@@ -113,10 +113,8 @@ def print_report(report: Report, *, mcap_checked: bool, pinned: bool) -> None:
         print(f"FAIL bundle: {problem}")
     for result in report.not_genuine:
         why = (
-            "its envelope carries no robot signature: anchored, but no robot vouches for "
-            "its content (the portal's word)"
-            if result.signed is False
-            else "a v1 bundle carries no signatures: its content was not checked against one"
+            "its anchored envelope carries no robot signature: anchored, but no robot vouches "
+            "for its content (the portal's word)"
         )
         print(f"UNSIGNED record {result.record} (#{result.index}): {why}")
     good = len(report.records) - len(report.failed)

@@ -38,6 +38,7 @@ from smcrypto import envelope, provenance, sm2
 from smcrypto.sm3 import sm3_hex
 from tests.authros_verify.conftest import export_files, recomputed
 from tests.support.harness import REPO_ROOT
+from tests.support.tampering import tamper
 
 pytestmark = pytest.mark.django_db
 
@@ -439,3 +440,47 @@ def _envelope(entry: dict) -> bytes:
 
 def _base64(data: bytes) -> str:
     return base64.b64encode(data).decode()
+
+
+def test_a_record_the_export_left_out_is_an_excluded_gap_and_bad_streams_are_named(
+    v2_export, django_capture_on_commit_callbacks, chain_reader
+):
+    setup, uploaded, deployed = v2_export
+    tamper(uploaded[ODOM, 2])  # its stored envelope changed: the export leaves it out
+    bundle, mcap = _exported(setup, django_capture_on_commit_callbacks)
+    document = json.loads(bundle)
+    (left_out,) = document["excluded"]
+    assert (left_out["reason"], left_out["signer"], left_out["topic_seq"]) == (
+        "integrity_check_failed",
+        setup.robot.key_hash,
+        2,
+    )
+    report = export_verify(bundle, chain=chain_reader, mcap=mcap, contract=deployed.address)
+    assert report.ok, (report.problems, [r.problems for r in report.failed])
+    odom = report.streams[1]
+    assert [(g.start, g.end, g.reason) for g in odom.gaps] == [(2, 2, "excluded")]
+    assert odom.gaps[0].detail == f"integrity_check_failed: record {uploaded[ODOM, 2].pk}"
+
+    # The portal's streams not of their form: a problem of the bundle, the gaps still counted.
+    for broken in (
+        {"streams": [], "uncounted": -1},
+        {"streams": [{"signer": "x"}], "uncounted": 0},
+        {
+            "streams": [
+                {**document["streams"]["streams"][0], "gaps": [{"from": 3, "to": 2, "reason": "x"}]}
+            ],
+            "uncounted": 0,
+        },
+    ):
+        changed = copy.deepcopy(document)
+        changed["streams"] = broken
+        report = export_verify(recomputed(changed, mcap)[0], chain=chain_reader)
+        assert len(report.problems) == 1, broken
+        assert report.problems[0].startswith("the bundle's streams"), report.problems
+        assert [(g.start, g.reason) for g in report.streams[1].gaps] == [(2, "missing")]
+
+    # A portal claiming a billion numbers past the last costs nothing: one gap, `missing`.
+    claimed = copy.deepcopy(document)
+    claimed["streams"]["streams"][0]["last"] = 10**9
+    report = export_verify(recomputed(claimed, mcap)[0], chain=chain_reader)
+    assert [(g.start, g.end, g.reason) for g in report.streams[0].gaps] == [(9, 10**9, "missing")]
