@@ -109,7 +109,7 @@ BUNDLE_FIELDS_OF = {
 }
 
 
-@dataclass
+@dataclass(slots=True)
 class RecordResult:
     index: int
     record: str  # the record id as the bundle states it
