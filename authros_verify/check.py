@@ -46,7 +46,7 @@ from authros_verify.streams import StreamReport, StreamsMalformed, StreamTally
 from authros_verify.values import Invalid, address, base64_bytes, hash32, micros, whole
 from smcrypto.envelope import BATCH_FIELDS, EnvelopeInfo, read_header
 from smcrypto.errors import CryptoError
-from smcrypto.sm3 import sm3_hasher, sm3_hex
+from smcrypto.sm3 import sm3_digest, sm3_hasher, sm3_hex
 
 # The fields of a record's entry in a v1 bundle (exports made before records were signed).
 RECORD_FIELDS_V1 = {
@@ -252,27 +252,36 @@ def _check_records(
     """Check each record (keeping its result, never its entry), count the records that hold
     in their streams, and name the MCAP messages no record names."""
     fields = RECORD_FIELDS_OF.get(document.get("format"), RECORD_FIELDS)
-    sequences: dict[int, list[RecordResult]] = {}
+    # Kept per record, so kept small: the first record naming each MCAP sequence (all of them
+    # only for a sequence named twice), and each counted record's stream (one tuple per
+    # stream, shared) and number.
+    sequences: dict[int, RecordResult] = {}
+    shared: dict[int, list[RecordResult]] = {}
+    streams: dict[tuple[str, str, str], tuple[str, str, str]] = {}
     signatures = Signatures()
-    numbered: list[tuple[RecordResult, tuple[str, str, str, int]]] = []
+    numbered: list[tuple[RecordResult, tuple[str, str, str], int]] = []
     for result, entry in entries:
         try:
             counted = _check_record(entry, head, chain, messages, fields, signatures)
             result.signed = counted.signed
             if counted.stream is not None:
-                numbered.append((result, counted.stream))
+                *key, number = counted.stream
+                numbered.append((result, streams.setdefault(tuple(key), tuple(key)), number))
         except Invalid as exc:
             result.problems.append(str(exc))
         except (KeyError, TypeError, ValueError, AttributeError) as exc:
             result.problems.append(f"its entry is malformed ({type(exc).__name__}: {exc})")
         if _has_sequence(entry):
-            sequences.setdefault(entry["mcap"]["sequence"], []).append(result)
+            sequence = entry["mcap"]["sequence"]
+            first = sequences.setdefault(sequence, result)
+            if first is not result:
+                shared.setdefault(sequence, [first]).append(result)
     report.signatures_verified = signatures.verified
-    _name_shared_sequences(sequences)
+    _name_shared_sequences(shared)
     tally = StreamTally()
-    for result, stream in numbered:
+    for result, stream, number in numbered:
         if result.ok:
-            _count(tally, result, stream)
+            _count(tally, result, (*stream, number))
     try:
         excluded = document.get("excluded")
         report.streams = tally.reports(
@@ -471,7 +480,7 @@ class _Seen:
     message_encoding: str
     log_time: int
     publish_time: int
-    sm3: str
+    sm3: bytes  # of its data
 
 
 _READ_SIZE = 1024 * 1024
@@ -514,7 +523,7 @@ def _mcap_messages(
                 message_encoding=message.message_encoding,
                 log_time=message.log_time,
                 publish_time=message.publish_time,
-                sm3="0x" + sm3_hex(message.data),
+                sm3=sm3_digest(message.data),
             )
     except McapUnreadable as exc:
         report.problems.append(f"the MCAP file cannot be read: {exc}")
@@ -688,7 +697,7 @@ def _check_message(entry: dict, messages: dict | None, rebuilt: EncodedMessage |
     message = messages.get(sequence)
     if message is None:
         raise Invalid(f"the MCAP file has no message of sequence {sequence}")
-    if message.sm3 != binding["sm3"]:
+    if "0x" + message.sm3.hex() != binding["sm3"]:
         raise Invalid("its message in the MCAP file differs (SM3) from the one exported")
     found = (message.topic, message.schema, message.message_encoding, message.log_time)
     if found != (binding["topic"], binding["schema"], binding["message_encoding"], log_time):
