@@ -1,13 +1,14 @@
 """python -m authros_verify: check AuthROS data without trusting the portal.
 
     python -m authros_verify [export] BUNDLE.json [--mcap FILE] --rpc URL [--contract 0x..]
-        [--chain-id N] [--require-signed]
+        [--chain-id N] [--require-signed] [--complete]
     python -m authros_verify record RECORD_ID --portal URL --key-file FILE --rpc URL
         [--token-file FILE] [--contract 0x..] [--chain-id N] [--allow-unsigned]
     python -m authros_verify keys --owner 0x.. --rpc URL --contract 0x.. [--from-block N]
 
-Exit status: 0 everything holds; 1 a check fails (the record, key or bundle is named); 2 the
-input cannot be read, or the chain node or the portal cannot be asked.
+Exit status: 0 everything holds; 1 a check fails (the record, key or bundle is named), or
+with --complete a stream has a gap or a record is counted by none; 2 the input cannot be read,
+or the chain node or the portal cannot be asked.
 """
 
 import argparse
@@ -66,29 +67,41 @@ def export_main(argv: list[str]) -> int:
         action="store_true",
         help="fail unless every record is genuine (signed by its owner's robot)",
     )
+    parser.add_argument(
+        "--complete",
+        action="store_true",
+        help="fail on any gap in any stream, whatever reason the portal gives (a reason is "
+        "its word, not signed), and on any record no stream counts (unsigned or v1)",
+    )
     args = parser.parse_args(argv)
     try:
-        bundle = args.bundle.read_bytes()
-        mcap = args.mcap.read_bytes() if args.mcap else None
-    except OSError as exc:
-        print(f"cannot read: {exc}", file=sys.stderr)
-        return EXIT_UNUSABLE
-    try:
+        for given in (args.bundle, args.mcap):
+            if given is not None and not given.is_file():
+                raise OSError(f"{given} is not a file")
         report = verify(
-            bundle,
+            args.bundle,
             chain=ChainReader.from_url(args.rpc),
-            mcap=mcap,
+            mcap=args.mcap,
             contract=args.contract,
             chain_id=args.chain_id,
         )
+    except OSError as exc:
+        print(f"cannot read: {exc}", file=sys.stderr)
+        return EXIT_UNUSABLE
     except ChainUnreachable as exc:
         print(str(exc), file=sys.stderr)
         return EXIT_UNUSABLE
-    print_report(report, mcap_checked=mcap is not None, pinned=args.contract is not None)
+    print_report(report, mcap_checked=args.mcap is not None, pinned=args.contract is not None)
     if not report.ok:
         return EXIT_FAILED
     if args.require_signed and report.not_genuine:
         print(f"FAILED: {len(report.not_genuine)} records are not genuine (--require-signed)")
+        return EXIT_FAILED
+    if args.complete and (report.gaps or report.uncounted):
+        print(
+            f"FAILED: {report.gaps} gaps, {len(report.uncounted)} records no stream counts "
+            "(--complete)"
+        )
         return EXIT_FAILED
     return EXIT_OK
 
@@ -100,18 +113,18 @@ def print_report(report: Report, *, mcap_checked: bool, pinned: bool) -> None:
         print(f"FAIL bundle: {problem}")
     for result in report.not_genuine:
         why = (
-            "its envelope carries no robot signature: anchored, but no robot vouches for "
-            "its content (the portal's word)"
-            if result.signed is False
-            else "a v1 bundle carries no signatures: its content was not checked against one"
+            "its anchored envelope carries no robot signature: anchored, but no robot vouches "
+            "for its content (the portal's word)"
         )
         print(f"UNSIGNED record {result.record} (#{result.index}): {why}")
     good = len(report.records) - len(report.failed)
     print(
         f"{good} of {len(report.records)} records verified against the chain: "
         f"{len(report.genuine)} genuine (signed by a robot key their owner registered), "
-        f"{len(report.not_genuine)} unsigned"
+        f"{len(report.not_genuine)} unsigned; {report.signatures_verified} SM2 verifications "
+        "(one per upload batch)"
     )
+    print_streams(report)
     if not mcap_checked:
         print("note: no --mcap given; the MCAP file itself was not checked")
     if not pinned:
@@ -122,6 +135,27 @@ def print_report(report: Report, *, mcap_checked: bool, pinned: bool) -> None:
         print(f"OK, but {len(report.not_genuine)} records are unsigned: not genuine")
     else:
         print("OK")
+
+
+def print_streams(report: Report) -> None:
+    """Per stream (signer, topic) of the records that hold: first, last, count and each gap,
+    numbered by the topic_seq each robot signed."""
+    for stream in report.streams:
+        span = "none" if stream.first is None else f"{stream.first}..{stream.last}"
+        state = "nothing missing" if not stream.gaps else f"{len(stream.gaps)} gaps"
+        print(
+            f"stream signer {stream.signer} topic {stream.topic} (robot {stream.robot}): "
+            f"topic_seq {span}, {stream.count} records, {state}"
+        )
+        for gap in stream.gaps:
+            numbers = f"{gap.start}" if gap.start == gap.end else f"{gap.start}..{gap.end}"
+            detail = f" ({gap.detail})" if gap.detail else ""
+            print(f"    GAP {numbers} ({gap.size} records): {gap.reason}{detail}")
+    if report.uncounted:
+        print(
+            f"note: {len(report.uncounted)} records carry no signed topic_seq (unsigned or "
+            "provenance v1): no stream counts them"
+        )
 
 
 # --- one record, from the portal -------------------------------------------------------------

@@ -18,8 +18,11 @@ from typing import IO, Any
 
 from smcrypto.sm3 import sm3_hasher, sm3_hex
 
-# v2: each record also carries its robot's signature and the plaintext it signed (v1: not).
-BUNDLE_FORMAT = "authros-export-proofs/v2"
+# v3: each record also carries its topic_seq and its place in its upload batch, and the bundle
+# the portal's completeness of the selection (`streams`). v2: each record carries its robot's
+# signature and the plaintext it signed (v1: not). The verifier reads all three.
+BUNDLE_FORMAT = "authros-export-proofs/v3"
+BUNDLE_FORMAT_V2 = "authros-export-proofs/v2"
 BUNDLE_FORMAT_V1 = "authros-export-proofs/v1"
 # Lines before the first record's: the top-level fields, then `"records":[`.
 RECORDS_FIRST_LINE = 3

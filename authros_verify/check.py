@@ -5,17 +5,28 @@ the message its signed plaintext makes; the bundle's own form and digest.
 A record fails if anything about it does not hold; the bundle fails if any record does, or
 if something outside the records (its form, digest, chain, contract, MCAP file) does not. A
 record that holds is genuine when its robot signed it, else unsigned (docs/export.md).
+
+Whether a record is signed, and v1 or v2, is read from its anchored envelope's header (which
+the chain anchors through its digest), never from the bundle's format or fields: a signed
+record in a bundle that carries no signatures (relabelled to an older format) fails, it is
+not passed as unsigned. The records that hold are counted per stream by their signed
+`topic_seq` (authros_verify/streams.py); the MCAP file is read as a stream (mcapfile.py).
 """
 
+import io
 import json
 import re
+from collections.abc import Iterable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
-from typing import Any
+from pathlib import Path
+from typing import IO, Any
 
 from authros_verify.anchor import anchor_check
 from authros_verify.bundle import (
     BUNDLE_FORMAT,
     BUNDLE_FORMAT_V1,
+    BUNDLE_FORMAT_V2,
     bundle_digest,
     bundle_entry_line,
     bundle_serialise,
@@ -30,11 +41,12 @@ from authros_verify.messages import (
     ros2_type_name,
     schema_of,
 )
-from authros_verify.signature import is_signed, robot_key_check, signature_check
+from authros_verify.signature import Signatures, is_signed, robot_key_check, signature_check
+from authros_verify.streams import StreamReport, StreamsMalformed, StreamTally
 from authros_verify.values import Invalid, address, base64_bytes, hash32, micros, whole
-from smcrypto.envelope import EnvelopeInfo, read_header
+from smcrypto.envelope import BATCH_FIELDS, EnvelopeInfo, read_header
 from smcrypto.errors import CryptoError
-from smcrypto.sm3 import sm3_hex
+from smcrypto.sm3 import sm3_digest, sm3_hasher, sm3_hex
 
 # The fields of a record's entry in a v1 bundle (exports made before records were signed).
 RECORD_FIELDS_V1 = {
@@ -56,8 +68,15 @@ RECORD_FIELDS_V1 = {
     "mcap",
 }
 # v2 adds the robot's signature (null: unsigned) and the plaintext it signed (null: unsigned).
-RECORD_FIELDS = RECORD_FIELDS_V1 | {"signature", "plaintext"}
-RECORD_FIELDS_OF = {BUNDLE_FORMAT: RECORD_FIELDS, BUNDLE_FORMAT_V1: RECORD_FIELDS_V1}
+RECORD_FIELDS_V2 = RECORD_FIELDS_V1 | {"signature", "plaintext"}
+# v3 adds the record's topic_seq and its place in its upload batch (both null but for
+# provenance v2), as its anchored envelope's header states them.
+RECORD_FIELDS = RECORD_FIELDS_V2 | {"topic_seq", "batch"}
+RECORD_FIELDS_OF = {
+    BUNDLE_FORMAT: RECORD_FIELDS,
+    BUNDLE_FORMAT_V2: RECORD_FIELDS_V2,
+    BUNDLE_FORMAT_V1: RECORD_FIELDS_V1,
+}
 SIGNATURE_FIELDS = {"signer", "sig", "public_key"}
 MCAP_FIELDS = {
     "topic",
@@ -68,7 +87,7 @@ MCAP_FIELDS = {
     "schema",
     "sm3",
 }
-BUNDLE_FIELDS = {
+BUNDLE_FIELDS_V2 = {
     "format",
     "export",
     "created_at",
@@ -81,16 +100,25 @@ BUNDLE_FIELDS = {
     "excluded",
     "bundle_sm3",
 }
+# v3 adds the portal's completeness of the selection (sharing.selectors.completeness).
+BUNDLE_FIELDS = BUNDLE_FIELDS_V2 | {"streams"}
+BUNDLE_FIELDS_OF = {
+    BUNDLE_FORMAT: BUNDLE_FIELDS,
+    BUNDLE_FORMAT_V2: BUNDLE_FIELDS_V2,
+    BUNDLE_FORMAT_V1: BUNDLE_FIELDS_V2,
+}
 
 
-@dataclass
+@dataclass(slots=True)
 class RecordResult:
     index: int
     record: str  # the record id as the bundle states it
     problems: list[str] = field(default_factory=list)
     # True: its robot's signature holds (genuine); False: its envelope is unsigned; None: not
-    # known (it failed first, or a v1 bundle, which carries no signatures).
+    # known (it failed first).
     signed: bool | None = None
+
+    topic_seq: int | None = None  # its signed number in its stream, once it holds
 
     @property
     def ok(self) -> bool:
@@ -105,6 +133,18 @@ class RecordResult:
 class Report:
     problems: list[str] = field(default_factory=list)  # about the bundle as a whole
     records: list[RecordResult] = field(default_factory=list)
+    # Per (signer, topic) of the records that hold: first, last, count and gaps.
+    streams: list[StreamReport] = field(default_factory=list)
+    signatures_verified: int = 0  # SM2 verifications made (one per v2 batch)
+
+    @property
+    def gaps(self) -> int:
+        return sum(len(stream.gaps) for stream in self.streams)
+
+    @property
+    def uncounted(self) -> list[RecordResult]:
+        """Records that hold but no stream counts (unsigned, or signed without topic_seq)."""
+        return [result for result in self.records if result.ok and result.topic_seq is None]
 
     @property
     def failed(self) -> list[RecordResult]:
@@ -125,19 +165,59 @@ class Report:
 
 
 def verify(
-    bundle: bytes,
+    bundle: bytes | Path,
     *,
     chain: ChainReader,
-    mcap: bytes | None = None,
+    mcap: bytes | Path | IO[bytes] | None = None,
     contract: str | None = None,
     chain_id: int | None = None,
 ) -> Report:
-    """Check the bundle's bytes (and the MCAP file's, if given) against the chain.
+    """Check the bundle (its bytes, or its path) and the MCAP file, if given (its bytes, its
+    path, or a binary file at its start), against the chain.
 
-    `contract` and `chain_id` are what the verifier knows independently (the portal's
-    published contract); without them the bundle's own are checked for consistency only.
-    Raises ChainUnreachable if the node cannot be asked.
+    A bundle in its canonical form (every line its own, as the portal writes it) is read line
+    by line, twice (its form and digest, then each record), never held whole; one that is not
+    is read whole, so that the record whose line changed is named. The MCAP file is read as a
+    stream (`_mcap_messages`). `contract` and `chain_id` are what the verifier knows
+    independently (the portal's published contract); without them the bundle's own are
+    checked for consistency only. Raises ChainUnreachable if the node cannot be asked; OSError
+    if a file cannot be read.
     """
+    with _lines_of(bundle) as lines:
+        form = _form_read(lines)
+    if form is None:
+        data = bundle if isinstance(bundle, bytes) else bundle.read_bytes()
+        return _verify_whole(data, chain=chain, mcap=mcap, contract=contract, chain_id=chain_id)
+    report = Report()
+    document = form.head
+    if not form.digest_holds:
+        report.problems.append("the bundle's digest (bundle_sm3) does not match its content")
+    _check_fields(report, document)
+    head = _check_head(report, document, chain, contract, chain_id)
+    messages = _mcap_messages(report, document, mcap)
+
+    def entries() -> Iterator[tuple[RecordResult, Any]]:
+        with _lines_of(bundle) as lines:
+            for index, line in enumerate(_record_lines(lines)):
+                entry = _strict_json(line.removesuffix(b","))
+                result = RecordResult(index, str(entry.get("record")))
+                report.records.append(result)
+                yield result, entry
+
+    _check_records(report, entries(), document, head, chain, messages)
+    return report
+
+
+def _verify_whole(
+    bundle: bytes,
+    *,
+    chain: ChainReader,
+    mcap: bytes | Path | IO[bytes] | None,
+    contract: str | None,
+    chain_id: int | None,
+) -> Report:
+    """The check of a bundle read whole: one that is not in its canonical form line by line
+    (a changed byte, even one that breaks the JSON, is traced to the record on its line)."""
     report = Report()
     try:
         document = _strict_json(bundle)
@@ -156,31 +236,176 @@ def verify(
     _check_form(report, bundle, document)
     head = _check_head(report, document, chain, contract, chain_id)
     messages = _mcap_messages(report, document, mcap)
+    pairs = zip(report.records, entries, strict=True)
+    _check_records(report, pairs, document, head, chain, messages)
+    return report
+
+
+def _check_records(
+    report: Report,
+    entries: Iterable[tuple[RecordResult, Any]],
+    document: dict,
+    head: "_Head",
+    chain: ChainReader,
+    messages: dict | None,
+) -> None:
+    """Check each record (keeping its result, never its entry), count the records that hold
+    in their streams, and name the MCAP messages no record names."""
     fields = RECORD_FIELDS_OF.get(document.get("format"), RECORD_FIELDS)
-    sequences: dict[int, list[RecordResult]] = {}
-    for result, entry in zip(report.records, entries, strict=True):
+    # Kept per record, so kept small: the first record naming each MCAP sequence (all of them
+    # only for a sequence named twice), and each counted record's stream (one tuple per
+    # stream, shared) and number.
+    sequences: dict[int, RecordResult] = {}
+    shared: dict[int, list[RecordResult]] = {}
+    streams: dict[tuple[str, str, str], tuple[str, str, str]] = {}
+    signatures = Signatures()
+    numbered: list[tuple[RecordResult, tuple[str, str, str], int]] = []
+    for result, entry in entries:
         try:
-            result.signed = _check_record(entry, head, chain, messages, fields)
+            counted = _check_record(entry, head, chain, messages, fields, signatures)
+            result.signed = counted.signed
+            if counted.stream is not None:
+                *key, number = counted.stream
+                numbered.append((result, streams.setdefault(tuple(key), tuple(key)), number))
         except Invalid as exc:
             result.problems.append(str(exc))
         except (KeyError, TypeError, ValueError, AttributeError) as exc:
             result.problems.append(f"its entry is malformed ({type(exc).__name__}: {exc})")
         if _has_sequence(entry):
-            sequences.setdefault(entry["mcap"]["sequence"], []).append(result)
-    _name_shared_sequences(sequences)
+            sequence = entry["mcap"]["sequence"]
+            first = sequences.setdefault(sequence, result)
+            if first is not result:
+                shared.setdefault(sequence, [first]).append(result)
+    report.signatures_verified = signatures.verified
+    _name_shared_sequences(shared)
+    tally = StreamTally()
+    for result, stream, number in numbered:
+        if result.ok:
+            _count(tally, result, (*stream, number))
+    try:
+        excluded = document.get("excluded")
+        report.streams = tally.reports(
+            document.get("streams"), excluded if isinstance(excluded, list) else []
+        )
+    except StreamsMalformed as exc:
+        report.problems.append(f"the bundle's streams (the portal's completeness): {exc}")
+        report.streams = tally.reports(None, [])
     if messages is not None:
-        named = {entry["mcap"]["sequence"] for entry in entries if _has_sequence(entry)}
-        extra = sorted(set(messages) - named)
+        extra = sorted(set(messages) - set(sequences))
         if extra:
             report.problems.append(f"the MCAP file has messages no record names: {extra[:5]}")
-    return report
+
+
+# --- the bundle read line by line ------------------------------------------------------------
+
+
+@contextmanager
+def _lines_of(bundle: bytes | Path) -> Iterator[Iterator[bytes]]:
+    """The bundle's lines, each with its line break (the last one without, if the bundle
+    does not end with one), read from its bytes or its file."""
+    if isinstance(bundle, bytes | bytearray):
+        yield iter(io.BytesIO(bundle))
+        return
+    with bundle.open("rb") as source:
+        yield iter(source)
+
+
+def _record_lines(lines: Iterator[bytes]) -> Iterator[bytes]:
+    """The record lines of a bundle whose form holds (_form_read): after the head and
+    `"records":[`, before `]}`."""
+    for number, line in enumerate(lines):
+        if number < 2:
+            continue
+        if line == b"]}\n":
+            return
+        yield line.removesuffix(b"\n")
+
+
+@dataclass(frozen=True)
+class _Form:
+    head: dict  # every top-level field but `records`
+    digest_holds: bool
+
+
+def _form_read(lines: Iterator[bytes]) -> _Form | None:
+    """The head of a bundle whose every line is in its canonical form (bundle_serialise's,
+    record by record), and whether `bundle_sm3` is the digest of its content, computed as the
+    lines go by; None if any line is not (then the bundle is read whole to name it)."""
+    lines = (_unbroken(line) for line in lines)
+    try:
+        first = next(lines)
+        head = _strict_json(first[:-1] + b"}") if first.endswith(b",") else None
+        if not isinstance(head, dict) or "records" in head:
+            return None
+        if (bundle_entry_line(head)[:-1] + ",").encode("ascii") != first:
+            return None
+        if next(lines) != b'"records":[':
+            return None
+        body = {name: value for name, value in head.items() if name != "bundle_sm3"}
+        names = sorted([*body, "records"])
+        hasher = sm3_hasher()
+        hasher.update(b"{")
+        after = names[names.index("records") + 1 :]
+        for position, name in enumerate(names[: names.index("records")]):
+            hasher.update((("," if position else "") + _field(name, body[name])).encode("ascii"))
+        hasher.update(("," if names[0] != "records" else "").encode("ascii") + b'"records":[')
+        count, pending = 0, None  # a record's line is known to be the last at the next line
+        for line in lines:
+            if line == b"]}":
+                break
+            if pending is not None:
+                if not pending.endswith(b","):
+                    return None
+                _entry_hashed(hasher, pending[:-1], first_entry=count == 0)
+                count += 1
+            pending = line
+        else:
+            return None  # no closing line
+        if pending is not None:
+            if pending.endswith(b","):
+                return None
+            _entry_hashed(hasher, pending, first_entry=count == 0)
+        if next(lines, None) is not None:
+            return None
+        hasher.update(b"]")
+        for name in after:
+            hasher.update(("," + _field(name, body[name])).encode("ascii"))
+        hasher.update(b"}")
+    except (StopIteration, UnicodeDecodeError, ValueError, _NotCanonical):
+        return None
+    return _Form(head, head.get("bundle_sm3") == "0x" + hasher.finalize().hex())
+
+
+class _NotCanonical(Exception):
+    """A line is not the one the bundle's serialisation makes."""
+
+
+def _unbroken(line: bytes) -> bytes:
+    """A line without its line break; every line of a bundle has one."""
+    if not line.endswith(b"\n"):
+        raise _NotCanonical
+    return line[:-1]
+
+
+def _field(name: str, value: Any) -> str:
+    return bundle_entry_line({name: value})[1:-1]
+
+
+def _entry_hashed(hasher: Any, line: bytes, *, first_entry: bool) -> None:
+    """A record's line (without its comma), checked to be its record's one serialisation,
+    added to the digest."""
+    entry = _strict_json(line)
+    if not isinstance(entry, dict) or bundle_entry_line(entry).encode("ascii") != line:
+        raise _NotCanonical
+    hasher.update(line if first_entry else b"," + line)
 
 
 # --- the bundle as a whole -------------------------------------------------------------------
 
 
 def _check_form(report: Report, bundle: bytes, document: dict) -> None:
-    """The bytes are the one serialisation of what they hold, and hold what the digest says."""
+    """The bytes are the one serialisation of what they hold, and hold what the digest says
+    (a bundle read whole)."""
     canonical = bundle_serialise(document)
     if canonical != bundle:
         offset = next(
@@ -193,14 +418,22 @@ def _check_form(report: Report, bundle: bytes, document: dict) -> None:
             report.records[index].problems.append(
                 f"its line in the bundle was altered (byte {offset})"
             )
-    if set(document) != BUNDLE_FIELDS:
-        report.problems.append(f"the bundle's fields are not {sorted(BUNDLE_FIELDS)}")
-    if document.get("format") not in RECORD_FIELDS_OF:
-        report.problems.append(
-            f"the bundle's format is not {BUNDLE_FORMAT} (or {BUNDLE_FORMAT_V1})"
-        )
+    _check_fields(report, document)
     if document.get("bundle_sm3") != bundle_digest(document):
         report.problems.append("the bundle's digest (bundle_sm3) does not match its content")
+
+
+def _check_fields(report: Report, document: dict) -> None:
+    """The bundle's top-level fields are its format's, and the format one the check knows
+    (`records` assumed: a bundle read line by line has them)."""
+    fields = BUNDLE_FIELDS_OF.get(document.get("format"), BUNDLE_FIELDS)
+    if set(document) | {"records"} != fields:
+        report.problems.append(f"the bundle's fields are not {sorted(fields)}")
+    if document.get("format") not in RECORD_FIELDS_OF:
+        report.problems.append(
+            f"the bundle's format is not {BUNDLE_FORMAT} "
+            f"(or the older {BUNDLE_FORMAT_V2}, {BUNDLE_FORMAT_V1})"
+        )
 
 
 @dataclass(frozen=True)
@@ -235,29 +468,79 @@ def _check_head(
     return _Head(stated_id, stated_contract)
 
 
-def _mcap_messages(report: Report, document: dict, mcap: bytes | None) -> dict | None:
-    """The MCAP file's messages by sequence number, after checking the file's digest."""
+@dataclass(frozen=True, slots=True)
+class _Seen:
+    """What the check keeps of one MCAP message: its channel, schema and times, and the SM3
+    of its data (not the data: the file is read once, in bounded memory)."""
+
+    topic: str
+    schema: str
+    schema_encoding: str
+    schema_data: bytes  # shared by every message of the schema
+    message_encoding: str
+    log_time: int
+    publish_time: int
+    sm3: bytes  # of its data
+
+
+_READ_SIZE = 1024 * 1024
+
+
+def _mcap_messages(
+    report: Report, document: dict, mcap: bytes | Path | IO[bytes] | None
+) -> dict[int, _Seen] | None:
+    """The MCAP file's messages by sequence number, after checking the file's digest: read
+    twice as a stream (its SM3 and size, then its records), never held whole."""
     if mcap is None:
         return None
+    if isinstance(mcap, Path):
+        with mcap.open("rb") as source:
+            return _mcap_messages(report, document, source)
+    if isinstance(mcap, bytes | bytearray):
+        return _mcap_messages(report, document, io.BytesIO(mcap))
+    hasher, size = sm3_hasher(), 0
+    while block := mcap.read(_READ_SIZE):
+        hasher.update(block)
+        size += len(block)
     stated = document.get("mcap")
     if not isinstance(stated, dict) or set(stated) != {"name", "size", "sm3"}:
         report.problems.append("the bundle does not describe its MCAP file")
-    elif stated["sm3"] != "0x" + sm3_hex(mcap) or stated["size"] != len(mcap):
+    elif stated["sm3"] != "0x" + hasher.finalize().hex() or stated["size"] != size:
         report.problems.append("the MCAP file's SM3 is not the one the bundle states")
+    mcap.seek(0)
+    by_sequence: dict[int, _Seen] = {}
     try:
-        messages = mcap_messages(mcap)
+        for message in mcap_messages(mcap):
+            if message.sequence in by_sequence:
+                report.problems.append(
+                    f"the MCAP file has two messages of sequence {message.sequence}"
+                )
+            by_sequence[message.sequence] = _Seen(
+                topic=message.topic,
+                schema=message.schema,
+                schema_encoding=message.schema_encoding,
+                schema_data=message.schema_data,
+                message_encoding=message.message_encoding,
+                log_time=message.log_time,
+                publish_time=message.publish_time,
+                sm3=sm3_digest(message.data),
+            )
     except McapUnreadable as exc:
         report.problems.append(f"the MCAP file cannot be read: {exc}")
         return {}
-    by_sequence: dict[int, Any] = {}
-    for message in messages:
-        if message.sequence in by_sequence:
-            report.problems.append(f"the MCAP file has two messages of sequence {message.sequence}")
-        by_sequence[message.sequence] = message
     return by_sequence
 
 
 # --- one record ------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class _Counted:
+    """A record that holds: whether its robot signed it, and its (signer, topic, robot,
+    topic_seq) when a signed header numbers it."""
+
+    signed: bool
+    stream: tuple[str, str, str, int] | None
 
 
 def _check_record(
@@ -266,8 +549,10 @@ def _check_record(
     chain: ChainReader,
     messages: dict | None,
     fields: set[str],
-) -> bool | None:
-    """Check one record's entry; whether its robot signed it (None: a v1 bundle's)."""
+    signatures: Signatures,
+) -> _Counted:
+    """Check one record's entry: whether its robot signed it (read from its anchored
+    envelope's header, whatever the bundle's format), and its place in its stream."""
     if not isinstance(entry, dict) or set(entry) != fields:
         raise Invalid(f"its fields are not {sorted(fields)}")
     hash32(entry["digest"], "digest")
@@ -275,14 +560,59 @@ def _check_record(
     if "0x" + sm3_hex(envelope) != entry["digest"]:
         raise Invalid("its envelope does not hash (SM3) to its digest")
     sealed = _sealed(envelope)
-    _check_header(entry, sealed.header)
+    header = sealed.header
+    _check_header(entry, header)
+    if "batch" in fields:
+        _check_batch(entry, header)
     anchored = anchor_check(entry, chain=chain, chain_id=head.chain_id, contract=head.contract)
-    rebuilt, signed = None, None
+    if "signature" not in fields and is_signed(header):
+        raise Invalid(
+            f"its anchored envelope is signed by robot key {header['signer']}, but the bundle "
+            f"({entry_format(fields)}) carries no signature or plaintext to check its content "
+            "by: a bundle relabelled to an older format cannot pass a signed record as unsigned"
+        )
+    rebuilt = None
     if "signature" in fields:
-        rebuilt = _check_signature(entry, sealed, chain, head, anchored.owner, anchored.block)
-        signed = rebuilt is not None
+        rebuilt = _check_signature(
+            entry, sealed, chain, head, anchored.owner, anchored.block, signatures
+        )
     _check_message(entry, messages, rebuilt)
-    return signed
+    signed = is_signed(header)
+    number = header.get("topic_seq")
+    if not signed or type(number) is not int:
+        return _Counted(signed, None)
+    return _Counted(signed, (header["signer"], header["topic"], header["robot"], number))
+
+
+def entry_format(fields: set[str]) -> str:
+    return next(name for name, known in RECORD_FIELDS_OF.items() if known == fields)
+
+
+def _check_batch(entry: dict, header: dict) -> None:
+    """Its topic_seq and batch place are those of its envelope's header (null when the
+    header has none)."""
+    number = header.get("topic_seq")
+    if entry["topic_seq"] != number or type(entry["topic_seq"]) is not type(number):
+        raise Invalid("its topic_seq differs from its envelope's header")
+    batch = {name: header[name] for name in BATCH_FIELDS} if "sig_size" in header else None
+    if entry["batch"] != batch:
+        raise Invalid("its batch (sig_index, sig_size, sig_path) differs from its envelope's")
+
+
+def _count(tally: StreamTally, result: RecordResult, stream: tuple[str, str, str, int]) -> None:
+    """Count a record that holds in its stream; a number counted twice fails the record (a
+    robot never reuses one: a repeated record, or a key that signed two)."""
+    signer, topic, robot, number = stream
+    before = tally.add(
+        signer=signer, topic=topic, robot=robot, topic_seq=number, index=result.index
+    )
+    if before is not None:
+        result.problems.append(
+            f"record #{before} carries the same topic_seq {number} of its stream "
+            f"(signer {signer}, topic {topic})"
+        )
+        return
+    result.topic_seq = number
 
 
 def _sealed(envelope: bytes) -> EnvelopeInfo:
@@ -304,7 +634,13 @@ def _check_header(entry: dict, header: dict) -> None:
 
 
 def _check_signature(
-    entry: dict, sealed: EnvelopeInfo, chain: ChainReader, head: _Head, owner: str, block: int
+    entry: dict,
+    sealed: EnvelopeInfo,
+    chain: ChainReader,
+    head: _Head,
+    owner: str,
+    block: int,
+    signatures: Signatures,
 ) -> EncodedMessage | None:
     """A signed envelope's robot signature over the plaintext the entry carries, its key on
     chain, and the message that plaintext makes (None: the envelope is unsigned)."""
@@ -320,7 +656,7 @@ def _check_signature(
     content = base64_bytes(plaintext, "plaintext")
     if len(content) != sealed.ciphertext_length:
         raise Invalid("its plaintext is not as long as its envelope's ciphertext")
-    signature_check(header=header, plaintext=content, **signature)
+    signature_check(header=header, plaintext=content, signatures=signatures, **signature)
     robot_key_check(
         chain, contract=head.contract, signer=signature["signer"], owner=owner, block=block
     )
@@ -361,7 +697,7 @@ def _check_message(entry: dict, messages: dict | None, rebuilt: EncodedMessage |
     message = messages.get(sequence)
     if message is None:
         raise Invalid(f"the MCAP file has no message of sequence {sequence}")
-    if "0x" + sm3_hex(message.data) != binding["sm3"]:
+    if "0x" + message.sm3.hex() != binding["sm3"]:
         raise Invalid("its message in the MCAP file differs (SM3) from the one exported")
     found = (message.topic, message.schema, message.message_encoding, message.log_time)
     if found != (binding["topic"], binding["schema"], binding["message_encoding"], log_time):

@@ -16,7 +16,9 @@ the caller chose. Each check is named, in this order:
   the anchored envelope too, as the owner's does);
 - `signature`: the anchored envelope's header names the signer and signature the proof gives,
   the public key hashes to the signer, and the signature holds over that header and the
-  plaintext the caller decrypted;
+  plaintext the caller decrypted; for a record signed in a batch (provenance v2, read from
+  that header), its leaf folds up its path to the root the batch's signature is over, and the
+  proof's `batch` and `topic_seq`, when it gives them, are the header's and that root;
 - `robotKeyOf`: the chain names the record's owner as the key's, live at the anchoring block.
 
 A check that needs one that failed is not made (and says so). The record is genuine when
@@ -31,9 +33,9 @@ from authros_verify.anchor import Anchored, anchor_check
 from authros_verify.chain import ChainReader
 from authros_verify.signature import is_signed, robot_key_check, signature_check
 from authros_verify.values import Invalid, address, base64_bytes, hash32, whole
-from smcrypto import envelope
-from smcrypto.envelope import EnvelopeInfo
-from smcrypto.errors import CryptoError, WrongKey
+from smcrypto import envelope, provenance
+from smcrypto.envelope import BATCH_FIELDS, EnvelopeInfo, provenance_format
+from smcrypto.errors import CryptoError, SignatureInvalid, WrongKey
 
 CHECKS = (
     "chain",
@@ -316,13 +318,46 @@ def _check_signature(
             sig=signature.get("sig"),
             public_key=public_key.lower() if isinstance(public_key, str) else public_key,
         )
+        batched = _batch_check(proof, sealed.header, opened[1])
     except Invalid as exc:
         result.fails(check, str(exc))
         return None
     result.signed = True
     signer = sealed.header["signer"]
-    result.holds(check, f"robot key {signer} signed this header and plaintext (SM2)")
+    result.holds(check, f"robot key {signer} signed {batched or 'this header and plaintext'} (SM2)")
     return signer
+
+
+def _batch_check(proof: Mapping[str, Any], header: Mapping[str, Any], plaintext: bytes) -> str:
+    """For a record signed in a batch (v2, as its anchored envelope's header says): the
+    proof's `topic_seq` and `batch`, when given, against the header and the root its leaf
+    folds to; what was signed, in words. "" for a record signed alone (v1)."""
+    if provenance_format(header) != "v2":
+        return ""
+    try:
+        root = "0x" + provenance.batch_root(header, plaintext).hex()
+    except SignatureInvalid as exc:  # cannot happen once the signature held
+        raise Invalid(f"its batch path does not fold: {exc}", check="signature") from None
+    if "topic_seq" in proof and proof["topic_seq"] != header["topic_seq"]:
+        raise Invalid("the proof's topic_seq is not the anchored envelope's", check="signature")
+    stated = proof.get("batch")
+    if stated is not None:
+        place = {name: header[name] for name in BATCH_FIELDS}
+        if (
+            not isinstance(stated, Mapping)
+            or set(stated) != {*BATCH_FIELDS, "root"}
+            or {name: stated[name] for name in BATCH_FIELDS} != place
+            or not _same_hex(stated["root"], root)  # with or without 0x
+        ):
+            raise Invalid(
+                "the proof's batch (sig_index, sig_size, sig_path, root) is not the anchored "
+                "envelope's and the root its record folds to",
+                check="signature",
+            )
+    return (
+        f"its upload batch of {header['sig_size']} records (root {root}), this record "
+        f"#{header['sig_index']}, topic_seq {header['topic_seq']} on {header['topic']}"
+    )
 
 
 def _check_robot_key(

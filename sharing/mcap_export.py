@@ -16,8 +16,8 @@ from authros_verify.messages import EncodedMessage
 
 class McapBuilder:
     """An MCAP file written message by message: a schema per type and a channel per topic
-    (and encoding), registered when first needed. Chunks are not compressed, so anyone can
-    find each message's bytes in the file (authros_verify does, to name a changed record)."""
+    (and encoding), registered when first needed. Chunks are not compressed, so that any tool
+    finds each message's bytes in the file (authros_verify reads compressed chunks too)."""
 
     def __init__(self, output: IO[bytes], *, profile: str = "ros2") -> None:
         self._writer = Writer(output, compression=CompressionType.NONE)

@@ -8,7 +8,17 @@ sharing/mcap_export.py) and both files written as it goes, in constant memory, s
 
 Each signed record's entry carries its robot's signature facts (sharing.verification.signature)
 and the plaintext it signed, so that the verifier checks without the portal that each message
-is the one the robot signed. docs/export.md describes the bundle.
+is the one the robot signed; a record signed in a batch (provenance v2) also its topic_seq and
+its place in the batch, as its anchored envelope states them. The bundle carries the portal's
+completeness of the selection (sharing.selectors.completeness, tombstones included, so that a
+deletion or a retention sweep is named with its reason), and each record left out names its
+stream and number, so that the verifier names the gap it leaves. docs/export.md describes the
+bundle.
+
+Each distinct batch signature is verified once per export batch (EXPORT_BATCH records): the
+check (records_verify) hands the whole batch to provenance.claims_hold, which verifies each
+distinct claim once; an upload batch cut by an export batch's edge is verified once on each
+side.
 """
 
 import base64
@@ -33,7 +43,7 @@ from chainworker.services import chain_client
 from sharing.disk import disk_room_check
 from sharing.errors import SharingError
 from sharing.exports.files import EXPORT_STORAGE_PREFIX, export_file_stem, export_key_purpose
-from sharing.exports.selection import export_records
+from sharing.exports.selection import export_records, export_streams
 from sharing.mcap_export import McapBuilder
 from sharing.models import Access, Export, ExportRecord, Record, Verdict
 from sharing.selection import RecordSelection, iso_utc
@@ -137,6 +147,9 @@ class _SealedOutput:
 def _run(export: Export) -> None:
     selection = RecordSelection.from_json(export.selection)
     records = records_to_check(export_records(export.requester, selection))
+    # Read before the records: a record uploaded meanwhile is past the streams' last, never a
+    # gap inside them.
+    streams = export_streams(export.requester, selection).as_json()
     total = records.count()
     ExportRecord.objects.filter(export=export).delete()  # left by a run that stopped midway
     Export.objects.filter(pk=export.pk).update(
@@ -199,6 +212,7 @@ def _run(export: Export) -> None:
             "contract": contract,
             "mcap": {"name": mcap_name, "size": mcap_size, "sm3": "0x" + mcap_sm3},
             "excluded": excluded,
+            "streams": streams,
         }
         bundle = _SealedOutput(bundle_file, key)
         bundle_write(head, lambda: _lines(entries), bundle)
@@ -302,6 +316,7 @@ def _exported(
     log_time = message_log_time(message, _micros(record.captured_at) * 1000)
     signature = _signature(record, header)
     builder.add(topic=record.topic, message=message, log_time=log_time, sequence=sequence)
+    batched = envelopes.provenance_format(header) == "v2"
     return {
         "robot": str(record.robot_id),
         "topic": record.topic,
@@ -312,6 +327,10 @@ def _exported(
         "signature": signature,
         # What the robot signed, so that anyone checks the signature and rebuilds the message.
         "plaintext": None if signature is None else base64.b64encode(plaintext).decode("ascii"),
+        # Its number in its stream and its place in its upload batch, as its envelope states
+        # them (the verifier counts by the envelope's, and checks these against it).
+        "topic_seq": header.get("topic_seq"),
+        "batch": {name: header[name] for name in envelopes.BATCH_FIELDS} if batched else None,
         "mcap": {
             "topic": record.topic,
             "sequence": sequence,
@@ -334,12 +353,16 @@ def _signature(record: Record, header: dict) -> dict[str, str] | None:
     return signature_facts(record, header)
 
 
-def _excluded(record: Record, reason: str) -> dict[str, str]:
+def _excluded(record: Record, reason: str) -> dict[str, object]:
+    """A record left out, and why; its signer and topic_seq (the portal's word, from its row)
+    so that the verifier names the gap it leaves `excluded` rather than `missing`."""
     return {
         "record": str(record.pk),
         "topic": record.topic,
         "captured_at": iso_utc(record.captured_at),
         "reason": reason,
+        "signer": record.signer or None,
+        "topic_seq": record.topic_seq,
     }
 
 

@@ -1,6 +1,7 @@
 """What an export may hold: the robots and topics a requester may view, the records of a
-selection they may view (own, and of owners granting them, inside the grants' scopes), how many
-that is against EXPORT_MAX_RECORDS, and an export's selection described for its page."""
+selection they may view (own, and of owners granting them, inside the grants' scopes), their
+completeness (per stream, tombstones included), how many that is against EXPORT_MAX_RECORDS,
+and an export's selection described for its page."""
 
 import uuid
 from collections.abc import Sequence
@@ -24,6 +25,7 @@ from sharing.selection import (
     SelectionError,
     iso_utc,
 )
+from sharing.selectors.completeness import Completeness, record_streams
 from sharing.selectors.records import record_list_visible_to
 
 # An export's own words for these refusals of its selection; the others keep the selection's.
@@ -51,6 +53,13 @@ def export_records(requester: Owner, selection: RecordSelection) -> QuerySet[Rec
     are left out (their data is gone), not listed as excluded."""
     records = record_list_visible_to(requester).live()
     return selection.apply(records).order_by("captured_at", "seq", "id")
+
+
+def export_streams(requester: Owner, selection: RecordSelection) -> Completeness:
+    """The completeness of the selection as the requester may view it: every stream's first
+    and last topic_seq, count and gaps, over its records and its tombstones (a deletion or a
+    retention sweep is a reason, not a silent gap)."""
+    return record_streams(selection.apply(record_list_visible_to(requester)))
 
 
 def export_count(

@@ -13,7 +13,15 @@ import numpy as np
 import pytest
 
 from accounts.selectors import owner_eoa_account
-from authros_verify import BUNDLE_FORMAT_V1, ChainReader, bundle_digest, bundle_serialise, verify
+from authros_verify import (
+    BUNDLE_FORMAT,
+    BUNDLE_FORMAT_V1,
+    BUNDLE_FORMAT_V2,
+    ChainReader,
+    bundle_digest,
+    bundle_serialise,
+    verify,
+)
 from authros_verify.__main__ import main
 from authros_verify.mcapfile import mcap_messages
 from authros_verify.messages import message_encode, message_log_time
@@ -296,7 +304,7 @@ def test_unsigned_records_are_exported_and_reported_unsigned_never_genuine(
     ]
     bundle, mcap = export_of(setup, django_capture_on_commit_callbacks, envelopes)
     document = json.loads(bundle)
-    assert document["format"] == "authros-export-proofs/v2"
+    assert document["format"] == BUNDLE_FORMAT == "authros-export-proofs/v3"
     assert [(e["signature"], e["plaintext"]) for e in document["records"]] == [(None, None)] * 2
     report = verify(bundle, chain=chain_reader, mcap=mcap, contract=deployed.address)
     assert report.ok
@@ -325,10 +333,28 @@ def test_unsigned_records_are_exported_and_reported_unsigned_never_genuine(
         (0, "its envelope is unsigned, yet it states a signature or a plaintext")
     ]
 
+    # Unsigned records in a bundle of either older format still verify, never genuine.
+    for label, dropped in ((BUNDLE_FORMAT_V2, ()), (BUNDLE_FORMAT_V1, ("signature", "plaintext"))):
+        old = _relabelled(document, label, dropped)
+        report = verify(old, chain=chain_reader, mcap=mcap, contract=deployed.address)
+        assert report.ok, (label, report.problems, _failed(report))
+        assert [result.signed for result in report.records] == [False, False]
 
-def test_a_signed_record_cannot_pass_as_unsigned_and_a_v1_bundle_is_never_genuine(
-    signed_export,
-):
+
+def _relabelled(document: dict, label: str, dropped: tuple[str, ...]) -> bytes:
+    """The bundle as an older exporter wrote it: `label`, without the v3 fields (topic_seq,
+    batch, streams) and the `dropped` fields of each record, its digest recomputed."""
+    old = copy.deepcopy(document)
+    old["format"] = label
+    del old["streams"]
+    for entry in old["records"]:
+        for name in ("topic_seq", "batch", *dropped):
+            del entry[name]
+    old["bundle_sm3"] = bundle_digest(old)
+    return bundle_serialise(old)
+
+
+def test_a_signed_record_cannot_pass_as_unsigned_in_any_format(signed_export):
     _setup, bundle, mcap, chain, contract = signed_export
     document = json.loads(bundle)
     stripped = copy.deepcopy(document)
@@ -338,13 +364,16 @@ def test_a_signed_record_cannot_pass_as_unsigned_and_a_v1_bundle_is_never_genuin
         (1, "its envelope is signed by a robot, but its signature or plaintext is null")
     ]
 
-    # A bundle of the first format (no signatures) still verifies, and none of it is genuine.
-    v1 = copy.deepcopy(document)
-    v1["format"] = BUNDLE_FORMAT_V1
-    for entry in v1["records"]:
-        del entry["signature"], entry["plaintext"]
-    v1["bundle_sm3"] = bundle_digest(v1)
-    report = verify(bundle_serialise(v1), chain=chain, mcap=mcap, contract=contract)
+    # Relabelled to the first format (which carries no signatures): whether a record is signed
+    # is its anchored envelope's, so each of these signed records fails, none passes unsigned.
+    v1 = _relabelled(document, BUNDLE_FORMAT_V1, ("signature", "plaintext"))
+    report = verify(v1, chain=chain, mcap=mcap, contract=contract)
+    assert [index for index, _ in _failed(report)] == [0, 1, 2, 3, 4]
+    assert all("its anchored envelope is signed by robot key" in why for _, why in _failed(report))
+    assert report.not_genuine == []
+
+    # The second format (signatures, no topic_seq) still reads its signed records: genuine.
+    v2 = _relabelled(document, BUNDLE_FORMAT_V2, ())
+    report = verify(v2, chain=chain, mcap=mcap, contract=contract)
     assert report.ok, (report.problems, _failed(report))
-    assert report.genuine == []
-    assert len(report.not_genuine) == 5
+    assert len(report.genuine) == 5

@@ -305,3 +305,67 @@ def test_an_unsigned_record_is_never_genuine(
     lied = copy.deepcopy(proof)
     lied["signature"] = {"signer": "0" * 64, "sig": "0" * 128, "public_key": "04" + "0" * 128}
     assert _failed(record_check(**{**arguments, "proof": lied})) == ["signature"]
+
+
+def test_a_record_signed_in_a_batch_is_genuine_and_its_batch_place_checked(
+    make_paired_robot, django_capture_on_commit_callbacks, make_owner_token, deployed, monkeypatch
+):
+    """Provenance v2: a batch of three records signed once; each record is checked alone, its
+    leaf folded up its path to the root the batch's signature is over (read from its anchored
+    envelope's header). A proof that states another place in the batch, or another
+    topic_seq, fails the signature check."""
+    alice = make_paired_robot("alice")
+    records = []
+    for number in range(3):
+        header = {
+            "owner": alice.owner.username,
+            "robot": str(alice.robot.id),
+            "topic": "/chatter",
+            "type": "std_msgs/String",
+            "seq": number + 1,
+            "time": f"2026-05-01T12:00:0{number}.000001Z",
+            "topic_seq": number,
+        }
+        records.append((header, _plaintext(number)))
+    headers = provenance.sign_batch(*alice.signing_key, records)
+    envelopes = [
+        envelope.seal(alice.key, header, plaintext)
+        for header, (_, plaintext) in zip(headers, records, strict=True)
+    ]
+    with django_capture_on_commit_callbacks(execute=True):
+        stored = record_create_batch(robot=alice.robot, envelopes=envelopes)
+    token = make_owner_token(alice.owner, scopes=("read",))[1]
+    chain = ChainReader(deployed.w3)
+    record = str(stored[1].pk)
+    content, proof = _answers(token, record)
+    checked = record_check(record=record, content=content, proof=proof, key=alice.key, chain=chain)
+    assert checked.genuine, [(o.check, o.detail) for o in checked.failed]
+    assert checked.plaintext == _plaintext(1)
+    (signature,) = [o for o in checked.outcomes if o.check == "signature"]
+    root = "0x" + provenance.batch_root(headers[1], _plaintext(1)).hex()
+    assert f"its upload batch of 3 records (root {root}), this record #1" in signature.detail
+    assert "topic_seq 1 on /chatter" in signature.detail
+
+    # The proof's batch and topic_seq (as the proof answer states them for a v2 record) are
+    # checked against the header and the root the record folds to.
+    place = {"sig_index": 1, "sig_size": 3, "sig_path": headers[1]["sig_path"], "root": root}
+    stated = {**proof, "batch": place, "topic_seq": 1}
+    checked = record_check(record=record, content=content, proof=stated, key=alice.key, chain=chain)
+    assert checked.genuine, [(o.check, o.detail) for o in checked.failed]
+    for lie in (
+        {"batch": {**place, "sig_index": 0}},
+        {"batch": {**place, "root": "0x" + "00" * 32}},
+        {"batch": {**place, "sig_size": 4}},
+        {"topic_seq": 2},
+    ):
+        checked = record_check(
+            record=record, content=content, proof={**stated, **lie}, key=alice.key, chain=chain
+        )
+        assert _failed(checked) == ["signature"], lie
+
+    # One SM2 verification for the record: its batch's.
+    counted = []
+    verify = sm2.verify
+    monkeypatch.setattr(sm2, "verify", lambda *args: counted.append(1) or verify(*args))
+    record_check(record=record, content=content, proof=proof, key=alice.key, chain=chain)
+    assert len(counted) == 1

@@ -12,7 +12,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from authros_verify import ChainReader, record_line_index, verify
+from authros_verify import ChainReader, check, record_line_index, verify
 from authros_verify.__main__ import main
 from authros_verify.abi import ABI
 from chainworker import services as chain_services
@@ -184,3 +184,47 @@ def test_the_command_checks_a_record_mode_export_against_anvil(
     assert main([*arguments, "--rpc", on_anvil.url, "--contract", contract]) == 1
     assert f"FAIL record {entry['record']}" in capsys.readouterr().out
     assert main([*arguments, "--rpc", "http://127.0.0.1:9"]) == 2
+
+
+def test_a_bundle_in_its_canonical_form_is_read_line_by_line_and_one_that_is_not_whole(
+    small_export, tmp_path, monkeypatch
+):
+    """The bundle as the portal writes it is checked from its file a line at a time, never
+    held whole; a bundle whose form is broken is read whole, to name the line that changed."""
+    bundle, mcap, chain, contract = small_export
+    (tmp_path / "proofs.json").write_bytes(bundle)
+    (tmp_path / "export.mcap").write_bytes(mcap)
+    whole = check._verify_whole
+    read_whole = []
+
+    def spy(data, **kwargs):
+        read_whole.append(len(data))
+        return whole(data, **kwargs)
+
+    monkeypatch.setattr(check, "_verify_whole", spy)
+    report = verify(
+        tmp_path / "proofs.json", chain=chain, mcap=tmp_path / "export.mcap", contract=contract
+    )
+    assert report.ok, (report.problems, [r.problems for r in report.failed])
+    assert [result.record for result in report.records] == _record_ids(bundle)
+    assert read_whole == []
+
+    # Its digest changed (the form still holds): caught line by line.
+    position = bundle.index(b'"bundle_sm3":"0x') + len(b'"bundle_sm3":"0x')
+    changed = _flipped(bundle, position, 0x03)
+    report = verify(changed, chain=chain, mcap=mcap, contract=contract)
+    assert report.problems == ["the bundle's digest (bundle_sm3) does not match its content"]
+    assert read_whole == []
+
+    # A space in the second record's line: read whole, that record named.
+    second = bundle.index(b"\n", bundle.index(b"\n{") + 1)
+    position = bundle.index(b'"anchor":', second) + len(b'"anchor":')
+    changed = bundle[:position] + b" " + bundle[position:]
+    report = verify(changed, chain=chain, mcap=mcap, contract=contract)
+    assert [result.index for result in report.failed] == [1]
+    assert read_whole == [len(changed)]
+
+    # No line break at the end: not its form either.
+    report = verify(bundle[:-1], chain=chain, mcap=mcap, contract=contract)
+    assert not report.ok
+    assert len(read_whole) == 2

@@ -245,6 +245,9 @@ def test_an_export_opens_with_independent_ros2_decoders_and_leaves_out_tampered_
             "topic": "/camera/image",
             "captured_at": iso(at(1)),
             "reason": "integrity_check_failed",
+            # an unsigned record's: no stream counts it
+            "signer": None,
+            "topic_seq": None,
         }
     ]
     mcap, bundle = files_of(export)
