@@ -62,6 +62,7 @@ logger = logging.getLogger(f"{LOGGER_NAME}.uploader")
 
 REPLAYED_SEQUENCE = "replayed_sequence"
 SEQUENCE_CONFLICT = "sequence_conflict"
+TOPIC_SEQ_REUSED = "topic_seq_reused"
 UNKNOWN_KEY = "unknown_key"
 KEY_ID_HEADER = "AuthROS-Key-Id"
 _OUR_MISTAKE = frozenset({401, 404, 405})
@@ -435,6 +436,14 @@ class Uploader:
                 "the portal holds other data under seq %s of this robot: the robot lost its "
                 "state, or someone else uploads with its token and key. Check the robot, and "
                 "revoke its token in the portal if it is not in your hands",
+                _seq_range(items),
+            )
+        if answer.error == TOPIC_SEQ_REUSED:
+            logger.error(
+                "the portal already holds records under the topic_seq of seq %s for this "
+                "robot's key: the robot lost its spool (and with it its record counters), or "
+                "someone else signs with its key. Pair the robot again (a new key counts from 0); "
+                "if the spool was not lost, treat the pairing key as stolen",
                 _seq_range(items),
             )
         logger.error(

@@ -139,3 +139,41 @@ def test_a_paired_agents_batches_are_accepted_verified_and_counted_across_a_rota
     assert {envelope.read_header(item.envelope).key_id for item in opened[:12]} == {
         envelope.key_id(setup.key)
     }
+
+
+def test_a_robot_that_lost_its_spool_is_refused_and_told_to_pair_again(
+    live_server, make_paired_robot, tmp_path, caplog
+):
+    """The counters live with the spool: a robot whose spool was wiped counts from 0 again
+    under the same key, which the portal refuses (409 topic_seq_reused, nothing stored), and
+    the agent says what to do rather than leaving the owner to guess."""
+    setup = make_paired_robot()
+    config = _paired_robot_config(tmp_path / "robot", live_server.url, setup)
+    _deliver(config, CHATTER, CHATTER)
+    assert Record.objects.filter(robot=setup.robot).count() == 2
+
+    # the spool wiped: a new spool directory, the same key and token
+    settings = yaml.safe_load(config.read_text())
+    settings["spool_dir"] = "spool-after-loss"
+    config.write_text(yaml.safe_dump(settings))
+    agent_logger = logging.getLogger(LOGGER_NAME)
+    agent_logger.addHandler(caplog.handler)
+    try:
+        pipeline = pipeline_build(load_config(config), backoff_max=0.5)
+        try:
+            _publish(pipeline, CHATTER)
+            assert pipeline.uploader.drain() is Outcome.EMPTY
+            assert pipeline.counters.failed == 1
+        finally:
+            pipeline.spool.close()
+    finally:
+        agent_logger.removeHandler(caplog.handler)
+
+    assert "topic_seq_reused" in caplog.text
+    assert "Pair the robot again" in caplog.text
+    assert Record.objects.filter(robot=setup.robot).count() == 2
+    assert list(
+        Record.objects.filter(robot=setup.robot)
+        .order_by("topic_seq")
+        .values_list("topic_seq", flat=True)
+    ) == [0, 1]
