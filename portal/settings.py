@@ -379,6 +379,9 @@ CELERY_WORKER_HIJACK_ROOT_LOGGER = False
 _SWEEP_INTERVAL = env.float("ANCHOR_SWEEP_INTERVAL", default=15.0)
 # Each app's sweep queues again its chain work pending too long. A sweep still queued when
 # the next one is due is worthless: it expires.
+# How far back the scan for records missing reads each robot's streams, in seconds.
+COMPLETENESS_SCAN_WINDOW = env.float("COMPLETENESS_SCAN_WINDOW", default=86400.0)
+
 CELERY_BEAT_SCHEDULE = {
     "sweep-stale-chain-work": {
         "task": "sharing.tasks.chain_work_sweep",
@@ -408,6 +411,13 @@ CELERY_BEAT_SCHEDULE = {
         "task": "sharing.tasks.retention_apply",
         "schedule": env.float("RETENTION_INTERVAL", default=3600.0),
         "options": {"expires": env.float("RETENTION_INTERVAL", default=3600.0)},
+    },
+    # Robots' recent records read for gaps nobody looked at: the owner is alerted of records
+    # missing (sharing/services/completeness.py).
+    "scan-records-missing": {
+        "task": "sharing.tasks.records_missing_scan",
+        "schedule": env.float("COMPLETENESS_SCAN_INTERVAL", default=600.0),
+        "options": {"expires": env.float("COMPLETENESS_SCAN_INTERVAL", default=600.0)},
     },
     # Compares what the database says is on chain with the chain, and repairs (see below).
     "reconcile-chain": {

@@ -4,16 +4,18 @@ Anchoring and grants send transactions (the chain retry policy); the integrity c
 time runs on the verify queue (portal/celery.py) with a short policy: a person is waiting.
 """
 
+from datetime import timedelta
 from typing import Any
 
 from celery import shared_task
+from django.conf import settings
 
 from accounts.errors import IdentityMismatch
 from chainworker.errors import ChainUnavailable
 from chainworker.work import CHAIN_TASK
 from sharing import disk
 from sharing.exports import run, withdraw
-from sharing.services import anchoring, deletion, grant_chain, reconcile, sweep
+from sharing.services import anchoring, completeness, deletion, grant_chain, reconcile, sweep
 from sharing.verification import check
 
 
@@ -55,6 +57,14 @@ def records_purge() -> int:
 )
 def retention_apply() -> dict[str, int]:
     return deletion.retention_apply()
+
+
+# Robots' recent records read for gaps nobody has looked at (sharing/services/completeness.py).
+@shared_task(name="sharing.tasks.records_missing_scan", soft_time_limit=300, time_limit=360)
+def records_missing_scan() -> int:
+    return completeness.records_missing_scan(
+        window=timedelta(seconds=settings.COMPLETENESS_SCAN_WINDOW)
+    )
 
 
 # A view's check, on the verify queue; a refused identity is an answer, not a task failure.
