@@ -64,6 +64,24 @@ def test_a_v2_batch_verifies_for_owner_and_grantee_and_its_proof_names_its_batch
     assert len(roots) == 1  # one batch, one root
 
 
+def test_a_v2_records_page_says_its_count_and_a_v1_records_does_not(
+    make_paired_robot, upload, client
+):
+    setup = make_paired_robot("alice")
+    assert (
+        upload(token_client(setup.token), *seal_batch(setup, [1, 2], topic_seqs=[0, 1])).status_code
+        == 201
+    )
+    assert upload(token_client(setup.token), setup.seal(3)).status_code == 201
+    client.force_login(setup.owner.user)
+    pages = {
+        record.seq: client.get(f"/records/{record.id}/").content.decode()
+        for record in Record.objects.all()
+    }
+    assert 'data-testid="record-topic-seq">#1 of <code>/robot/odom</code>' in pages[2]
+    assert 'data-testid="record-topic-seq"' not in pages[3]
+
+
 def test_a_v1_records_proof_is_as_before(make_paired_robot, upload, owner_api):
     setup = make_paired_robot("alice")
     assert upload(token_client(setup.token), setup.seal(1)).status_code == 201
