@@ -18,6 +18,7 @@ from sharing.apis.fields import (
     OWNER_ONLY,
     READ,
     ROBOT_REFUSED,
+    MomentField,
     NullIfBlankCharField,
     RecordPagination,
     TextField,
@@ -76,8 +77,8 @@ class AccessLogApi(APIView):
             required=False,
             help_text="the credential the view was made with",
         )
-        since = serializers.DateTimeField(required=False, help_text="viewed at or after")
-        until = serializers.DateTimeField(
+        since = MomentField(required=False, help_text="viewed at or after")
+        until = MomentField(
             required=False, help_text="viewed before, not at (ISO 8601): [since, until)"
         )
 

@@ -13,7 +13,7 @@ from rest_framework.views import APIView
 
 from accounts.authentication import OwnerCredential, caller_owner
 from core.api_errors import error_responses
-from sharing.apis.fields import OWNER_ONLY, READ, ROBOT_REFUSED, TextField
+from sharing.apis.fields import OWNER_ONLY, READ, ROBOT_REFUSED, MomentField, TextField
 from sharing.selection import MAX_TOPIC_LENGTH
 from sharing.selectors.completeness import GAP_REASONS, completeness_visible_to
 from sharing.services.completeness import records_missing_alerts_raise
@@ -82,10 +82,8 @@ class RecordCompletenessApi(APIView):
 
         robot = serializers.UUIDField(required=False, help_text="robot id")
         topic = TextField(required=False, max_length=MAX_TOPIC_LENGTH, help_text="e.g. /odom")
-        since = serializers.DateTimeField(
-            required=False, help_text="captured at or after (ISO 8601)"
-        )
-        until = serializers.DateTimeField(
+        since = MomentField(required=False, help_text="captured at or after (ISO 8601)")
+        until = MomentField(
             required=False, help_text="captured before, not at (ISO 8601): [since, until)"
         )
 

@@ -108,6 +108,18 @@ class NullIfBlankCharField(serializers.CharField):
         return str(value) if value else None
 
 
+class MomentField(serializers.DateTimeField):
+    """An ISO 8601 moment of a window. Left out, the window has no such bound; sent blank in a
+    query (`until=`), it is refused as the wrong format, not taken as left out (DRF's form
+    reading), so that what the schema says is invalid is answered 400."""
+
+    def get_value(self, dictionary: Any) -> Any:
+        value = super().get_value(dictionary)
+        if value is serializers.empty and dictionary.get(self.field_name) == "":
+            return ""
+        return value
+
+
 class RecordSelectionSerializer(serializers.Serializer):
     """The input of a record selection (sharing.selection.RecordSelection): robots and topics
     (absent or empty: all) and a capture-time window [since, until), within the bounds that
@@ -129,8 +141,8 @@ class RecordSelectionSerializer(serializers.Serializer):
         required=False,
         max_length=MAX_SELECTED_TOPICS,
     )
-    since = serializers.DateTimeField(required=False)
-    until = serializers.DateTimeField(required=False)
+    since = MomentField(required=False)
+    until = MomentField(required=False)
 
     def get_fields(self) -> dict[str, serializers.Field]:
         fields = super().get_fields()
