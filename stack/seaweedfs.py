@@ -13,7 +13,9 @@ any credentials, as a throwaway server may.
 
 from __future__ import annotations
 
+import contextlib
 import os
+import socket
 import subprocess
 import sys
 import time
@@ -21,7 +23,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from stack.anvil import HOST, free_port
+from stack.anvil import HOST
 from stack.processes import StopsOnExit, exit_with_parent, process_stop
 
 STARTUP_TIMEOUT = 60.0
@@ -103,7 +105,7 @@ class SeaweedProcess(StopsOnExit):
 def start_seaweedfs(folder: Path) -> SeaweedProcess:
     """A SeaweedFS with its S3 gateway, answering when this returns."""
     folder.mkdir(parents=True, exist_ok=True)
-    ports = {name: free_port() for name in _PORTS}
+    ports = dict(zip(_PORTS, _free_ports(len(_PORTS)), strict=True))
     command = [
         weed_binary(),
         "server",
@@ -130,6 +132,18 @@ def start_seaweedfs(folder: Path) -> SeaweedProcess:
     server = SeaweedProcess(process, folder, f"http://{HOST}:{ports['s3.port']}")
     _await_ready(server)
     return server
+
+
+def _free_ports(count: int) -> list[int]:
+    """`count` distinct free ports of HOST: each socket is held until all are chosen (one at
+    a time, the kernel may hand the same port out twice, and weed then fails to bind it)."""
+    with contextlib.ExitStack() as held:
+        ports = []
+        for _ in range(count):
+            sock = held.enter_context(socket.socket(socket.AF_INET, socket.SOCK_STREAM))
+            sock.bind((HOST, 0))
+            ports.append(sock.getsockname()[1])
+        return ports
 
 
 def _await_ready(server: SeaweedProcess) -> None:
