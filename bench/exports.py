@@ -57,7 +57,14 @@ import psutil
 from bench import MAKE_RUN_ANCHOR_MAX_WAIT, now_iso, run_in_child
 from bench.common import check_redis_url, print_table, write_results
 from bench.rest import report_header
-from bench.stack import BENCH_REDIS_URL, BenchStack, StackOptions, owners_register, run_finished
+from bench.stack import (
+    BENCH_REDIS_URL,
+    BenchStack,
+    StackOptions,
+    owners_register,
+    robot_paired,
+    run_finished,
+)
 
 NAME = "exports"
 # The commit whose sharing/exports.py built exports in memory (before issue 35).
@@ -289,26 +296,9 @@ def measure(run: ExportsRun) -> dict[str, Any]:
 
 def _paired_robot(stack: BenchStack) -> tuple[Any, bytes, Any]:
     """One owner on chain with one robot paired as the agent pairs (its key confirmed)."""
-    from accounts.models import ChainState, Robot
-    from accounts.services.pairing import robot_pairing_answer, robot_pairing_request
-    from ros_agent.sealing import RobotSigningKey
-    from smcrypto import sm2
-
     ((hand_robot, key),) = owners_register(stack, 1)
-    owner = hand_robot.owner
-    private_key, public_key = sm2.generate_keypair()
-    pairing, _secret = robot_pairing_request(name="demo-odometry", public_key=public_key)
-    pairing = robot_pairing_answer(owner=owner, code=pairing.code, approve=True, actor=owner.user)
-
-    def confirmed() -> bool:
-        state = Robot.objects.get(pk=pairing.robot_id).key_chain_state
-        if state == ChainState.FAILED:
-            raise RuntimeError(f"the robot key was not registered:\n{stack.log_tail()}")
-        return state == ChainState.CONFIRMED
-
-    stack.wait_for(confirmed, "robot key not on chain")
-    robot = Robot.objects.select_related("owner__user").get(pk=pairing.robot_id)
-    return robot, key, RobotSigningKey.of(private_key)
+    robot, signing_key = robot_paired(stack, hand_robot.owner, "demo-odometry")
+    return robot, key, signing_key
 
 
 def _records_stored(

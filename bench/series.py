@@ -58,7 +58,7 @@ from bench.common import print_table, seal_batch, write_results
 from bench.plotting import machine_line, plt, save_figure
 from bench.rest import BENCH_REDIS_URL, report_header
 from bench.roots import view_times, viewer_token
-from bench.stack import BenchStack, StackOptions, owners_register, run_finished
+from bench.stack import BenchStack, StackOptions, owners_register, robot_paired, run_finished
 
 NAME = "series"
 VARIANTS = ("unsigned", "signed", "v2")  # the first is the baseline of the variants' ratios
@@ -212,29 +212,6 @@ def _store(
         record_create_batch(robot=robot, envelopes=envelopes)
 
 
-def _paired_robot(stack: BenchStack, owner: Any, name: str) -> tuple[Any, Any]:
-    """A robot of the owner's paired as the agent pairs (its key pair made here, the request
-    approved by the owner), once its key is confirmed on chain; with its signing key."""
-    from accounts.models import ChainState, Robot
-    from accounts.services.pairing import robot_pairing_answer, robot_pairing_request
-    from ros_agent.sealing import RobotSigningKey
-    from smcrypto import sm2
-
-    private_key, public_key = sm2.generate_keypair()
-    pairing, _secret = robot_pairing_request(name=name, public_key=public_key)
-    pairing = robot_pairing_answer(owner=owner, code=pairing.code, approve=True, actor=owner.user)
-
-    def confirmed() -> bool:
-        state = Robot.objects.get(pk=pairing.robot_id).key_chain_state
-        if state == ChainState.FAILED:
-            raise RuntimeError(f"the robot key was not registered:\n{stack.log_tail()}")
-        return state == ChainState.CONFIRMED
-
-    stack.wait_for(confirmed, "robot key not on chain")
-    robot = Robot.objects.select_related("owner__user").get(pk=pairing.robot_id)
-    return robot, RobotSigningKey.of(private_key)
-
-
 class _Cpu:
     """CPU seconds of the stack's web and workers, and of the whole machine, over a phase."""
 
@@ -295,7 +272,7 @@ def measure(run: SeriesRun) -> dict[str, Any]:
                 robot, _token = robot_create(owner=owner, name="odometry-unsigned")
                 signing_key = None
             else:
-                robot, signing_key = _paired_robot(stack, owner, f"odometry-{variant}")
+                robot, signing_key = robot_paired(stack, owner, f"odometry-{variant}")
             _store(run, robot, key, signing_key, variant, start)
             _await_anchored(stack, run, robot)
             robots[variant] = robot

@@ -495,3 +495,26 @@ def owners_register(stack: BenchStack, owners: int) -> list[tuple[Any, bytes]]:
 
         stack.wait_for(registered, "owners not registered")
     return robots
+
+
+def robot_paired(stack: BenchStack, owner: Any, name: str) -> tuple[Any, Any]:
+    """A robot of `owner` paired as the agent pairs (its key pair made here, the request
+    approved by the owner), once its key is confirmed on chain; with its signing key."""
+    from accounts.models import ChainState, Robot
+    from accounts.services.pairing import robot_pairing_answer, robot_pairing_request
+    from ros_agent.sealing import RobotSigningKey
+    from smcrypto import sm2
+
+    private_key, public_key = sm2.generate_keypair()
+    pairing, _secret = robot_pairing_request(name=name, public_key=public_key)
+    pairing = robot_pairing_answer(owner=owner, code=pairing.code, approve=True, actor=owner.user)
+
+    def confirmed() -> bool:
+        state = Robot.objects.get(pk=pairing.robot_id).key_chain_state
+        if state == ChainState.FAILED:
+            raise RuntimeError(f"the robot key was not registered:\n{stack.log_tail()}")
+        return state == ChainState.CONFIRMED
+
+    stack.wait_for(confirmed, "robot key not on chain")
+    robot = Robot.objects.select_related("owner__user").get(pk=pairing.robot_id)
+    return robot, RobotSigningKey.of(private_key)
