@@ -11,6 +11,7 @@ import pytest
 
 from authros_verify import BUNDLE_FORMAT_V1, verify
 from authros_verify.__main__ import main
+from authros_verify.check import RECORD_FIELDS_V1
 from authros_verify.mcapfile import mcap_messages
 from tests.authros_verify.conftest import export_of, recomputed
 
@@ -53,7 +54,7 @@ def test_a_signed_record_relabelled_v1_with_its_message_changed_fails(
     forged = copy.deepcopy(document)
     forged["format"] = BUNDLE_FORMAT_V1
     for entry in forged["records"]:
-        for name in set(entry) - _V1_FIELDS:
+        for name in set(entry) - RECORD_FIELDS_V1:
             del entry[name]
     forged_bundle, forged_mcap = recomputed(forged, mcap, messages={sequence: changed})
     assert forged_mcap != mcap
@@ -76,26 +77,6 @@ def test_a_signed_record_relabelled_v1_with_its_message_changed_fails(
     out = capsys.readouterr().out
     assert "FAILED" in out
     assert "UNSIGNED" not in out
-
-
-_V1_FIELDS = {
-    "record",
-    "owner",
-    "digest",
-    "mode",
-    "leaf_index",
-    "tree_size",
-    "path",
-    "root",
-    "anchor",
-    "robot",
-    "topic",
-    "type",
-    "seq",
-    "captured_at",
-    "envelope",
-    "mcap",
-}
 
 
 def _reader(deployed):

@@ -1,10 +1,11 @@
 """Fixtures of the sharing tests: alice with a robot, bob with alice's grant, the page tests'
-upload, and one run of the reconciliation."""
+upload, one run of the reconciliation, and the SM2 verifications a test runs, counted."""
 
 import pytest
 
 from sharing.services.grants import grant_create
 from sharing.services.reconcile import chain_reconcile
+from smcrypto import sm2
 from tests.pages.conftest import upload  # noqa: F401  (the fixture, for tests/sharing/)
 
 
@@ -30,3 +31,18 @@ def reconcile(django_capture_on_commit_callbacks):
             return chain_reconcile()
 
     return run
+
+
+@pytest.fixture
+def verifications(monkeypatch):
+    """The SM2 verifications run, counted where every check of many runs them
+    (sm2.verify_many): the number of claims of each call, in order."""
+    counted = []
+    real = sm2.verify_many
+
+    def counting(claims):
+        counted.append(len(claims))
+        return real(claims)
+
+    monkeypatch.setattr(sm2, "verify_many", counting)
+    return counted

@@ -27,20 +27,6 @@ def _nothing_stored_since(before: set) -> bool:
     return set(Record.objects.values_list("pk", flat=True)) == before and len(files) == len(before)
 
 
-@pytest.fixture
-def verifications(monkeypatch):
-    """The SM2 verifications run, counted where every check of many runs them."""
-    counted = []
-    real = sm2.verify_many
-
-    def counting(claims):
-        counted.append(len(claims))
-        return real(claims)
-
-    monkeypatch.setattr(sm2, "verify_many", counting)
-    return counted
-
-
 def test_a_v2_batch_is_verified_once_and_stored_with_its_topic_seqs(
     make_paired_robot, verifications, django_capture_on_commit_callbacks
 ):

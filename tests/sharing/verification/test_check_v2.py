@@ -7,23 +7,9 @@ import pytest
 from sharing.models import Record, Verdict
 from sharing.services.uploads import record_create_batch
 from sharing.verification.check import records_verify
-from smcrypto import sm2
 from tests.support.batches import seal_batch
 
 pytestmark = pytest.mark.django_db
-
-
-@pytest.fixture
-def verifications(monkeypatch):
-    counted = []
-    real = sm2.verify_many
-
-    def counting(claims):
-        counted.append(len(claims))
-        return real(claims)
-
-    monkeypatch.setattr(sm2, "verify_many", counting)
-    return counted
 
 
 def _stored(setup, envelopes, capture) -> list[Record]:
