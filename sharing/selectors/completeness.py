@@ -13,7 +13,7 @@ records checks it from their signed headers (authros-verify --complete).
 """
 
 import uuid
-from collections.abc import Iterable, Iterator
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from datetime import datetime
 from itertools import groupby
@@ -296,9 +296,3 @@ def gap_around(
         .values_list("topic_seq", "captured_at")
     )
     return around.get(ends[0]), around.get(ends[1])
-
-
-def streams_missing(completeness: Completeness) -> Iterable[Stream]:
-    """The streams with numbers gone for no reason the portal knows: what the owner is warned
-    of."""
-    return [stream for stream in completeness.streams if stream.missing]

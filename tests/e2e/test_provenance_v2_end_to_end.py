@@ -33,17 +33,17 @@ from playwright.sync_api import Browser, expect
 
 from accounts.models import ChainState, Owner, Robot
 from accounts.services.owners import owner_create
-from accounts.services.pairing import robot_pairing_answer, robot_pairing_request
 from chainworker import services as chain_services
 from core.redis_client import get_redis
 from ros_agent.keyring import key_id_hex, write_keys_file
 from sharing.cache import _key as cache_key
 from sharing.models import Grant, Record
 from sharing.storage import envelope_storage
-from smcrypto import provenance, sm2, sm4
+from smcrypto import provenance, sm4
 from tests.support.harness import REPO_ROOT, wait_for
 from tests.support.recordings import CHATTER, ODOM, make_samples, ros2_store, write_ros2_bag
 from tests.support.robot_setup import TEST_PASSWORD
+from tests.support.worker_robots import paired_robot
 
 pytestmark = [
     pytest.mark.worker,
@@ -80,16 +80,8 @@ def _paired_robot(owner: Owner, key: bytes, folder: Path, url: str) -> tuple[Rob
     """A robot of `owner` paired as the agent pairs (its key registered on chain by the
     workers), and what pairing leaves on it: its SM2 key, the owner's keys, its token and an
     agent.yaml naming them and the recording's two topics."""
-    private_key, public_key = sm2.generate_keypair()
-    pairing, _secret = robot_pairing_request(name="cart-1", public_key=public_key)
-    pairing = robot_pairing_answer(owner=owner, code=pairing.code, approve=True, actor=owner.user)
-    token = sm2.decrypt(private_key, pairing.token_sm2).decode("ascii")
-    wait_for(
-        lambda: Robot.objects.get(pk=pairing.robot_id).key_chain_state == ChainState.CONFIRMED,
-        timeout=120,
-        what="the robot's key registered on chain by the workers",
-    )
-    robot = Robot.objects.get(pk=pairing.robot_id)
+    setup = paired_robot(owner, key, name="cart-1")
+    robot, token, (private_key, _public_key) = setup.robot, setup.token, setup.signing_key
     folder.mkdir(parents=True)
     (folder / "robot.sm2").write_text(private_key + "\n")
     (folder / "robot.sm2").chmod(0o600)

@@ -19,7 +19,6 @@ from sharing.selectors.completeness import (
     GAP_RETENTION,
     Gap,
     record_streams,
-    streams_missing,
 )
 from tests.pages.conftest import pending_owner  # noqa: F401  (the fixture)
 
@@ -109,7 +108,7 @@ def test_rows_deleted_behind_the_portals_back_are_missing(robot):
         {"from": 3, "to": 5, "reason": "missing"},
         {"from": 8, "to": 8, "reason": "missing"},
     ]
-    assert streams_missing(streams_of(robot)) == [stream]
+    assert [s for s in streams_of(robot).streams if s.missing] == [stream]
 
 
 def test_an_owners_deletion_is_named_deleted_with_when(robot):
@@ -130,7 +129,7 @@ def test_an_owners_deletion_is_named_deleted_with_when(robot):
         "at": (when + timedelta(minutes=5)).isoformat(),
     }
     assert completeness.missing == 0
-    assert not streams_missing(completeness)
+    assert not [s for s in completeness.streams if s.missing]
 
 
 def test_a_retention_sweep_is_named_retention_with_when(robot):

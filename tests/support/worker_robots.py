@@ -9,14 +9,33 @@ from contextlib import contextmanager
 
 from django.db import connection
 
-from accounts.models import ChainState, Owner
+from accounts.models import ChainState, Owner, Robot
 from accounts.services.owners import owner_create
+from accounts.services.pairing import robot_pairing_answer, robot_pairing_request
 from accounts.services.robots import robot_create
 from sharing.models import Record
 from sharing.services.uploads import record_create
-from smcrypto import sm4
+from smcrypto import sm2, sm4
 from tests.support.harness import wait_for
 from tests.support.robot_setup import TEST_PASSWORD, RobotSetup
+
+
+def paired_robot(owner: Owner, key: bytes, *, name: str | None = None) -> RobotSetup:
+    """A robot of `owner` (whose SM4 key is `key`) paired as the agent pairs, once the workers
+    have registered its key on chain; its SM2 key pair and the token pairing gave it."""
+    private_key, public_key = sm2.generate_keypair()
+    pairing, _secret = robot_pairing_request(
+        name=name or f"robot-{uuid.uuid4().hex[:6]}", public_key=public_key
+    )
+    pairing = robot_pairing_answer(owner=owner, code=pairing.code, approve=True, actor=owner.user)
+    token = sm2.decrypt(private_key, pairing.token_sm2).decode("ascii")
+    wait_for(
+        lambda: Robot.objects.get(pk=pairing.robot_id).key_chain_state == ChainState.CONFIRMED,
+        timeout=120,
+        what="the robot's key registered on chain by the workers",
+    )
+    robot = Robot.objects.get(pk=pairing.robot_id)
+    return RobotSetup(owner, key, robot, token, (private_key, public_key))
 
 
 def registered_robots(count: int) -> list[RobotSetup]:

@@ -9,40 +9,21 @@ import uuid
 import pytest
 import requests
 
-from accounts.models import ChainState, Owner, Robot
+from accounts.models import ChainState, Owner
 from accounts.services.owners import owner_create
-from accounts.services.pairing import robot_pairing_answer, robot_pairing_request
 from sharing.models import Grant, Record, SecurityEvent
 from sharing.services.grants import grant_create
-from smcrypto import envelope, sm2, sm4
+from smcrypto import envelope, sm4
 from tests.support.batches import batch_sealed, batch_signed, seal_batch
 from tests.support.harness import wait_for
 from tests.support.robot_setup import TEST_PASSWORD, RobotSetup
-from tests.support.worker_robots import registered_robots
+from tests.support.worker_robots import paired_robot, registered_robots
 
 pytestmark = [
     pytest.mark.worker,
     pytest.mark.process,
     pytest.mark.django_db(transaction=True),
 ]
-
-
-def _paired(owner: Owner, key: bytes) -> RobotSetup:
-    """A robot of `owner` paired as the agent pairs, its key registered on chain by the
-    workers."""
-    private_key, public_key = sm2.generate_keypair()
-    pairing, _secret = robot_pairing_request(
-        name=f"robot-{uuid.uuid4().hex[:6]}", public_key=public_key
-    )
-    pairing = robot_pairing_answer(owner=owner, code=pairing.code, approve=True, actor=owner.user)
-    token = sm2.decrypt(private_key, pairing.token_sm2).decode("ascii")
-    wait_for(
-        lambda: Robot.objects.get(pk=pairing.robot_id).key_chain_state == ChainState.CONFIRMED,
-        timeout=120,
-        what="the robot's key registered on chain by the workers",
-    )
-    robot = Robot.objects.get(pk=pairing.robot_id)
-    return RobotSetup(owner, key, robot, token, (private_key, public_key))
 
 
 def _post(url: str, setup: RobotSetup, envelopes: list[bytes]) -> requests.Response:
@@ -58,7 +39,7 @@ def test_a_v2_batch_through_the_real_processes(worker_stack, make_owner_token):
     stack = worker_stack(workers=1)
     url = stack.start_web(workers=1)
     (alice,) = registered_robots(1)
-    setup = _paired(alice.owner, alice.key)
+    setup = paired_robot(alice.owner, alice.key)
     bob = owner_create(
         username=f"bob-{uuid.uuid4().hex[:6]}", password=TEST_PASSWORD, sm4_key=sm4.generate_key()
     )
