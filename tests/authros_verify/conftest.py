@@ -54,14 +54,18 @@ def mcap_rewritten(
     *,
     messages: dict[int, bytes] | None = None,
     schemas: dict[str, bytes] | None = None,
+    compression: CompressionType = CompressionType.NONE,
+    chunk_size: int | None = None,
 ) -> bytes:
     """The MCAP file written again with the `mcap` library: the messages of the given
-    sequences and the schemas of the given names replaced, everything else kept."""
+    sequences and the schemas of the given names replaced, everything else kept; its chunks
+    compressed with `compression`, of `chunk_size` bytes (the library's default if None)."""
     messages, schemas = messages or {}, schemas or {}
     reader = make_reader(io.BytesIO(mcap))
     header = reader.get_header()
     output = io.BytesIO()
-    writer = Writer(output, compression=CompressionType.NONE)
+    sized = {} if chunk_size is None else {"chunk_size": chunk_size}
+    writer = Writer(output, compression=compression, **sized)
     writer.start(profile=header.profile, library=header.library)
     schema_ids: dict[int, int] = {}
     channel_ids: dict[int, int] = {}

@@ -22,7 +22,7 @@ import pytest
 from mcap.reader import make_reader
 from mcap.records import Chunk
 from mcap.stream_reader import StreamReader
-from mcap.writer import CompressionType, Writer
+from mcap.writer import CompressionType
 
 from authros_verify import BUNDLE_FORMAT, BUNDLE_FORMAT_V2, bundle_digest, bundle_serialise
 from authros_verify import verify as export_verify
@@ -36,7 +36,7 @@ from sharing.services.uploads import record_create_batch
 from sharing.storage import envelope_storage
 from smcrypto import envelope, provenance, sm2
 from smcrypto.sm3 import sm3_hex
-from tests.authros_verify.conftest import export_files, recomputed
+from tests.authros_verify.conftest import export_files, mcap_rewritten, recomputed
 from tests.support.harness import REPO_ROOT
 from tests.support.tampering import tamper
 
@@ -392,29 +392,11 @@ def _rewritten(
 ) -> bytes:
     """The file written again with the `mcap` library, its chunks compressed, small chunks so
     that there are several; the given messages' data with bytes appended."""
-    change = change or {}
-    reader = make_reader(io.BytesIO(mcap))
-    output = io.BytesIO()
-    writer = Writer(output, compression=compression, chunk_size=256)
-    header = reader.get_header()
-    writer.start(profile=header.profile, library=header.library)
-    schemas, channels = {}, {}
-    for schema, channel, message in reader.iter_messages(log_time_order=False):
-        if schema.id not in schemas:
-            schemas[schema.id] = writer.register_schema(schema.name, schema.encoding, schema.data)
-        if channel.id not in channels:
-            channels[channel.id] = writer.register_channel(
-                channel.topic, channel.message_encoding, schemas[schema.id]
-            )
-        writer.add_message(
-            channels[channel.id],
-            log_time=message.log_time,
-            data=message.data + change.get(message.sequence, b""),
-            publish_time=message.publish_time,
-            sequence=message.sequence,
-        )
-    writer.finish()
-    return output.getvalue()
+    messages = {
+        sequence: _message_data(mcap, sequence) + appended
+        for sequence, appended in (change or {}).items()
+    }
+    return mcap_rewritten(mcap, messages=messages, compression=compression, chunk_size=256)
 
 
 def _chunks(mcap: bytes) -> list[Chunk]:
