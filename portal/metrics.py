@@ -10,6 +10,7 @@ Imported by the Celery app before Django's apps are loaded: no models here.
 
 from __future__ import annotations
 
+import re
 from typing import Any
 
 from django.http import HttpRequest, HttpResponse
@@ -38,6 +39,14 @@ VIEW_ROUTES = frozenset(
     }
 )
 
+# A label's values are bounded whatever a client sends: every series lives in each web
+# process's file and in every scrape until the process restarts. A method outside these
+# (HTTP lets a client make any up) is counted as "other"; so is a status outside 100-599, and a
+# result that is not an error code of the API's shape.
+HTTP_METHODS = frozenset({"GET", "HEAD", "POST", "PUT", "PATCH", "DELETE", "OPTIONS", "TRACE"})
+OTHER = "other"
+_ERROR_CODE = re.compile(r"[a-z][a-z0-9_]{0,47}")
+
 VERIFY_TASKS = frozenset({"sharing.tasks.records_verify"})
 ANCHOR_TASK = "sharing.tasks.records_anchor"
 EXPORT_TASK = "sharing.tasks.export_run"
@@ -53,10 +62,22 @@ def request_route(request: HttpRequest) -> str:
     return match.route if match is not None else "unmatched"
 
 
+def request_method(request: HttpRequest) -> str:
+    """The request's method as a label: one of HTTP_METHODS, or "other"."""
+    method = request.method or ""
+    return method if method in HTTP_METHODS else OTHER
+
+
+def response_status(response: HttpResponse) -> str:
+    """The answer's status as a label: its code when a valid HTTP status, else "other"."""
+    code = response.status_code
+    return str(code) if isinstance(code, int) and 100 <= code <= 599 else OTHER
+
+
 def request_observed(request: HttpRequest, response: HttpResponse, seconds: float) -> None:
     route = request_route(request)
-    method = request.method or ""
-    HTTP_REQUESTS.labels(route, method, str(response.status_code)).inc()
+    method = request_method(request)
+    HTTP_REQUESTS.labels(route, method, response_status(response)).inc()
     if (method, route) in UPLOAD_ROUTES:
         result = _result(response, ok="stored")
         UPLOADS.labels(result).inc()
@@ -73,9 +94,10 @@ def _result(response: HttpResponse, *, ok: str) -> str:
     if response.status_code < 400:
         return ok
     data = getattr(response, "data", None)
-    if isinstance(data, dict) and isinstance(data.get("error"), str):
-        return data["error"]
-    return str(response.status_code)
+    code = data.get("error") if isinstance(data, dict) else None
+    if isinstance(code, str) and _ERROR_CODE.fullmatch(code):
+        return code
+    return response_status(response)
 
 
 def _envelopes_in(response: HttpResponse) -> int:

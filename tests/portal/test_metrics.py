@@ -169,3 +169,36 @@ def test_a_process_starting_while_scraped_does_not_fail_the_scrape(tmp_path):
     (tmp_path / "web" / "counter_2.db").touch()  # the starting process's, still empty
     samples = [sample for family in _HostFiles(tmp_path).collect() for sample in family.samples]
     assert [(sample.name, sample.value) for sample in samples] == [("uploads_total", 3.0)]
+
+
+def test_hostile_methods_paths_and_headers_add_no_series(make_robot):
+    """Audit finding: `authros_http_requests_total` was labelled with the method as sent, so
+    100 anonymous requests with made-up methods made 100 series in every process until
+    restart. Whatever a client sends, each label keeps a bounded set of values."""
+    anonymous = Client(REMOTE_ADDR="203.0.113.9")
+    setup = make_robot()
+    robot = token_client(setup.token)
+
+    def hostile(round_: int) -> None:
+        for i in range(25):
+            anonymous.generic(f"X{round_}M{i}", "/")
+            anonymous.generic(f"GET{i}", f"/api/v1/records/{uuid.uuid4()}/content/")
+            anonymous.get(f"/no/such/path/{uuid.uuid4()}/", HTTP_X_FORWARDED_FOR=f"10.0.0.{i}")
+            anonymous.get("/", HTTP_HOST="127.0.0.1", HTTP_USER_AGENT=f"agent-{uuid.uuid4()}")
+        robot.post(RECORDS, {"envelope": f"not base64 {uuid.uuid4()}"}, format="json")
+        robot.generic(f"POST-{round_}", RECORDS, "{}", content_type="application/json")
+
+    hostile(0)  # every bounded value is seen once
+    before = scrape()
+    hostile(1)
+    hostile(2)
+    after = scrape()
+    new = set(after) - set(before)
+    assert not {key for key in new if key[0].startswith("authros_http_requests")}, new
+    methods = {
+        dict(labels)["method"] for name, labels in after if name == "authros_http_requests_total"
+    }
+    assert methods <= {"GET", "HEAD", "POST", "PUT", "PATCH", "DELETE", "OPTIONS", "TRACE", "other"}
+    assert "other" in methods
+    # The samples of every metric (not only the request counter) stayed as many.
+    assert {key for key in new if not key[0].startswith("authros_http_request")} == set()
