@@ -10,13 +10,13 @@ from django.contrib.auth.password_validation import (
     password_validators_help_text_html,
     validate_password,
 )
-from django.contrib.auth.validators import UnicodeUsernameValidator
 from django.core.exceptions import ValidationError
 
 from accounts.agent_config import DEFAULT_TOPICS, Topic
-from accounts.errors import InvalidKeyMaterial
+from accounts.errors import InvalidKeyMaterial, InvalidUsername
 from accounts.keyexchange import sm4_key_from_submission
-from accounts.models import RETENTION_MAX_DAYS, OwnerToken, validate_robot_topics
+from accounts.models import RETENTION_MAX_DAYS, Owner, OwnerToken, validate_robot_topics
+from accounts.usernames import username_check, username_skeleton
 
 NO_SCRIPT_KEY = (
     "Your key was not encrypted in the browser, so it was not sent. This page needs "
@@ -45,8 +45,8 @@ class EncryptedKeyField(forms.CharField):
 class RegisterForm(forms.Form):
     username = forms.CharField(
         max_length=150,
-        validators=[UnicodeUsernameValidator()],
-        help_text="Up to 150 characters: letters, digits and @ . + - _ only.",
+        help_text="Up to 150 characters: ASCII letters, digits and @ . + - _ only. A name "
+        "that looks like a taken one (Alice beside alice, a1ice) is taken too.",
         widget=forms.TextInput(attrs={"autocomplete": "username", "autofocus": True}),
     )
     password1 = forms.CharField(
@@ -64,8 +64,18 @@ class RegisterForm(forms.Form):
 
     def clean_username(self) -> str:
         username = self.cleaned_data["username"]
-        if get_user_model().objects.filter(username=username).exists():
-            raise ValidationError("This username is taken.", code="username_taken")
+        try:
+            username_check(username)
+        except InvalidUsername as exc:
+            text = str(exc)
+            raise ValidationError(
+                f"{text[:1].upper()}{text[1:]}.", code="invalid_username"
+            ) from None
+        taken = get_user_model().objects.filter(username=username).exists()
+        if taken or Owner.objects.filter(name_skeleton=username_skeleton(username)).exists():
+            raise ValidationError(
+                "This username is taken, or looks like one that is.", code="username_taken"
+            )
         return username
 
     def clean(self) -> dict:

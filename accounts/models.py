@@ -76,12 +76,32 @@ class Owner(models.Model):
     # The owner deleted the account: no sign-in, credentials revoked, records deleted; the
     # row (and its user, so the username) stays, so that nobody can take the name over.
     deleted_at = models.DateTimeField(null=True, blank=True)
+    # What the username looks like (accounts.usernames.username_skeleton): unique among owners,
+    # so that no new name is confusable with a taken one. `name_lookalike` marks the owners
+    # registered before the rule beside an older look-alike: they keep their name, and
+    # neither name resolves a grant (sharing.selectors.grants.owner_resolve).
+    name_skeleton = models.CharField(max_length=750, db_index=True)
+    name_lookalike = models.BooleanField(default=False)
 
     class Meta:
         ordering = ["user__username"]
+        constraints = [
+            models.UniqueConstraint(
+                fields=["name_skeleton"],
+                condition=models.Q(name_lookalike=False),
+                name="owner_name_skeleton_unique",
+            )
+        ]
 
     def __str__(self) -> str:
         return self.user.username
+
+    def save(self, *args, **kwargs) -> None:
+        if not self.name_skeleton:  # an owner made without owner_create (a script's, a test's)
+            from accounts.usernames import username_skeleton
+
+            self.name_skeleton = username_skeleton(self.user.username)
+        super().save(*args, **kwargs)
 
     @property
     def username(self) -> str:

@@ -90,6 +90,14 @@ class OwnerNotFound(SharingError):
     http_status = 404
 
 
+class OwnerAmbiguous(SharingError):
+    """The name given is an owner's, but another live owner's name looks the same (made
+    before usernames were held apart: accounts.usernames)."""
+
+    code = "owner_ambiguous"
+    http_status = 409
+
+
 class SelfGrant(SharingError):
     code = "self_grant"
 

@@ -12,14 +12,13 @@ from django.conf import settings
 from django.contrib.auth import get_user_model
 from django.contrib.auth.base_user import AbstractBaseUser
 from django.contrib.auth.password_validation import validate_password
-from django.contrib.auth.validators import UnicodeUsernameValidator
 from django.core.exceptions import ValidationError
 from django.db import IntegrityError, transaction
 from django.utils import timezone
 from eth_account import Account
 
 from accounts import keywrap
-from accounts.errors import InvalidUsername, UsernameTaken, WeakPassword, WrongPassword
+from accounts.errors import UsernameTaken, WeakPassword, WrongPassword
 from accounts.events import account_event_record
 from accounts.models import (
     AccountEvent,
@@ -33,9 +32,13 @@ from accounts.models import (
 from accounts.selectors import eoa_purpose
 from accounts.services.keys import owner_key_add, sm4_key_check
 from accounts.services.robot_keys import robot_key_revocations_release
+from accounts.usernames import username_check, username_skeleton
 from core.outbox import enqueue
 
 security_log = logging.getLogger("authros.security")
+
+# Taken, or confusable with a taken name (accounts.usernames): which of the two is not said.
+_TAKEN = "the username {username!r} is taken, or looks like one that is: choose another"
 
 
 def owner_create(
@@ -48,12 +51,10 @@ def owner_create(
     is done on chain until then.
     """
     User = get_user_model()
-    try:
-        UnicodeUsernameValidator()(username)
-    except ValidationError as exc:
-        raise InvalidUsername(" ".join(exc.messages)) from None
-    if not username or len(username) > 150:
-        raise InvalidUsername("a username has 1 to 150 characters")
+    username_check(username)
+    skeleton = username_skeleton(username)
+    if Owner.objects.filter(name_skeleton=skeleton).exists():
+        raise UsernameTaken(_TAKEN.format(username=username))
     sm4_key_check(sm4_key)
     candidate = User(username=username)
     try:
@@ -70,6 +71,7 @@ def owner_create(
                 user=user,
                 eoa_address=eoa.address,
                 eoa_key_wrapped=b"",
+                name_skeleton=skeleton,
                 approval=Approval.AWAITING if awaiting else Approval.APPROVED,
             )
             owner.eoa_key_wrapped = keywrap.wrap(bytes(eoa.key), purpose=eoa_purpose(owner.pk))
@@ -78,7 +80,7 @@ def owner_create(
             if not awaiting:
                 transaction.on_commit(lambda: enqueue("accounts.tasks.owner_register", owner.pk))
     except IntegrityError:
-        raise UsernameTaken(f"the username {username!r} is taken") from None
+        raise UsernameTaken(_TAKEN.format(username=username)) from None
     return owner
 
 

@@ -24,7 +24,12 @@ from sharing.apis.fields import (
 )
 from sharing.grant_terms import GrantTerms, grant_terms_make
 from sharing.models import Grant
-from sharing.selectors.grants import grant_list_given, grant_list_received, owner_resolve
+from sharing.selectors.grants import (
+    grant_list_given,
+    grant_list_received,
+    grantee_resolve,
+    owner_resolve,
+)
 from sharing.services.grants import GRANT_MADE_WITH, grant_create, grant_revoke, grant_terms_change
 
 
@@ -172,7 +177,8 @@ class GrantsApi(APIView):
                 e404="`owner_not_found`: no owner with that username or address",
                 e409="`already_granted`, `revocation_pending` (your revocation of that owner is "
                 "not on chain yet: try again in a few seconds), `not_registered_yet` (you), "
-                "`grantee_not_registered`",
+                "`grantee_not_registered`, `owner_ambiguous` (another owner's username looks "
+                "like the one given: give the grantee's 0x address)",
             ),
         },
     )
@@ -181,7 +187,7 @@ class GrantsApi(APIView):
         payload = self.InputSerializer(data=request.data)
         payload.is_valid(raise_exception=True)
         terms = payload.terms_for(owner)
-        grantee = owner_resolve(payload.validated_data["grantee"])
+        grantee = grantee_resolve(payload.validated_data["grantee"])
         token = caller_owner_token(request)
         grant = grant_create(
             owner=owner,

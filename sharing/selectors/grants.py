@@ -10,7 +10,7 @@ from django.utils import timezone
 
 from accounts.models import Owner, OwnerToken, Robot
 from accounts.selectors import owner_by_identifier
-from sharing.errors import OwnerNotFound
+from sharing.errors import OwnerAmbiguous, OwnerNotFound
 from sharing.models import Grant, GrantChange, Record
 
 
@@ -128,3 +128,25 @@ def owner_resolve(identifier: str) -> Owner:
             "spelling, or ask them for their username."
         )
     return owner
+
+
+def grantee_resolve(identifier: str) -> Owner:
+    """The owner a new grant is for (owner_resolve), and OwnerAmbiguous when named by a
+    username that another live owner's looks like (two accounts made before usernames were
+    held apart, accounts.usernames): only the address tells them apart then. Changing or
+    revoking a grant names its grantee exactly and needs no such care."""
+    owner = owner_resolve(identifier)
+    by_name = not identifier.strip().lower().startswith("0x")
+    if by_name and owner_lookalikes(owner).exists():
+        raise OwnerAmbiguous(
+            f"Another owner's username looks like “{owner.username}”: ask them for their "
+            "0x address and give that instead."
+        )
+    return owner
+
+
+def owner_lookalikes(owner: Owner) -> QuerySet[Owner]:
+    """The other live owners whose usernames look like this one's (the same skeleton)."""
+    return Owner.objects.filter(name_skeleton=owner.name_skeleton, deleted_at__isnull=True).exclude(
+        pk=owner.pk
+    )

@@ -19,6 +19,7 @@ from sharing.selectors.grants import (
     grant_list_received,
     grant_terms_of,
     grant_topic_choices,
+    grantee_resolve,
     grants_described,
     owner_resolve,
 )
@@ -69,7 +70,8 @@ def _grant_give_or_change(request: HttpRequest, form: GrantForm) -> HttpResponse
     """Call the service; the redirect on success, None with the form's errors added."""
     data = form.cleaned_data
     try:
-        grantee = owner_resolve(data["grantee"])
+        resolve = owner_resolve if data["change"] else grantee_resolve
+        grantee = resolve(data["grantee"])
     except SharingError as exc:
         form.add_error("grantee", str(exc))
         return None

@@ -174,7 +174,8 @@ def _register_form(**overrides: str) -> dict[str, str]:
         ({"password1": "1234", "password2": "1234"}, "This password is too short"),
         ({"password1": "password123", "password2": "password123"}, "too common"),
         ({"password2": "something else 99"}, "The two passwords differ"),
-        ({"username": "no spaces allowed"}, "Enter a valid username"),
+        ({"username": "no spaces allowed"}, "A username is made of ASCII letters"),
+        ({"username": "\N{CYRILLIC SMALL LETTER A}lice"}, "A username is made of ASCII letters"),
     ],
 )
 def test_register_refuses_bad_input_and_creates_nothing(client, db, overrides, message):
