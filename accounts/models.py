@@ -8,6 +8,7 @@ from django.db import models
 from django.utils import timezone
 
 from accounts.agent_config import DEFAULT_TOPICS, InvalidTopics, topics_as_list, topics_parse
+from accounts.usernames import username_skeleton
 
 
 def default_robot_topics() -> list[dict[str, str]]:
@@ -98,8 +99,6 @@ class Owner(models.Model):
 
     def save(self, *args, **kwargs) -> None:
         if not self.name_skeleton:  # an owner made without owner_create (a script's, a test's)
-            from accounts.usernames import username_skeleton
-
             self.name_skeleton = username_skeleton(self.user.username)
         super().save(*args, **kwargs)
 
