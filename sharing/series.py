@@ -3,9 +3,10 @@ each one integrity-checked, downsampled for display without skipping records.
 
 `series_of` reads the records the caller may see in the range (their own, or a grant's within
 its scope: record_list_visible_to and RecordSelection, so that nothing outside the scope is
-counted), has the worker check every one of them (verification.records_open: one access-log
-line of kind "plot", batches checked side by side), reads the fields (dotted paths into the
-record's decoded message, `K` of the paper's Fig. 4 JSON) of the verified ones, and keeps the
+counted), has the workers check every one of them (verification.opening.records_rows_open: one
+access-log line of kind "plot", slices checked side by side), which read the fields (dotted
+paths into the record's decoded message, `K` of the paper's Fig. 4 JSON, `record_values`) of
+the verified ones and hand back only those, sealed for this read; it keeps the
 shape for display by min/max per bucket: in each of `points / (2 * fields)` equal slices of the
 verified rows, the rows holding each field's lowest and highest value. A refused record
 (tampered, signature not valid, not anchored, no access on chain) is counted in `refused` and
@@ -14,6 +15,7 @@ never plotted.
 
 import math
 import uuid
+from collections import Counter
 from collections.abc import Sequence
 from dataclasses import dataclass
 from datetime import datetime
@@ -23,12 +25,13 @@ from django.db.models import QuerySet
 
 from accounts.models import Owner, OwnerToken
 from sharing.content import Uninterpretable, document_parse
-from sharing.errors import SeriesRefused, SharingError, VerificationUnavailable
-from sharing.models import Access, Record
+from sharing.errors import SeriesRefused
+from sharing.models import Record
 from sharing.selection import RecordSelection
 from sharing.selectors.completeness import Completeness, record_streams
 from sharing.selectors.records import record_list_visible_to
-from sharing.verification.opening import OpenedRecord, records_open
+from sharing.verification.access import OwnerRead
+from sharing.verification.opening import records_rows_open
 
 # Fields of one series, and characters of one field's dotted path.
 MAX_FIELDS = 8
@@ -133,60 +136,59 @@ def series_window(viewer: Owner, query: SeriesQuery) -> QuerySet[Record]:
     return selection.apply(record_list_visible_to(viewer))
 
 
-def series_records(viewer: Owner, query: SeriesQuery) -> list[Record]:
-    """Every record of the range the viewer may see (own, or in a live grant's scope), oldest
-    first. SeriesRefused when they are more than SERIES_MAX_RECORDS."""
-    in_range = (
-        series_window(viewer, query)
-        .live()
-        # One owner instance for all its records (its key is looked up per owner), no joins.
-        .select_related(None)
-        .prefetch_related("owner")
-        .defer("merkle_path")
-        .order_by("captured_at", "seq")
-    )
+def series_record_ids(viewer: Owner, query: SeriesQuery) -> tuple[list[str], list[OwnerRead]]:
+    """The ids of every record of the range the viewer may see (own, or in a live grant's
+    scope), oldest first, and what the plot's access line names of each record owner's.
+    SeriesRefused when they are more than SERIES_MAX_RECORDS. Ids only: a range of hours
+    holds hundreds of thousands of records, which the workers read themselves."""
+    in_range = series_window(viewer, query).live().order_by("captured_at", "seq")
     most = settings.SERIES_MAX_RECORDS
-    records = list(in_range[: most + 1])
-    if len(records) > most:
+    found = list(in_range.values_list("pk", "owner_id")[: most + 1])
+    if len(found) > most:
         raise SeriesRefused(f"the range holds more than {most} records; choose a shorter range")
-    return records
+    by_owner = Counter(owner_id for _pk, owner_id in found)
+    reads = [
+        OwnerRead(
+            owner_id=owner_id,
+            count=count,
+            record=Record.objects.get(pk=next(pk for pk, of in found if of == owner_id))
+            if count == 1
+            else None,
+            robot_id=query.robot,
+            topic=query.topic,
+        )
+        for owner_id, count in by_owner.items()
+    ]
+    return [str(pk) for pk, _owner_id in found], reads
 
 
 def series_of(
     *, viewer: Owner, query: SeriesQuery, credential: str, token: OwnerToken | None = None
 ) -> Series:
-    """The series of the query for the viewer: every record in range checked (one access of
-    kind "plot"), the verified ones' fields, downsampled to at most `query.points` rows, and
-    the range's streams with their gaps (record_streams). VerificationUnavailable if the
-    worker could not check them all."""
-    records = series_records(viewer, query)
-    results = records_open(
-        records=records,
+    """The series of the query for the viewer: every record in range checked by the workers
+    (one access of kind "plot"; they hand back only the verified records' fields, sealed for
+    this read: verification.opening.records_rows_open), downsampled to at most `query.points`
+    rows, and the range's streams with their gaps (record_streams). VerificationUnavailable if
+    the workers could not check them all."""
+    record_ids, reads = series_record_ids(viewer, query)
+    checked = records_rows_open(
+        record_ids=record_ids,
+        reads=reads,
         viewer=viewer,
-        kind=Access.Kind.PLOT,
+        fields=query.fields,
         credential=credential,
         token=token,
     )
-    unavailable = next((r for r in results if isinstance(r, VerificationUnavailable)), None)
-    if unavailable is not None:
-        raise unavailable
-    opened = [result for result in results if not isinstance(result, SharingError)]
-    rows = [_row(result, query.fields) for result in opened]
-    plotted = [row for row in rows if any(value is not None for value in row[1:])]
+    plotted = [row for row in checked.rows if any(value is not None for value in row[1:])]
     return Series(
         fields=query.fields,
         points=series_downsample(plotted, query.points),
-        source_records=len(records),
-        verified=len(opened),
-        refused=len(results) - len(opened),
-        without_values=len(rows) - len(plotted),
+        source_records=len(record_ids),
+        verified=checked.verified,
+        refused=len(record_ids) - checked.verified,
+        without_values=checked.verified - len(plotted),
         completeness=record_streams(series_window(viewer, query)),
     )
-
-
-def _row(opened: OpenedRecord, fields: tuple[str, ...]) -> list[float | None]:
-    moment = round(opened.record.captured_at.timestamp(), 6)
-    return [moment, *record_values(opened.plaintext, fields)]
 
 
 def record_values(plaintext: bytes, fields: Sequence[str]) -> list[float | None]:

@@ -16,7 +16,7 @@ from chainworker.work import CHAIN_TASK
 from sharing import disk
 from sharing.exports import run, withdraw
 from sharing.services import anchoring, completeness, deletion, grant_chain, reconcile, sweep
-from sharing.verification import check
+from sharing.verification import check, series_check
 
 
 @shared_task(name="sharing.tasks.records_anchor", **CHAIN_TASK)
@@ -99,6 +99,33 @@ def records_verify(
         accesses=None if accesses is None else {int(k): v for k, v in accesses.items()},
     )
     return [check.verification_answer(one) for one in checked]
+
+
+# A slice of a series' records checked, only the plotted numbers handed back, sealed for the
+# web process under its wrapped answer key (sharing/verification/series_check.py).
+@shared_task(name="sharing.tasks.series_verify", **VERIFY_TASK)
+def series_verify(
+    record_ids: list[str],
+    viewer_id: int,
+    credential: str,
+    token_id: int | None,
+    accesses: dict[str, int],
+    fields: list[str],
+    read_id: str,
+    answer_key: str,
+    part: int,
+) -> dict[str, Any]:
+    return series_check.series_rows_check(
+        record_ids=record_ids,
+        viewer_id=viewer_id,
+        credential=credential,
+        token_id=token_id,
+        accesses={int(k): v for k, v in accesses.items()},
+        fields=fields,
+        read_id=read_id,
+        answer_key=answer_key,
+        part=part,
+    )
 
 
 # An export runs for as long as its records take; a message delivered twice finds it done.

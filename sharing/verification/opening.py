@@ -39,7 +39,13 @@ from sharing.errors import (
 )
 from sharing.models import Access, Credential, Record, Verdict
 from sharing.selectors.records import record_deletion_text, record_to_open
-from sharing.verification.access import accesses_open, credential_check
+from sharing.verification.access import (
+    OwnerRead,
+    accesses_open,
+    accesses_open_for,
+    credential_check,
+)
+from sharing.verification.answers import answer_key_make, answer_open
 from sharing.verification.check import ANSWERED_FIELDS
 from sharing.verification.keys import RecordKeys
 from smcrypto import envelope
@@ -250,3 +256,85 @@ def _envelope_of(answer: dict[str, Any]) -> bytes | None:
     """The bytes the worker checked, when it found them verified."""
     encoded = answer.get("envelope")
     return base64.b64decode(encoded) if encoded is not None else None
+
+
+SERIES_TASK = "sharing.tasks.series_verify"
+# Records per series task: a slice's answer is its rows only (a few numbers a record), so a
+# slice is bigger than a page's batch; the slices are sent at once for the workers side by side.
+SERIES_BATCH = 2000
+
+
+@dataclass(frozen=True)
+class CheckedRows:
+    """What the workers answered for a series: how many of its records they verified, and the
+    verified ones' rows [t, v1, v2...] in the order asked."""
+
+    verified: int
+    rows: list[list[float | None]]
+
+
+def records_rows_open(
+    *,
+    record_ids: Sequence[str],
+    reads: Sequence[OwnerRead],
+    viewer: Owner,
+    fields: Sequence[str],
+    credential: str,
+    token: OwnerToken | None = None,
+) -> CheckedRows:
+    """A series' records checked by the workers (sharing.tasks.series_verify), every one at
+    every read: the plot's Access opened first (one per record owner, from `reads`), the
+    records sent in slices of SERIES_BATCH all at once, each slice's rows handed back sealed
+    under this read's answer key (verification/answers.py) and opened here. A record refused
+    or gone is not among the rows; the verified count says how many are. VerificationUnavailable
+    if any slice could not be answered (the others are waited for, and their verdicts kept);
+    a read no worker answered leaves no line."""
+    token_id = token.pk if token is not None else None
+    credential_check(credential, token_id)
+    if not record_ids:
+        return CheckedRows(0, [])
+    accesses = accesses_open_for(
+        kind=Access.Kind.PLOT,
+        viewer_id=viewer.pk,
+        reads=reads,
+        credential=credential,
+        token_id=token_id,
+    )
+    sent_accesses = {str(owner_id): access_id for owner_id, access_id in accesses.items()}
+    key = answer_key_make()
+    slices = [
+        list(record_ids[at : at + SERIES_BATCH]) for at in range(0, len(record_ids), SERIES_BATCH)
+    ]
+    pending = [
+        _send(
+            SERIES_TASK,
+            ids,
+            viewer.pk,
+            credential,
+            token_id,
+            sent_accesses,
+            list(fields),
+            key.read_id,
+            key.wrapped,
+            part,
+        )
+        for part, ids in enumerate(slices)
+    ]
+    verified, rows, unavailable = 0, [], None
+    answered = False
+    try:
+        for part, (ids, sent) in enumerate(zip(slices, pending, strict=True)):
+            try:
+                answer = _await_answer(sent, f"{len(ids)} records of a series", viewer)
+            except VerificationUnavailable as exc:
+                unavailable = exc
+                continue
+            answered = True
+            verified += answer["verified"]
+            rows += answer_open(key=key, part=part, sealed=answer["rows"])
+    finally:
+        if not answered:  # no check ran: a line without verdicts is no access
+            Access.objects.filter(pk__in=accesses.values(), verdicts__isnull=True).delete()
+    if unavailable is not None:
+        raise unavailable
+    return CheckedRows(verified, rows)
