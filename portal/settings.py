@@ -496,7 +496,7 @@ VERIFY_TIMEOUT = env.float("VERIFY_TIMEOUT", default=30.0)
 # Series (sharing/series.py, docs/api.md): the longest capture-time range one series covers,
 # and the most records it may check (every record in range is checked, none skipped).
 SERIES_MAX_RANGE = timedelta(seconds=env.int("SERIES_MAX_RANGE_SECONDS", default=6 * 3600))
-SERIES_MAX_RECORDS = env.int("SERIES_MAX_RECORDS", default=100_000)
+SERIES_MAX_RECORDS = env.int("SERIES_MAX_RECORDS", default=216_000)
 # Exports (sharing/exports/, docs/export.md): records in one export at most, records checked
 # against the chain per run of the integrity check, and hours its files are kept.
 EXPORT_MAX_RECORDS = env.int("EXPORT_MAX_RECORDS", default=2_000_000)

@@ -69,22 +69,37 @@ def document_parse(plaintext: bytes) -> Any:
         text = plaintext.decode("utf-8")
     except UnicodeDecodeError:
         raise Uninterpretable("it is not UTF-8 text") from None
+    # A text that cannot break the bounds (_within_bounds) is parsed without a call back per
+    # number and without a walk for its depth: the same document, a series' records faster.
+    bounded = _within_bounds(plaintext)
+    hooks = {} if bounded else {"parse_int": _bounded_int, "parse_float": _finite_float}
     try:
-        document = json.loads(
-            text,
-            parse_int=_bounded_int,
-            parse_float=_finite_float,
-            parse_constant=_no_constant,
-        )
+        document = json.loads(text, parse_constant=_no_constant, **hooks)
     except RecursionError:
         raise Uninterpretable(f"it is nested more than {MAX_DEPTH} levels deep") from None
     except Uninterpretable:
         raise
     except ValueError as exc:
         raise Uninterpretable(f"it is not JSON ({_printable(str(exc))[:100]})") from None
-    if _depth_exceeds(document, MAX_DEPTH):
+    if not bounded and _depth_exceeds(document, MAX_DEPTH):
         raise Uninterpretable(f"it is nested more than {MAX_DEPTH} levels deep")
     return document
+
+
+# Digits as 0, an exponent's sign as +: a run of digits longer than an integer may be, or an
+# exponent of three digits or more (the only ways a JSON number overflows a float), is then a
+# plain substring (in a string too, where it is harmless).
+_NUMBER_SHAPES = bytes.maketrans(b"0123456789E-", b"0000000000e+")
+_NUMBER_MAY_BREAK = (b"0" * (MAX_INT_DIGITS + 1), b"e000", b"e+000")
+
+
+def _within_bounds(plaintext: bytes) -> bool:
+    """Whether no number of the text can break a bound and it cannot nest deeper than
+    MAX_DEPTH (it opens no more brackets than that): a cheap test, false where unsure."""
+    if plaintext.count(b"[") + plaintext.count(b"{") > MAX_DEPTH:
+        return False
+    shapes = plaintext.translate(_NUMBER_SHAPES)
+    return not any(shape in shapes for shape in _NUMBER_MAY_BREAK)
 
 
 def content_of(*, data_type: str, plaintext: bytes) -> Content:

@@ -27,6 +27,7 @@ SignatureInvalid whose `reason` names the check; `verify_header` is the yes or n
 verifies the signatures of a whole check on every core at once.
 """
 
+import functools
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -60,6 +61,9 @@ BATCH_SIGNATURE_DOMAIN = b"AuthROS/batch-signature/v2"
 _NOT_IN_LEAF = frozenset({"sig", *BATCH_FIELDS})
 
 
+# A pure function of the key, asked for every signed record a check reads (the curve check is
+# the cost): a few robots' keys remembered, never whether a signature held.
+@functools.lru_cache(maxsize=1024)
 def key_hash(public_key_hex: str) -> str:
     """A robot key's hash, the `signer` of its records: SM3 of `x||y` as 64 lowercase hex.
     Takes `04||x||y` or `x||y`; InvalidKey if it is not a point on the SM2 curve."""
