@@ -37,9 +37,14 @@ def answer_key_make() -> AnswerKey:
     return AnswerKey(read_id, base64.b64encode(wrapped).decode("ascii"), key)
 
 
-def answer_seal(*, read_id: str, wrapped: str, part: int, payload: object) -> str:
+def answer_key_unwrap(*, read_id: str, wrapped: str) -> bytes:
+    """The worker's copy of the read's key (keywrap.UnwrapFailed if it was not wrapped for
+    this read), unwrapped before anything is checked."""
+    return keywrap.unwrap(base64.b64decode(wrapped), purpose=_purpose(read_id))
+
+
+def answer_seal(*, key: bytes, read_id: str, part: int, payload: object) -> str:
     """`payload` (plain JSON) sealed for the read: base64 of nonce || SM4-GCM ciphertext."""
-    key = keywrap.unwrap(base64.b64decode(wrapped), purpose=_purpose(read_id))
     nonce = secrets.token_bytes(sm4.GCM_NONCE_SIZE)
     data = json.dumps(payload, separators=(",", ":"), allow_nan=False).encode()
     sealed = nonce + sm4.gcm_encrypt(key, nonce, data, _aad(read_id, part))

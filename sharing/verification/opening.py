@@ -9,6 +9,10 @@ once the very bytes the worker checked against the chain, only where its verdict
 a refusal carries its record and verdict. The plaintext never leaves the web process: the
 worker hands back the envelope it checked, never what it decrypted to check a signature.
 `record_reseal_for` seals the content for the viewer with the keys the read unwrapped.
+
+A series (`records_rows_open`) is the exception that needs no content: its slices go to the
+series task, which checks them the same way and hands back only the plotted numbers of the
+verified ones, sealed under a key of this read (verification/answers.py), not envelopes.
 """
 
 import base64

@@ -16,7 +16,7 @@ from typing import Any
 from accounts.models import OwnerKey
 from sharing.models import Access
 from sharing.series import record_values
-from sharing.verification.answers import answer_seal
+from sharing.verification.answers import answer_key_unwrap, answer_seal
 from sharing.verification.check import Verification, records_verify
 from sharing.verification.keys import RecordKeys
 from smcrypto import envelope
@@ -36,9 +36,11 @@ def series_rows_check(
     part: int,
 ) -> dict[str, Any]:
     """Check the records (one verdict each, under `accesses`, the plot's lines the web opened)
-    and answer how many were checked and verified, and the verified ones' rows `[t, v1, v2...]`
+    and answer how many were verified, and the verified ones' rows `[t, v1, v2...]`
     (t the capture time in Unix seconds), in the order asked, sealed as part `part` of read
-    `read_id` under its wrapped `answer_key`."""
+    `read_id` under its wrapped `answer_key` (unwrapped first: a key not wrapped for this read
+    refuses the task before anything is checked)."""
+    key = answer_key_unwrap(read_id=read_id, wrapped=answer_key)
     checked = records_verify(
         record_ids=record_ids,
         viewer_id=viewer_id,
@@ -55,9 +57,8 @@ def series_rows_check(
             moment = round(verification.verdict.record.captured_at.timestamp(), 6)
             rows.append([moment, *record_values(plaintext, fields)])
     return {
-        "checked": len(checked),
         "verified": len(rows),
-        "rows": answer_seal(read_id=read_id, wrapped=answer_key, part=part, payload=rows),
+        "rows": answer_seal(key=key, read_id=read_id, part=part, payload=rows),
     }
 
 

@@ -4,49 +4,17 @@ the owner's key, write its row with a blank `signer` under a paired robot and ha
 anchor it from the owner's account; the check must refuse it as it refuses a bad signature, and
 no page may call it a record of a robot added by hand. Against the session's anvil."""
 
-import uuid
-from datetime import datetime
-
 import pytest
 
 from sharing.models import Record, Verdict
-from sharing.services.anchoring import records_anchor
 from sharing.services.grants import grant_create
-from sharing.storage import envelope_storage, envelopes_save
 from sharing.verification.check import records_verify
-from smcrypto import envelope, sm2, sm3
+from smcrypto import envelope, sm2
 from tests.api.conftest import RECORDS, session_client, token_client
 from tests.support.batches import seal_batch
+from tests.support.tampering import stored_behind_the_portal
 
 pytestmark = pytest.mark.django_db
-
-
-def _stored_behind_the_portal(setup, data: bytes, capture, **row: object) -> Record:
-    """What the KEK and the database allow: the envelope stored and its row written as an
-    upload would write them, none of the upload's checks run, then anchored by the portal
-    from the owner's account as any pending record is."""
-    header = envelope.read_header(data).header
-    record_id = uuid.uuid4()
-    (name,) = envelopes_save(envelope_storage(), [(f"{setup.owner.pk}/{record_id}.env", data)])
-    record = Record.objects.create(
-        id=record_id,
-        owner=setup.owner,
-        robot=setup.robot,
-        topic=header["topic"],
-        data_type=header["type"],
-        seq=header["seq"],
-        captured_at=datetime.fromisoformat(header["time"].replace("Z", "+00:00")),
-        key_id=envelope.key_id(setup.key).hex(),
-        digest=sm3.sm3_hex(data),
-        size=len(data),
-        storage_name=name,
-        **row,
-    )
-    with capture(execute=True):
-        records_anchor(owner_id=setup.owner.pk)
-    record.refresh_from_db()
-    assert record.status == Record.Status.ANCHORED
-    return record
 
 
 def test_an_unsigned_record_written_under_a_paired_robot_is_refused_and_not_called_hand_made(
@@ -58,7 +26,7 @@ def test_an_unsigned_record_written_under_a_paired_robot_is_refused_and_not_call
         grant_create(owner=setup.owner, grantee=bob)
     forged = setup.seal(1, signing_key=None)  # unsigned, sealed with the owner's key
     assert envelope.provenance_format(envelope.read_header(forged).header) == "unsigned"
-    record = _stored_behind_the_portal(setup, forged, django_capture_on_commit_callbacks, signer="")
+    record = stored_behind_the_portal(setup, forged, django_capture_on_commit_callbacks, signer="")
     assert record.block_number is not None
     for viewer in (setup.owner, bob):
         verdict = records_verify(record_ids=[record.id], viewer_id=viewer.pk)[0].verdict
@@ -85,10 +53,10 @@ def test_a_row_that_does_not_state_its_anchored_envelope_is_refused(
     setup = make_paired_robot("alice")
     first, second = seal_batch(setup, [1, 2], topic_seqs=[0, 1])
     signer = setup.robot.key_hash
-    relabelled = _stored_behind_the_portal(
+    relabelled = stored_behind_the_portal(
         setup, first, django_capture_on_commit_callbacks, signer=signer, topic_seq=5
     )
-    blanked = _stored_behind_the_portal(
+    blanked = stored_behind_the_portal(
         setup, second, django_capture_on_commit_callbacks, signer="", topic_seq=1
     )
     ids = [relabelled.id, blanked.id]
@@ -105,12 +73,12 @@ def test_a_robot_added_by_hand_holds_unsigned_records_only(
     make_robot, django_capture_on_commit_callbacks
 ):
     setup = make_robot("alice")
-    unsigned = _stored_behind_the_portal(
+    unsigned = stored_behind_the_portal(
         setup, setup.seal(1), django_capture_on_commit_callbacks, signer=""
     )
     # It has no key: an envelope naming one is not its, whatever its row says.
     signed = setup.seal(2, signing_key=sm2.generate_keypair())
-    said_signed = _stored_behind_the_portal(
+    said_signed = stored_behind_the_portal(
         setup, signed, django_capture_on_commit_callbacks, signer=""
     )
     ids = [unsigned.id, said_signed.id]
