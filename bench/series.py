@@ -495,6 +495,9 @@ def baseline_measure(ref: str, run: SeriesRun, workers: int) -> dict[str, Any]:
     place = Path(tempfile.mkdtemp(prefix="authros-bench-baseline-"))
     tree, results = place / "tree", place / "results"
     _git("worktree", "add", "--detach", str(tree), commit)
+    for shared in (".venv", "node_modules"):  # not in git: the stack needs both (anvil)
+        if (REPO / shared).exists():
+            (tree / shared).symlink_to((REPO / shared).resolve())
     try:
         subprocess.run(
             [
