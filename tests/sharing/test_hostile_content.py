@@ -16,6 +16,7 @@ from sharing.content import (
     ODOMETRY,
     RAW_SHOWN_BYTES,
     content_of,
+    document_parse,
     image_size,
     odometry_rows,
 )
@@ -34,6 +35,9 @@ UNINTERPRETABLE = {
     "5000-digit integer": (_odometry(b"7" * 5000), "it holds an integer of 5000 digits"),
     "1e999": (_odometry(b"1e999"), "it holds 1e999, which is not a finite number"),
     "-1e999": (_odometry(b"1.0", b"-1e999"), "it holds -1e999"),
+    # Past what the parse without a call back per number takes (sharing.content._within_bounds).
+    "1E+400": (_odometry(b"1E+400"), "it holds 1E+400, which is not a finite number"),
+    "1e0309": (_odometry(b"2.5", b"1e0309"), "it holds 1e0309"),
     "NaN": (_odometry(b"NaN"), "it holds NaN"),
     "Infinity": (_odometry(b"Infinity"), "it holds Infinity"),
     "-Infinity": (_odometry(b"-Infinity"), "it holds -Infinity"),
@@ -254,3 +258,17 @@ def _series_around(record) -> dict[str, str]:
         "since": (record.captured_at - timedelta(minutes=1)).isoformat(),
         "until": (record.captured_at + timedelta(minutes=1)).isoformat(),
     }
+
+
+@pytest.mark.parametrize(
+    "plaintext",
+    [
+        odometry("alice", 1.5, -2.25),  # the parse without a call back per number
+        _odometry(b"0." + b"5" * 40 + b"e9", b"-" + b"1" * 30),  # with one: 40 digits
+        _odometry(b"1.5e300", b"2E-30"),  # with one: a three-digit exponent
+        b'{"K":{"position":{"x":3,"y":4},"n":' + b"[" * 62 + b"]" * 62 + b"}}",  # 64 deep
+        b'{"K":{"position":{"x":3,"y":4},"s":"' + b"{[" * 40 + b'"}}',  # brackets in a string
+    ],
+)
+def test_a_record_within_the_bounds_parses_as_json_whichever_way_it_is_read(plaintext):
+    assert document_parse(plaintext) == json.loads(plaintext)
