@@ -188,18 +188,22 @@ class FixedSelect:
 class FixedInsert:
     """INSERT whole new instances of `model`, as `bulk_create` does (each field's `pre_save`,
     so `auto_now_add` applies; no signals), with the SQL written once per number of rows. The
-    instances must carry their primary key (a model with an automatic one is refused)."""
+    instances carry their primary key, or (an automatic one) are given it by the INSERT's
+    RETURNING, in order, as bulk_create gives it on PostgreSQL and SQLite; a backend that
+    cannot return rows from an INSERT gets bulk_create itself."""
 
     def __init__(self, model: type[Model]) -> None:
-        if isinstance(model._meta.pk, AutoField):
-            raise TypeError(f"{model.__name__} has an automatic primary key: use bulk_create")
         self.model = model
-        self._fields = list(model._meta.concrete_fields)
+        self._auto = model._meta.pk if isinstance(model._meta.pk, AutoField) else None
+        self._fields = [field for field in model._meta.concrete_fields if field is not self._auto]
         self._sql: dict[tuple[str, int], str] = {}
 
     def insert(self, instances: Sequence[Model]) -> None:
         alias = router.db_for_write(self.model)
         connection = connections[alias]
+        if self._auto is not None and not connection.features.can_return_rows_from_bulk_insert:
+            self.model._default_manager.bulk_create(instances)
+            return
         size = max(1, connection.ops.bulk_batch_size(self._fields, instances) or len(instances))
         for start in range(0, len(instances), size):
             chunk = instances[start : start + size]
@@ -212,6 +216,9 @@ class FixedInsert:
             sql = _built(self._sql, (alias, rows), lambda rows=rows: self._build(connection, rows))
             with connection.cursor() as cursor:
                 cursor.execute(sql, params)
+                if self._auto is not None:
+                    for instance, (pk,) in zip(chunk, cursor.fetchall(), strict=True):
+                        instance.pk = pk
         for instance in instances:
             instance._state.adding = False
             instance._state.db = alias
@@ -221,7 +228,8 @@ class FixedInsert:
         columns = ", ".join(quote(field.column) for field in self._fields)
         row = f"({', '.join(['%s'] * len(self._fields))})"
         table = quote(self.model._meta.db_table)
-        return f"INSERT INTO {table} ({columns}) VALUES {', '.join([row] * rows)}"  # noqa: S608
+        returning = f" RETURNING {quote(self._auto.column)}" if self._auto is not None else ""
+        return f"INSERT INTO {table} ({columns}) VALUES {', '.join([row] * rows)}{returning}"  # noqa: S608
 
 
 class FixedUpdate:

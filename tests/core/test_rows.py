@@ -13,11 +13,12 @@ from accounts.selectors import owner_keys, robot_by_token, robot_token_hash
 from accounts.services.keys import key_rotate
 from accounts.services.robots import robot_token_revoke
 from core.rows import FixedInsert
-from sharing.models import Record
+from sharing.models import Record, Verdict
 from sharing.selectors.records import record_to_open
 from sharing.services.anchoring import records_anchor
 from sharing.services.deletion import record_delete
 from sharing.services.uploads import _ROBOT_SEQ_MOVE, record_create, record_create_batch
+from sharing.verification.access import accesses_open
 from smcrypto import sm4
 
 pytestmark = pytest.mark.django_db
@@ -145,6 +146,18 @@ def test_the_seq_update_moves_only_above_the_last_seq_and_says_so(make_robot):
     assert _ROBOT_SEQ_MOVE.run((9, None), (uuid.uuid4(), 8)) == 0  # no such robot
 
 
-def test_a_model_with_an_automatic_key_is_refused_by_the_insert():
-    with pytest.raises(TypeError, match="automatic primary key"):
-        FixedInsert(OwnerKey)
+def test_a_model_with_an_automatic_key_gets_its_ids_from_the_insert_in_order(make_robot):
+    setup = make_robot("alice")
+    (record,) = record_create_batch(robot=setup.robot, envelopes=[setup.seal(1)])
+    (access_id,) = accesses_open(
+        kind="page", viewer_id=setup.owner.pk, records=[record], credential="session", token_id=None
+    ).values()
+    outcomes = ["verified", "tampered", "no_access"]
+    verdicts = [Verdict(record=record, access_id=access_id, outcome=o) for o in outcomes]
+    with CaptureQueriesContext(connection) as queries:
+        FixedInsert(Verdict).insert(verdicts)
+    assert len(queries.captured_queries) == 1
+    assert all(verdict.pk is not None and not verdict._state.adding for verdict in verdicts)
+    read = [Verdict.objects.get(pk=verdict.pk) for verdict in verdicts]
+    assert [verdict.outcome for verdict in read] == outcomes
+    assert [verdict.created_at for verdict in read] == [verdict.created_at for verdict in verdicts]
