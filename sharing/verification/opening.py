@@ -102,6 +102,7 @@ def records_open(
     kind: str,
     credential: str,
     token: OwnerToken | None = None,
+    refresh: bool = False,
 ) -> list[OpenedRecord | SharingError]:
     """Have the worker check the records, then decrypt what it checked: one Access of `kind`
     (per record owner) in the access log, opened first so that every batch's verdicts point
@@ -110,14 +111,20 @@ def records_open(
     (its line removed); a read no worker could answer leaves no line. One result per record,
     in order: the opened record, or the SharingError that refuses it (VerificationUnavailable
     for each of a batch the worker could not answer). `credential` (and `token`, an owner API
-    token's) is the viewer's credential that asked. IdentityMismatch is raised as the worker
-    raised it."""
+    token's) is the viewer's credential that asked. A `refresh` (a plot's newer records) adds
+    to the viewer's recent line of the same read (accesses_open). IdentityMismatch is raised
+    as the worker raised it."""
     token_id = token.pk if token is not None else None
     credential_check(credential, token_id)
     if not records:
         return []
     accesses = accesses_open(
-        kind=kind, viewer_id=viewer.pk, records=records, credential=credential, token_id=token_id
+        kind=kind,
+        viewer_id=viewer.pk,
+        records=records,
+        credential=credential,
+        token_id=token_id,
+        refresh=refresh,
     )
     sent_accesses = {str(owner_id): access_id for owner_id, access_id in accesses.items()}
     batches = [records[at : at + VERIFY_BATCH] for at in range(0, len(records), VERIFY_BATCH)]
