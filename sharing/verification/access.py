@@ -12,7 +12,7 @@ line per window, its verdicts (one per record and check) all under it.
 """
 
 import uuid
-from collections import defaultdict
+from collections import Counter, defaultdict
 from collections.abc import Sequence
 from dataclasses import dataclass
 from datetime import timedelta
@@ -133,6 +133,18 @@ def accesses_open_for(
         if read.owner_id not in lines
     ]
     return lines | {row.record_owner_id: row.pk for row in Access.objects.bulk_create(rows)}
+
+
+def accesses_withdraw(
+    accesses: dict[int, int], records: Sequence[Record], *, refresh: bool = False
+) -> None:
+    """A read that no check answered is no access: its lines without verdicts removed, and a
+    refresh's records taken off the earlier line it added them to."""
+    Access.objects.filter(pk__in=accesses.values(), verdicts__isnull=True).delete()
+    if refresh:
+        counts = Counter(record.owner_id for record in records)
+        for owner_id, access_id in accesses.items():
+            Access.objects.filter(pk=access_id).update(count=F("count") - counts[owner_id])
 
 
 def _plot_lines_recent(

@@ -39,7 +39,7 @@ from sharing.errors import (
 )
 from sharing.models import Access, Credential, Record, Verdict
 from sharing.selectors.records import record_deletion_text, record_to_open
-from sharing.verification.access import accesses_open, credential_check
+from sharing.verification.access import accesses_open, accesses_withdraw, credential_check
 from sharing.verification.check import ANSWERED_FIELDS
 from sharing.verification.keys import RecordKeys
 from smcrypto import envelope
@@ -155,7 +155,7 @@ def records_open(
             answered = True
     finally:
         if not answered:  # no check ran: a line without verdicts is no access
-            Access.objects.filter(pk__in=accesses.values(), verdicts__isnull=True).delete()
+            accesses_withdraw(accesses, records, refresh=refresh)
     return results
 
 

@@ -12,6 +12,7 @@ from django.utils import timezone
 from sharing.models import Access, Record, Verdict
 from sharing.services.uploads import record_create_batch
 from sharing.verification.access import PLOT_REFRESHES_COALESCED
+from stack.anvil import free_port
 from tests.api.conftest import session_client, token_client
 from tests.pages.conftest import odometry
 
@@ -172,3 +173,17 @@ def test_a_refresh_begins_a_new_line_after_the_window_or_with_another_credential
     # A plot asked whole (no `after`) is its own line, never added to one.
     client.get(API, _query(alice))
     assert Access.objects.filter(viewer=alice.owner).count() == 4
+
+
+def test_a_refresh_no_check_answered_leaves_the_plots_line_as_it_was(alice, drive, settings):
+    drive(alice, 0, 10)
+    client = session_client(alice.owner)
+    client.get(API, _query(alice))
+    drive(alice, 10, 13)
+    settings.CHAIN_RPC_URL = f"http://127.0.0.1:{free_port()}"  # the check cannot run
+    settings.VERIFY_TIMEOUT = 5
+    answer = client.get(API, _query(alice, after=str(_driven(10)[-1][0])))
+    assert answer.status_code == 503
+    assert answer.json()["error"] == "verification_unavailable"
+    (line,) = Access.objects.filter(viewer=alice.owner)
+    assert (line.count, line.verdicts.count()) == (10, 10)
