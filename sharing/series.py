@@ -1,5 +1,5 @@
 """Series: any numeric field of one robot's topic over a time range, from every record in it,
-each one integrity-checked, downsampled for display without skipping records.
+each one integrity-checked, one row per verified record (the API thins them for display).
 
 `series_of` reads the records the caller may see in the range (their own, or a grant's within
 its scope: record_list_visible_to and RecordSelection, so that nothing outside the scope is
