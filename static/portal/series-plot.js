@@ -351,7 +351,9 @@
       text += "; " + gone.deleted + " deleted";
     }
     if (answer.refreshedAt) {
-      text += "; newer records added " + utc(answer.refreshedAt / 1000).slice(11) + " UTC";
+      text += "; since, " + answer.added + " newer record" + (answer.added === 1 ? "" : "s") +
+        " verified and added (last refresh " + utc(answer.refreshedAt / 1000).slice(11) + " UTC" +
+        (answer.tailRefused ? ", " + answer.tailRefused + " of the newest not drawn yet: not anchored or refused" : "") + ")";
     }
     return text + ".";
   }
@@ -389,7 +391,7 @@
     } else {
       element.insertBefore(drawn, statusLine);
     }
-    element.dataset.verified = answer.verified;
+    element.dataset.verified = answer.verified + (answer.added || 0);
     element.dataset.refused = answer.refused;
     element.dataset.missing = gaps(answer).missing;
     element.dataset.method = answer.method;
@@ -426,18 +428,26 @@
     var seconds = Math.max((range.until - range.since) / 1000, 1);
     var points = Math.min(most, Math.max(8, Math.ceil(most * every / seconds)));
     element.dataset.refreshing = "1";
-    return ask(query(element, range, String(answer.points[answer.points.length - 1][0]), points))
+    var newest = answer.points[answer.points.length - 1][0];
+    return ask(query(element, range, String(newest), points))
       .then(function (chunk) {
         var since = range.since.getTime() / 1000;
+        // The whole plot's counts stay those of its whole answer; a refresh tells how many
+        // records it verified and added (thinned like the rest). Records after the newest
+        // point that were refused (not anchored yet, most often) are asked for again by the
+        // next refresh, and drawn once they pass.
+        var added = chunk.points.filter(function (p) { return p[0] > newest; });
         var merged = {
           fields: answer.fields,
-          points: answer.points.concat(chunk.points).filter(function (p) { return p[0] >= since; }),
-          source_records: answer.source_records + chunk.source_records,
-          verified: answer.verified + chunk.verified,
-          refused: answer.refused + chunk.refused,
-          without_values: answer.without_values + chunk.without_values,
+          points: answer.points.concat(added).filter(function (p) { return p[0] >= since; }),
+          source_records: answer.source_records,
+          verified: answer.verified,
+          refused: answer.refused,
+          without_values: answer.without_values,
           streams: (answer.streams || []).concat(chunk.streams || []),
           method: answer.method === "all" ? chunk.method : answer.method,
+          added: (answer.added || 0) + chunk.verified,
+          tailRefused: chunk.refused,
           refreshedAt: Date.now()
         };
         held.answer = merged;

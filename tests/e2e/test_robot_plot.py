@@ -126,6 +126,8 @@ def test_the_robot_page_draws_the_path_beside_the_time_plot_and_refreshes_only_n
         (line,) = Access.objects.filter(viewer=alice.owner, kind=Access.Kind.PLOT)
         assert line.count == driven
         assert line.verdicts.count() == driven
-        expect(plot.locator(".series-plot-status")).to_contain_text("newer records added")
+        expect(plot.locator(".series-plot-status")).to_contain_text(
+            "since, 10 newer records verified and added"
+        )
         context.close()
     assert not errors, errors
