@@ -252,7 +252,8 @@
     }
     function sx(v) { return area.left + (v - xRange[0]) / (xRange[1] - xRange[0]) * (area.right - area.left); }
     function sy(v) { return area.bottom - (v - yRange[0]) / (yRange[1] - yRange[0]) * (area.bottom - area.top); }
-    var wantedX = WIDTH < 480 ? 3 : 6;
+    // Numbers are shorter than times: a narrow path plot takes more ticks than a time plot.
+    var wantedX = WIDTH < 480 ? (xy ? 5 : 3) : 6;
     var xTicks = xy ? ticks(xRange[0], xRange[1], wantedX) : timeTicks(xRange[0], xRange[1], wantedX);
     xTicks.forEach(function (tick) {
       var x = sx(tick.value).toFixed(1);
@@ -350,7 +351,9 @@
     if (gone.deleted) {
       text += "; " + gone.deleted + " deleted";
     }
-    if (answer.refreshedAt) {
+    if (answer.refreshedAt && !answer.added && !answer.tailRefused) {
+      text += "; no newer records at " + utc(answer.refreshedAt / 1000).slice(11) + " UTC";
+    } else if (answer.refreshedAt) {
       text += "; since, " + answer.added + " newer record" + (answer.added === 1 ? "" : "s") +
         " verified and added (last refresh " + utc(answer.refreshedAt / 1000).slice(11) + " UTC" +
         (answer.tailRefused ? ", " + answer.tailRefused + " of the newest not drawn yet: not anchored or refused" : "") + ")";
