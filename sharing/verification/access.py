@@ -109,26 +109,28 @@ def accesses_open_for(
     refresh: bool = False,
 ) -> dict[int, int]:
     """accesses_open for reads already summed up per owner. Record owner id -> Access id."""
+    named = {
+        read.owner_id: {
+            "kind": kind,
+            "viewer_id": viewer_id,
+            "record_owner_id": read.owner_id,
+            "checked_by_id": checked_by_id,
+            "credential": credential,
+            "token_id": token_id,
+            "robot_id": read.robot_id,
+            "topic": read.topic or "",
+        }
+        for read in reads
+    }
     lines: dict[int, int] = {}
-    if refresh and kind == Access.Kind.PLOT:
-        lines = _plot_lines_recent(viewer_id, reads, credential=credential, token_id=token_id)
+    if refresh and kind == Access.Kind.PLOT and checked_by_id is None:
+        lines = _lines_recent(named)
     for read in reads:
         if read.owner_id in lines:
             added = F("count") + read.count
             Access.objects.filter(pk=lines[read.owner_id]).update(count=added, record=None)
     rows = [
-        Access(
-            kind=kind,
-            viewer_id=viewer_id,
-            record_owner_id=read.owner_id,
-            checked_by_id=checked_by_id,
-            credential=credential,
-            token_id=token_id,
-            count=read.count,
-            record=read.record,
-            robot_id=read.robot_id,
-            topic=read.topic or "",
-        )
+        Access(**named[read.owner_id], count=read.count, record=read.record)
         for read in reads
         if read.owner_id not in lines
     ]
@@ -147,32 +149,20 @@ def accesses_withdraw(
             Access.objects.filter(pk=access_id).update(count=F("count") - counts[owner_id])
 
 
-def _plot_lines_recent(
-    viewer_id: int, reads: Sequence[OwnerRead], *, credential: str, token_id: int | None
-) -> dict[int, int]:
-    """The viewer's own plot lines of the same robot and topic, per record owner, begun
-    within PLOT_REFRESHES_COALESCED with the same credential: the latest of each."""
+def _lines_recent(named: dict[int, dict[str, Any]]) -> dict[int, int]:
+    """Per record owner, the latest line named the same (the viewer's own, of the same kind,
+    robot, topic and credential) begun within PLOT_REFRESHES_COALESCED."""
     begun = timezone.now() - PLOT_REFRESHES_COALESCED
     lines: dict[int, int] = {}
-    for read in reads:
+    for owner_id, names in named.items():
         line = (
-            Access.objects.filter(
-                kind=Access.Kind.PLOT,
-                viewer_id=viewer_id,
-                record_owner_id=read.owner_id,
-                checked_by__isnull=True,
-                credential=credential,
-                token_id=token_id,
-                robot_id=read.robot_id,
-                topic=read.topic or "",
-                created_at__gte=begun,
-            )
+            Access.objects.filter(**names, created_at__gte=begun)
             .order_by("-created_at", "-id")
             .values_list("pk", flat=True)
             .first()
         )
         if line is not None:
-            lines[read.owner_id] = line
+            lines[owner_id] = line
     return lines
 
 
