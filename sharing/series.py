@@ -1,14 +1,13 @@
 """Series: any numeric field of one robot's topic over a time range, from every record in it,
-each one integrity-checked, downsampled for display without skipping records.
+each one integrity-checked, one row per verified record (the API thins them for display).
 
 `series_of` reads the records the caller may see in the range (their own, or a grant's within
 its scope: record_list_visible_to and RecordSelection, so that nothing outside the scope is
 counted), has the workers check every one of them (verification.opening.records_rows_open: one
 access-log line of kind "plot", slices checked side by side), which read the fields (dotted
 paths into the record's decoded message, `K` of the paper's Fig. 4 JSON, `record_values`) of
-the verified ones and hand back only those, sealed for this read; it keeps the
-shape for display by min/max per bucket: in each of `points / (2 * fields)` equal slices of the
-verified rows, the rows holding each field's lowest and highest value. A refused record
+the verified ones and hand back only those, sealed for this read: one row per record, which
+the series API thins for display (sharing/thinning.py). A refused record
 (tampered, signature not valid, not anchored, no access on chain) is counted in `refused` and
 never plotted.
 """
@@ -61,7 +60,7 @@ class SeriesQuery:
 @dataclass(frozen=True)
 class Series:
     fields: tuple[str, ...]
-    points: list[list[float | None]]  # [t (Unix seconds), v1, v2...], oldest first
+    points: list[list[float | None]]  # [t (Unix seconds), v1, v2...], oldest first, all
     source_records: int  # records in the range the caller may see
     verified: int  # of them, checked and verified
     refused: int  # of them, refused by the check: never plotted
@@ -167,13 +166,19 @@ def series_record_ids(viewer: Owner, query: SeriesQuery) -> tuple[list[str], lis
 
 
 def series_of(
-    *, viewer: Owner, query: SeriesQuery, credential: str, token: OwnerToken | None = None
+    *,
+    viewer: Owner,
+    query: SeriesQuery,
+    credential: str,
+    token: OwnerToken | None = None,
+    refresh: bool = False,
 ) -> Series:
     """The series of the query for the viewer: every record in range checked by the workers
-    (one access of kind "plot"; they hand back only the verified records' fields, sealed for
-    this read: verification.opening.records_rows_open), downsampled to at most `query.points`
-    rows, and the range's streams with their gaps (record_streams). VerificationUnavailable if
-    the workers could not check them all."""
+    (one access of kind "plot"; a `refresh` adds to the viewer's recent line of the same plot;
+    they hand back only the verified records' fields, sealed for this read:
+    verification.opening.records_rows_open), one row per record, and the range's streams with
+    their gaps (record_streams). VerificationUnavailable if the workers could not check them
+    all."""
     record_ids, reads = series_record_ids(viewer, query)
     checked = records_rows_open(
         record_ids=record_ids,
@@ -182,11 +187,12 @@ def series_of(
         fields=query.fields,
         credential=credential,
         token=token,
+        refresh=refresh,
     )
     plotted = [row for row in checked.rows if any(value is not None for value in row[1:])]
     return Series(
         fields=query.fields,
-        points=series_downsample(plotted, query.points),
+        points=plotted,
         source_records=len(record_ids),
         verified=checked.verified,
         refused=len(record_ids) - checked.verified,
@@ -225,24 +231,3 @@ def field_value(document: object, field: str) -> float | None:
     except OverflowError:
         return None
     return number if math.isfinite(number) and abs(number) <= VALUE_LIMIT else None
-
-
-def series_downsample(rows: list[list[float | None]], points: int) -> list[list[float | None]]:
-    """At most `points` of the rows ([t, v1, v2...], oldest first), keeping the shape: the rows
-    are cut into equal slices, and of each slice the rows holding each field's lowest and
-    highest value are kept (whole rows, so that an x/y pair stays a pair), the first and last
-    row always. All the rows when they are `points` or fewer."""
-    if len(rows) <= points:
-        return rows
-    width = max(len(rows[0]) - 1, 1)
-    buckets = max((points - 2) // (2 * width), 1)
-    kept = {0, len(rows) - 1}
-    size = len(rows) / buckets
-    for bucket in range(buckets):
-        start, end = int(bucket * size), int((bucket + 1) * size)
-        for column in range(1, width + 1):
-            valued = [at for at in range(start, end) if rows[at][column] is not None]
-            if valued:
-                kept.add(min(valued, key=lambda at: rows[at][column]))
-                kept.add(max(valued, key=lambda at: rows[at][column]))
-    return [rows[at] for at in sorted(kept)]

@@ -6,7 +6,9 @@ its records' verdicts, and the rule that keeps refused views from filling an own
 export counts its records in the database). `access_refused_again` is the coalescing of refused
 views (docs/security.md): a read refused whole, by a viewer whose last own read of the same
 owner's records was refused within REFUSED_VIEWS_COALESCED, is answered as that one was and
-not written again.
+not written again. A plot's refresh (its newer records only) adds its records to the viewer's
+line of the same plot begun within PLOT_REFRESHES_COALESCED: a page plotting every 5 s is one
+line per window, its verdicts (one per record and check) all under it.
 """
 
 import uuid
@@ -16,6 +18,7 @@ from dataclasses import dataclass
 from datetime import timedelta
 from typing import Any
 
+from django.db.models import F
 from django.utils import timezone
 
 from accounts.models import Owner
@@ -26,6 +29,9 @@ from sharing.models import Access, Credential, Record, Verdict
 # without a grant cannot fill another owner's access log (docs/security.md). A view that passed
 # in between starts a new line.
 REFUSED_VIEWS_COALESCED = timedelta(hours=1)
+# A plot's refreshes add to the line its viewer began this recently (same robot, topic and
+# credential); later, a refresh begins a new line.
+PLOT_REFRESHES_COALESCED = timedelta(minutes=10)
 
 
 @dataclass(frozen=True)
@@ -61,10 +67,13 @@ def accesses_open(
     credential: str,
     token_id: int | None,
     checked_by_id: int | None = None,
+    refresh: bool = False,
 ) -> dict[int, int]:
     """The access log's line for a read of these records: one Access per record owner (so that
     each owner's log is one range), naming how many of the owner's records it read, the record
-    when it is one, the robot and topic when they all share them. Record owner id -> Access id."""
+    when it is one, the robot and topic when they all share them; a `refresh` of a plot adds
+    to the viewer's line of it begun within PLOT_REFRESHES_COALESCED, where there is one.
+    Record owner id -> Access id."""
     by_owner: dict[int, list[Record]] = defaultdict(list)
     for record in records:
         by_owner[record.owner_id].append(record)
@@ -85,6 +94,7 @@ def accesses_open(
         credential=credential,
         token_id=token_id,
         checked_by_id=checked_by_id,
+        refresh=refresh,
     )
 
 
@@ -96,24 +106,64 @@ def accesses_open_for(
     credential: str,
     token_id: int | None,
     checked_by_id: int | None = None,
+    refresh: bool = False,
 ) -> dict[int, int]:
     """accesses_open for reads already summed up per owner. Record owner id -> Access id."""
-    rows = [
-        Access(
-            kind=kind,
-            viewer_id=viewer_id,
-            record_owner_id=read.owner_id,
-            checked_by_id=checked_by_id,
-            credential=credential,
-            token_id=token_id,
-            count=read.count,
-            record=read.record,
-            robot_id=read.robot_id,
-            topic=read.topic or "",
-        )
+    named = {
+        read.owner_id: {
+            "kind": kind,
+            "viewer_id": viewer_id,
+            "record_owner_id": read.owner_id,
+            "checked_by_id": checked_by_id,
+            "credential": credential,
+            "token_id": token_id,
+            "robot_id": read.robot_id,
+            "topic": read.topic or "",
+        }
         for read in reads
+    }
+    lines: dict[int, int] = {}
+    if refresh and kind == Access.Kind.PLOT and checked_by_id is None:
+        lines = _lines_recent(named)
+    for read in reads:
+        if read.owner_id in lines:
+            added = F("count") + read.count
+            Access.objects.filter(pk=lines[read.owner_id]).update(count=added, record=None)
+    rows = [
+        Access(**named[read.owner_id], count=read.count, record=read.record)
+        for read in reads
+        if read.owner_id not in lines
     ]
-    return {row.record_owner_id: row.pk for row in Access.objects.bulk_create(rows)}
+    return lines | {row.record_owner_id: row.pk for row in Access.objects.bulk_create(rows)}
+
+
+def accesses_withdraw(
+    accesses: dict[int, int], reads: Sequence[OwnerRead], *, refresh: bool = False
+) -> None:
+    """A read that no check answered is no access: its lines without verdicts removed, and a
+    refresh's records (`reads`, per owner) taken off the earlier line it added them to."""
+    Access.objects.filter(pk__in=accesses.values(), verdicts__isnull=True).delete()
+    if refresh:
+        counts = {read.owner_id: read.count for read in reads}
+        for owner_id, access_id in accesses.items():
+            Access.objects.filter(pk=access_id).update(count=F("count") - counts.get(owner_id, 0))
+
+
+def _lines_recent(named: dict[int, dict[str, Any]]) -> dict[int, int]:
+    """Per record owner, the latest line named the same (the viewer's own, of the same kind,
+    robot, topic and credential) begun within PLOT_REFRESHES_COALESCED."""
+    begun = timezone.now() - PLOT_REFRESHES_COALESCED
+    lines: dict[int, int] = {}
+    for owner_id, names in named.items():
+        line = (
+            Access.objects.filter(**names, created_at__gte=begun)
+            .order_by("-created_at", "-id")
+            .values_list("pk", flat=True)
+            .first()
+        )
+        if line is not None:
+            lines[owner_id] = line
+    return lines
 
 
 # The reads a person asks for at a page or the API; an export and an operator's check are

@@ -47,6 +47,7 @@ from sharing.verification.access import (
     OwnerRead,
     accesses_open,
     accesses_open_for,
+    accesses_withdraw,
     credential_check,
 )
 from sharing.verification.answers import answer_key_make, answer_open
@@ -158,7 +159,7 @@ def records_open(
             answered = True
     finally:
         if not answered:  # no check ran: a line without verdicts is no access
-            Access.objects.filter(pk__in=accesses.values(), verdicts__isnull=True).delete()
+            accesses_withdraw(accesses, ())
     return results
 
 
@@ -285,6 +286,7 @@ def records_rows_open(
     fields: Sequence[str],
     credential: str,
     token: OwnerToken | None = None,
+    refresh: bool = False,
 ) -> CheckedRows:
     """A series' records checked by the workers (sharing.tasks.series_verify), every one at
     every read: the plot's Access opened first (one per record owner, from `reads`), the
@@ -292,7 +294,8 @@ def records_rows_open(
     under this read's answer key (verification/answers.py) and opened here. A record refused
     or gone is not among the rows; the verified count says how many are. VerificationUnavailable
     if any slice could not be answered (the others are waited for, and their verdicts kept);
-    a read no worker answered leaves no line."""
+    a read no worker answered leaves no line. A `refresh` (a plot's newer records) adds to the
+    viewer's recent line of the same plot (accesses_open_for)."""
     token_id = token.pk if token is not None else None
     credential_check(credential, token_id)
     if not record_ids:
@@ -303,6 +306,7 @@ def records_rows_open(
         reads=reads,
         credential=credential,
         token_id=token_id,
+        refresh=refresh,
     )
     sent_accesses = {str(owner_id): access_id for owner_id, access_id in accesses.items()}
     key = answer_key_make()
@@ -338,7 +342,7 @@ def records_rows_open(
             rows += answer_open(key=key, part=part, sealed=answer["rows"])
     finally:
         if not answered:  # no check ran: a line without verdicts is no access
-            Access.objects.filter(pk__in=accesses.values(), verdicts__isnull=True).delete()
+            accesses_withdraw(accesses, reads, refresh=refresh)
     if unavailable is not None:
         raise unavailable
     return CheckedRows(verified, rows)

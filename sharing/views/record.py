@@ -42,13 +42,11 @@ from sharing.selectors.records import (
 from sharing.series import DEFAULT_POINTS
 from sharing.verification.opening import OpenedRecord, record_open, records_open
 
-# The trajectory on an odometry record's page: every record of its robot's topic this long
-# before and after it (the range form chooses another), each checked (sharing/series.py).
-PLOT_AROUND = timedelta(minutes=1)
 # Images on one page of a topic's gallery, each integrity-checked in one batched run.
 GALLERY_PER_PAGE = 12
 GALLERY_COST = 6
-# The range a plot or gallery form offers first: this long before and after the record.
+# The range a plot or gallery form offers first, and so the range an odometry record's
+# trajectory plots first (each record in it checked): this long before and after the record.
 RANGE_AROUND = timedelta(minutes=5)
 # A record page's refusal for a record whose anchoring failed (the worker's verdict says only
 # "not anchored yet").
@@ -154,14 +152,16 @@ def _record_nav(request: HttpRequest, record: Record) -> RecordNav:
 
 def _plot_of(request: HttpRequest, record: Record) -> dict[str, object]:
     """The range form and the range the page's trajectory plot (static/portal/series-plot.js,
-    from the series API) covers: the one asked for, else PLOT_AROUND either side."""
+    from the series API) covers: the one asked for, else the one the form offers first
+    (RANGE_AROUND either side, whole minutes), the same the form shows."""
     form = TopicRangeForm(_range_given(request) or None)
     if form.is_bound and form.is_valid():
         since, until = form.cleaned_data["since"], form.cleaned_data["until"]
     else:
-        since, until = record.captured_at - PLOT_AROUND, record.captured_at + PLOT_AROUND
-    if not form.is_bound:
-        form = _range_form_around(record)
+        around = _range_form_around(record)
+        since, until = around.initial["since"], around.initial["until"]
+        if not form.is_bound:
+            form = around
     return {
         "range_form": form,
         "plot_since": since,

@@ -33,14 +33,15 @@ from sharing.robot_status import (
     robot_latest_pose_record,
     robot_of_owner,
 )
-from sharing.selection import iso_utc
 from sharing.selectors.records import record_list_owned
+from sharing.verification.access import PLOT_REFRESHES_COALESCED
 from sharing.verification.opening import OpenedRecord, records_open
 from sharing.views.completeness import completeness_shown
 
 # The page checks two records (the latest pose and image): what it costs the worker.
 ROBOT_PAGE_COST = 2
-# The trajectory plot shows this much of the recent past, and how often it refreshes.
+# The trajectory plot shows this much of the recent past, and how often it adds the newer
+# records; it plots the whole window again as often as its refreshes begin a new access line.
 PLOT_WINDOW = timedelta(minutes=10)
 PLOT_REFRESH_SECONDS = 5
 # How often the page's script asks the status API while the tab is visible, and how often it
@@ -86,9 +87,10 @@ def robot_page(request: HttpRequest, robot_id: uuid.UUID) -> HttpResponse:
         "pose": pose,
         "image": image,
         "odometry_topic": odometry_topic,
-        "plot_since": iso_utc(now - PLOT_WINDOW),
         "plot_minutes": int(PLOT_WINDOW.total_seconds() // 60),
         "plot_refresh_seconds": PLOT_REFRESH_SECONDS,
+        "plot_replot_seconds": int(PLOT_REFRESHES_COALESCED.total_seconds()),
+        "plot_replot_minutes": int(PLOT_REFRESHES_COALESCED.total_seconds() // 60),
         "poll_seconds": STATUS_POLL_SECONDS,
         "latest_refresh_seconds": LATEST_REFRESH_SECONDS,
         "completeness": completeness,

@@ -9,13 +9,21 @@
  *        data-robot="ROBOT-UUID"            required: the robot's id
  *        data-topic="/odom"                 required: the topic
  *        data-fields="position.x,position.y" required: dotted paths into the record's message
- *        data-mode="xy"                     "xy": first field against the second (a trajectory);
- *                                           "time" (default): each field over time
+ *        data-mode="xy"                     "xy": first field against the second (a trajectory,
+ *                                           same scale on both axes); "time" (default): each
+ *                                           field over time; "both": the path x-y beside the
+ *                                           time plot, from one answer
+ *        data-shape="path"                  optional: how the API thins the points: "path" (the
+ *                                           default of "xy" and "both", along the x-y path) or
+ *                                           "time" (each field's extremes per time bucket)
  *        data-since="ISO 8601" data-until="ISO 8601"   the capture-time range; without them,
  *        data-minutes="10"                  the last N minutes (default 10) up to now
  *        data-points="1000"                 points asked for at most (default 1000)
- *        data-refresh-seconds="5"           optional: plot again every N seconds (a moving
- *                                           window when the range is data-minutes)
+ *        data-refresh-seconds="5"           optional: every N seconds ask only for the records
+ *                                           after the newest point (`after`), append them and
+ *                                           drop those out of a data-minutes window
+ *        data-replot-seconds="600"          optional: with refreshes, plot the whole window
+ *                                           again this often (default 600)
  *        data-title="..." data-units="m"    optional: the title, and the values' unit
  *        data-mark="1764380000.5"           optional: a capture time (Unix seconds) to ring
  *        data-url="/api/v1/records/series/" optional: another address of the series API
@@ -26,7 +34,9 @@
  * an <svg> that scales to its width (readable from 390 px up) and a status line; its
  * data-state becomes "loading", "ready" or "error", and data-verified / data-refused the counts;
  * data-missing how many records of the range's streams are missing (the series' `streams`),
- * which the status line says, with how many were deleted.
+ * which the status line says, with how many were deleted; data-method how the points were
+ * thinned (the answer's `method`) and data-points-shown how many are drawn. Legends sit above
+ * the plot area, never over the curves.
  */
 (function () {
   "use strict";
@@ -34,6 +44,7 @@
   var SVG = "http://www.w3.org/2000/svg";
   var COLOURS = ["#0969da", "#cf222e", "#1a7f37", "#8250df", "#bf8700", "#1b7c83", "#953800", "#57606a"];
   var MARGIN = { left: 64, right: 16, top: 40, bottom: 48 };
+  var LEGEND_ROW = 18;
 
   function node(name, attributes, text) {
     var element = document.createElementNS(SVG, name);
@@ -100,18 +111,35 @@
     return new Date(seconds * 1000).toISOString().replace("T", " ").slice(0, 19);
   }
 
-  function query(element) {
+  function shapeOf(element) {
+    var data = element.dataset;
+    return data.shape || (data.mode === "xy" || data.mode === "both" ? "path" : "time");
+  }
+
+  /* The window asked for now: [since, until) in ms. */
+  function windowOf(element) {
     var data = element.dataset;
     var until = data.until ? new Date(data.until) : new Date();
     var since = data.since ? new Date(data.since) : new Date(until.getTime() - (Number(data.minutes) || 10) * 60000);
+    return { since: since, until: until };
+  }
+
+  /* The series API's address for the window; with `after` (the newest point's t, as the API
+     wrote it), only the newer records, thinned to `points`. */
+  function query(element, range, after, points) {
+    var data = element.dataset;
     var parameters = new URLSearchParams({
       robot: data.robot || "",
       topic: data.topic || "",
       fields: data.fields || "",
-      since: since.toISOString(),
-      until: until.toISOString(),
-      points: data.points || "1000"
+      since: range.since.toISOString(),
+      until: range.until.toISOString(),
+      points: String(points || data.points || "1000"),
+      shape: shapeOf(element)
     });
+    if (after !== undefined) {
+      parameters.set("after", after);
+    }
     return (data.url || "/api/v1/records/series/") + "?" + parameters.toString();
   }
 
@@ -121,12 +149,43 @@
     return text.length > most ? text.slice(0, Math.max(most - 1, 1)) + "\u2026" : text;
   }
 
-  function draw(element, answer) {
+  /* Legend entries laid out in rows from `left`, wrapping before `right`: [{x, y}] per entry,
+     and the rows' height. Each entry is a short stroke (or a dot) and its label. */
+  function legendLayout(entries, left, right, top) {
+    var x = left;
+    var row = 0;
+    var places = entries.map(function (entry) {
+      var width = 26 + entry.label.length * 7 + 16;
+      if (x > left && x + width > right) {
+        x = left;
+        row += 1;
+      }
+      var place = { x: x, y: top + 13 + row * LEGEND_ROW };
+      x += width;
+      return place;
+    });
+    return { places: places, height: entries.length ? (row + 1) * LEGEND_ROW : 0 };
+  }
+
+  function legendDraw(svg, entries, places) {
+    entries.forEach(function (entry, index) {
+      var at = places[index];
+      var group = node("g", { "class": "series-plot-legend-entry" });
+      if (entry.dot) {
+        group.appendChild(node("circle", { cx: at.x + 10, cy: at.y - 4, r: 4, fill: entry.colour }));
+      } else {
+        group.appendChild(node("line", { x1: at.x, x2: at.x + 20, y1: at.y - 4, y2: at.y - 4, stroke: entry.colour, "stroke-width": 2 }));
+      }
+      group.appendChild(node("text", { x: at.x + 26, y: at.y, "font-size": 12, fill: "#24292f" }, entry.label));
+      svg.appendChild(group);
+    });
+  }
+
+  /* One plot of the answer's points at `WIDTH` px: the path (first field against the second,
+     the same scale on both axes) when `xy`, else each field over time. */
+  function draw(element, answer, xy, WIDTH) {
     var data = element.dataset;
-    // Drawn at the element's own width, so that 12 px text stays 12 px on a phone.
-    var WIDTH = Math.max(240, Math.min(element.clientWidth || 640, 960));
     var HEIGHT = Math.round(Math.min(Math.max(WIDTH * 0.75, 280), 480));
-    var xy = data.mode === "xy" && answer.fields.length >= 2;
     var units = data.units ? " (" + data.units + ")" : "";
     var points = answer.points;
     var svg = node("svg", {
@@ -134,20 +193,35 @@
       width: "100%",
       role: "img",
       "class": "series-plot-svg",
+      "data-plot": xy ? "path" : "time",
       preserveAspectRatio: "xMidYMid meet"
     });
     var title = data.title || answer.fields.join(", ");
+    if (data.mode === "both") {
+      // Each plot's own title, the short one where the long does not fit (a phone).
+      var room = Math.floor((WIDTH - MARGIN.left - MARGIN.right) / (15 * 0.56));
+      var long = xy ? "Path, " + answer.fields.slice(0, 2).join(" against ") : answer.fields.join(", ") + " over time";
+      title = long.length <= room ? long : (xy ? "Path" : "Over time");
+    }
     var titleText = node("text", {
       x: MARGIN.left, y: 22, "font-size": 15, "font-weight": "bold", fill: "#24292f", "class": "series-plot-title"
     }, fitted(title, WIDTH - MARGIN.left - MARGIN.right, 15));
     titleText.appendChild(node("title", {}, title));
     svg.appendChild(titleText);
+    // The legend: above the plot area, clear of the curves.
+    var entries = xy ?
+      [{ label: "first", colour: "#1a7f37", dot: true }, { label: "last", colour: "#cf222e", dot: true }] :
+      (answer.fields.length > 1 ? answer.fields.map(function (field, index) {
+        return { label: field, colour: COLOURS[index % COLOURS.length] };
+      }) : []);
+    var legend = legendLayout(entries, MARGIN.left, WIDTH - MARGIN.right, MARGIN.top);
     var area = {
-      left: MARGIN.left, right: WIDTH - MARGIN.right, top: MARGIN.top, bottom: HEIGHT - MARGIN.bottom
+      left: MARGIN.left, right: WIDTH - MARGIN.right,
+      top: MARGIN.top + legend.height, bottom: HEIGHT - MARGIN.bottom
     };
     svg.appendChild(node("rect", {
       x: area.left, y: area.top, width: area.right - area.left, height: area.bottom - area.top,
-      fill: "#ffffff", stroke: "#d0d7de"
+      fill: "#ffffff", stroke: "#d0d7de", "class": "series-plot-area"
     }));
     var xs;
     var series;
@@ -165,6 +239,7 @@
         "No verified values to plot in this range."));
       return svg;
     }
+    legendDraw(svg, entries, legend.places);
     if (xy) {
       // Same scale on both axes: a trajectory keeps its shape.
       var perX = (xRange[1] - xRange[0]) / (area.right - area.left);
@@ -177,7 +252,8 @@
     }
     function sx(v) { return area.left + (v - xRange[0]) / (xRange[1] - xRange[0]) * (area.right - area.left); }
     function sy(v) { return area.bottom - (v - yRange[0]) / (yRange[1] - yRange[0]) * (area.bottom - area.top); }
-    var wantedX = WIDTH < 480 ? 3 : 6;
+    // Numbers are shorter than times: a narrow path plot takes more ticks than a time plot.
+    var wantedX = WIDTH < 480 ? (xy ? 5 : 3) : 6;
     var xTicks = xy ? ticks(xRange[0], xRange[1], wantedX) : timeTicks(xRange[0], xRange[1], wantedX);
     xTicks.forEach(function (tick) {
       var x = sx(tick.value).toFixed(1);
@@ -205,16 +281,10 @@
       });
       svg.appendChild(node("path", {
         d: path.join(" "), fill: "none", stroke: COLOURS[index % COLOURS.length], "stroke-width": 1.5,
-        "class": "series-plot-line", "data-field": xy ? answer.fields.slice(0, 2).join(",") : answer.fields[index]
+        "class": "series-plot-line", "data-field": xy ? answer.fields.slice(0, 2).join(",") : answer.fields[index],
+        "data-points": path.length
       }));
     });
-    if (!xy && answer.fields.length > 1) {
-      var legendX = area.left + 8;
-      answer.fields.forEach(function (field, index) {
-        var label = node("text", { x: legendX, y: area.top + 16 + index * 15, "font-size": 12, fill: COLOURS[index % COLOURS.length] }, field);
-        svg.appendChild(label);
-      });
-    }
     if (xy && points.length) {
       var first = points[0];
       var last = points[points.length - 1];
@@ -236,6 +306,31 @@
     return svg;
   }
 
+  /* The element's plots of the answer: one, or (data-mode "both") the path beside the time
+     plot, each at the width it is shown at. */
+  function figures(element, answer) {
+    var box = document.createElement("div");
+    box.className = "series-plot-figures";
+    var both = element.dataset.mode === "both" && answer.fields.length >= 2;
+    var xy = element.dataset.mode === "xy" && answer.fields.length >= 2;
+    var full = Math.max(240, Math.min(element.clientWidth || 640, both ? 1400 : 960));
+    if (both) {
+      box.className += " series-plot-pair";
+      // Side by side where two fit at 420 px or more (the CSS grid's rule), else one above the other.
+      var width = full >= 2 * 420 + 16 ? Math.floor((full - 16) / 2) : full;
+      box.appendChild(draw(element, answer, true, width));
+      box.appendChild(draw(element, answer, false, width));
+    } else {
+      box.appendChild(draw(element, answer, xy, full));
+    }
+    return box;
+  }
+
+  var THINNED = {
+    "largest-triangle-three-buckets": "points kept along the path (the largest-triangle method, each a record)",
+    "min-max-per-time-bucket": "points keep each time bucket's lowest and highest values (each a record)"
+  };
+
   function status(element, answer) {
     var text = answer.source_records + " record" + (answer.source_records === 1 ? "" : "s") +
       " in range, " + answer.verified + " verified against the chain";
@@ -245,8 +340,8 @@
     if (answer.without_values) {
       text += ", " + answer.without_values + " without these fields";
     }
-    if (answer.points.length < answer.verified - answer.without_values) {
-      text += "; " + answer.points.length + " points keep each slice's lowest and highest values";
+    if (THINNED[answer.method]) {
+      text += "; " + answer.points.length + " " + THINNED[answer.method];
     }
     var gone = gaps(answer);
     if (gone.missing) {
@@ -255,6 +350,13 @@
     }
     if (gone.deleted) {
       text += "; " + gone.deleted + " deleted";
+    }
+    if (answer.refreshedAt && !answer.added && !answer.tailRefused) {
+      text += "; no newer records at " + utc(answer.refreshedAt / 1000).slice(11) + " UTC";
+    } else if (answer.refreshedAt) {
+      text += "; since, " + answer.added + " newer record" + (answer.added === 1 ? "" : "s") +
+        " verified and added (last refresh " + utc(answer.refreshedAt / 1000).slice(11) + " UTC" +
+        (answer.tailRefused ? ", " + answer.tailRefused + " of the newest not drawn yet: not anchored or refused" : "") + ")";
     }
     return text + ".";
   }
@@ -271,11 +373,8 @@
     return found;
   }
 
-  function load(element) {
-    var statusLine = element.querySelector(".series-plot-status");
-    element.dataset.state = "loading";
-    statusLine.textContent = "Checking the records of this range against the chain\u2026";
-    return fetch(query(element), { credentials: "same-origin", headers: { Accept: "application/json" } })
+  function ask(url) {
+    return fetch(url, { credentials: "same-origin", headers: { Accept: "application/json" } })
       .then(function (response) {
         return response.json().then(function (body) {
           if (!response.ok) {
@@ -283,25 +382,87 @@
           }
           return body;
         });
-      })
+      });
+  }
+
+  function show(element, answer) {
+    var statusLine = element.querySelector(".series-plot-status");
+    var old = element.querySelector(".series-plot-figures");
+    var drawn = figures(element, answer);
+    if (old) {
+      element.replaceChild(drawn, old);
+    } else {
+      element.insertBefore(drawn, statusLine);
+    }
+    element.dataset.verified = answer.verified + (answer.added || 0);
+    element.dataset.refused = answer.refused;
+    element.dataset.missing = gaps(answer).missing;
+    element.dataset.method = answer.method;
+    element.dataset.pointsShown = answer.points.length;
+    element.dataset.state = "ready";
+    statusLine.textContent = status(element, answer);
+  }
+
+  /* The whole window: every record in it checked, thinned by the API. */
+  function load(element) {
+    var statusLine = element.querySelector(".series-plot-status");
+    element.dataset.state = "loading";
+    statusLine.textContent = "Checking the records of this range against the chain\u2026";
+    var range = windowOf(element);
+    return ask(query(element, range))
       .then(function (answer) {
-        var old = element.querySelector("svg");
-        var svg = draw(element, answer);
-        if (old) {
-          element.replaceChild(svg, old);
-        } else {
-          element.insertBefore(svg, statusLine);
-        }
-        element.dataset.verified = answer.verified;
-        element.dataset.refused = answer.refused;
-        element.dataset.missing = gaps(answer).missing;
-        element.dataset.state = "ready";
-        statusLine.textContent = status(element, answer);
+        element.seriesHeld = { answer: answer, plottedAt: Date.now(), range: range };
+        show(element, answer);
       })
       .catch(function (error) {
+        element.seriesHeld = null;
         element.dataset.state = "error";
         statusLine.textContent = "No plot: " + (typeof error.message === "string" ? error.message : "the series could not be read") + ".";
       });
+  }
+
+  /* Only the records after the newest point: appended, and those out of the window dropped.
+     Their counts are added to the plot's; the portal logs them under the plot's access line. */
+  function refresh(element, every) {
+    var held = element.seriesHeld;
+    var answer = held.answer;
+    var range = windowOf(element);
+    var most = Number(element.dataset.points) || 1000;
+    var seconds = Math.max((range.until - range.since) / 1000, 1);
+    var points = Math.min(most, Math.max(8, Math.ceil(most * every / seconds)));
+    element.dataset.refreshing = "1";
+    var newest = answer.points[answer.points.length - 1][0];
+    return ask(query(element, range, String(newest), points))
+      .then(function (chunk) {
+        var since = range.since.getTime() / 1000;
+        // The whole plot's counts stay those of its whole answer; a refresh tells how many
+        // records it verified and added (thinned like the rest). Records after the newest
+        // point that were refused (not anchored yet, most often) are asked for again by the
+        // next refresh, and drawn once they pass.
+        var added = chunk.points.filter(function (p) { return p[0] > newest; });
+        var merged = {
+          fields: answer.fields,
+          points: answer.points.concat(added).filter(function (p) { return p[0] >= since; }),
+          source_records: answer.source_records,
+          verified: answer.verified,
+          refused: answer.refused,
+          without_values: answer.without_values,
+          streams: (answer.streams || []).concat(chunk.streams || []),
+          method: answer.method === "all" ? chunk.method : answer.method,
+          added: (answer.added || 0) + chunk.verified,
+          tailRefused: chunk.refused,
+          refreshedAt: Date.now()
+        };
+        held.answer = merged;
+        element.dataset.refreshes = Number(element.dataset.refreshes || 0) + 1;
+        show(element, merged);
+      })
+      .catch(function (error) {
+        var statusLine = element.querySelector(".series-plot-status");
+        statusLine.textContent = status(element, answer).replace(/\.$/, "") + "; the last refresh failed: " +
+          (typeof error.message === "string" ? error.message : "the series could not be read") + ".";
+      })
+      .then(function () { delete element.dataset.refreshing; });
   }
 
   function start(element) {
@@ -311,12 +472,24 @@
     element.appendChild(statusLine);
     load(element);
     var every = Number(element.dataset.refreshSeconds);
+    var replot = 1000 * (Number(element.dataset.replotSeconds) || 600);
+    var most = Number(element.dataset.points) || 1000;
     if (every > 0) {
+      every = Math.max(every, 1);
       window.setInterval(function () {
-        if (!document.hidden && element.dataset.state !== "loading") {
-          load(element);
+        if (document.hidden || element.dataset.state === "loading" || element.dataset.refreshing) {
+          return;
         }
-      }, Math.max(every, 1) * 1000);
+        var held = element.seriesHeld;
+        // The whole window again now and then (records uploaded late, gaps across refreshes),
+        // or when the appended points outgrow what was asked for.
+        if (!held || !held.answer.points.length || Date.now() - held.plottedAt >= replot ||
+            held.answer.points.length > 2 * most) {
+          load(element);
+        } else {
+          refresh(element, every);
+        }
+      }, every * 1000);
     }
   }
 

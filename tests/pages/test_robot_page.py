@@ -90,6 +90,11 @@ def test_robot_page_shows_last_seen_and_rates(client, busy):
     assert 'data-topic="/odom"' in slot
     assert 'data-fields="position.x,position.y"' in slot
     assert 'data-refresh-seconds="5"' in slot
+    # The path beside the time plot, over the window the heading names.
+    assert 'data-mode="both"' in slot
+    assert 'data-shape="path"' in slot
+    assert "Trajectory, last 10 minutes" in html
+    assert 'data-minutes="10"' in slot
     assert 'src="/static/portal/robot-page.js"' in html
     assert "<script>" not in html
     assert " onclick=" not in html

@@ -13,7 +13,7 @@ from django.urls import reverse
 from chainworker.client import AuthROSChain
 from sharing.grant_terms import grant_terms_make
 from sharing.models import Access, Record, Verdict
-from sharing.series import field_value, series_downsample
+from sharing.series import field_value
 from sharing.services.grants import grant_create
 from sharing.verification.check import records_verify
 from tests.api.conftest import session_client, token_client
@@ -312,20 +312,6 @@ def test_the_access_log_shows_a_plot_as_one_line_naming_its_records(alice, uploa
 
 
 # --- pure parts ---------------------------------------------------------------------------
-
-
-def test_downsampling_keeps_each_slices_extremes_and_never_exceeds_the_points():
-    rows = [[float(t), 0.0, float(t % 7)] for t in range(10_000)]
-    rows[4321][1] = 1000.0  # a spike: kept
-    rows[8765][1] = -1000.0  # a dip: kept
-    kept = series_downsample(rows, 500)
-    assert len(kept) <= 500
-    assert rows[4321] in kept
-    assert rows[8765] in kept
-    assert kept[0] == rows[0]
-    assert kept[-1] == rows[-1]
-    assert kept == sorted(kept)  # in time order, whole rows
-    assert series_downsample(rows[:10], 500) == rows[:10]
 
 
 @pytest.mark.parametrize(
