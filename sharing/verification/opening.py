@@ -40,6 +40,7 @@ from sharing.errors import (
 from sharing.models import Access, Credential, Record, Verdict
 from sharing.selectors.records import record_deletion_text, record_to_open
 from sharing.verification.access import accesses_open, credential_check
+from sharing.verification.budget import CheckRun, check_run
 from sharing.verification.check import ANSWERED_FIELDS
 from sharing.verification.keys import RecordKeys
 from smcrypto import envelope
@@ -111,11 +112,27 @@ def records_open(
     in order: the opened record, or the SharingError that refuses it (VerificationUnavailable
     for each of a batch the worker could not answer). `credential` (and `token`, an owner API
     token's) is the viewer's credential that asked. IdentityMismatch is raised as the worker
-    raised it."""
+    raised it; CheckBudgetExceeded before anything is checked or logged, when the records are
+    more than the viewer's budget of checks holds now (sharing/verification/budget.py)."""
     token_id = token.pk if token is not None else None
     credential_check(credential, token_id)
     if not records:
         return []
+    with check_run(caller_id=viewer.pk, records=len(records)) as run:
+        return _records_checked(records, viewer, kind, credential, token_id, run)
+
+
+def _records_checked(
+    records: Sequence[Record],
+    viewer: Owner,
+    kind: str,
+    credential: str,
+    token_id: int | None,
+    run: CheckRun,
+) -> list[OpenedRecord | SharingError]:
+    """records_open's work, its records charged to the viewer's budget as `run`: the batches
+    sent at once, then waited for in order, each up to VERIFY_TIMEOUT; once one is not
+    answered the read stops waiting, and its batches no worker has started are not run."""
     accesses = accesses_open(
         kind=kind, viewer_id=viewer.pk, records=records, credential=credential, token_id=token_id
     )
@@ -130,20 +147,31 @@ def records_open(
             token_id,
             sent_accesses,
             kind,
+            run.id,
         )
         for batch in batches
     ]
+    run.refund(
+        sum(len(b) for b, p in zip(batches, pending, strict=True) if isinstance(p, Exception))
+    )
     keys = RecordKeys()
     keys.warm(records)  # while the worker checks
     results: list[OpenedRecord | SharingError] = []
     answered = False
+    stopped: VerificationUnavailable | None = None
     try:
         for batch, sent in zip(batches, pending, strict=True):
+            if stopped is not None:
+                results += [VerificationUnavailable(str(stopped)) for _ in batch]
+                continue
             try:
                 answers = _await_answer(sent, f"{len(batch)} records", viewer)
             except VerificationUnavailable as exc:
                 results += [VerificationUnavailable(str(exc)) for _ in batch]
+                if not isinstance(sent, Exception):
+                    stopped = exc  # not answered in time: the read waits for no other batch
                 continue
+            run.waiting()
             results += _batch_opened(batch, answers, viewer, keys)
             answered = True
     finally:

@@ -107,7 +107,7 @@ def test_locks_and_nonces_hold_on_a_cluster(on_cluster):
 
 def test_rate_limits_count_on_a_cluster(on_cluster, settings, rf):
     settings.PAGE_RATE_USER = "2/hour"
-    charged = [page_rate_charge(scope="page", user_id=7) for _ in range(3)]
+    charged = [page_rate_charge(user_id=7) for _ in range(3)]
     assert charged[:2] == [None, None]
     assert charged[2] > 0  # over the limit: the seconds until the window ends
     settings.REST_FRAMEWORK = {
@@ -166,13 +166,13 @@ def test_a_cluster_that_does_not_answer_is_redis_unavailable(settings, tmp_path)
     makes it a ConnectionError, so what works without Redis goes on working (no 500)."""
     settings.PAGE_RATE_USER = "1/hour"
     settings.REDIS_URL = f"redis+cluster://127.0.0.1:{free_port()}"  # nobody there
-    assert page_rate_charge(scope="page", user_id=3) is None  # served uncounted
+    assert page_rate_charge(user_id=3) is None  # served uncounted
     assert cache.envelope_cache_get(str(uuid.uuid4())) is None  # a miss
     with start_redis_cluster(tmp_path / "cluster") as gone:
         settings.REDIS_URL = gone.url()
-        assert page_rate_charge(scope="page", user_id=3) is None
-        assert page_rate_charge(scope="page", user_id=3) > 0
+        assert page_rate_charge(user_id=3) is None
+        assert page_rate_charge(user_id=3) > 0
     # Stopped under a client that knew it.
-    assert page_rate_charge(scope="page", user_id=3) is None
+    assert page_rate_charge(user_id=3) is None
     with pytest.raises(redis.ConnectionError):
         get_redis().get("anything")
