@@ -12,11 +12,11 @@ otherwise it is refused whole (CheckBudgetExceeded, 429, with the seconds until 
 and takes nothing. When Redis cannot count, reads are checked uncounted, as the API's and the
 pages' rate limits do.
 
-A read's batches carry its run id, whose key lives while the web waits for them (refreshed at each
-answer, expiring VERIFY_TIMEOUT after the last): a worker runs a batch only while its key
-lives, and gives the batch's records back to the caller's budget otherwise, so that a read
-whose request gave up (a batch not answered in VERIFY_TIMEOUT, or the web process gone) costs
-what it checked, not what it queued.
+A read's batches carry its run id, whose key lives while the web waits for them (refreshed as
+it starts waiting for each batch, expiring VERIFY_TIMEOUT + RUN_KEY_SLACK after): a worker
+runs a batch only while its key lives, and gives the batch's records back to the caller's
+budget otherwise, so that a read whose request gave up (a batch not answered in
+VERIFY_TIMEOUT, or the web process gone) costs what it checked, not what it queued.
 """
 
 import logging
@@ -35,8 +35,7 @@ from sharing.errors import CheckBudgetExceeded
 
 logger = logging.getLogger(__name__)
 
-# A run's key outlives the web's wait for its next answer by this much (its clock and Redis's
-# may differ a little).
+# A run's key outlives the web's wait for its next answer by this much.
 RUN_KEY_SLACK = 5
 
 # KEYS[1]: the caller's bucket; ARGV: its capacity, its refill a second, the records taken (a
@@ -110,12 +109,13 @@ def checks_charge(*, caller_id: int, records: int) -> None:
     if taken:
         return
     retry_after = max(1, math.ceil(wait))
+    asked = f"this read checks {records} record{'s' if records != 1 else ''}"
     what = (
-        f"this read checks {records} records, more than the whole budget of {budget.records} "
-        f"every {budget.seconds} s: ask for a shorter range"
+        f"{asked}, more than the whole budget of {budget.records} every {budget.seconds} s: "
+        "ask for a shorter range"
         if records > budget.records
-        else f"this read checks {records} records and {math.floor(left)} of your budget of "
-        f"{budget.records} every {budget.seconds} s are left: retry in {retry_after} s"
+        else f"{asked} and {math.floor(left)} of your budget of {budget.records} every "
+        f"{budget.seconds} s are left: retry in {retry_after} s"
     )
     raise CheckBudgetExceeded(
         f"integrity checks over budget: {what}",
@@ -143,7 +143,8 @@ class CheckRun:
     id: str | None
 
     def waiting(self) -> None:
-        """The web still waits: the batches not run yet stay wanted for another VERIFY_TIMEOUT."""
+        """The web waits for a batch (up to VERIFY_TIMEOUT): the batches not run yet stay wanted
+        that long."""
         if self.id is not None:
             try:
                 get_redis().expire(_run_key(self.id), _run_key_ttl())

@@ -164,14 +164,14 @@ def _records_checked(
             if stopped is not None:
                 results += [VerificationUnavailable(str(stopped)) for _ in batch]
                 continue
+            run.waiting()  # the batches not started yet stay wanted while this one is awaited
             try:
                 answers = _await_answer(sent, f"{len(batch)} records", viewer)
             except VerificationUnavailable as exc:
                 results += [VerificationUnavailable(str(exc)) for _ in batch]
                 if not isinstance(sent, Exception):
-                    stopped = exc  # not answered in time: the read waits for no other batch
+                    stopped = exc  # not answered: the read waits for no other batch
                 continue
-            run.waiting()
             results += _batch_opened(batch, answers, viewer, keys)
             answered = True
     finally:
