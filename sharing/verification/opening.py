@@ -13,6 +13,7 @@ worker hands back the envelope it checked, never what it decrypted to check a si
 
 import base64
 import logging
+import time
 import uuid
 from collections.abc import Sequence
 from contextlib import suppress
@@ -20,12 +21,14 @@ from dataclasses import dataclass, field
 from datetime import datetime
 from typing import Any
 
+from celery.exceptions import TimeoutError as CeleryTimeoutError
 from django.conf import settings
 from redis.exceptions import RedisError
 
 from accounts.errors import IdentityMismatch
 from accounts.models import Owner, OwnerToken
 from accounts.selectors import owner_key_current
+from core.client import client_gone
 from core.outbox import dispatch
 from sharing.errors import (
     NOT_VISIBLE,
@@ -51,6 +54,12 @@ VERIFY_TASK = "sharing.tasks.records_verify"
 # Records per task: a bigger read is sent as several tasks at once, which the verify workers
 # take side by side; each answer holds its batch's envelopes (about 1 KB each for odometry).
 VERIFY_BATCH = 1000
+# How often a read waiting for its checks looks whether its client is still there.
+CLIENT_POLL_SECONDS = 1.0
+
+
+class ClientGone(Exception):
+    """The client of the request a read waits for closed its connection."""
 
 
 @dataclass(frozen=True)
@@ -258,7 +267,7 @@ def _await_answer(pending: Any, what: str, viewer: Owner) -> Any:
         if isinstance(pending, Exception):
             raise pending
         try:
-            answer = pending.get(timeout=settings.VERIFY_TIMEOUT, disable_sync_subtasks=False)
+            answer = _answer_while_wanted(pending)
         finally:
             # The answer may hold a whole envelope: it is not kept in Redis once read (a
             # failure to drop it only leaves it to expire with CELERY_RESULT_EXPIRES).
@@ -266,12 +275,29 @@ def _await_answer(pending: Any, what: str, viewer: Owner) -> Any:
                 pending.forget()
     except IdentityMismatch:
         raise  # the worker's refusal: the owner's commitment on chain is not the portal's key
-    except Exception as exc:  # timeout, broker down, or the worker's own failure
+    except Exception as exc:  # timeout, client gone, broker down, or the worker's own failure
         logger.warning("verification of %s for %s failed: %s", what, viewer, exc)
         raise VerificationUnavailable(
             "the integrity check could not run now; nothing is shown: try again shortly"
         ) from exc
     return answer
+
+
+def _answer_while_wanted(pending: Any) -> Any:
+    """The task's answer, waited for up to VERIFY_TIMEOUT, in slices of CLIENT_POLL_SECONDS
+    between which the client's connection is looked at: ClientGone once it closed it."""
+    deadline = time.monotonic() + settings.VERIFY_TIMEOUT
+    while True:
+        left = deadline - time.monotonic()
+        try:
+            return pending.get(
+                timeout=max(0.0, min(left, CLIENT_POLL_SECONDS)), disable_sync_subtasks=False
+            )
+        except CeleryTimeoutError:
+            if left <= CLIENT_POLL_SECONDS:
+                raise
+            if client_gone():
+                raise ClientGone("the client closed its connection") from None
 
 
 def _envelope_of(answer: dict[str, Any]) -> bytes | None:
