@@ -16,7 +16,8 @@ A read's batches carry its run id, whose key lives while the web waits for them 
 it starts waiting for each batch, expiring VERIFY_TIMEOUT + RUN_KEY_SLACK after): a worker
 runs a batch only while its key lives, and gives the batch's records back to the caller's
 budget otherwise, so that a read whose request gave up (a batch not answered in
-VERIFY_TIMEOUT, or the web process gone) costs what it checked, not what it queued.
+VERIFY_TIMEOUT, its client gone: opening.py; or the web process gone) costs what it checked,
+not what it queued.
 """
 
 import logging

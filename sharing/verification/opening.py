@@ -9,6 +9,10 @@ once the very bytes the worker checked against the chain, only where its verdict
 a refusal carries its record and verdict. The plaintext never leaves the web process: the
 worker hands back the envelope it checked, never what it decrypted to check a signature.
 `record_reseal_for` seals the content for the viewer with the keys the read unwrapped.
+
+A read is charged its records before anything is sent (verification/budget.py); it stops
+waiting at the first batch not answered in VERIFY_TIMEOUT, or once its client closed the
+connection, and then its batches no worker has started are not run.
 """
 
 import base64
