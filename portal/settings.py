@@ -14,6 +14,7 @@ from django.core.exceptions import ImproperlyConfigured
 from kombu import Queue
 
 from core.logging import logging_config
+from core.rates import rate_parse
 from core.redis_url import celery_redis, redis_target
 from core.secrets import load_or_create_secret
 from core.storage_url import envelope_storage_config
@@ -264,6 +265,11 @@ PAGE_RATE_USER = env.str("PAGE_RATE_USER", default="600/minute")
 # spent at once if need be, refilled evenly over the period (sharing/verification/budget.py).
 # 20,000 a minute holds a 30-minute plot of a 10 Hz topic (18,000 records) and its refreshes.
 CHECK_BUDGET = env.str("CHECK_BUDGET", default="20000/minute")
+try:
+    if CHECK_BUDGET and rate_parse(CHECK_BUDGET)[0] < 1:
+        raise ValueError("a budget of no records refuses every read; leave it empty for none")
+except ValueError as exc:
+    raise ImproperlyConfigured(f"CHECK_BUDGET: {exc}") from None
 
 # --- REST API (DRF, drf-spectacular) ------------------------------------------------------
 REST_FRAMEWORK = {
