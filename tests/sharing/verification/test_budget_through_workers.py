@@ -29,6 +29,20 @@ VERIFY_ENDED = re.compile(r"Task sharing\.tasks\.records_verify\[[^\]]+\] (succe
 SKIPPED = "its read stopped waiting"
 
 
+def _worker_skips(stack, *, batches: int) -> None:
+    """A new worker (w1) takes `batches` queued check tasks, each ending without a check."""
+    stack.start_worker("w1")
+    log = stack.logs / "w1.log"
+    wait_for(
+        lambda: len(VERIFY_ENDED.findall(log.read_text())) >= batches,
+        timeout=60,
+        what=f"the worker to take the {batches} batches nobody waits for",
+    )
+    ended = [match.group(1) for match in VERIFY_ENDED.finditer(log.read_text())]
+    assert ended == ["succeeded"] * batches
+    assert log.read_text().count(SKIPPED) == batches
+
+
 def test_a_read_that_stops_waiting_cancels_its_queued_checks(worker_stack, settings, monkeypatch):
     # The worker's budget is the test process's: what it gives back is counted alike.
     stack = worker_stack(workers=1, env_overrides={"CHECK_BUDGET": "4/day"})
@@ -51,16 +65,7 @@ def test_a_read_that_stops_waiting_cancels_its_queued_checks(worker_stack, setti
     assert all(isinstance(result, VerificationUnavailable) for result in results)
 
     # A worker takes the queued batches: it checks none of them.
-    stack.start_worker("w1")
-    log = stack.logs / "w1.log"
-    wait_for(
-        lambda: len(VERIFY_ENDED.findall(log.read_text())) >= 4,
-        timeout=60,
-        what="the worker to take the 4 batches nobody waits for",
-    )
-    ended = [match.group(1) for match in VERIFY_ENDED.finditer(log.read_text())]
-    assert ended == ["succeeded"] * 4
-    assert log.read_text().count(SKIPPED) == 4
+    _worker_skips(stack, batches=4)
     assert not Verdict.objects.exists()
     assert not Access.objects.exists()
 
@@ -112,13 +117,5 @@ def test_a_series_whose_client_goes_cancels_its_queued_checks(worker_stack, make
     )
 
     # A worker takes the queued batch: it checks none of it.
-    stack.start_worker("w1")
-    log = stack.logs / "w1.log"
-    wait_for(
-        lambda: len(VERIFY_ENDED.findall(log.read_text())) >= 1,
-        timeout=60,
-        what="the worker to take the batch nobody waits for",
-    )
-    assert [match.group(1) for match in VERIFY_ENDED.finditer(log.read_text())] == ["succeeded"]
-    assert log.read_text().count(SKIPPED) == 1
+    _worker_skips(stack, batches=1)
     assert not Verdict.objects.exists()
