@@ -1,5 +1,5 @@
-"""What every owner page wraps itself in: the owner check, the page rate limit and the no-cache
-answer.
+"""What every owner page wraps itself in: the owner check, the page rate limit (and the 429
+page of a page's work over its budget) and the no-cache answer.
 
 Kept apart from the views so that the pages of every app (and the project's own) use them
 without importing one another's views.
@@ -18,6 +18,7 @@ from django.shortcuts import render
 from redis.exceptions import RedisError
 
 from accounts.selectors import owner_for_user
+from core.errors import DomainError
 from core.rates import rate_parse
 from core.redis_client import get_redis, redis_key
 
@@ -51,56 +52,50 @@ def no_store(response: HttpResponse) -> HttpResponse:
     return response
 
 
-# The settings holding each page scope's rate, "<requests>/<second|minute|hour|day>".
-PAGE_RATE_SETTINGS = {"page": "PAGE_RATE_USER", "content": "PAGE_RATE_CONTENT"}
-
-
-def page_throttle(scope: str = "page", *, cost: int = 1) -> Callable[[OwnerView], OwnerView]:
+def page_throttle() -> Callable[[OwnerView], OwnerView]:
     """Limit how often one signed-in user loads pages: over the limit, a 429 page with
     Retry-After.
 
-    Every page counts 1 against PAGE_RATE_USER. A page in the "content" scope (one that runs
-    an integrity check: a record, its download, a gallery page) also counts `cost` against
-    PAGE_RATE_CONTENT: what it costs the worker, in single record checks (a gallery page
-    checks its images in one batched run, so it passes less than one per image).
-
-    Counted per user in fixed windows in Redis, shared by every web process; when Redis is
-    down the page is served uncounted, as the API's throttles do. Put it under
-    `owner_required`, so that anonymous requests go to the sign-in page uncounted.
+    Every page counts 1 against PAGE_RATE_USER, per user in fixed windows in Redis, shared by
+    every web process; when Redis is down the page is served uncounted, as the API's throttles
+    do. A page whose work is refused for now with a 429 (its integrity checks over the
+    caller's CHECK_BUDGET) gets the same 429 page, with the reason and its Retry-After. Put it
+    under `owner_required`, so that anonymous requests go to the sign-in page uncounted.
     """
-    if scope not in PAGE_RATE_SETTINGS:
-        raise ValueError(f"unknown page throttle scope {scope!r}")
 
     def decorate(view: OwnerView) -> OwnerView:
         @wraps(view)
         def wrapped(request: HttpRequest, *args: object, **kwargs: object) -> HttpResponse:
             if request.user.is_authenticated:
-                charges = [("page", 1)] if scope == "page" else [("page", 1), (scope, cost)]
-                for charged, amount in charges:
-                    wait = page_rate_charge(scope=charged, user_id=request.user.pk, cost=amount)
-                    if wait is not None:
-                        return _too_many_requests(request, wait)
-            return view(request, *args, **kwargs)
+                wait = page_rate_charge(user_id=request.user.pk)
+                if wait is not None:
+                    return _too_many_requests(request, wait)
+            try:
+                return view(request, *args, **kwargs)
+            except DomainError as exc:
+                if exc.http_status != 429:
+                    raise
+                return _too_many_requests(request, exc.retry_after or 60, reason=str(exc))
 
         return wrapped
 
     return decorate
 
 
-def page_rate_charge(*, scope: str, user_id: int, cost: int = 1) -> int | None:
-    """Count `cost` against the user's rate in `scope`; None if within it, else the seconds
+def page_rate_charge(*, user_id: int) -> int | None:
+    """Count a page against the user's PAGE_RATE_USER; None if within it, else the seconds
     until the current window ends (the Retry-After). None too when Redis cannot count."""
-    rate = getattr(settings, PAGE_RATE_SETTINGS[scope], "")
+    rate = settings.PAGE_RATE_USER
     if not rate:
         return None
     limit, period = rate_parse(rate)
     now = time.time()
     window = int(now // period)
-    key = redis_key("page-throttle", scope, user_id, window)
+    key = redis_key("page-throttle", "page", user_id, window)
     try:
         pipe = get_redis().pipeline()
         pipe.set(key, 0, ex=period + 1, nx=True)
-        pipe.incrby(key, cost)
+        pipe.incr(key)
         _created, used = pipe.execute()
     except (RedisError, OSError) as exc:
         logger.warning("page rate limit not checked, Redis is unavailable: %s", exc)
@@ -110,7 +105,8 @@ def page_rate_charge(*, scope: str, user_id: int, cost: int = 1) -> int | None:
     return max(1, math.ceil((window + 1) * period - now))
 
 
-def _too_many_requests(request: HttpRequest, wait: int) -> HttpResponse:
-    response = render(request, "429.html", {"retry_after": wait}, status=429)
+def _too_many_requests(request: HttpRequest, wait: int, *, reason: str = "") -> HttpResponse:
+    context = {"retry_after": wait, "reason": reason}
+    response = render(request, "429.html", context, status=429)
     response["Retry-After"] = str(wait)
     return no_store(response)

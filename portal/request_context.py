@@ -10,7 +10,8 @@ asking every few seconds does not fill the logs.
 
 Every other request gets an id (a sane incoming `X-Request-Id`, else a new one), answered in
 `X-Request-Id`, on every log line of the request with the user, owner and robot once known
-(core/logging.py), and carried into the Celery tasks the request queues (portal/celery.py).
+(core/logging.py), and carried into the Celery tasks the request queues (portal/celery.py);
+its client's connection is known while it is served (core/client.py).
 When the answer is out, one access line is logged and the request is counted
 (portal/metrics.py).
 """
@@ -24,6 +25,7 @@ from typing import Any
 
 from django.http import HttpRequest, HttpResponse
 
+from core.client import client_connection_reset, client_connection_set
 from core.logging import (
     REDACTED,
     log_context_add,
@@ -48,6 +50,7 @@ class RequestContextMiddleware:
         request_id = request_id_accepted(request.headers.get(REQUEST_ID_HEADER))
         request.request_id = request_id  # type: ignore[attr-defined]
         context = log_context_set(request_id=request_id)
+        client = client_connection_set(request.META.get("gunicorn.socket"))
         try:
             probe = PROBES.get(request.path)
             if probe is not None:
@@ -70,6 +73,7 @@ class RequestContextMiddleware:
             )
             return response
         finally:
+            client_connection_reset(client)
             log_context_reset(context)
 
     def process_view(self, request: HttpRequest, *args: Any) -> None:

@@ -14,6 +14,7 @@ from django.core.exceptions import ImproperlyConfigured
 from kombu import Queue
 
 from core.logging import logging_config
+from core.rates import rate_parse
 from core.redis_url import celery_redis, redis_target
 from core.secrets import load_or_create_secret
 from core.storage_url import envelope_storage_config
@@ -256,10 +257,19 @@ AXES_CLIENT_IP_CALLABLE = "accounts.views.client_ip_address"
 
 # --- Page rate limits (accounts.decorators.page_throttle) ---------------------------------
 # Per signed-in user, counted in Redis across web processes: "<count>/<second|minute|hour|day>"
-# (empty: no limit). Every page counts against PAGE_RATE_USER; pages that run an integrity
-# check (a record, its download, a gallery page) count their cost against PAGE_RATE_CONTENT.
+# (empty: no limit). Every page counts 1 against PAGE_RATE_USER; what a page's integrity checks
+# cost is CHECK_BUDGET's.
 PAGE_RATE_USER = env.str("PAGE_RATE_USER", default="600/minute")
-PAGE_RATE_CONTENT = env.str("PAGE_RATE_CONTENT", default="120/minute")
+# Records one caller (owner or grantee; an owner API token's calls are its owner's) may have
+# checked against the chain, pages and API alike, "<records>/<period>" (empty: no budget):
+# spent at once if need be, refilled evenly over the period (sharing/verification/budget.py).
+# 20,000 a minute holds a 30-minute plot of a 10 Hz topic (18,000 records) and its refreshes.
+CHECK_BUDGET = env.str("CHECK_BUDGET", default="20000/minute")
+try:
+    if CHECK_BUDGET and rate_parse(CHECK_BUDGET)[0] < 1:
+        raise ValueError("a budget of no records refuses every read; leave it empty for none")
+except ValueError as exc:
+    raise ImproperlyConfigured(f"CHECK_BUDGET: {exc}") from None
 
 # --- REST API (DRF, drf-spectacular) ------------------------------------------------------
 REST_FRAMEWORK = {

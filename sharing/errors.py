@@ -172,6 +172,19 @@ class VerificationUnavailable(SharingError):
     retry_after = 5
 
 
+class CheckBudgetExceeded(SharingError):
+    """A read that would have the workers check more records than the caller's budget holds
+    now (CHECK_BUDGET, sharing/verification/budget.py): refused whole, nothing checked and
+    nothing charged; `retry_after` says when it would fit."""
+
+    code = "check_budget_exceeded"
+    http_status = 429
+
+    def __init__(self, message: str, *, retry_after: int) -> None:
+        super().__init__(message)
+        self.retry_after = retry_after
+
+
 class StorageUnavailable(SharingError):
     """The envelope storage did not take an upload's files (a disk, or an S3 server that is
     down or answered other bytes than were sent): nothing is stored, the robot sends again."""

@@ -16,7 +16,7 @@ from chainworker.work import CHAIN_TASK
 from sharing import disk
 from sharing.exports import run, withdraw
 from sharing.services import anchoring, completeness, deletion, grant_chain, reconcile, sweep
-from sharing.verification import check, series_check
+from sharing.verification import budget, check, series_check
 
 
 @shared_task(name="sharing.tasks.records_anchor", **CHAIN_TASK)
@@ -80,7 +80,7 @@ VERIFY_TASK = {
 
 # One task for any number of records (a record page is one); `accesses` maps record owner ids
 # (as text: JSON) to the Access the web process opened for its read, of `kind`; without it the
-# worker opens the Access with the verdicts.
+# worker opens the Access with the verdicts. `run_id` is the read's (verification/budget.py).
 @shared_task(name="sharing.tasks.records_verify", **VERIFY_TASK)
 def records_verify(
     record_ids: list[str],
@@ -89,7 +89,10 @@ def records_verify(
     token_id: int | None = None,
     accesses: dict[str, int] | None = None,
     kind: str | None = None,
+    run_id: str | None = None,
 ) -> list[dict[str, Any]]:
+    if not budget.check_run_wanted(run=run_id, caller_id=viewer_id, records=len(record_ids)):
+        return []  # its read stopped waiting: nothing checked, the budget given back
     checked = check.records_verify(
         record_ids=record_ids,
         viewer_id=viewer_id,
@@ -114,7 +117,10 @@ def series_verify(
     read_id: str,
     answer_key: str,
     part: int,
+    run_id: str | None = None,
 ) -> dict[str, Any]:
+    if not budget.check_run_wanted(run=run_id, caller_id=viewer_id, records=len(record_ids)):
+        return {"verified": 0, "rows": None}  # its read stopped waiting: nothing checked
     return series_check.series_rows_check(
         record_ids=record_ids,
         viewer_id=viewer_id,

@@ -11,6 +11,7 @@ from rest_framework.views import APIView
 from accounts.authentication import OwnerCredential, caller_owner
 from core.api_errors import error_responses
 from sharing.apis.fields import (
+    CHECKS_OVER_BUDGET,
     OWNER_ONLY,
     READ,
     RECORD_ID,
@@ -64,6 +65,7 @@ class RecordContentApi(APIView):
                 410,
                 503,
                 e403=ROBOT_REFUSED.format(scope="read"),
+                e429=CHECKS_OVER_BUDGET,
                 e409="`integrity_check_failed`: the stored data differs from the chain; "
                 "`not_anchored_yet`: try again shortly; `identity_check_failed`: the owner's "
                 "key commitment on chain differs from the key the portal holds",

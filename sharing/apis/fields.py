@@ -41,6 +41,12 @@ ROBOT_REFUSED = (
     "`permission_denied`: a robot token (it only uploads and reads its own uploads); "
     "`insufficient_scope`: an owner API token without the `{scope}` scope"
 )
+# The 429 of an operation that has records integrity-checked (sharing/verification/budget.py).
+CHECKS_OVER_BUDGET = (
+    "`rate_limited`: wait for `Retry-After` seconds; `check_budget_exceeded`: the records this "
+    "asks to check are more than the caller's budget of checks (`CHECK_BUDGET`) holds now: "
+    "nothing was checked or charged, ask again after `Retry-After` seconds (or for fewer)"
+)
 # The names of a record selection's values, in every request that selects records.
 SELECTION_FIELDS = tuple(field.name for field in dataclasses.fields(RecordSelection))
 RECORD_ID = OpenApiParameter(

@@ -16,7 +16,14 @@ from rest_framework.views import APIView
 from accounts.authentication import OwnerCredential, caller_owner
 from core.api_errors import error_responses
 from sharing.apis.completeness import STREAMS_SCHEMA, UNCOUNTED_SCHEMA
-from sharing.apis.fields import OWNER_ONLY, READ, ROBOT_REFUSED, TextField, caller_credential
+from sharing.apis.fields import (
+    CHECKS_OVER_BUDGET,
+    OWNER_ONLY,
+    READ,
+    ROBOT_REFUSED,
+    TextField,
+    caller_credential,
+)
 from sharing.errors import SeriesRefused
 from sharing.selection import MAX_TOPIC_LENGTH
 from sharing.series import DEFAULT_POINTS, MAX_FIELDS, MAX_POINTS, series_of, series_query_make
@@ -145,6 +152,7 @@ class RecordSeriesApi(APIView):
                 "two, `after` not before `until`, a range too long or holding too many "
                 "records)",
                 e403=ROBOT_REFUSED.format(scope="read"),
+                e429=CHECKS_OVER_BUDGET,
                 e409="`identity_check_failed`: the owner's key commitment on chain differs "
                 "from the key the portal holds",
             ),

@@ -13,10 +13,15 @@ worker hands back the envelope it checked, never what it decrypted to check a si
 A series (`records_rows_open`) is the exception that needs no content: its slices go to the
 series task, which checks them the same way and hands back only the plotted numbers of the
 verified ones, sealed under a key of this read (verification/answers.py), not envelopes.
+
+A read is charged its records before anything is sent (verification/budget.py); it stops
+waiting at the first batch not answered in VERIFY_TIMEOUT, or once its client closed the
+connection, and then its batches no worker has started are not run.
 """
 
 import base64
 import logging
+import time
 import uuid
 from collections.abc import Sequence
 from contextlib import suppress
@@ -24,12 +29,14 @@ from dataclasses import dataclass, field
 from datetime import datetime
 from typing import Any
 
+from celery.exceptions import TimeoutError as CeleryTimeoutError
 from django.conf import settings
 from redis.exceptions import RedisError
 
 from accounts.errors import IdentityMismatch
 from accounts.models import Owner, OwnerToken
 from accounts.selectors import owner_key_current
+from core.client import client_gone
 from core.outbox import dispatch
 from sharing.errors import (
     NOT_VISIBLE,
@@ -51,6 +58,7 @@ from sharing.verification.access import (
     credential_check,
 )
 from sharing.verification.answers import answer_key_make, answer_open
+from sharing.verification.budget import CheckRun, check_run
 from sharing.verification.check import ANSWERED_FIELDS
 from sharing.verification.keys import RecordKeys
 from smcrypto import envelope
@@ -61,6 +69,12 @@ VERIFY_TASK = "sharing.tasks.records_verify"
 # Records per task: a bigger read is sent as several tasks at once, which the verify workers
 # take side by side; each answer holds its batch's envelopes (about 1 KB each for odometry).
 VERIFY_BATCH = 1000
+# How often a read waiting for its checks looks whether its client is still there.
+CLIENT_POLL_SECONDS = 1.0
+
+
+class ClientGone(Exception):
+    """The client of the request a read waits for closed its connection."""
 
 
 @dataclass(frozen=True)
@@ -122,11 +136,27 @@ def records_open(
     in order: the opened record, or the SharingError that refuses it (VerificationUnavailable
     for each of a batch the worker could not answer). `credential` (and `token`, an owner API
     token's) is the viewer's credential that asked. IdentityMismatch is raised as the worker
-    raised it."""
+    raised it; CheckBudgetExceeded before anything is checked or logged, when the records are
+    more than the viewer's budget of checks holds now (sharing/verification/budget.py)."""
     token_id = token.pk if token is not None else None
     credential_check(credential, token_id)
     if not records:
         return []
+    with check_run(caller_id=viewer.pk, records=len(records)) as run:
+        return _records_checked(records, viewer, kind, credential, token_id, run)
+
+
+def _records_checked(
+    records: Sequence[Record],
+    viewer: Owner,
+    kind: str,
+    credential: str,
+    token_id: int | None,
+    run: CheckRun,
+) -> list[OpenedRecord | SharingError]:
+    """records_open's work, its records charged to the viewer's budget as `run`: the batches
+    sent at once, then waited for in order, each up to VERIFY_TIMEOUT; once one is not
+    answered the read stops waiting, and its batches no worker has started are not run."""
     accesses = accesses_open(
         kind=kind, viewer_id=viewer.pk, records=records, credential=credential, token_id=token_id
     )
@@ -141,19 +171,30 @@ def records_open(
             token_id,
             sent_accesses,
             kind,
+            run.id,
         )
         for batch in batches
     ]
+    run.refund(
+        sum(len(b) for b, p in zip(batches, pending, strict=True) if isinstance(p, Exception))
+    )
     keys = RecordKeys()
     keys.warm(records)  # while the worker checks
     results: list[OpenedRecord | SharingError] = []
     answered = False
+    stopped: VerificationUnavailable | None = None
     try:
         for batch, sent in zip(batches, pending, strict=True):
+            if stopped is not None:
+                results += [VerificationUnavailable(str(stopped)) for _ in batch]
+                continue
+            run.waiting()  # the batches not started yet stay wanted while this one is awaited
             try:
                 answers = _await_answer(sent, f"{len(batch)} records", viewer)
             except VerificationUnavailable as exc:
                 results += [VerificationUnavailable(str(exc)) for _ in batch]
+                if not isinstance(sent, Exception):
+                    stopped = exc  # not answered: the read waits for no other batch
                 continue
             results += _batch_opened(batch, answers, viewer, keys)
             answered = True
@@ -241,7 +282,7 @@ def _await_answer(pending: Any, what: str, viewer: Owner) -> Any:
         if isinstance(pending, Exception):
             raise pending
         try:
-            answer = pending.get(timeout=settings.VERIFY_TIMEOUT, disable_sync_subtasks=False)
+            answer = _answer_while_wanted(pending)
         finally:
             # The answer may hold a whole envelope: it is not kept in Redis once read (a
             # failure to drop it only leaves it to expire with CELERY_RESULT_EXPIRES).
@@ -249,12 +290,29 @@ def _await_answer(pending: Any, what: str, viewer: Owner) -> Any:
                 pending.forget()
     except IdentityMismatch:
         raise  # the worker's refusal: the owner's commitment on chain is not the portal's key
-    except Exception as exc:  # timeout, broker down, or the worker's own failure
+    except Exception as exc:  # timeout, client gone, broker down, or the worker's own failure
         logger.warning("verification of %s for %s failed: %s", what, viewer, exc)
         raise VerificationUnavailable(
             "the integrity check could not run now; nothing is shown: try again shortly"
         ) from exc
     return answer
+
+
+def _answer_while_wanted(pending: Any) -> Any:
+    """The task's answer, waited for up to VERIFY_TIMEOUT, in slices of CLIENT_POLL_SECONDS
+    between which the client's connection is looked at: ClientGone once it closed it."""
+    deadline = time.monotonic() + settings.VERIFY_TIMEOUT
+    while True:
+        left = deadline - time.monotonic()
+        try:
+            return pending.get(
+                timeout=max(0.0, min(left, CLIENT_POLL_SECONDS)), disable_sync_subtasks=False
+            )
+        except CeleryTimeoutError:
+            if left <= CLIENT_POLL_SECONDS:
+                raise
+            if client_gone():
+                raise ClientGone("the client closed its connection") from None
 
 
 def _envelope_of(answer: dict[str, Any]) -> bytes | None:
@@ -293,13 +351,32 @@ def records_rows_open(
     records sent in slices of SERIES_BATCH all at once, each slice's rows handed back sealed
     under this read's answer key (verification/answers.py) and opened here. A record refused
     or gone is not among the rows; the verified count says how many are. VerificationUnavailable
-    if any slice could not be answered (the others are waited for, and their verdicts kept);
-    a read no worker answered leaves no line. A `refresh` (a plot's newer records) adds to the
-    viewer's recent line of the same plot (accesses_open_for)."""
+    if a slice could not be answered (the read then stops waiting: slices no worker started are
+    not run; verdicts written are kept); a read no worker answered leaves no line. A `refresh`
+    (a plot's newer records) adds to the viewer's recent line of the same plot
+    (accesses_open_for). CheckBudgetExceeded before anything is checked or logged, when the
+    records are more than the viewer's budget of checks holds now (verification/budget.py)."""
     token_id = token.pk if token is not None else None
     credential_check(credential, token_id)
     if not record_ids:
         return CheckedRows(0, [])
+    with check_run(caller_id=viewer.pk, records=len(record_ids)) as run:
+        return _rows_checked(record_ids, reads, viewer, fields, credential, token_id, refresh, run)
+
+
+def _rows_checked(
+    record_ids: Sequence[str],
+    reads: Sequence[OwnerRead],
+    viewer: Owner,
+    fields: Sequence[str],
+    credential: str,
+    token_id: int | None,
+    refresh: bool,
+    run: CheckRun,
+) -> CheckedRows:
+    """records_rows_open's work, its records charged to the viewer's budget as `run`: the
+    slices sent at once, then waited for in order; once one is not answered the read stops
+    waiting, and its slices no worker has started are not run."""
     accesses = accesses_open_for(
         kind=Access.Kind.PLOT,
         viewer_id=viewer.pk,
@@ -325,18 +402,25 @@ def records_rows_open(
             key.read_id,
             key.wrapped,
             part,
+            run.id,
         )
         for part, ids in enumerate(slices)
     ]
+    run.refund(
+        sum(len(i) for i, p in zip(slices, pending, strict=True) if isinstance(p, Exception))
+    )
     verified, rows, unavailable = 0, [], None
     answered = False
     try:
         for part, (ids, sent) in enumerate(zip(slices, pending, strict=True)):
+            run.waiting()  # the slices not started yet stay wanted while this one is awaited
             try:
                 answer = _await_answer(sent, f"{len(ids)} records of a series", viewer)
             except VerificationUnavailable as exc:
                 unavailable = exc
-                continue
+                if isinstance(sent, Exception):
+                    continue
+                break  # not answered: the read waits for no other slice
             answered = True
             verified += answer["verified"]
             rows += answer_open(key=key, part=part, sealed=answer["rows"])

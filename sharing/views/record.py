@@ -44,7 +44,6 @@ from sharing.verification.opening import OpenedRecord, record_open, records_open
 
 # Images on one page of a topic's gallery, each integrity-checked in one batched run.
 GALLERY_PER_PAGE = 12
-GALLERY_COST = 6
 # The range a plot or gallery form offers first, and so the range an odometry record's
 # trajectory plots first (each record in it checked): this long before and after the record.
 RANGE_AROUND = timedelta(minutes=5)
@@ -93,7 +92,7 @@ def _open_or_refuse(request: HttpRequest, record_id: str) -> OpenedRecord | Refu
 
 
 @owner_required
-@page_throttle("content")
+@page_throttle()
 @require_GET
 def record_detail(request: HttpRequest, record_id: str) -> HttpResponse:
     opened = _open_or_refuse(request, str(record_id))
@@ -195,7 +194,7 @@ def _local(moment: datetime) -> str:
 
 
 @owner_required
-@page_throttle("content")
+@page_throttle()
 @require_GET
 def record_raw(request: HttpRequest, record_id: str) -> HttpResponse:
     """The decrypted Fig. 4 JSON as a download, after the same integrity check."""
@@ -214,7 +213,7 @@ def _plain_refusal(message: str, status: int) -> HttpResponse:
 
 
 @owner_required
-@page_throttle("content", cost=GALLERY_COST)
+@page_throttle()
 @require_GET
 def record_gallery(request: HttpRequest, record_id: str) -> HttpResponse:
     """The images of an image record's topic captured in a time range, GALLERY_PER_PAGE a

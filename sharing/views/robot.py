@@ -38,8 +38,6 @@ from sharing.verification.access import PLOT_REFRESHES_COALESCED
 from sharing.verification.opening import OpenedRecord, records_open
 from sharing.views.completeness import completeness_shown
 
-# The page checks two records (the latest pose and image): what it costs the worker.
-ROBOT_PAGE_COST = 2
 # The trajectory plot shows this much of the recent past, and how often it adds the newer
 # records; it plots the whole window again as often as its refreshes begin a new access line.
 PLOT_WINDOW = timedelta(minutes=10)
@@ -63,7 +61,7 @@ class LatestShown:
 
 
 @owner_required
-@page_throttle("content", cost=ROBOT_PAGE_COST)
+@page_throttle()
 @require_GET
 def robot_page(request: HttpRequest, robot_id: uuid.UUID) -> HttpResponse:
     owner: Owner = request.owner

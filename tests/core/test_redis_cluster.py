@@ -1,7 +1,8 @@
 """The portal on a real Redis Cluster (three masters, redis-server from Debian), reached through
 REDIS_URL=redis+cluster://...: every script names the keys it touches and the keys of one
 script share a slot (hash tags), which a cluster requires and redis-py's cluster client checks;
-the locks, nonces, rate limits and Django's cache work on it; Celery's broker cannot be one."""
+the locks, nonces, rate limits, the budget of checks and Django's cache work on it; Celery's
+broker cannot be one."""
 
 import os
 import subprocess
@@ -22,6 +23,8 @@ from chainworker.work import ChainWorkNotReady, exclusive
 from core.redis_client import get_redis
 from core.redis_url import RedisUrlError, celery_redis
 from sharing import cache
+from sharing.errors import CheckBudgetExceeded
+from sharing.verification.budget import checks_charge, checks_refund
 from stack.anvil import free_port
 from stack.processes import PYTHON, REPO_ROOT
 from tests.launchers.redis_cluster import RedisCluster, start_redis_cluster
@@ -107,7 +110,7 @@ def test_locks_and_nonces_hold_on_a_cluster(on_cluster):
 
 def test_rate_limits_count_on_a_cluster(on_cluster, settings, rf):
     settings.PAGE_RATE_USER = "2/hour"
-    charged = [page_rate_charge(scope="page", user_id=7) for _ in range(3)]
+    charged = [page_rate_charge(user_id=7) for _ in range(3)]
     assert charged[:2] == [None, None]
     assert charged[2] > 0  # over the limit: the seconds until the window ends
     settings.REST_FRAMEWORK = {
@@ -123,6 +126,19 @@ def test_rate_limits_count_on_a_cluster(on_cluster, settings, rf):
         return AnonRateThrottle().allow_request(request, view=None)
 
     assert [allowed() for _ in range(3)] == [True, True, False]
+
+
+def test_the_budget_of_checks_counts_on_a_cluster(on_cluster, settings):
+    settings.CHECK_BUDGET = "5/day"
+    checks_charge(caller_id=7, records=3)
+    with pytest.raises(CheckBudgetExceeded):
+        checks_charge(caller_id=7, records=3)  # 2 left: refused, nothing taken
+    checks_charge(caller_id=7, records=2)
+    checks_refund(caller_id=7, records=1)
+    checks_charge(caller_id=7, records=1)
+    with pytest.raises(CheckBudgetExceeded):
+        checks_charge(caller_id=7, records=1)
+    checks_charge(caller_id=8, records=5)  # another caller's budget
 
 
 def test_djangos_cache_works_on_a_cluster(cluster, settings):
@@ -166,13 +182,13 @@ def test_a_cluster_that_does_not_answer_is_redis_unavailable(settings, tmp_path)
     makes it a ConnectionError, so what works without Redis goes on working (no 500)."""
     settings.PAGE_RATE_USER = "1/hour"
     settings.REDIS_URL = f"redis+cluster://127.0.0.1:{free_port()}"  # nobody there
-    assert page_rate_charge(scope="page", user_id=3) is None  # served uncounted
+    assert page_rate_charge(user_id=3) is None  # served uncounted
     assert cache.envelope_cache_get(str(uuid.uuid4())) is None  # a miss
     with start_redis_cluster(tmp_path / "cluster") as gone:
         settings.REDIS_URL = gone.url()
-        assert page_rate_charge(scope="page", user_id=3) is None
-        assert page_rate_charge(scope="page", user_id=3) > 0
+        assert page_rate_charge(user_id=3) is None
+        assert page_rate_charge(user_id=3) > 0
     # Stopped under a client that knew it.
-    assert page_rate_charge(scope="page", user_id=3) is None
+    assert page_rate_charge(user_id=3) is None
     with pytest.raises(redis.ConnectionError):
         get_redis().get("anything")

@@ -62,8 +62,8 @@ def test_caches_locks_and_rate_limits_work_through_sentinels(on_sentinels, senti
     ):
         pass
     settings.PAGE_RATE_USER = "1/hour"
-    assert page_rate_charge(scope="page", user_id=9) is None
-    assert page_rate_charge(scope="page", user_id=9) > 0
+    assert page_rate_charge(user_id=9) is None
+    assert page_rate_charge(user_id=9) > 0
     settings.CACHES = {
         "default": {
             "BACKEND": "core.redis_client.SharedRedisCache",

@@ -114,9 +114,9 @@ def _pages(resolver: URLResolver, prefix: str = "") -> list[str]:
 @pytest.fixture
 def owner_pages(client, make_robot, upload, settings):
     """The pages to fuzz, as paths, for a signed-in owner with records, a grant and a robot;
-    no page rate limit (the fuzz asks thousands of pages)."""
+    no page rate limit and no budget of checks (the fuzz asks thousands of pages)."""
     settings.PAGE_RATE_USER = ""
-    settings.PAGE_RATE_CONTENT = ""
+    settings.CHECK_BUDGET = ""
     alice = make_robot("alice")
     bob = make_robot("bob")
     pose = upload(alice, 1, plaintext=odometry("alice", 1.0, 2.0), data_type="nav_msgs/Odometry")

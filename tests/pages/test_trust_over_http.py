@@ -123,8 +123,9 @@ def test_hostile_odometry_is_no_500_and_pages_are_throttled_over_http(
     series = browser.get(f"{live_server.url}/api/v1/records/series/", params=around, timeout=60)
     assert series.status_code == 200
     assert series.json()["without_values"] == 1  # the hostile record: no value read from it
-    # Pages that run integrity checks are limited per user.
-    settings.PAGE_RATE_CONTENT = "2/minute"
+    # The records a user's pages have checked are limited per user (what is left of a day's
+    # budget of 2: the bucket keeps no more than its new size).
+    settings.CHECK_BUDGET = "2/day"
     answers = [
         browser.get(f"{live_server.url}/records/{later.pk}/", timeout=60).status_code
         for _ in range(3)

@@ -123,8 +123,8 @@ def test_an_unavailable_check_answers_503_for_the_plot(client, alice, upload, se
 # --- page rate limits -----------------------------------------------------------------------
 
 
-def test_pages_that_check_content_have_a_rate_per_user(client, alice, bob, upload, settings):
-    settings.PAGE_RATE_CONTENT = "3/day"
+def test_pages_that_check_content_draw_on_a_budget_per_user(client, alice, bob, upload, settings):
+    settings.CHECK_BUDGET = "3/day"
     record = upload(alice, 1, plaintext=odometry("alice", 0, 0))
     client.force_login(alice.owner.user)
     for name in ("record-detail", "record-raw", "record-detail"):
