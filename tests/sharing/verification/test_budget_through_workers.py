@@ -25,7 +25,9 @@ pytestmark = [
 ]
 
 # A check task's end in the worker's log (Celery's own lines; results are not logged).
-VERIFY_ENDED = re.compile(r"Task sharing\.tasks\.(?:records|series)_verify\[[^\]]+\] (succeeded|raised|retry)")
+VERIFY_ENDED = re.compile(
+    r"Task sharing\.tasks\.(?:records|series)_verify\[[^\]]+\] (succeeded|raised|retry)"
+)
 SKIPPED = "its read stopped waiting"
 
 
