@@ -91,6 +91,11 @@ def test_approving_a_pairing_that_names_another_owners_robot_key_is_refused(
     assert AccountEvent.objects.filter(
         owner=mallory, kind=AccountEvent.Kind.ROBOT_KEY_TAKEN
     ).exists()
+    assert "its key is another owner" in client.get(reverse("security")).content.decode()
+    client.force_login(setup.owner.user)
+    page = client.get(reverse("security")).content.decode()
+    assert "claimed by another owner" in page
+    assert mallory.eoa_address in page
     # The service refuses as the page does; alice's robot goes on as before.
     with pytest.raises(RobotKeyTaken, match="remove its key file"):
         robot_pairing_answer(owner=mallory, code=pairing.code, approve=True, actor=mallory.user)
