@@ -4,15 +4,38 @@ from django.db import migrations, models
 
 
 class Migration(migrations.Migration):
-
     dependencies = [
-        ('accounts', '0009_owner_name_skeleton'),
+        ("accounts", "0009_owner_name_skeleton"),
     ]
 
     operations = [
         migrations.AlterField(
-            model_name='accountevent',
-            name='kind',
-            field=models.CharField(choices=[('admin_action', 'an operator changed the account'), ('identity_mismatch', 'the key commitment on chain differs'), ('token_created', 'API token created'), ('token_revoked', 'API token revoked'), ('robot_token_revoked', 'robot token revoked'), ('robot_paired', 'robot paired'), ('robot_pairing_refused', 'robot pairing refused'), ('robot_key_taken', "robot pairing refused: its key is another owner's robot's"), ('pairing_secret_mismatch', "someone without the robot's secret asked for its pairing answer"), ('signup_approved', 'sign-up approved'), ('signup_refused', 'sign-up refused'), ('records_deleted', 'records deleted'), ('retention_set', "robot's retention changed"), ('account_deleted', 'account deleted')], max_length=32),
+            model_name="accountevent",
+            name="kind",
+            field=models.CharField(
+                choices=[
+                    ("admin_action", "an operator changed the account"),
+                    ("identity_mismatch", "the key commitment on chain differs"),
+                    ("token_created", "API token created"),
+                    ("token_revoked", "API token revoked"),
+                    ("robot_token_revoked", "robot token revoked"),
+                    ("robot_paired", "robot paired"),
+                    ("robot_pairing_refused", "robot pairing refused"),
+                    (
+                        "robot_key_taken",
+                        "robot pairing refused: its key is another owner's robot's",
+                    ),
+                    (
+                        "pairing_secret_mismatch",
+                        "someone without the robot's secret asked for its pairing answer",
+                    ),
+                    ("signup_approved", "sign-up approved"),
+                    ("signup_refused", "sign-up refused"),
+                    ("records_deleted", "records deleted"),
+                    ("retention_set", "robot's retention changed"),
+                    ("account_deleted", "account deleted"),
+                ],
+                max_length=32,
+            ),
         ),
     ]

@@ -4,20 +4,45 @@ from django.db import migrations, models
 
 
 class Migration(migrations.Migration):
-
     dependencies = [
-        ('alerts', '0002_records_missing'),
+        ("alerts", "0002_records_missing"),
     ]
 
     operations = [
         migrations.AlterField(
-            model_name='alert',
-            name='kind',
-            field=models.CharField(choices=[('record_tampered', 'A record was found tampered'), ('anchoring_failed', 'Anchoring failed'), ('grant_received', 'Someone granted you access'), ('grant_revoked', 'Someone revoked your access'), ('robot_silent', 'A robot went silent'), ('gas_low', 'Your account is low on gas'), ('records_missing', 'Records of a robot are missing'), ('robot_key_disputed', "A robot's key is claimed by another owner"), ('test', 'A test alert')], max_length=32),
+            model_name="alert",
+            name="kind",
+            field=models.CharField(
+                choices=[
+                    ("record_tampered", "A record was found tampered"),
+                    ("anchoring_failed", "Anchoring failed"),
+                    ("grant_received", "Someone granted you access"),
+                    ("grant_revoked", "Someone revoked your access"),
+                    ("robot_silent", "A robot went silent"),
+                    ("gas_low", "Your account is low on gas"),
+                    ("records_missing", "Records of a robot are missing"),
+                    ("robot_key_disputed", "A robot's key is claimed by another owner"),
+                    ("test", "A test alert"),
+                ],
+                max_length=32,
+            ),
         ),
         migrations.AlterField(
-            model_name='alertcondition',
-            name='kind',
-            field=models.CharField(choices=[('record_tampered', 'A record was found tampered'), ('anchoring_failed', 'Anchoring failed'), ('grant_received', 'Someone granted you access'), ('grant_revoked', 'Someone revoked your access'), ('robot_silent', 'A robot went silent'), ('gas_low', 'Your account is low on gas'), ('records_missing', 'Records of a robot are missing'), ('robot_key_disputed', "A robot's key is claimed by another owner"), ('test', 'A test alert')], max_length=32),
+            model_name="alertcondition",
+            name="kind",
+            field=models.CharField(
+                choices=[
+                    ("record_tampered", "A record was found tampered"),
+                    ("anchoring_failed", "Anchoring failed"),
+                    ("grant_received", "Someone granted you access"),
+                    ("grant_revoked", "Someone revoked your access"),
+                    ("robot_silent", "A robot went silent"),
+                    ("gas_low", "Your account is low on gas"),
+                    ("records_missing", "Records of a robot are missing"),
+                    ("robot_key_disputed", "A robot's key is claimed by another owner"),
+                    ("test", "A test alert"),
+                ],
+                max_length=32,
+            ),
         ),
     ]

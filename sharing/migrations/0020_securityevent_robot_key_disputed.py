@@ -4,15 +4,33 @@ from django.db import migrations, models
 
 
 class Migration(migrations.Migration):
-
     dependencies = [
-        ('sharing', '0019_securityevent_topic_seq_reused'),
+        ("sharing", "0019_securityevent_topic_seq_reused"),
     ]
 
     operations = [
         migrations.AlterField(
-            model_name='securityevent',
-            name='kind',
-            field=models.CharField(choices=[('tampered_on_view', 'stored data differs from the chain'), ('chain_digest_mismatch', 'chain holds another digest for the id'), ('forged_upload', 'upload refused as forged'), ('sequence_conflict', "a robot's sequence number used for other data"), ('unsigned_upload', "a paired robot's upload without a signature"), ('foreign_signer', "upload signed by a key that is not the robot's"), ('bad_signature', 'upload whose signature does not match its content'), ('topic_seq_reused', "a robot's record number on a topic (topic_seq) used again"), ('robot_key_disputed', "a robot's key claimed by another owner, in a pairing or on chain")], max_length=32),
+            model_name="securityevent",
+            name="kind",
+            field=models.CharField(
+                choices=[
+                    ("tampered_on_view", "stored data differs from the chain"),
+                    ("chain_digest_mismatch", "chain holds another digest for the id"),
+                    ("forged_upload", "upload refused as forged"),
+                    ("sequence_conflict", "a robot's sequence number used for other data"),
+                    ("unsigned_upload", "a paired robot's upload without a signature"),
+                    ("foreign_signer", "upload signed by a key that is not the robot's"),
+                    ("bad_signature", "upload whose signature does not match its content"),
+                    (
+                        "topic_seq_reused",
+                        "a robot's record number on a topic (topic_seq) used again",
+                    ),
+                    (
+                        "robot_key_disputed",
+                        "a robot's key claimed by another owner, in a pairing or on chain",
+                    ),
+                ],
+                max_length=32,
+            ),
         ),
     ]
