@@ -251,7 +251,7 @@ def robot_key_disputed_alert(
 ) -> Alert | None:
     """Another account claims the key of the owner's robot: a pairing by another owner naming
     it was refused (`where` "pairing"), or the chain names that account as the key's first
-    owner (`where` "chain"). Once per robot, ever."""
+    owner (`where` "chain"). Once per robot and `where`, ever."""
     if where == "chain":
         summary = (
             f"The chain names {claimant_eoa} as the first account to register the key of your "
