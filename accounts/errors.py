@@ -119,6 +119,14 @@ class PairingSecretMismatch(AccountError):
     http_status = 403
 
 
+class RobotKeyTaken(AccountError):
+    """A pairing request names a key another owner's robot has (in the portal, or first on
+    chain): a key is its registering owner's, so the approval is refused (issue 46)."""
+
+    code = "robot_key_taken"
+    http_status = 409
+
+
 class RobotNotPaired(AccountError):
     """A robot added by hand has no SM2 key to send its owner's key to: pair it instead."""
 

@@ -282,6 +282,10 @@ class AccountEvent(models.Model):
         ROBOT_TOKEN_REVOKED = "robot_token_revoked", "robot token revoked"
         ROBOT_PAIRED = "robot_paired", "robot paired"
         ROBOT_PAIRING_REFUSED = "robot_pairing_refused", "robot pairing refused"
+        ROBOT_KEY_TAKEN = (
+            "robot_key_taken",
+            "robot pairing refused: its key is another owner's robot's",
+        )
         PAIRING_SECRET_MISMATCH = (
             "pairing_secret_mismatch",
             "someone without the robot's secret asked for its pairing answer",

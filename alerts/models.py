@@ -17,6 +17,7 @@ class AlertKind(models.TextChoices):
     ROBOT_SILENT = "robot_silent", "A robot went silent"
     GAS_LOW = "gas_low", "Your account is low on gas"
     RECORDS_MISSING = "records_missing", "Records of a robot are missing"
+    ROBOT_KEY_DISPUTED = "robot_key_disputed", "A robot's key is claimed by another owner"
     TEST = "test", "A test alert"
 
 

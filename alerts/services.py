@@ -240,6 +240,46 @@ def records_missing_alert(
     )
 
 
+def robot_key_disputed_alert(
+    *,
+    owner: Owner,
+    robot_id: uuid.UUID | str,
+    robot: str,
+    key_hash: str,
+    claimant_eoa: str,
+    where: str,
+) -> Alert | None:
+    """Another account claims the key of the owner's robot: a pairing by another owner naming
+    it was refused (`where` "pairing"), or the chain names that account as the key's first
+    owner (`where` "chain"). Once per robot and `where`, ever."""
+    if where == "chain":
+        summary = (
+            f"The chain names {claimant_eoa} as the first account to register the key of your "
+            f"robot {robot}. The portal and authros-verify check your records against your own "
+            "registration (robotKeyOfOwner) and still verify them; a verifier that reads only "
+            "robotKeyOf would not. Pair the robot with a new key if you did not expect this."
+        )
+    else:
+        summary = (
+            f"Another owner ({claimant_eoa}) tried to pair a robot with the key of your robot "
+            f"{robot}; the portal refused it. Your robot and its records are not affected."
+        )
+    return alert_raise(
+        owner=owner,
+        kind=AlertKind.ROBOT_KEY_DISPUTED,
+        subject=f"{robot_id}:{where}",
+        summary=summary,
+        detail={
+            "robot": str(robot_id),
+            "name": robot,
+            "key_hash": key_hash,
+            "claimed_by": claimant_eoa,
+            "where": where,
+        },
+        once=True,
+    )
+
+
 def alert_test_send(*, owner: Owner) -> Alert:
     """A test alert to every channel the owner set up, to check a receiver."""
     alert = alert_raise(

@@ -66,6 +66,19 @@ ROBOT_KEY_OF = {
     "stateMutability": "view",
     "type": "function",
 }
+ROBOT_KEY_OF_OWNER = {
+    "inputs": [
+        {"internalType": "address", "name": "owner", "type": "address"},
+        {"internalType": "bytes32", "name": "keyHash", "type": "bytes32"},
+    ],
+    "name": "robotKeyOfOwner",
+    "outputs": [
+        {"internalType": "uint64", "name": "addedBlock", "type": "uint64"},
+        {"internalType": "uint64", "name": "revokedBlock", "type": "uint64"},
+    ],
+    "stateMutability": "view",
+    "type": "function",
+}
 ROBOT_KEY_ADDED = {
     "anonymous": False,
     "inputs": [
@@ -89,6 +102,7 @@ ABI = [
     ROOT_OF,
     DATA_QUERY,
     ROBOT_KEY_OF,
+    ROBOT_KEY_OF_OWNER,
     ROOT_ANCHORED,
     DATA_UPLOADED,
     ROBOT_KEY_ADDED,

@@ -6,7 +6,7 @@ from typing import Any
 import requests
 from eth_abi import decode as abi_decode
 from web3 import Web3
-from web3.exceptions import TransactionNotFound, Web3Exception
+from web3.exceptions import ContractLogicError, TransactionNotFound, Web3Exception
 
 from authros_verify.abi import (
     ABI,
@@ -37,8 +37,9 @@ class AnchoredRecord:
 
 @dataclass(frozen=True)
 class RobotKey:
-    """A robot's signing key as the contract holds it (robotKeyOf): the EOA that added it
-    (None: never added), the block it was added in, the block it was revoked in (None: live)."""
+    """A robot's signing key as the contract holds it for one owner (robotKeyOfOwner) or for
+    its first owner (robotKeyOf): the EOA that added it (None: never added), the block it was
+    added in, the block it was revoked in (None: live)."""
 
     owner: str | None
     added_block: int
@@ -149,6 +150,24 @@ class ChainReader:
             )
 
         return self._once(("robotKeyOf", contract, key_hash), ask)
+
+    def robot_key_of_owner(self, contract: str, owner: str, key_hash: bytes) -> RobotKey:
+        """The key as `owner` registered it (robotKeyOfOwner): owner None if `owner` never
+        added it, whoever else did. A contract from before per-owner keys has robotKeyOf
+        alone: its answer then, when it names `owner`."""
+        owner = Web3.to_checksum_address(owner)
+
+        def ask() -> RobotKey:
+            functions = self._contract(contract).functions
+            try:
+                added, revoked = functions.robotKeyOfOwner(owner, key_hash).call()
+            except ContractLogicError:  # no such function in that deployment
+                first = self.robot_key_of(contract, key_hash)
+                named = first.owner is not None and first.owner.lower() == owner.lower()
+                return first if named else RobotKey(None, 0, None)
+            return RobotKey(owner if int(added) else None, int(added), int(revoked) or None)
+
+        return self._once(("robotKeyOfOwner", contract, owner, key_hash), ask)
 
     def robot_key_events(
         self, contract: str, owner: str, *, from_block: int = 0

@@ -3,9 +3,10 @@
 A record is genuine when, beyond its anchoring (authros_verify/anchor.py): the header of its
 anchored envelope names `signer` and `sig`; SM3 of the given public key is `signer`; the SM2
 signature verifies over the header and the record's plaintext (smcrypto.provenance); and
-`robotKeyOf(signer)` names the record's owner, added at or before the record's anchoring block
-and not revoked by then. Each failure is an Invalid whose `check` is `signature` or
-`robotKeyOf`.
+the record's owner registered the key (`robotKeyOfOwner(owner, signer)`: another owner's
+registration of the same key counts for nothing), at or before the record's anchoring block,
+and had not revoked it by then. Each failure is an Invalid whose `check` is `signature` or
+`robotKeyOf` (the name the check has always been reported under).
 
 Whether a record is signed, and v1 or v2, is read from that header alone (`sig_size` present:
 v2, one signature over its upload batch), never from what a bundle or an answer says of it.
@@ -95,17 +96,13 @@ def signature_check(
 def robot_key_check(
     chain: ChainReader, *, contract: str, signer: str, owner: str, block: int
 ) -> None:
-    """robotKeyOf(signer) names `owner`, and the key was live when the record was anchored
-    in `block`."""
-    key = chain.robot_key_of(contract, bytes.fromhex(signer))
+    """`owner` registered the key (robotKeyOfOwner), and it was live when the record was
+    anchored in `block`."""
+    key = chain.robot_key_of_owner(contract, owner, bytes.fromhex(signer))
     if key.owner is None:
         raise Invalid(
-            f"its robot key {signer} was never registered on chain (robotKeyOf names no owner)",
-            check="robotKeyOf",
-        )
-    if key.owner.lower() != owner.lower():
-        raise Invalid(
-            f"its robot key is registered on chain by {key.owner}, not by its owner {owner}",
+            f"its robot key {signer} was never registered on chain by its owner {owner} "
+            "(robotKeyOfOwner)",
             check="robotKeyOf",
         )
     if not key.live_at(block):

@@ -89,7 +89,8 @@ class AuthROSChain(TransactionSender):
         )
         self._address: str | None = None
         self._contract: Any = None
-        self._scoped_grants: dict[str, bool] = {}  # contract address -> has grantOf
+        # (contract address, view function) -> whether that deployment has it
+        self._functions: dict[tuple[str, str], bool] = {}
         if contract_address:
             self.use_contract(contract_address)
 
@@ -328,11 +329,29 @@ class AuthROSChain(TransactionSender):
         return bytes(self._read("lastRootOf", Web3.to_checksum_address(sender))[0])
 
     def robot_key_of(self, key_hash: bytes) -> RobotKeyOnChain:
-        """A robot key by its hash (the check of every signed record); owner None when no EOA
-        ever added it."""
+        """A robot key by its hash as its first owner registered it (robotKeyOf); owner None
+        when no EOA ever added it. Checks ask robot_key_of_owner, with the record's owner."""
         owner, added, revoked = self._read("robotKeyOf", bytes32(key_hash))
         return RobotKeyOnChain(
             owner=None if int(owner, 16) == 0 else owner,
+            added_block=int(added),
+            revoked_block=int(revoked) or None,
+        )
+
+    def robot_key_of_owner(self, key_hash: bytes, *, owner: str) -> RobotKeyOnChain:
+        """A robot key as `owner` registered it (robotKeyOfOwner: the check of every signed
+        record, asked with the record's owner); owner None when `owner` never added it,
+        whoever else did. On a deployment from before per-owner keys, robotKeyOf's answer
+        when it names `owner`."""
+        owner = Web3.to_checksum_address(owner)
+        if not self.has_owner_robot_keys():
+            first = self.robot_key_of(key_hash)
+            if first.owner is not None and first.owner.lower() == owner.lower():
+                return first
+            return RobotKeyOnChain(owner=None, added_block=0, revoked_block=None)
+        added, revoked = self._read("robotKeyOfOwner", owner, bytes32(key_hash))
+        return RobotKeyOnChain(
+            owner=owner if int(added) else None,
             added_block=int(added),
             revoked_block=int(revoked) or None,
         )
@@ -356,17 +375,27 @@ class AuthROSChain(TransactionSender):
     def has_scoped_grants(self) -> bool:
         """Whether the contract in use has grantOf and authorityGrantScoped: a deployment made
         before them has not (docs/grants.md says how to upgrade). Asked once per address."""
-        address = self.address
-        if address not in self._scoped_grants:
+        return self._has_function("grantOf", ZERO_ADDRESS, ZERO_ADDRESS)
+
+    def has_owner_robot_keys(self) -> bool:
+        """Whether the contract in use keeps robot keys per owner (robotKeyOfOwner): a
+        deployment made before issue 46 has robotKeyOf alone. Asked once per address."""
+        return self._has_function("robotKeyOfOwner", ZERO_ADDRESS, bytes(32))
+
+    def _has_function(self, function: str, *probe: Any) -> bool:
+        """Whether the view `function` answers `probe` on the contract in use (the code of an
+        older deployment reverts: no such function); asked once per address."""
+        wanted = (self.address, function)
+        if wanted not in self._functions:
             try:
-                self._read("grantOf", ZERO_ADDRESS, ZERO_ADDRESS)
+                self._read(function, *probe)
             except (ChainUnavailable, ContractNotDeployed):
                 raise
             except ChainError:  # the old code reverts: no such function
-                self._scoped_grants[address] = False
+                self._functions[wanted] = False
             else:
-                self._scoped_grants[address] = True
-        return self._scoped_grants[address]
+                self._functions[wanted] = True
+        return self._functions[wanted]
 
     def is_enrolled(self, eoa: str) -> bool:
         return bool(self._read("isEnrolled", Web3.to_checksum_address(eoa))[0])

@@ -137,9 +137,9 @@ class OnChainGrant:
 
 @dataclass(frozen=True)
 class RobotKeyOnChain:
-    """A robot's signing key as the contract holds it (robotKeyOf): the EOA that added it
-    (None: never added), the block it was added in and the block it was revoked in (None:
-    live)."""
+    """A robot's signing key as the contract holds it (robotKeyOfOwner, or robotKeyOf for its
+    first owner): the EOA that added it (None: never added), the block it was added in and
+    the block it was revoked in (None: live)."""
 
     owner: str | None
     added_block: int

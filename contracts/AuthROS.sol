@@ -30,10 +30,18 @@ contract AuthROS {
     }
 
     /// @dev A robot's signing key (DESIGN.md "Provenance"), keyed by SM3 of its public key
-    /// `x||y`: the EOA that added it and the blocks of its addition and revocation (0 = live).
-    /// owner == 0 means "never added"; an entry is never deleted, so a key hash is added once.
+    /// `x||y`: the first EOA that added it and the blocks of that addition and its revocation
+    /// (0 = live). owner == 0 means "never added". What robotKeyOf answers, for old readers.
     struct RobotKey {
         address owner;
+        uint64 addedBlock;
+        uint64 revokedBlock;
+    }
+
+    /// @dev A robot key as one owner registered it: the blocks of its addition and revocation
+    /// (0 = live); addedBlock == 0 means "this owner never added it". Never deleted, so an
+    /// owner adds a key hash once; another owner's entry neither blocks nor replaces it.
+    struct OwnerRobotKey {
         uint64 addedBlock;
         uint64 revokedBlock;
     }
@@ -68,6 +76,9 @@ contract AuthROS {
     /// @dev The terms of a grant: its scope commitment (0 = all records) and expiry (0 = none).
     mapping(address owner => mapping(address grantee => GrantTerms)) private _terms;
     mapping(bytes32 keyHash => RobotKey) private _robotKeys;
+    /// @dev Robot keys by registering owner (issue 46): what a record's check asks, with the
+    /// record's owner, so a key another owner registered first cannot take over its records.
+    mapping(address owner => mapping(bytes32 keyHash => OwnerRobotKey)) private _ownerRobotKeys;
 
     event Enrolled(address indexed eoa);
     event Registered(address indexed eoa, bytes32 commitment);
@@ -117,6 +128,8 @@ contract AuthROS {
     error WrongPublicKeyLength(uint256 length, uint256 expected);
     error RobotKeyExists(bytes32 keyHash);
     error RobotKeyUnknown(bytes32 keyHash);
+    /// @dev Raised by deployments from before per-owner robot keys (a revocation by an EOA
+    /// other than the key's first owner); kept so that their refusals still decode.
     error NotRobotKeyOwner(bytes32 keyHash, address caller);
     error RobotKeyAlreadyRevoked(bytes32 keyHash);
 
@@ -256,27 +269,36 @@ contract AuthROS {
     /// @notice Register the public key (`x||y`, 64 bytes) a robot of the caller signs its
     /// records with, under `keyHash` = SM3(publicKey). SM3 costs too much gas to compute here,
     /// so the hash is not checked against the key: a verifier hashes the key it is given.
-    /// A hash is added once, ever: a revoked key cannot come back, nor be taken by another.
+    /// Keys are kept per owner: an owner adds a hash once, ever (a revoked key cannot come
+    /// back), and whatever another owner registered under the same hash changes nothing of
+    /// it. robotKeyOf keeps the first owner that added the hash, for readers from before.
     function robotKeyAdd(bytes32 keyHash, bytes calldata publicKey) external onlyRegistered {
         if (keyHash == 0) revert EmptyKeyHash();
         if (publicKey.length != ROBOT_PUBLIC_KEY_LENGTH) {
             revert WrongPublicKeyLength(publicKey.length, ROBOT_PUBLIC_KEY_LENGTH);
         }
-        RobotKey storage key = _robotKeys[keyHash];
-        if (key.owner != address(0)) revert RobotKeyExists(keyHash);
-        key.owner = msg.sender;
-        key.addedBlock = uint64(block.number);
+        OwnerRobotKey storage mine = _ownerRobotKeys[msg.sender][keyHash];
+        if (mine.addedBlock != 0) revert RobotKeyExists(keyHash);
+        uint64 blockNumber = uint64(block.number);
+        mine.addedBlock = blockNumber;
+        RobotKey storage first = _robotKeys[keyHash];
+        if (first.owner == address(0)) {
+            first.owner = msg.sender;
+            first.addedBlock = blockNumber;
+        }
         emit RobotKeyAdded(msg.sender, keyHash, publicKey);
     }
 
-    /// @notice Revoke a robot key the caller added: records anchored from this block on no
-    /// longer count as signed by it.
+    /// @notice Revoke a robot key the caller added: records of the caller anchored from this
+    /// block on no longer count as signed by it. Another owner's entry is left as it is.
     function robotKeyRevoke(bytes32 keyHash) external {
-        RobotKey storage key = _robotKeys[keyHash];
-        if (key.owner == address(0)) revert RobotKeyUnknown(keyHash);
-        if (key.owner != msg.sender) revert NotRobotKeyOwner(keyHash, msg.sender);
-        if (key.revokedBlock != 0) revert RobotKeyAlreadyRevoked(keyHash);
-        key.revokedBlock = uint64(block.number);
+        OwnerRobotKey storage mine = _ownerRobotKeys[msg.sender][keyHash];
+        if (mine.addedBlock == 0) revert RobotKeyUnknown(keyHash);
+        if (mine.revokedBlock != 0) revert RobotKeyAlreadyRevoked(keyHash);
+        uint64 blockNumber = uint64(block.number);
+        mine.revokedBlock = blockNumber;
+        RobotKey storage first = _robotKeys[keyHash];
+        if (first.owner == msg.sender) first.revokedBlock = blockNumber;
         emit RobotKeyRevoked(msg.sender, keyHash);
     }
 
@@ -341,8 +363,21 @@ contract AuthROS {
         return (r.size, r.time, r.blockNumber);
     }
 
-    /// @notice A robot key: the EOA that added it (zero if none did), the block it was added
-    /// in, and the block it was revoked in (0 while live).
+    /// @notice A robot key as `owner` registered it: the block it was added in (0: `owner`
+    /// never added it) and the block it was revoked in (0 while live). What a record's check
+    /// asks, with the record's owner (DESIGN.md "A record is genuine").
+    function robotKeyOfOwner(address owner, bytes32 keyHash)
+        external
+        view
+        returns (uint64 addedBlock, uint64 revokedBlock)
+    {
+        OwnerRobotKey storage key = _ownerRobotKeys[owner][keyHash];
+        return (key.addedBlock, key.revokedBlock);
+    }
+
+    /// @notice A robot key as its first owner registered it: that EOA (zero if none did), the
+    /// block it added it in, and the block it revoked it in (0 while live). Other owners may
+    /// have registered the same key since: robotKeyOfOwner answers for each.
     function robotKeyOf(bytes32 keyHash)
         external
         view

@@ -417,6 +417,11 @@ class SecurityEvent(models.Model):
             "topic_seq_reused",
             "a robot's record number on a topic (topic_seq) used again",
         )
+        # Issue 46: a robot key is its registering owner's; another owner claiming it is told.
+        ROBOT_KEY_DISPUTED = (
+            "robot_key_disputed",
+            "a robot's key claimed by another owner, in a pairing or on chain",
+        )
 
     kind = models.CharField(max_length=32, choices=Kind.choices)
     record = models.ForeignKey(Record, on_delete=models.SET_NULL, null=True, blank=True)

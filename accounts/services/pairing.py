@@ -26,6 +26,7 @@ from accounts.errors import (
     PairingNotFound,
     PairingRefused,
     PairingSecretMismatch,
+    RobotKeyTaken,
 )
 from accounts.events import account_event_record
 from accounts.models import AccountEvent, ChainState, Owner, Robot, RobotPairing
@@ -33,8 +34,10 @@ from accounts.selectors import (
     owner_key_bytes,
     owner_key_current,
     pairing_code_normalize,
+    robot_pairing_pending,
     robot_token_hash,
 )
+from accounts.services.robot_keys import robot_key_claimed_elsewhere, robot_key_disputed
 from accounts.services.robots import robot_create, robot_name_problem
 from core.outbox import enqueue
 from smcrypto import InvalidKey, provenance, sm2
@@ -104,8 +107,12 @@ def robot_pairing_answer(
 ) -> RobotPairing:
     """The owner approves (a robot named `name`, default the requested name, with its token
     kept encrypted to the robot's SM2 key until collected) or refuses the pending request
-    whose code the robot printed. A request is answered once: a second answer is refused."""
+    whose code the robot printed. A request is answered once: a second answer is refused.
+    Approving a request whose key is another owner's robot's is refused (RobotKeyTaken: the
+    request stays pending, unanswered)."""
     wanted = pairing_code_normalize(code)
+    if approve:
+        _robot_key_unclaimed_check(owner=owner, code=wanted, actor=actor)
     with transaction.atomic():
         pairing = RobotPairing.objects.select_for_update().filter(code=wanted).first()
         if pairing is None or (pairing.owner_id not in (None, owner.pk)):
@@ -155,6 +162,43 @@ def robot_pairing_answer(
             detail={**detail, "robot_id": str(robot.pk), "robot": robot.name},
         )
     return pairing
+
+
+def _robot_key_unclaimed_check(*, owner: Owner, code: str, actor: AbstractBaseUser | None) -> None:
+    """RobotKeyTaken if the pending request `code` names a key another owner has (issue 46:
+    any grantee reads a robot's public key in a proof answer, and a key is its registering
+    owner's). Told as a dispute (a SecurityEvent, the alert of the owner whose robot has the
+    key) and on the approver's security page; the request itself is left as it was."""
+    pairing = robot_pairing_pending(code=code)
+    if pairing is None or pairing.owner_id not in (None, owner.pk):
+        return  # the answer refuses it for what it is
+    key_hash = provenance.key_hash(pairing.public_key)
+    dispute = robot_key_claimed_elsewhere(owner=owner, key_hash=key_hash)
+    if dispute is None:
+        return
+    security_log.warning(
+        "pairing request %s: its key %s is another owner's robot key; %s's approval refused",
+        pairing.code,
+        key_hash,
+        owner,
+    )
+    with transaction.atomic():
+        account_event_record(
+            owner=owner,
+            kind=AccountEvent.Kind.ROBOT_KEY_TAKEN,
+            actor=actor,
+            detail={
+                "name": pairing.name,
+                "code": pairing.code,
+                "fingerprint": sm2.fingerprint(pairing.public_key),
+            },
+        )
+        robot_key_disputed(dispute)
+    raise RobotKeyTaken(
+        "this robot's key is already registered to another owner's robot, so it cannot be "
+        "paired with your account: on the robot, remove its key file (robot.sm2) and run its "
+        "pair command again to make a new key"
+    )
 
 
 def robot_pairing_collect(*, pairing_id: uuid.UUID, secret: str) -> PairingAnswer:

@@ -3,7 +3,8 @@ first key's commitment) and key rotations, in the order the keys were made.
 
 The tasks in accounts/tasks.py call these; chain_work_sweep queues again what waits too long
 (robots' keys of robot_keys.py too), and owners_reconcile and owners_chain_reset (run by
-sharing.services.reconcile) put back what the chain lost, robots' keys included. Once an owner is
+sharing.services.reconcile) put back what the chain lost, robots' keys included (robot_keys.py
+reads those back). Once an owner is
 registered, or one of its robots' keys is, the work that waited for it in the apps above
 accounts (sharing's anchoring) is started through the listeners they register here, so that
 accounts imports none of them.
@@ -207,8 +208,7 @@ def owners_reconcile(*, owners: Sequence[Owner]) -> dict[str, int]:
     are rotated in order). When the commitment on chain is an older key's than the newest
     confirmed one (rotations lost), the keys after it go back to pending and key_rotate is
     queued for each. Any other commitment on chain is the identity check's business: it is
-    called, and records the mismatch. Their robots' keys are read back too
-    (_robot_keys_reconcile).
+    called, and records the mismatch. Their robots' keys are robot_keys_reconcile's.
     """
     client = chain_client()
     counts = {"owners_checked": 0, "registrations_lost": 0, "rotations_lost": 0, "mismatches": 0}
@@ -235,65 +235,7 @@ def owners_reconcile(*, owners: Sequence[Owner]) -> dict[str, int]:
             owner_identity_check(owner=owner, fresh=True)
         except IdentityMismatch:
             counts["mismatches"] += 1
-    counts.update(_robot_keys_reconcile(client, owners))
     return counts
-
-
-def _robot_keys_reconcile(client: AuthROSChain, owners: Sequence[Owner]) -> dict[str, int]:
-    """The confirmed robot keys of these owners read back with robotKeyOf: a key the chain does
-    not know goes back to pending (its confirmed revocation with it) and robot_key_register is
-    queued (it queues the revocation once the key is back); a confirmed revocation the chain
-    does not show goes back to pending and robot_key_revoke is queued."""
-    robots = list(
-        Robot.objects.filter(
-            owner__in=[owner for owner in owners if owner.chain_state == ChainState.CONFIRMED],
-            key_chain_state=ChainState.CONFIRMED,
-        ).select_related("owner")
-    )
-    lost_keys: list[Robot] = []
-    lost_revocations: list[Robot] = []
-    for robot in robots:
-        on_chain = client.robot_key_of(bytes.fromhex(robot.key_hash))
-        if on_chain.owner is None:
-            lost_keys.append(robot)
-        elif robot.key_revoke_state == ChainState.CONFIRMED and on_chain.revoked_block is None:
-            lost_revocations.append(robot)
-    with transaction.atomic():
-        for robot in lost_keys:
-            fields: dict[str, object] = {
-                "key_chain_state": ChainState.PENDING,
-                "key_added_block": None,
-            }
-            if robot.key_revoke_state == ChainState.CONFIRMED:
-                fields["key_revoke_state"] = ChainState.PENDING
-            # Only rows still as we read them: one confirmed again meanwhile is left alone.
-            if Robot.objects.filter(pk=robot.pk, key_chain_state=ChainState.CONFIRMED).update(
-                **fields
-            ):
-                transaction.on_commit(
-                    lambda r=str(robot.pk): enqueue("accounts.tasks.robot_key_register", r)
-                )
-        for robot in lost_revocations:
-            if Robot.objects.filter(pk=robot.pk, key_revoke_state=ChainState.CONFIRMED).update(
-                key_revoke_state=ChainState.PENDING
-            ):
-                transaction.on_commit(
-                    lambda r=str(robot.pk): enqueue("accounts.tasks.robot_key_revoke", r)
-                )
-    # A chain that lost blocks lost the owners' transactions too: count from the node.
-    for eoa in sorted({robot.owner.eoa_address for robot in [*lost_keys, *lost_revocations]}):
-        client.resync_nonce(eoa)
-    if lost_keys or lost_revocations:
-        logger.warning(
-            "the chain lost %d robot key(s) and %d revocation(s): sending them again",
-            len(lost_keys),
-            len(lost_revocations),
-        )
-    return {
-        "robot_keys_checked": len(robots),
-        "robot_keys_lost": len(lost_keys),
-        "robot_key_revocations_lost": len(lost_revocations),
-    }
 
 
 def owners_chain_reset() -> list[int]:

@@ -49,7 +49,9 @@ class ProofSignatureSerializer(serializers.Serializer):
     public_key = serializers.CharField(help_text="the robot's SM2 public key, 04||x||y hex")
     sig = serializers.CharField(help_text="the SM2 signature r||s, hex (DESIGN.md Provenance)")
     key_owner = serializers.CharField(
-        allow_null=True, help_text="robotKeyOf(signer).owner: the EOA that registered the key"
+        allow_null=True,
+        help_text="the record's owner EOA when robotKeyOfOwner(owner, signer) says it registered "
+        "the key; null when it never did (whoever else did)",
     )
     key_added_block = serializers.IntegerField(allow_null=True)
     key_revoked_block = serializers.IntegerField(allow_null=True, help_text="null: live")
@@ -120,13 +122,14 @@ class RecordProofApi(APIView):
             "rootOf(sender, root) on the contract: its size must be tree_size. Record mode: "
             "dataQueryOf(owner, record id) holds the digest. `envelope` is the stored envelope and "
             "`signature` the robot's: SM3 of public_key must be signer, the SM2 signature over "
-            "the record's plaintext must hold (DESIGN.md Provenance), and robotKeyOf(signer) "
-            "must name the owner, added at or before the anchoring block and not revoked by "
-            "then. A v2 record (DESIGN.md Provenance v2) adds `batch` and `topic_seq`: its leaf "
-            "folded up `batch.sig_path` at `batch.sig_index` in a tree of `batch.sig_size` "
-            'gives `batch.root`, and `sig` holds over "AuthROS/batch-signature/v2" || 0x00 '
-            "|| sig_size (8 bytes, big-endian) || root. For the owner or a grantee (a session, "
-            "or an owner API token with the `read` scope)."
+            "the record's plaintext must hold (DESIGN.md Provenance), and "
+            "robotKeyOfOwner(owner, signer) must say the owner added the key at or before the "
+            "anchoring block and had not revoked it by then (robotKeyOf names only the first "
+            "owner that added it). A v2 record (DESIGN.md Provenance v2) adds `batch` and "
+            "`topic_seq`: its leaf folded up `batch.sig_path` at `batch.sig_index` in a tree "
+            'of `batch.sig_size` gives `batch.root`, and `sig` holds over "AuthROS/batch-'
+            'signature/v2" || 0x00 || sig_size (8 bytes, big-endian) || root. For the owner or '
+            "a grantee (a session, or an owner API token with the `read` scope)."
         ),
         auth=OWNER_ONLY,
         parameters=[RECORD_ID],

@@ -3,10 +3,12 @@
 A periodic job (`chain_reconcile`, Celery beat every RECONCILE_INTERVAL) first asks whether
 the node is still the chain the portal deployed on (chainworker.services.chain_identity):
 - the same chain: anchored records and Merkle roots (the recent ones every run, all of them
-  in chunks of RECONCILE_CHUNK with a cursor in Redis), owners' registration and keys, and
-  grants are read back from the chain. What the chain lacks goes back to pending and is sent
+  in chunks of RECONCILE_CHUNK with a cursor in Redis), owners' registration and keys, their
+  robots' keys (as each owner registered them: robotKeyOfOwner), and grants are read back
+  from the chain. What the chain lacks goes back to pending and is sent
   again by the normal tasks; another digest or owner under a record id, or another size
-  under a root, is a SecurityEvent;
+  under a root, is a SecurityEvent; so is a robot key whose first owner on chain is another
+  account (robot_key_dispute_record, with the owner's alert and an operator alert);
 - a reset chain (new genesis or chain id, no contract code): on a development chain the
   contract is deployed again and everything re-created from the database (`chain_resync`);
   on a real network nothing is sent (chain_work_check) and the operator is told.
@@ -25,6 +27,7 @@ from django.utils import timezone
 
 from accounts.models import ChainState, Owner
 from accounts.services.registration import owners_chain_reset, owners_reconcile
+from accounts.services.robot_keys import robot_keys_reconcile
 from chainworker.client import AuthROSChain
 from chainworker.services import (
     IDENTITY_RESET,
@@ -75,7 +78,9 @@ def chain_reconcile() -> dict[str, object]:
                 )
                 return {"identity": identity.state, **_resync()}
             counts: dict[str, object] = {"identity": identity.state}
-            counts.update(owners_reconcile(owners=_owners_window()))
+            owners = _owners_window()
+            counts.update(owners_reconcile(owners=owners))
+            counts.update(robot_keys_reconcile(owners=owners))
             counts.update(records_reconcile())
             counts.update(roots_reconcile())
             counts.update(grants_reconcile())

@@ -5,10 +5,10 @@ One run reads one chain head, checks access once per record owner (first, so tha
 without access learns nothing, not even that a record was deleted: grant_on_chain), the owner's
 identity once, then fetches every stored envelope left at once (Redis cache, else durable
 storage) and hashes each (SM3) against the chain: one `rootOf` per distinct Merkle root (the
-records of one tree share it), `robotKeyOf` once per signer, and every robot signature verified
-side by side on every core. Every verdict is written in bulk (an INSERT of prepared rows per
-batch the backend takes: core/rows.py) and points to its Access, the line the owner's access
-log shows (opened by the web for its reads, else here).
+records of one tree share it), `robotKeyOfOwner` once per signer and owner, and every robot
+signature verified side by side on every core. Every verdict is written in bulk (an INSERT of
+prepared rows per batch the backend takes: core/rows.py) and points to its Access, the line
+the owner's access log shows (opened by the web for its reads, else here).
 It hands back the bytes it checked, and for a reader in the same process (an export) the
 signed envelopes it opened, so that nothing is decrypted twice in one process.
 """
@@ -62,7 +62,8 @@ class Verification:
 
 class _ChainReads:
     """What one run of checks reads from the chain, each asked once in the run: the grant per
-    record owner, the owner's identity, `rootOf` per tree and `robotKeyOf` per signer; and
+    record owner, the owner's identity, `rootOf` per tree and `robotKeyOfOwner` per signer and
+    record owner; and
     the records' keys (to check a signature over the plaintext), unwrapped once per key."""
 
     def __init__(self, client: AuthROSChain) -> None:
@@ -71,7 +72,7 @@ class _ChainReads:
         self.grants: dict[int, Grant | None] = {}
         self.identified: set[int] = set()
         self.roots: dict[tuple[str, str], OnChainRoot | None] = {}
-        self.robot_keys: dict[str, RobotKeyOnChain] = {}
+        self.robot_keys: dict[tuple[str, str], RobotKeyOnChain] = {}
         # The signed envelopes the run opened to check their signatures, by record.
         self.opened: dict[uuid.UUID, tuple[dict, bytes]] = {}
 
@@ -91,10 +92,14 @@ class _ChainReads:
             self.roots[sender, root] = self.client.root_of(sender, bytes.fromhex(root))
         return self.roots[sender, root]
 
-    def robot_key_of(self, signer: str) -> RobotKeyOnChain:
-        if signer not in self.robot_keys:
-            self.robot_keys[signer] = self.client.robot_key_of(bytes.fromhex(signer))
-        return self.robot_keys[signer]
+    def robot_key_of(self, signer: str, *, owner: str) -> RobotKeyOnChain:
+        """The key as `owner` registered it: another owner's registration of it counts for
+        nothing (issue 46)."""
+        if (owner, signer) not in self.robot_keys:
+            self.robot_keys[owner, signer] = self.client.robot_key_of_owner(
+                bytes.fromhex(signer), owner=owner
+            )
+        return self.robot_keys[owner, signer]
 
 
 def records_verify(
@@ -263,7 +268,7 @@ def _provenance_claim(
 ) -> provenance.SignatureClaim | bool:
     """DESIGN.md "Provenance" (v1) and "Provenance v2": a paired robot's record (robot_signs)
     must be signed, its anchored envelope naming the robot's own key; that key is its owner's
-    on chain (robotKeyOf), added at or before the record's anchoring block and not revoked by
+    on chain (robotKeyOfOwner), added at or before the record's anchoring block and not revoked by
     then, and the signature holds over the decrypted content (v2: the record folds up its
     batch path to the root the batch's signature is over). The signature left to verify (a
     SignatureClaim, equal for the records of one batch, so that claims_hold verifies a batch
@@ -287,7 +292,7 @@ def _provenance_claim(
         return False
     if header.get("signer") != signer or not _row_agrees(record, header):
         return False  # unsigned (the audit's record written under a paired robot), or not its
-    on_chain = reads.robot_key_of(signer)
+    on_chain = reads.robot_key_of(signer, owner=record.owner.eoa_address)
     if not (
         on_chain.owner is not None
         and on_chain.owner.lower() == record.owner.eoa_address.lower()

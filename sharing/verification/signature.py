@@ -29,12 +29,15 @@ def signature_facts(record: Record, header: dict) -> dict[str, str] | None:
 
 def record_signature(record: Record, data: bytes, client: AuthROSChain) -> dict[str, Any] | None:
     """What a record's proof says of its robot signature: signature_facts of the stored
-    envelope, and the key's owner and blocks on chain (robotKeyOf); None for an unsigned
-    record."""
+    envelope, and the key's owner and blocks on chain as the record's owner registered it
+    (robotKeyOfOwner: key_owner is the record's owner EOA, or null when that owner never
+    registered the key, whoever else did); None for an unsigned record."""
     facts = signature_facts(record, envelope.read_header(data).header)
     if facts is None:
         return None
-    on_chain = client.robot_key_of(bytes.fromhex(facts["signer"]))
+    on_chain = client.robot_key_of_owner(
+        bytes.fromhex(facts["signer"]), owner=record.owner.eoa_address
+    )
     return {
         **facts,
         "key_owner": on_chain.owner,

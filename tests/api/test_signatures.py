@@ -201,8 +201,8 @@ def test_records_anchored_after_the_key_was_revoked_on_chain_are_not_genuine(
 
 
 def test_a_robot_whose_key_could_not_be_registered_is_refused(make_paired_robot, upload):
-    """Another account registered the robot's public key first (it is public): the robot's
-    records could never be genuine, so its uploads are refused until it is paired again."""
+    """The robot's key could never be added under its owner (the owner had revoked it before):
+    its records could never be genuine, so its uploads are refused until it is paired again."""
     setup = make_paired_robot("alice")
     type(setup.robot).objects.filter(pk=setup.robot.pk).update(key_chain_state=ChainState.FAILED)
     before = Snapshot()
@@ -219,8 +219,12 @@ def test_a_run_over_many_records_of_one_robot_asks_the_chain_for_its_key_once(
     envelopes = [setup.seal(seq) for seq in range(1, 4)]
     assert upload(token_client(setup.token), *envelopes).status_code == 201
     asked = []
-    real = deployed.robot_key_of
-    monkeypatch.setattr(deployed, "robot_key_of", lambda key: asked.append(key) or real(key))
+    real = deployed.robot_key_of_owner
+    monkeypatch.setattr(
+        deployed,
+        "robot_key_of_owner",
+        lambda key, *, owner: asked.append(key) or real(key, owner=owner),
+    )
     ids = list(Record.objects.values_list("pk", flat=True))
     verifications = records_verify(record_ids=ids, viewer_id=setup.owner.pk)
     assert [v.verdict.outcome for v in verifications] == [Verdict.Outcome.VERIFIED] * 3

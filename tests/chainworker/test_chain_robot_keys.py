@@ -2,10 +2,14 @@
 robot_key_of), against the session's anvil over the JSON-RPC path production runs."""
 
 import dataclasses
+import json
+from pathlib import Path
 
 import pytest
 from eth_account import Account
+from web3 import Web3
 
+from authros_verify.chain import ChainReader, RobotKey
 from chainworker.codec import RobotKeyOnChain
 from chainworker.errors import TransactionReverted
 from smcrypto import sm2, sm3
@@ -99,23 +103,17 @@ def test_refusals_carry_the_custom_error_name(chain, operator, registered_owner)
     assert "robotKeyAdd" in str(refused)
 
     chain.robot_key_add(registered_owner, key_hash, public_key)
-    for sender in (registered_owner, other):
-        refused = _refusal(chain.robot_key_add, sender, key_hash, public_key)
-        assert (refused.error_name, refused.error_args) == (
-            "RobotKeyExists",
-            {"keyHash": key_hash},
-        )
+    refused = _refusal(chain.robot_key_add, registered_owner, key_hash, public_key)
+    assert (refused.error_name, refused.error_args) == ("RobotKeyExists", {"keyHash": key_hash})
 
     refused = _refusal(chain.robot_key_revoke, registered_owner, unknown_hash)
     assert (refused.error_name, refused.error_args) == (
         "RobotKeyUnknown",
         {"keyHash": unknown_hash},
     )
+    # Keys are kept per owner: another EOA has none of its own to revoke.
     refused = _refusal(chain.robot_key_revoke, other, key_hash)
-    assert (refused.error_name, refused.error_args) == (
-        "NotRobotKeyOwner",
-        {"keyHash": key_hash, "caller": other.address},
-    )
+    assert (refused.error_name, refused.error_args) == ("RobotKeyUnknown", {"keyHash": key_hash})
 
     chain.robot_key_revoke(registered_owner, key_hash)
     refused = _refusal(chain.robot_key_revoke, registered_owner, key_hash)
@@ -125,6 +123,62 @@ def test_refusals_carry_the_custom_error_name(chain, operator, registered_owner)
     )
     refused = _refusal(chain.robot_key_add, registered_owner, key_hash, public_key)
     assert refused.error_name == "RobotKeyExists"  # a revoked key never comes back
+
+
+def test_keys_are_read_as_each_owner_registered_them(chain, operator, registered_owner):
+    """robot_key_of_owner answers for one owner (robotKeyOfOwner, what every check asks);
+    robot_key_of names the first owner, whoever registered the key after it."""
+    other = make_registered_owner(chain, operator)
+    key_hash, public_key = _robot_key()
+    assert chain.has_owner_robot_keys()
+    first = chain.robot_key_add(other, key_hash, public_key)
+
+    mine = chain.robot_key_add(registered_owner, key_hash, public_key)
+
+    assert chain.robot_key_of_owner(key_hash, owner=registered_owner.address) == (
+        RobotKeyOnChain(registered_owner.address, mine.block_number, None)
+    )
+    assert chain.robot_key_of_owner(key_hash, owner=other.address) == (
+        RobotKeyOnChain(other.address, first.block_number, None)
+    )
+    assert chain.robot_key_of(key_hash) == RobotKeyOnChain(other.address, first.block_number, None)
+    revoked = chain.robot_key_revoke(registered_owner, key_hash)
+    assert chain.robot_key_of_owner(key_hash, owner=registered_owner.address).revoked_block == (
+        revoked.block_number
+    )
+    assert chain.robot_key_of(key_hash).revoked_block is None  # the first owner's is live
+    stranger = Account.create().address
+    assert chain.robot_key_of_owner(key_hash, owner=stranger) == RobotKeyOnChain(None, 0, None)
+
+
+# The bytecode of contracts/build/AuthROS.json before per-owner robot keys (robotKeyOf alone).
+DEPLOYMENT_BEFORE_ISSUE_46 = (
+    Path(__file__).parents[1] / "support/AuthROS-before-robot-key-owners.json"
+)
+
+
+def test_a_deployment_from_before_per_owner_keys_is_read_through_robot_key_of(chain, operator):
+    """A network that still runs the older contract: the client and authros-verify find no
+    robotKeyOfOwner and read robotKeyOf, which counts for the owner it names only."""
+    bytecode = json.loads(DEPLOYMENT_BEFORE_ISSUE_46.read_text())["bytecode"]
+    deployed = chain.wait_for_receipt(
+        chain.send(operator, label="deploy", to=None, data=bytes.fromhex(bytecode[2:]))
+    )
+    chain.use_contract(deployed["contractAddress"])
+    owner, other = make_registered_owner(chain, operator), make_registered_owner(chain, operator)
+    key_hash, public_key = _robot_key()
+    added = chain.robot_key_add(owner, key_hash, public_key)
+
+    assert not chain.has_owner_robot_keys()
+    assert chain.robot_key_of_owner(key_hash, owner=owner.address) == RobotKeyOnChain(
+        owner.address, added.block_number, None
+    )
+    assert chain.robot_key_of_owner(key_hash, owner=other.address).owner is None
+    reader = ChainReader(Web3(Web3.HTTPProvider(chain.url)))
+    assert reader.robot_key_of_owner(chain.address, owner.address, key_hash) == RobotKey(
+        owner.address, added.block_number, None
+    )
+    assert reader.robot_key_of_owner(chain.address, other.address, key_hash).owner is None
 
 
 def test_a_key_the_contract_would_keep_wrong_is_refused_before_sending(chain, registered_owner):

@@ -40,6 +40,7 @@ FUNCTIONS = {
     "register(bytes32)",
     "robotKeyAdd(bytes32,bytes)",
     "robotKeyOf(bytes32)",
+    "robotKeyOfOwner(address,bytes32)",
     "robotKeyRevoke(bytes32)",
     "rootOf(address,bytes32)",
     "rotateKey(bytes32)",

@@ -1,5 +1,6 @@
 """Robot signing keys on chain (DESIGN.md "Provenance: robots sign what they capture"):
-robotKeyAdd, robotKeyRevoke, robotKeyOf, their events and every refusal."""
+robotKeyAdd, robotKeyRevoke, robotKeyOfOwner (keys kept per owner, issue 46), robotKeyOf (the
+first owner, for old readers), their events and every refusal."""
 
 import pytest
 from eth_utils import event_abi_to_log_topic
@@ -9,10 +10,11 @@ from smcrypto import sm2, sm3
 ZERO32 = b"\0" * 32
 ZERO_ADDRESS = "0x" + "00" * 20
 PUBLIC_KEY_LENGTH = 64
-# Adding: one new slot (owner, addedBlock) and an event carrying the 64-byte key (about 51,000);
-# revoking: one new slot (revokedBlock) and an event (about 48,000).
-ADD_GAS_CEILING = 60_000
-REVOKE_GAS_CEILING = 55_000
+# Adding: two new slots (the owner's entry; the first owner and addedBlock) and an event
+# carrying the 64-byte key (about 74,000); revoking: the owner's entry and the first owner's
+# revokedBlock, a new slot, and an event (about 54,000).
+ADD_GAS_CEILING = 80_000
+REVOKE_GAS_CEILING = 60_000
 
 
 def robot_key(n: int) -> tuple[bytes, bytes]:
@@ -143,27 +145,63 @@ def test_add_refuses_a_public_key_that_is_not_x_y(authros, alice, reverts, lengt
     assert authros.functions.robotKeyOf(key_hash).call() == [ZERO_ADDRESS, 0, 0]
 
 
-def test_add_refuses_a_known_key_hash_even_once_revoked(authros, alice, bob, send, reverts):
+def test_add_refuses_a_key_hash_the_owner_added_even_once_revoked(authros, alice, send, reverts):
     key_hash, public_key = KEY_1
     added = send(authros.functions.robotKeyAdd(key_hash, public_key), alice)
-    for caller in (alice, bob):
-        with reverts("RobotKeyExists", key_hash):
-            authros.functions.robotKeyAdd(key_hash, public_key).transact({"from": caller})
+    with reverts("RobotKeyExists", key_hash):
+        authros.functions.robotKeyAdd(key_hash, public_key).transact({"from": alice})
     # The same hash with another key is still the same hash: taken.
     with reverts("RobotKeyExists", key_hash):
-        authros.functions.robotKeyAdd(key_hash, KEY_2[1]).transact({"from": bob})
+        authros.functions.robotKeyAdd(key_hash, KEY_2[1]).transact({"from": alice})
 
     revoked = send(authros.functions.robotKeyRevoke(key_hash), alice)
 
-    # A revoked key never comes back, for its owner or anyone else.
-    for caller in (alice, bob):
-        with reverts("RobotKeyExists", key_hash):
-            authros.functions.robotKeyAdd(key_hash, public_key).transact({"from": caller})
-    assert authros.functions.robotKeyOf(key_hash).call() == [
-        alice,
+    # A revoked key never comes back for its owner.
+    with reverts("RobotKeyExists", key_hash):
+        authros.functions.robotKeyAdd(key_hash, public_key).transact({"from": alice})
+    blocks = [added["blockNumber"], revoked["blockNumber"]]
+    assert authros.functions.robotKeyOfOwner(alice, key_hash).call() == blocks
+    assert authros.functions.robotKeyOf(key_hash).call() == [alice, *blocks]
+
+
+def test_another_owner_s_registration_neither_blocks_nor_replaces_a_key(
+    authros, alice, bob, send, emitted
+):
+    """Issue 46: bob names alice's robot's key (any grantee reads it in a proof answer). Before
+    alice: her own registration still goes through; after: hers stays as it was. Each owner's
+    entry is its own; robotKeyOf keeps the first owner, whoever that was."""
+    key_hash, public_key = KEY_1
+    squat = send(authros.functions.robotKeyAdd(key_hash, public_key), bob)
+
+    added = send(authros.functions.robotKeyAdd(key_hash, public_key), alice)
+
+    assert emitted(added, "RobotKeyAdded") == [
+        {"owner": alice, "keyHash": key_hash, "publicKey": public_key}
+    ]
+    assert authros.functions.robotKeyOfOwner(alice, key_hash).call() == [added["blockNumber"], 0]
+    assert authros.functions.robotKeyOfOwner(bob, key_hash).call() == [squat["blockNumber"], 0]
+    assert authros.functions.robotKeyOf(key_hash).call() == [bob, squat["blockNumber"], 0]
+
+    # Each revokes its own entry only; the first owner's revocation shows in robotKeyOf.
+    revoked = send(authros.functions.robotKeyRevoke(key_hash), alice)
+    assert authros.functions.robotKeyOfOwner(alice, key_hash).call() == [
         added["blockNumber"],
         revoked["blockNumber"],
     ]
+    assert authros.functions.robotKeyOfOwner(bob, key_hash).call() == [squat["blockNumber"], 0]
+    assert authros.functions.robotKeyOf(key_hash).call() == [bob, squat["blockNumber"], 0]
+    gone = send(authros.functions.robotKeyRevoke(key_hash), bob)
+    assert authros.functions.robotKeyOf(key_hash).call() == [
+        bob,
+        squat["blockNumber"],
+        gone["blockNumber"],
+    ]
+
+
+def test_robot_key_of_owner_is_zero_for_an_owner_that_never_added_it(authros, alice, bob, send):
+    send(authros.functions.robotKeyAdd(*KEY_1), alice)
+    assert authros.functions.robotKeyOfOwner(bob, KEY_1[0]).call() == [0, 0]
+    assert authros.functions.robotKeyOfOwner(alice, KEY_2[0]).call() == [0, 0]
 
 
 def test_revoke_refuses_an_unknown_key(authros, alice, outsider, reverts):
@@ -174,13 +212,16 @@ def test_revoke_refuses_an_unknown_key(authros, alice, outsider, reverts):
         authros.functions.robotKeyRevoke(ZERO32).transact({"from": alice})
 
 
-def test_revoke_refuses_another_eoa(authros, alice, bob, admin, outsider, send, reverts):
+def test_revoke_refuses_an_eoa_that_did_not_add_the_key(
+    authros, alice, bob, admin, outsider, send, reverts
+):
     key_hash, public_key = KEY_1
     added = send(authros.functions.robotKeyAdd(key_hash, public_key), alice)
     for caller in (bob, admin, outsider):
-        with reverts("NotRobotKeyOwner", key_hash, caller):
+        with reverts("RobotKeyUnknown", key_hash):
             authros.functions.robotKeyRevoke(key_hash).transact({"from": caller})
     assert authros.functions.robotKeyOf(key_hash).call() == [alice, added["blockNumber"], 0]
+    assert authros.functions.robotKeyOfOwner(alice, key_hash).call() == [added["blockNumber"], 0]
 
 
 def test_revoke_refuses_twice(authros, alice, bob, send, reverts):
@@ -189,7 +230,7 @@ def test_revoke_refuses_twice(authros, alice, bob, send, reverts):
     revoked = send(authros.functions.robotKeyRevoke(key_hash), alice)
     with reverts("RobotKeyAlreadyRevoked", key_hash):
         authros.functions.robotKeyRevoke(key_hash).transact({"from": alice})
-    with reverts("NotRobotKeyOwner", key_hash, bob):
+    with reverts("RobotKeyUnknown", key_hash):
         authros.functions.robotKeyRevoke(key_hash).transact({"from": bob})
     assert authros.functions.robotKeyOf(key_hash).call()[2] == revoked["blockNumber"]
 
