@@ -27,6 +27,7 @@ SignatureInvalid whose `reason` names the check; `verify_header` is the yes or n
 verifies the signatures of a whole check on every core at once.
 """
 
+import functools
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -60,6 +61,7 @@ BATCH_SIGNATURE_DOMAIN = b"AuthROS/batch-signature/v2"
 _NOT_IN_LEAF = frozenset({"sig", *BATCH_FIELDS})
 
 
+@functools.lru_cache(maxsize=256)  # pure; a check names a few robot keys, each per record
 def key_hash(public_key_hex: str) -> str:
     """A robot key's hash, the `signer` of its records: SM3 of `x||y` as 64 lowercase hex.
     Takes `04||x||y` or `x||y`; InvalidKey if it is not a point on the SM2 curve."""
