@@ -19,6 +19,11 @@ Each distinct batch signature is verified once per export batch (EXPORT_BATCH re
 check (records_verify) hands the whole batch to provenance.claims_hold, which verifies each
 distinct claim once; an upload batch cut by an export batch's edge is verified once on each
 side.
+
+The check and the writing run side by side (issue 45): while batch k+1 is checked here, a
+forked process (`_Encoder`) makes batch k's ROS messages and bundle lines from its records as
+the check opened them; they are written here, in order. The forked process has no database,
+key or file of its own to touch; every record is still checked as a view checks it.
 """
 
 import base64
@@ -407,12 +412,12 @@ class _Encoder:
     gets each record opened and hands back bytes), else in the exporter itself."""
 
     def __init__(self) -> None:
-        forks = "fork" in multiprocessing.get_all_start_methods()
-        self._pool = (
-            multiprocessing.get_context("fork").Pool(1)
-            if forks and (os.cpu_count() or 1) > 1
-            else None
-        )
+        self._pool = None
+        if "fork" in multiprocessing.get_all_start_methods() and (os.cpu_count() or 1) > 1:
+            try:
+                self._pool = multiprocessing.get_context("fork").Pool(1)
+            except (AssertionError, OSError) as exc:  # a daemonic process, or no process left
+                logger.info("exports encoded in the exporter itself: %s", exc)
 
     def submit(self, items: list[_ToWrite]) -> Any:
         if self._pool is None:
