@@ -73,7 +73,16 @@ def export_main(argv: list[str]) -> int:
         help="fail on any gap in any stream, whatever reason the portal gives (a reason is "
         "its word, not signed), and on any record no stream counts (unsigned or v1)",
     )
+    parser.add_argument(
+        "--jobs",
+        type=int,
+        default=1,
+        metavar="N",
+        help="check the records in N processes (0: one per core); the report is the same",
+    )
     args = parser.parse_args(argv)
+    if args.jobs < 0:
+        parser.error("--jobs must be 0 or more")
     try:
         for given in (args.bundle, args.mcap):
             if given is not None and not given.is_file():
@@ -84,6 +93,7 @@ def export_main(argv: list[str]) -> int:
             mcap=args.mcap,
             contract=args.contract,
             chain_id=args.chain_id,
+            jobs=args.jobs or os.cpu_count() or 1,
         )
     except OSError as exc:
         print(f"cannot read: {exc}", file=sys.stderr)

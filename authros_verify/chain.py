@@ -1,11 +1,12 @@
 """What the check asks the chain, through web3; each answer asked once per run."""
 
+import functools
 from dataclasses import dataclass
 from typing import Any
 
 import requests
 from eth_abi import decode as abi_decode
-from web3 import Web3
+from web3 import HTTPProvider, Web3
 from web3.exceptions import ContractLogicError, TransactionNotFound, Web3Exception
 
 from authros_verify.abi import (
@@ -87,14 +88,31 @@ class Receipt:
             return bytes(digest)
         return None
 
-    def _events(self, contract: str, event: dict, *indexed: bytes) -> list[tuple]:
-        data_types = [item["type"] for item in event["inputs"] if not item["indexed"]]
-        wanted = (event_topic(event), *indexed)
-        return [
-            abi_decode(data_types, data)
-            for address, topics, data in self.logs
-            if address.lower() == contract.lower() and topics == wanted
-        ]
+    def _events(self, contract: str, event: dict, *indexed: bytes) -> tuple[tuple, ...]:
+        data_types = tuple(item["type"] for item in event["inputs"] if not item["indexed"])
+        topic = _TOPICS.get(event["name"]) or _TOPICS.setdefault(event["name"], event_topic(event))
+        return _events_decoded(self.logs, contract.lower(), data_types, topic, indexed)
+
+
+_TOPICS: dict[str, bytes] = {}  # topic[0] of each event, by name: keccak once per event
+
+
+# A receipt's logs decoded once for all the records anchored by its transaction (a tree's
+# records share it): a pure function of the chain's answer, never of a verdict.
+@functools.lru_cache(maxsize=1024)
+def _events_decoded(
+    logs: tuple[tuple[str, tuple[bytes, ...], bytes], ...],
+    contract: str,
+    data_types: tuple[str, ...],
+    topic: bytes,
+    indexed: tuple[bytes, ...],
+) -> tuple[tuple, ...]:
+    wanted = (topic, *indexed)
+    return tuple(
+        abi_decode(list(data_types), data)
+        for address, topics, data in logs
+        if address.lower() == contract and topics == wanted
+    )
 
 
 def _address_topic(address: str) -> bytes:
@@ -114,7 +132,25 @@ class ChainReader:
 
     @classmethod
     def from_url(cls, url: str, *, timeout: float = 30.0) -> "ChainReader":
-        return cls(Web3(Web3.HTTPProvider(url, request_kwargs={"timeout": timeout})))
+        provider = Web3.HTTPProvider(
+            url, request_kwargs={"timeout": timeout}, session=requests.Session()
+        )
+        return cls(Web3(provider))
+
+    def forked(self) -> "ChainReader":
+        """The reader for a forked process: the answers read so far, and for a node over HTTP
+        a connection of its own (a connection shared with the parent would mix answers)."""
+        provider = self.w3.provider
+        if not isinstance(provider, HTTPProvider):
+            return self  # in-process: the fork's copy is its own
+        own = HTTPProvider(
+            provider.endpoint_uri,
+            request_kwargs=dict(provider.get_request_kwargs()),
+            session=requests.Session(),
+        )
+        reader = ChainReader(Web3(own))
+        reader._cache = dict(self._cache)
+        return reader
 
     def chain_id(self) -> int:
         return self._once(("chain_id",), lambda: int(self.w3.eth.chain_id))

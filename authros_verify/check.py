@@ -15,8 +15,10 @@ not passed as unsigned. The records that hold are counted per stream by their si
 
 import io
 import json
+import multiprocessing
 import re
-from collections.abc import Iterable, Iterator
+from collections import deque
+from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -171,41 +173,59 @@ def verify(
     mcap: bytes | Path | IO[bytes] | None = None,
     contract: str | None = None,
     chain_id: int | None = None,
+    jobs: int = 1,
 ) -> Report:
     """Check the bundle (its bytes, or its path) and the MCAP file, if given (its bytes, its
     path, or a binary file at its start), against the chain.
 
     A bundle in its canonical form (every line its own, as the portal writes it) is read line
-    by line, twice (its form and digest, then each record), never held whole; one that is not
-    is read whole, so that the record whose line changed is named. The MCAP file is read as a
-    stream (`_mcap_messages`). `contract` and `chain_id` are what the verifier knows
-    independently (the portal's published contract); without them the bundle's own are
-    checked for consistency only. Raises ChainUnreachable if the node cannot be asked; OSError
-    if a file cannot be read.
+    by line, once: its head, then each record's line checked (its form, then the record) as
+    its bytes are hashed for `bundle_sm3`, never held whole; one that is not is read whole, so
+    that the record whose line changed is named. With `jobs` above 1 the records' lines are
+    checked by that many forked processes, the lines of one upload batch together (so that
+    its signature is still verified once), their results gathered in order: the same report
+    as one process's. The MCAP file is read as a stream (`_mcap_messages`). `contract` and
+    `chain_id` are what the verifier knows independently (the portal's published contract);
+    without them the bundle's own are checked for consistency only. Raises ChainUnreachable if
+    the node cannot be asked; OSError if a file cannot be read.
     """
     with _lines_of(bundle) as lines:
-        form = _form_read(lines)
-    if form is None:
-        data = bundle if isinstance(bundle, bytes) else bundle.read_bytes()
-        return _verify_whole(data, chain=chain, mcap=mcap, contract=contract, chain_id=chain_id)
-    report = Report()
-    document = form.head
-    if not form.digest_holds:
-        report.problems.append("the bundle's digest (bundle_sm3) does not match its content")
-    _check_fields(report, document)
-    head = _check_head(report, document, chain, contract, chain_id)
-    messages = _mcap_messages(report, document, mcap)
-
-    def entries() -> Iterator[tuple[RecordResult, Any]]:
-        with _lines_of(bundle) as lines:
-            for index, line in enumerate(_record_lines(lines)):
-                entry = _strict_json(line.removesuffix(b","))
-                result = RecordResult(index, str(entry.get("record")))
-                report.records.append(result)
-                yield result, entry
-
-    _check_records(report, entries(), document, head, chain, messages)
+        head = _head_read(lines)
+        if head is None:
+            return _verify_whole(
+                _bytes_of(bundle), chain=chain, mcap=mcap, contract=contract, chain_id=chain_id
+            )
+        report = Report()
+        _check_fields(report, head)
+        checker = _RecordChecker(
+            head=_check_head(report, head, chain, contract, chain_id),
+            chain=chain,
+            messages=_mcap_messages(report, head, mcap),
+            fields=RECORD_FIELDS_OF.get(head.get("format"), RECORD_FIELDS),
+        )
+        kept = _Kept(report)
+        scan = _Scan(head)
+        for outcomes, verified in _chunks_checked(checker, scan.chunks(lines), jobs):
+            for outcome in outcomes:
+                if outcome is None:  # a line not in its canonical form
+                    scan.canonical = False
+                    break
+                kept.add(outcome)
+            report.signatures_verified += verified
+            if not scan.canonical:
+                break
+    if not scan.canonical:
+        return _verify_whole(
+            _bytes_of(bundle), chain=chain, mcap=mcap, contract=contract, chain_id=chain_id
+        )
+    if head.get("bundle_sm3") != scan.digest():
+        report.problems.insert(0, "the bundle's digest (bundle_sm3) does not match its content")
+    kept.finish(head, checker.messages)
     return report
+
+
+def _bytes_of(bundle: bytes | Path) -> bytes:
+    return bundle if isinstance(bundle, bytes | bytearray) else bundle.read_bytes()
 
 
 def _verify_whole(
@@ -234,66 +254,176 @@ def _verify_whole(
         for i, entry in enumerate(entries)
     ]
     _check_form(report, bundle, document)
-    head = _check_head(report, document, chain, contract, chain_id)
-    messages = _mcap_messages(report, document, mcap)
-    pairs = zip(report.records, entries, strict=True)
-    _check_records(report, pairs, document, head, chain, messages)
+    checker = _RecordChecker(
+        head=_check_head(report, document, chain, contract, chain_id),
+        chain=chain,
+        messages=_mcap_messages(report, document, mcap),
+        fields=RECORD_FIELDS_OF.get(document.get("format"), RECORD_FIELDS),
+    )
+    named = {result.index: result.problems for result in report.records if result.problems}
+    kept = _Kept(report)
+    for index, entry in enumerate(entries):
+        outcome = checker.outcome(index, entry)
+        outcome.problems[:0] = named.get(index, [])
+        kept.add(outcome)
+    report.signatures_verified = checker.signatures.verified
+    kept.finish(document, checker.messages)
     return report
 
 
-def _check_records(
-    report: Report,
-    entries: Iterable[tuple[RecordResult, Any]],
-    document: dict,
-    head: "_Head",
-    chain: ChainReader,
-    messages: dict | None,
-) -> None:
-    """Check each record (keeping its result, never its entry), count the records that hold
-    in their streams, and name the MCAP messages no record names."""
-    fields = RECORD_FIELDS_OF.get(document.get("format"), RECORD_FIELDS)
-    # Kept per record, so kept small: the first record naming each MCAP sequence (all of them
-    # only for a sequence named twice), and each counted record's stream (one tuple per
-    # stream, shared) and number.
-    sequences: dict[int, RecordResult] = {}
-    shared: dict[int, list[RecordResult]] = {}
-    streams: dict[tuple[str, str, str], tuple[str, str, str]] = {}
-    signatures = Signatures()
-    numbered: list[tuple[RecordResult, tuple[str, str, str], int]] = []
-    for result, entry in entries:
+@dataclass(slots=True)
+class _Outcome:
+    """What checking one record's entry found, handed from the process that checked it."""
+
+    index: int
+    record: str
+    problems: list[str]
+    signed: bool | None
+    stream: tuple[str, str, str, int] | None  # (signer, topic, robot, topic_seq)
+    sequence: int | None  # the MCAP sequence its entry names, if it is a whole number
+
+
+@dataclass
+class _RecordChecker:
+    """Each record's check against what the whole bundle shares: its head, the chain, the
+    MCAP file's messages, the format's fields and the SM2 verifications made so far."""
+
+    head: "_Head"
+    chain: ChainReader
+    messages: dict | None
+    fields: set[str]
+    signatures: Signatures = field(default_factory=Signatures)
+
+    def outcome(self, index: int, entry: Any) -> _Outcome:
+        problems: list[str] = []
+        signed = stream = None
         try:
-            counted = _check_record(entry, head, chain, messages, fields, signatures)
-            result.signed = counted.signed
-            if counted.stream is not None:
-                *key, number = counted.stream
-                numbered.append((result, streams.setdefault(tuple(key), tuple(key)), number))
+            counted = _check_record(
+                entry, self.head, self.chain, self.messages, self.fields, self.signatures
+            )
+            signed, stream = counted.signed, counted.stream
         except Invalid as exc:
-            result.problems.append(str(exc))
+            problems.append(str(exc))
         except (KeyError, TypeError, ValueError, AttributeError) as exc:
-            result.problems.append(f"its entry is malformed ({type(exc).__name__}: {exc})")
-        if _has_sequence(entry):
-            sequence = entry["mcap"]["sequence"]
-            first = sequences.setdefault(sequence, result)
+            problems.append(f"its entry is malformed ({type(exc).__name__}: {exc})")
+        record = str(entry.get("record")) if isinstance(entry, dict) else "?"
+        sequence = entry["mcap"]["sequence"] if _has_sequence(entry) else None
+        return _Outcome(index, record, problems, signed, stream, sequence)
+
+    def lines_checked(self, chunk: "_Chunk") -> tuple[list[_Outcome | None], int]:
+        """Each line of the chunk checked to be its record's one serialisation, then its
+        record checked (None for a line that is not: the bundle is then read whole); and how
+        many SM2 verifications that took."""
+        before = self.signatures.verified
+        outcomes: list[_Outcome | None] = []
+        for index, line in enumerate(chunk.lines, start=chunk.first):
+            try:
+                entry = _strict_json(line)
+                canonical = (
+                    isinstance(entry, dict) and bundle_entry_line(entry).encode("ascii") == line
+                )
+            except (UnicodeDecodeError, ValueError):
+                canonical = False
+            if not canonical:
+                outcomes.append(None)
+                break
+            outcomes.append(self.outcome(index, entry))
+        return outcomes, self.signatures.verified - before
+
+
+class _Kept:
+    """What the check keeps of each record once checked, so kept small: its result, the first
+    record naming each MCAP sequence (all of them only for a sequence named twice), and each
+    counted record's stream (one tuple per stream, shared) and number."""
+
+    def __init__(self, report: Report) -> None:
+        self.report = report
+        report.records = []
+        self.sequences: dict[int, RecordResult] = {}
+        self.shared: dict[int, list[RecordResult]] = {}
+        self.streams: dict[tuple[str, str, str], tuple[str, str, str]] = {}
+        self.numbered: list[tuple[RecordResult, tuple[str, str, str], int]] = []
+
+    def add(self, outcome: _Outcome) -> None:
+        result = RecordResult(outcome.index, outcome.record, outcome.problems, outcome.signed)
+        self.report.records.append(result)
+        if outcome.stream is not None:
+            *key, number = outcome.stream
+            key = tuple(key)
+            self.numbered.append((result, self.streams.setdefault(key, key), number))
+        if outcome.sequence is not None:
+            first = self.sequences.setdefault(outcome.sequence, result)
             if first is not result:
-                shared.setdefault(sequence, [first]).append(result)
-    report.signatures_verified = signatures.verified
-    _name_shared_sequences(shared)
-    tally = StreamTally()
-    for result, stream, number in numbered:
-        if result.ok:
-            _count(tally, result, (*stream, number))
+                self.shared.setdefault(outcome.sequence, [first]).append(result)
+
+    def finish(self, document: dict, messages: dict | None) -> None:
+        """Name the MCAP sequences two records claim, count the records that hold in their
+        streams, and name the MCAP messages no record names."""
+        report = self.report
+        _name_shared_sequences(self.shared)
+        tally = StreamTally()
+        for result, stream, number in self.numbered:
+            if result.ok:
+                _count(tally, result, (*stream, number))
+        try:
+            excluded = document.get("excluded")
+            report.streams = tally.reports(
+                document.get("streams"), excluded if isinstance(excluded, list) else []
+            )
+        except StreamsMalformed as exc:
+            report.problems.append(f"the bundle's streams (the portal's completeness): {exc}")
+            report.streams = tally.reports(None, [])
+        if messages is not None:
+            extra = sorted(set(messages) - set(self.sequences))
+            if extra:
+                report.problems.append(f"the MCAP file has messages no record names: {extra[:5]}")
+
+
+# --- records checked in forked processes ------------------------------------------------------
+
+# Lines handed to a process at a time, at least (a chunk ends where an upload batch does).
+CHUNK_LINES = 256
+_SIG = re.compile(rb'"sig":"([0-9a-f]{128})"')
+_FORKED: _RecordChecker | None = None  # the check a forked process runs (set before forking)
+
+
+@dataclass(frozen=True)
+class _Chunk:
+    first: int  # the index of its first record
+    lines: list[bytes]  # each record's line, without its comma and line break
+
+
+def _chunks_checked(
+    checker: _RecordChecker, chunks: Iterator[_Chunk], jobs: int
+) -> Iterator[tuple[list[_Outcome | None], int]]:
+    """Each chunk's outcomes in order, checked here (jobs 1, or where processes cannot be
+    forked) or by `jobs` forked processes, each with the chain reader of its own."""
+    if jobs <= 1 or "fork" not in multiprocessing.get_all_start_methods():
+        yield from map(checker.lines_checked, chunks)
+        return
+    global _FORKED
+    _FORKED = checker
     try:
-        excluded = document.get("excluded")
-        report.streams = tally.reports(
-            document.get("streams"), excluded if isinstance(excluded, list) else []
-        )
-    except StreamsMalformed as exc:
-        report.problems.append(f"the bundle's streams (the portal's completeness): {exc}")
-        report.streams = tally.reports(None, [])
-    if messages is not None:
-        extra = sorted(set(messages) - set(sequences))
-        if extra:
-            report.problems.append(f"the MCAP file has messages no record names: {extra[:5]}")
+        context = multiprocessing.get_context("fork")
+        with context.Pool(jobs, initializer=_forked_start) as pool:
+            # At most two chunks a process in flight: the bundle is never read ahead whole.
+            waiting: deque = deque()
+            for chunk in chunks:
+                waiting.append(pool.apply_async(_forked_lines_checked, (chunk,)))
+                if len(waiting) >= 2 * jobs:
+                    yield waiting.popleft().get()
+            while waiting:
+                yield waiting.popleft().get()
+    finally:
+        _FORKED = None
+
+
+def _forked_start() -> None:
+    _FORKED.chain = _FORKED.chain.forked()
+
+
+def _forked_lines_checked(chunk: _Chunk) -> tuple[list[_Outcome | None], int]:
+    return _FORKED.lines_checked(chunk)
 
 
 # --- the bundle read line by line ------------------------------------------------------------
@@ -310,70 +440,95 @@ def _lines_of(bundle: bytes | Path) -> Iterator[Iterator[bytes]]:
         yield iter(source)
 
 
-def _record_lines(lines: Iterator[bytes]) -> Iterator[bytes]:
-    """The record lines of a bundle whose form holds (_form_read): after the head and
-    `"records":[`, before `]}`."""
-    for number, line in enumerate(lines):
-        if number < 2:
-            continue
-        if line == b"]}\n":
-            return
-        yield line.removesuffix(b"\n")
-
-
-@dataclass(frozen=True)
-class _Form:
-    head: dict  # every top-level field but `records`
-    digest_holds: bool
-
-
-def _form_read(lines: Iterator[bytes]) -> _Form | None:
-    """The head of a bundle whose every line is in its canonical form (bundle_serialise's,
-    record by record), and whether `bundle_sm3` is the digest of its content, computed as the
-    lines go by; None if any line is not (then the bundle is read whole to name it)."""
-    lines = (_unbroken(line) for line in lines)
+def _head_read(lines: Iterator[bytes]) -> dict | None:
+    """The head (every top-level field but `records`) of a bundle whose first two lines are
+    in their canonical form (bundle_serialise's); None if they are not."""
     try:
-        first = next(lines)
+        first = _unbroken(next(lines))
         head = _strict_json(first[:-1] + b"}") if first.endswith(b",") else None
         if not isinstance(head, dict) or "records" in head:
             return None
         if (bundle_entry_line(head)[:-1] + ",").encode("ascii") != first:
             return None
-        if next(lines) != b'"records":[':
+        if _unbroken(next(lines)) != b'"records":[':
             return None
-        body = {name: value for name, value in head.items() if name != "bundle_sm3"}
-        names = sorted([*body, "records"])
-        hasher = sm3_hasher()
-        hasher.update(b"{")
-        after = names[names.index("records") + 1 :]
-        for position, name in enumerate(names[: names.index("records")]):
-            hasher.update((("," if position else "") + _field(name, body[name])).encode("ascii"))
-        hasher.update(("," if names[0] != "records" else "").encode("ascii") + b'"records":[')
-        count, pending = 0, None  # a record's line is known to be the last at the next line
-        for line in lines:
-            if line == b"]}":
-                break
-            if pending is not None:
-                if not pending.endswith(b","):
-                    return None
-                _entry_hashed(hasher, pending[:-1], first_entry=count == 0)
-                count += 1
-            pending = line
-        else:
-            return None  # no closing line
-        if pending is not None:
-            if pending.endswith(b","):
-                return None
-            _entry_hashed(hasher, pending, first_entry=count == 0)
-        if next(lines, None) is not None:
-            return None
-        hasher.update(b"]")
-        for name in after:
-            hasher.update(("," + _field(name, body[name])).encode("ascii"))
-        hasher.update(b"}")
     except (StopIteration, UnicodeDecodeError, ValueError, _NotCanonical):
         return None
-    return _Form(head, head.get("bundle_sm3") == "0x" + hasher.finalize().hex())
+    return head
+
+
+class _Scan:
+    """The record lines of a bundle read once after its head, cut into chunks (an upload
+    batch's lines kept together), hashed as they go by for `bundle_sm3`; `canonical` turns
+    False when a line is not where the bundle's serialisation puts it (then the bundle is read
+    whole to name it)."""
+
+    def __init__(self, head: dict) -> None:
+        self.canonical = True
+        self._body = {name: value for name, value in head.items() if name != "bundle_sm3"}
+        names = sorted([*self._body, "records"])
+        self._after = names[names.index("records") + 1 :]
+        self._hasher = sm3_hasher()
+        self._hasher.update(b"{")
+        for position, name in enumerate(names[: names.index("records")]):
+            self._hasher.update(
+                (("," if position else "") + _field(name, self._body[name])).encode("ascii")
+            )
+        self._hasher.update(("," if names[0] != "records" else "").encode("ascii") + b'"records":[')
+        self._closed = False
+
+    def chunks(self, lines: Iterator[bytes]) -> Iterator[_Chunk]:
+        """The record lines (after the head and `"records":[`, which _head_read took, before
+        `]}`), without their commas, CHUNK_LINES or more at a time, cut where the next line
+        states another batch signature than the last (a scheduling hint, never trusted: a
+        cut elsewhere only costs one more SM2 verification), or at 8 * CHUNK_LINES."""
+        hasher, count = self._hasher, 0
+        pending: bytes | None = None  # a line is known to be the last at the next line
+        chunk: list[bytes] = []
+        last_sig: bytes | None = None
+        try:
+            for raw in lines:
+                line = _unbroken(raw)
+                if line == b"]}":
+                    self._closed = True
+                    break
+                if pending is not None:
+                    if not pending.endswith(b","):
+                        raise _NotCanonical
+                    text = pending[:-1]
+                    hasher.update(text if count == 0 else b"," + text)
+                    count += 1
+                    found = _SIG.search(text)
+                    sig = found.group(1) if found else None
+                    if len(chunk) >= 8 * CHUNK_LINES or (
+                        len(chunk) >= CHUNK_LINES and sig != last_sig
+                    ):
+                        yield _Chunk(count - 1 - len(chunk), chunk)
+                        chunk = []
+                    chunk.append(text)
+                    last_sig = sig
+                pending = line
+            if not self._closed or next(lines, None) is not None:
+                raise _NotCanonical  # no closing line, or lines after it
+            if pending is not None:
+                if pending.endswith(b","):
+                    raise _NotCanonical
+                hasher.update(pending if count == 0 else b"," + pending)
+                count += 1
+                chunk.append(pending)
+            if chunk:
+                yield _Chunk(count - len(chunk), chunk)
+        except _NotCanonical:
+            self.canonical = False
+
+    def digest(self) -> str:
+        """`0x` + SM3 of the bundle's compact JSON without `bundle_sm3`, once every line was
+        read."""
+        self._hasher.update(b"]")
+        for name in self._after:
+            self._hasher.update(("," + _field(name, self._body[name])).encode("ascii"))
+        self._hasher.update(b"}")
+        return "0x" + self._hasher.finalize().hex()
 
 
 class _NotCanonical(Exception):
@@ -389,15 +544,6 @@ def _unbroken(line: bytes) -> bytes:
 
 def _field(name: str, value: Any) -> str:
     return bundle_entry_line({name: value})[1:-1]
-
-
-def _entry_hashed(hasher: Any, line: bytes, *, first_entry: bool) -> None:
-    """A record's line (without its comma), checked to be its record's one serialisation,
-    added to the digest."""
-    entry = _strict_json(line)
-    if not isinstance(entry, dict) or bundle_entry_line(entry).encode("ascii") != line:
-        raise _NotCanonical
-    hasher.update(line if first_entry else b"," + line)
 
 
 # --- the bundle as a whole -------------------------------------------------------------------

@@ -178,6 +178,11 @@ def document_of(plaintext: bytes) -> Any:
     if _depth_exceeds(text, MAX_DEPTH):
         return None
     try:
+        if not _NUMERAL_TO_CHECK.search(text):
+            # No integer of more than MAX_INT_DIGITS digits, no number beyond a float's range
+            # (that needs 100 or more digits in a row, or an exponent of three digits): the
+            # parser's own numbers are the checked ones, without a call per number.
+            return json.loads(text, parse_constant=_no_constant)
         return json.loads(
             text, parse_int=_bounded_int, parse_float=_finite_float, parse_constant=_no_constant
         )
@@ -185,6 +190,8 @@ def document_of(plaintext: bytes) -> Any:
         return None
 
 
+# Where a numeral may be too long or too large, each number is checked as it is parsed.
+_NUMERAL_TO_CHECK = re.compile(rf"[eE][+-]?[0-9]{{3}}|[0-9]{{{MAX_INT_DIGITS + 1}}}")
 _JSON_ESCAPE = re.compile(r"\\.", re.DOTALL)
 _JSON_STRING = re.compile(r'"[^"]*"')
 

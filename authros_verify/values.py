@@ -5,6 +5,7 @@ base64 and UUIDs, whole numbers). Each reader raises Invalid naming what is wron
 
 import base64
 import binascii
+import functools
 import re
 import uuid
 from datetime import UTC, datetime
@@ -32,12 +33,19 @@ def hash32(value: Any, what: str) -> bytes:
 
 
 def address(value: Any, what: str) -> str:
-    try:
-        if isinstance(value, str) and to_checksum_address(value) == value:
-            return value
-    except ValueError:
-        pass
+    if isinstance(value, str) and _checksummed(value):
+        return value
     raise Invalid(f"its {what} is not a checksummed address")
+
+
+@functools.lru_cache(maxsize=256)
+def _checksummed(value: str) -> bool:
+    """Whether the text is a checksummed address (keccak once per spelling: an export names
+    a few owners, each on every record)."""
+    try:
+        return to_checksum_address(value) == value
+    except ValueError:
+        return False
 
 
 def record_id(value: Any, what: str) -> uuid.UUID:

@@ -19,15 +19,23 @@ Each distinct batch signature is verified once per export batch (EXPORT_BATCH re
 check (records_verify) hands the whole batch to provenance.claims_hold, which verifies each
 distinct claim once; an upload batch cut by an export batch's edge is verified once on each
 side.
+
+The check and the writing run side by side (issue 45): while batch k+1 is checked here, a
+forked process (`_Encoder`) makes batch k's ROS messages and bundle lines from its records as
+the check opened them; they are written here, in order. The forked process has no database,
+key or file of its own to touch; every record is still checked as a view checks it.
 """
 
 import base64
 import logging
+import multiprocessing
+import os
 import tempfile
 import uuid
 from collections.abc import Iterator, Sequence
+from dataclasses import dataclass, replace
 from datetime import UTC, datetime
-from typing import IO
+from typing import IO, Any
 
 from django.conf import settings
 from django.db.models import Q, QuerySet
@@ -37,7 +45,7 @@ from accounts.errors import IdentityMismatch
 from accounts.keywrap import wrap
 from accounts.models import Owner, OwnerKey
 from authros_verify.bundle import BUNDLE_FORMAT, bundle_entry_line, bundle_write
-from authros_verify.messages import message_encode, message_log_time
+from authros_verify.messages import EncodedMessage, message_encode, message_log_time
 from chainworker.errors import ChainError
 from chainworker.services import chain_client
 from sharing.disk import disk_room_check
@@ -177,29 +185,23 @@ def _run(export: Export) -> None:
     ):
         mcap = _SealedOutput(mcap_file, key)
         builder = McapBuilder(mcap)
-        for batch in export_batches(records, settings.EXPORT_BATCH):
-            inside: list[ExportRecord] = []
-            for record, checked, reason in _verified(batch, export.requester, accesses):
-                if reason:
-                    excluded.append(_excluded(record, reason))
-                    continue
-                try:
-                    entry = _exported(record, checked, keys, builder, exported + 1)
-                except _SignerUnknown as exc:
-                    logger.warning("export %s: record %s left out: %s", export.pk, record.pk, exc)
-                    excluded.append(_excluded(record, SIGNATURE_REFUSED))
-                    continue
-                except (SharingError, OwnerKey.DoesNotExist, CryptoError) as exc:
-                    logger.warning("export %s: record %s not opened: %s", export.pk, record.pk, exc)
-                    excluded.append(_excluded(record, "cannot_open"))
-                    continue
-                proof = record_proof(record, chain_id=chain_id, contract=contract)
-                entries.write(bundle_entry_line({**proof, **entry}) + "\n")
-                inside.append(ExportRecord(export=export, record=record))
-                exported += 1
-            ExportRecord.objects.bulk_create(inside)
-            processed += len(batch)
-            Export.objects.filter(pk=export.pk).update(processed=processed, exported=exported)
+        proofs = {"chain_id": chain_id, "contract": contract}
+        with _Encoder() as encoder:
+            # Batch k's messages and lines made (by the encoder's process) while batch k+1 is
+            # checked here; then written, in order.
+            waiting: _Encoding | None = None
+            for batch in export_batches(records, settings.EXPORT_BATCH):
+                prepared, inside = _batch_prepared(
+                    export, batch, accesses, keys, proofs, excluded, exported
+                )
+                exported += len(prepared)
+                processed += len(batch)
+                encoding = _Encoding(encoder.submit(prepared), inside, processed, exported)
+                if waiting is not None:
+                    _written(export, waiting, builder, entries)
+                waiting = encoding
+            if waiting is not None:
+                _written(export, waiting, builder, entries)
         builder.finish()
         mcap_size, mcap_sm3 = mcap.close()
         head = {
@@ -245,6 +247,37 @@ def _run(export: Export) -> None:
         chain_id=chain_id,
         contract=contract,
     )
+
+
+def _batch_prepared(
+    export: Export,
+    batch: list[Record],
+    accesses: dict[int, int],
+    keys: RecordKeys,
+    proofs: dict[str, object],
+    excluded: list[dict],
+    exported: int,
+) -> tuple[list["_ToWrite"], list[ExportRecord]]:
+    """The batch checked (`_verified`) and each record that holds opened for the encoder,
+    numbered on from `exported`; each record left out listed in `excluded`, with why."""
+    prepared: list[_ToWrite] = []
+    inside: list[ExportRecord] = []
+    for record, checked, reason in _verified(batch, export.requester, accesses):
+        if reason:
+            excluded.append(_excluded(record, reason))
+            continue
+        try:
+            prepared.append(_prepared(record, checked, keys, exported + len(prepared) + 1, proofs))
+        except _SignerUnknown as exc:
+            logger.warning("export %s: record %s left out: %s", export.pk, record.pk, exc)
+            excluded.append(_excluded(record, SIGNATURE_REFUSED))
+            continue
+        except (SharingError, OwnerKey.DoesNotExist, CryptoError) as exc:
+            logger.warning("export %s: record %s not opened: %s", export.pk, record.pk, exc)
+            excluded.append(_excluded(record, "cannot_open"))
+            continue
+        inside.append(ExportRecord(export=export, record=record))
+    return prepared, inside
 
 
 def _lines(spool: IO[str]) -> Iterator[str]:
@@ -305,19 +338,34 @@ def _verified(
     return [(record, *answers.get(record.pk, (None, "not_found"))) for record in batch]
 
 
-def _exported(
-    record: Record, checked: Verification, keys: RecordKeys, builder: McapBuilder, sequence: int
-) -> dict[str, object]:
-    """Write the record's message into the MCAP file; its bundle entry but the proof. The
-    envelope is the one the check let through, as the check opened it (a signed record's)."""
+@dataclass(frozen=True)
+class _ToWrite:
+    """A verified record opened, its bundle entry but its message's binding: what the encoder
+    needs to make its MCAP message and its bundle line (no database, no key)."""
+
+    entry: dict[str, object]
+    data_type: str
+    plaintext: bytes
+    captured_ns: int
+    topic: str
+    sequence: int
+
+
+def _prepared(
+    record: Record,
+    checked: Verification,
+    keys: RecordKeys,
+    sequence: int,
+    proofs: dict[str, object],
+) -> _ToWrite:
+    """The record opened (as the check opened it, a signed record's) and its entry but the
+    message. The envelope is the one the check let through."""
     data = checked.envelope
     header, plaintext = checked.opened or envelopes.open(keys.of(record), data)
-    message = message_encode(data_type=header["type"], plaintext=plaintext)
-    log_time = message_log_time(message, _micros(record.captured_at) * 1000)
     signature = _signature(record, header)
-    builder.add(topic=record.topic, message=message, log_time=log_time, sequence=sequence)
     batched = envelopes.provenance_format(header) == "v2"
-    return {
+    entry = {
+        **record_proof(record, **proofs),
         "robot": str(record.robot_id),
         "topic": record.topic,
         "type": record.data_type,
@@ -331,16 +379,90 @@ def _exported(
         # them (the verifier counts by the envelope's, and checks these against it).
         "topic_seq": header.get("topic_seq"),
         "batch": {name: header[name] for name in envelopes.BATCH_FIELDS} if batched else None,
-        "mcap": {
-            "topic": record.topic,
-            "sequence": sequence,
+    }
+    return _ToWrite(
+        entry, header["type"], plaintext, _micros(record.captured_at) * 1000, record.topic, sequence
+    )
+
+
+def _encoded(items: list[_ToWrite]) -> list[tuple[_ToWrite, EncodedMessage, int, str]]:
+    """Each record's ROS message (authros_verify.messages, the rules the verifier runs again),
+    its log time and its bundle line."""
+    made = []
+    for item in items:
+        message = message_encode(data_type=item.data_type, plaintext=item.plaintext)
+        log_time = message_log_time(message, item.captured_ns)
+        binding = {
+            "topic": item.topic,
+            "sequence": item.sequence,
             "log_time": log_time,
             "publish_time": log_time,
             "message_encoding": message.message_encoding,
             "schema": message.schema_name,
             "sm3": "0x" + sm3_hex(message.data),
-        },
-    }
+        }
+        line = bundle_entry_line({**item.entry, "mcap": binding})
+        made.append((replace(item, entry={}, plaintext=b""), message, log_time, line))
+    return made
+
+
+class _Encoder:
+    """Where the messages and lines of a batch are made: one forked process beside the
+    exporter when the machine has cores to spare (it touches no database, key or file: it
+    gets each record opened and hands back bytes), else in the exporter itself."""
+
+    def __init__(self) -> None:
+        self._pool = None
+        if "fork" in multiprocessing.get_all_start_methods() and (os.cpu_count() or 1) > 1:
+            try:
+                self._pool = multiprocessing.get_context("fork").Pool(1)
+            except (AssertionError, OSError) as exc:  # a daemonic process, or no process left
+                logger.info("exports encoded in the exporter itself: %s", exc)
+
+    def submit(self, items: list[_ToWrite]) -> Any:
+        if self._pool is None:
+            return _Made(_encoded(items))
+        return self._pool.apply_async(_encoded, (items,))
+
+    def __enter__(self) -> "_Encoder":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        if self._pool is not None:
+            self._pool.terminate()
+            self._pool.join()
+
+
+@dataclass(frozen=True)
+class _Made:
+    """A batch encoded in the exporter itself, answered as the forked process's would be."""
+
+    made: list
+
+    def get(self) -> list:
+        return self.made
+
+
+@dataclass(frozen=True)
+class _Encoding:
+    """A batch handed to the encoder: its answer to come, and what to record once written."""
+
+    answer: Any
+    inside: list[ExportRecord]
+    processed: int
+    exported: int
+
+
+def _written(export: Export, encoding: _Encoding, builder: McapBuilder, entries: IO[str]) -> None:
+    """A batch's messages into the MCAP file and its lines into the spooled bundle, in order;
+    its records kept as the export's, its progress shown."""
+    for item, message, log_time, line in encoding.answer.get():
+        builder.add(topic=item.topic, message=message, log_time=log_time, sequence=item.sequence)
+        entries.write(line + "\n")
+    ExportRecord.objects.bulk_create(encoding.inside)
+    Export.objects.filter(pk=export.pk).update(
+        processed=encoding.processed, exported=encoding.exported
+    )
 
 
 def _signature(record: Record, header: dict) -> dict[str, str] | None:
