@@ -32,7 +32,7 @@ PORTAL_UNITS = [
     "authros-worker.service",
 ]
 ROS1_PACKAGE = REPO_ROOT / "deploy" / "ros1" / "authros_agent"
-ROS2_LAUNCH = REPO_ROOT / "deploy" / "ros2" / "authros_agent.launch.py"
+ROS2_LAUNCH = REPO_ROOT / "deploy" / "ros2" / "authros_agent" / "launch" / "authros_agent.launch.py"
 AGENT_PREFIX, PORTAL_CHECKOUT = "/opt/authros-agent", "/srv/authros"
 STATE_DIR = "/var/lib/authros-agent"
 
