@@ -36,14 +36,27 @@ contracts: install
 # hashes, resolved by uv. dev.txt (everything `make run` and `make test` need) is resolved
 # first and the roles' sets are held to its versions, so a robot, an auditor and a server run
 # what the suite tested. Versions already locked are kept; `make lock UPGRADE=1` moves them.
+# Each ROLE.txt is universal: its environment markers pick each platform's packages where pip
+# runs (Linux x86_64 and aarch64, macOS; Python 3.11-3.13). The robot's and the auditor's sets
+# are also locked per platform (ROLE-linux-MACHINE.txt, wheels only, the same versions), for a
+# wheelhouse made on another machine (`pip download --platform`, which reads markers as the
+# machine it runs on); tests/packaging/test_platforms.py downloads each for aarch64.
 LOCK = .venv/bin/uv pip compile pyproject.toml --quiet --generate-hashes --universal \
 	--python-version 3.11 --custom-compile-command "make lock" $(if $(UPGRADE),--upgrade)
 
+PLATFORM_LOCK = .venv/bin/uv pip compile pyproject.toml --quiet --generate-hashes --only-binary :all: \
+	--python-version 3.11 --custom-compile-command "make lock" $(if $(UPGRADE),--upgrade)
+
 lock: install
-	$(LOCK) --extra portal --extra agent --extra verify --extra dev -o requirements/dev.txt
-	for role in portal agent verify; do \
+	$(LOCK) --extra portal --extra agent --extra ros2 --extra verify --extra flower --extra dev \
+	  -o requirements/dev.txt
+	for role in portal agent ros2 verify flower; do \
 	  $(LOCK) --extra $$role -c requirements/dev.txt -o requirements/$$role.txt || exit 1; \
 	done
+	for role in agent verify; do for machine in x86_64 aarch64; do \
+	  $(PLATFORM_LOCK) --python-platform $$machine-manylinux_2_28 --extra $$role \
+	    -c requirements/$$role.txt -o requirements/$$role-linux-$$machine.txt || exit 1; \
+	done; done
 
 clean:
 	rm -rf .venv node_modules .pytest_cache .ruff_cache .hypothesis

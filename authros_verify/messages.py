@@ -17,6 +17,7 @@ Pure functions of a record's type and plaintext: no request, no database, no por
 
 import base64
 import binascii
+import io
 import json
 import math
 import re
@@ -26,6 +27,7 @@ from functools import cache
 from typing import Any
 
 import numpy as np
+from PIL import Image
 from rosbags.typesys import Stores, get_typestore
 from rosbags.typesys.store import Typestore
 
@@ -62,16 +64,17 @@ _FLOAT32_MAX = float(np.finfo(np.float32).max)
 # inflates to gigabytes cannot take the worker's memory.
 MAX_IMAGE_BYTES = 64 * 1024 * 1024
 _PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
-# ROS image encoding -> (element type, channels, OpenCV conversion from the decoded PNG)
-_IMAGE_ENCODINGS: dict[str, tuple[type, int, str | None]] = {
-    "rgb8": (np.uint8, 3, "COLOR_BGR2RGB"),
-    "bgr8": (np.uint8, 3, None),
-    "rgba8": (np.uint8, 4, "COLOR_BGRA2RGBA"),
-    "bgra8": (np.uint8, 4, None),
-    "mono8": (np.uint8, 1, None),
-    "8UC1": (np.uint8, 1, None),
-    "mono16": (np.uint16, 1, None),
-    "16UC1": (np.uint16, 1, None),
+# ROS image encoding -> (element type, channels, order of its channels in the PNG or None,
+# the PNG's bit depth and colour type as the agent writes them: ros_agent/extractors.py)
+_IMAGE_ENCODINGS: dict[str, tuple[type, int, tuple[int, ...] | None, tuple[int, int]]] = {
+    "rgb8": (np.uint8, 3, None, (8, 2)),
+    "bgr8": (np.uint8, 3, (2, 1, 0), (8, 2)),
+    "rgba8": (np.uint8, 4, None, (8, 6)),
+    "bgra8": (np.uint8, 4, (2, 1, 0, 3), (8, 6)),
+    "mono8": (np.uint8, 1, None, (8, 0)),
+    "8UC1": (np.uint8, 1, None, (8, 0)),
+    "mono16": (np.uint16, 1, None, (16, 0)),
+    "16UC1": (np.uint16, 1, None, (16, 0)),
 }
 
 
@@ -282,11 +285,7 @@ def _image(msgtype: str, data: Any) -> Any:
     encoding = _text(data.get("encoding"))
     if encoding not in _IMAGE_ENCODINGS or data.get("format") != "png":
         raise Unbuildable(f"image encoding {encoding!r} is not one the agent stores")
-    # OpenCV (about 17 MiB) loads with the first image of an export, in the worker running it,
-    # not in every web and worker process that imports this module.
-    import cv2
-
-    element, channels, conversion = _IMAGE_ENCODINGS[encoding]
+    element, channels, order, kind = _IMAGE_ENCODINGS[encoding]
     width, height = _integer(data.get("width")), _integer(data.get("height"))
     if width <= 0 or height <= 0:
         raise Unbuildable("an image of no pixels")
@@ -295,15 +294,15 @@ def _image(msgtype: str, data: Any) -> Any:
     encoded = _base64(data.get("data"))
     if _png_size(encoded) != (width, height):
         raise Unbuildable("the PNG's own size is not the record's")
+    if encoded[24:26] != bytes(kind):  # IHDR's bit depth and colour type
+        raise Unbuildable(f"the PNG's pixels are not those of {encoding}")
     try:
-        png = np.frombuffer(encoded, np.uint8)
-        pixels = cv2.imdecode(png, cv2.IMREAD_UNCHANGED)
-        if pixels is None:
-            raise Unbuildable("the image is not a PNG")
-        if conversion is not None:
-            pixels = cv2.cvtColor(pixels, getattr(cv2, conversion))
-    except cv2.error as exc:  # a PNG of other channels than its encoding states, say
-        raise Unbuildable(f"the image cannot be decoded as {encoding}") from exc
+        with Image.open(io.BytesIO(encoded), formats=["PNG"]) as png:
+            pixels = np.asarray(png)
+    except (OSError, ValueError, SyntaxError) as exc:  # what Pillow raises for a broken PNG
+        raise Unbuildable("the image is not a PNG") from exc
+    if order is not None and pixels.ndim == 3:
+        pixels = pixels[..., list(order)]
     expected = (height, width) if channels == 1 else (height, width, channels)
     if pixels.shape != expected or pixels.dtype != element:
         raise Unbuildable(f"the PNG is {pixels.shape} {pixels.dtype}, not {expected} {encoding}")

@@ -6,32 +6,57 @@ does, needing nothing else (not even the database).
 /readyz says whether this process can serve now (portal/health.py). /metrics is the
 Prometheus exposition (core/metrics.py): free to read from this host, with the bearer token
 METRICS_TOKEN from anywhere else (docs/operations.md).
+
+Each answers GET, HEAD (the same status and headers, no body) and OPTIONS (204 with Allow, as
+HAProxy's `option httpchk` asks by default); any other method is 405 with Allow.
 """
 
 from __future__ import annotations
 
 import hmac
 import ipaddress
+from collections.abc import Callable
+from functools import wraps
 
 from django.conf import settings
-from django.http import HttpRequest, HttpResponse, JsonResponse
+from django.http import HttpRequest, HttpResponse, HttpResponseNotAllowed, JsonResponse
 from django.views.decorators.cache import never_cache
-from django.views.decorators.http import require_GET
 
 from accounts.views import client_ip_address
 from core.metrics import CONTENT_TYPE, metrics_text
 from portal.health import readiness
 from portal.scrape import state_collector
 
+PROBE_METHODS = ("GET", "HEAD", "OPTIONS")
 
-@never_cache
-@require_GET
+
+def probe(view: Callable[[HttpRequest], HttpResponse]) -> Callable[[HttpRequest], HttpResponse]:
+    """The view for GET; HEAD gets its answer without the body, OPTIONS 204 with Allow."""
+
+    @wraps(view)
+    def answer(request: HttpRequest) -> HttpResponse:
+        if request.method not in PROBE_METHODS:
+            return HttpResponseNotAllowed(PROBE_METHODS)
+        if request.method == "OPTIONS":
+            response = HttpResponse(status=204)
+            response["Allow"] = ", ".join(PROBE_METHODS)
+            return response
+        response = view(request)
+        if request.method == "HEAD":
+            length = len(response.content)
+            response.content = b""
+            response["Content-Length"] = str(length)
+        return response
+
+    return never_cache(answer)
+
+
+@probe
 def healthz(request: HttpRequest) -> HttpResponse:
     return JsonResponse({"status": "ok"})
 
 
-@never_cache
-@require_GET
+@probe
 def readyz(request: HttpRequest) -> HttpResponse:
     checks = readiness()
     ready = all(check.ok for check in checks)
@@ -43,8 +68,7 @@ def readyz(request: HttpRequest) -> HttpResponse:
     return JsonResponse(body, status=200 if ready else 503)
 
 
-@never_cache
-@require_GET
+@probe
 def metrics(request: HttpRequest) -> HttpResponse:
     if not metrics_allowed(request):
         answer = JsonResponse(

@@ -386,6 +386,11 @@ CELERY_TASK_QUEUES = (
     Queue(CELERY_TASK_DEFAULT_QUEUE + CELERY_VERIFY_QUEUE_SUFFIX),
 )
 CELERY_WORKER_HIJACK_ROOT_LOGGER = False
+# Task events for monitors (Flower, `celery events`: docs/operations.md): what each worker
+# received, started, finished or retried, and each task as it is sent. CELERY_TASK_EVENTS=false
+# saves their publishes where no monitor runs.
+CELERY_WORKER_SEND_TASK_EVENTS = env.bool("CELERY_TASK_EVENTS", default=True)
+CELERY_TASK_SEND_SENT_EVENT = CELERY_WORKER_SEND_TASK_EVENTS
 _SWEEP_INTERVAL = env.float("ANCHOR_SWEEP_INTERVAL", default=15.0)
 # Each app's sweep queues again its chain work pending too long. A sweep still queued when
 # the next one is due is worthless: it expires.

@@ -8,6 +8,7 @@ arguments it reads the node's private ROS parameters (deploy/ros1/authros_agent.
 None of the last three needs ROS 1. `authros-agent --help` lists them.
 """
 
+import importlib.util
 import logging
 import sys
 from collections.abc import Sequence
@@ -52,6 +53,9 @@ def main(argv: Sequence[str] | None = None) -> int:
 
         return import_main(arguments[1:])
     if "--ros2" in arguments:
+        asks_help = {"-h", "--help"} & set(arguments)
+        if not asks_help and importlib.util.find_spec("cyclonedds") is None:  # imported later
+            raise ModuleNotFoundError("No module named 'cyclonedds'", name="cyclonedds")
         from ros_agent.ros2 import main as ros2_main
 
         return ros2_main([arg for arg in arguments if arg != "--ros2"])

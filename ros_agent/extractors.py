@@ -7,13 +7,14 @@ that JSON cannot hold (NaN, infinities) become null.
 """
 
 import base64
+import io
 import math
 from collections.abc import Callable
 from datetime import UTC, datetime, timedelta
 from typing import Any
 
-import cv2
 import numpy as np
+from PIL import Image
 
 try:
     import genpy
@@ -28,17 +29,23 @@ class ExtractionError(ValueError):
     """The message cannot be turned into a record (e.g. an image encoding we do not read)."""
 
 
-# ROS image encoding -> (numpy element type, channels, OpenCV conversion to BGR order or None)
-IMAGE_ENCODINGS: dict[str, tuple[type[np.unsignedinteger], int, int | None]] = {
-    "rgb8": (np.uint8, 3, cv2.COLOR_RGB2BGR),
-    "bgr8": (np.uint8, 3, None),
-    "rgba8": (np.uint8, 4, cv2.COLOR_RGBA2BGRA),
-    "bgra8": (np.uint8, 4, None),
+# The channels of a PNG are red, green, blue (and alpha): an encoding whose array holds them in
+# another order is reordered (the same permutation both ways).
+BGR_ORDER = (2, 1, 0)
+BGRA_ORDER = (2, 1, 0, 3)
+# ROS image encoding -> (numpy element type, channels, order of its channels in the PNG or None)
+IMAGE_ENCODINGS: dict[str, tuple[type[np.unsignedinteger], int, tuple[int, ...] | None]] = {
+    "rgb8": (np.uint8, 3, None),
+    "bgr8": (np.uint8, 3, BGR_ORDER),
+    "rgba8": (np.uint8, 4, None),
+    "bgra8": (np.uint8, 4, BGRA_ORDER),
     "mono8": (np.uint8, 1, None),
     "8UC1": (np.uint8, 1, None),
     "mono16": (np.uint16, 1, None),
     "16UC1": (np.uint16, 1, None),
 }
+# zlib's level: its fastest, as OpenCV's PNG default (the agent's CPU, not the bytes, is short)
+PNG_COMPRESS_LEVEL = 1
 
 
 def extract(msg: Any, ros_type: str) -> JsonDict:
@@ -138,14 +145,19 @@ def image_to_array(msg: Any) -> np.ndarray:
 
 
 def encode_png(pixels: np.ndarray, encoding: str) -> bytes:
-    """PNG bytes of an array from `image_to_array`, colours stored in their true order."""
-    conversion = IMAGE_ENCODINGS[encoding][2]
-    if conversion is not None:
-        pixels = cv2.cvtColor(pixels, conversion)
-    ok, png = cv2.imencode(".png", pixels)
-    if not ok:
-        raise ExtractionError(f"OpenCV could not encode a {encoding} image as PNG")
-    return png.tobytes()
+    """PNG bytes of an array from `image_to_array`, colours stored in their true order (RGB,
+    RGBA, 8-bit grey or 16-bit grey)."""
+    order = IMAGE_ENCODINGS[encoding][2]
+    if order is not None:
+        pixels = pixels[..., list(order)]
+    if pixels.dtype == np.uint16:
+        # Pillow's 16-bit grey is little-endian in memory, whatever the machine's order
+        pixels = pixels.astype("<u2")
+    out = io.BytesIO()
+    Image.fromarray(np.ascontiguousarray(pixels)).save(
+        out, format="PNG", compress_level=PNG_COMPRESS_LEVEL
+    )
+    return out.getvalue()
 
 
 def message_to_dict(msg: Any) -> JsonDict:

@@ -5,10 +5,10 @@
 - /robot/odom (nav_msgs/Odometry) at 10 Hz: a figure-eight (lemniscate of Gerono, 3 m half
   width, one lap a minute) with a heading along the path, and the body-frame twist
   (forward speed, yaw rate) that matches it.
-- /robot/complicatedImage (sensor_msgs/Image, bgr8, 320x240) at 1 Hz: an OpenCV-drawn scene
+- /robot/complicatedImage (sensor_msgs/Image, bgr8, 320x240) at 1 Hz: a scene drawn with Pillow
   (colour gradient, ground grid, moving shapes, text, a patch of sensor noise whose size sets
-  the PNG size). Its PNG as the agent encodes it (extractors.encode_png, OpenCV 5.0.0)
-  measured 57,424 to 60,119 bytes, mean 58,856 bytes (57.5 KiB), over frames 0-119: about
+  the PNG size). Its PNG as the agent encodes it (extractors.encode_png, Pillow 13.0.0)
+  measured 57,089 to 59,482 bytes, mean 58,465 bytes (57.1 KiB), over frames 0-119: about
   the paper's 58 KB images.
 """
 
@@ -19,10 +19,11 @@ import math
 import sys
 from collections.abc import Sequence
 from dataclasses import dataclass
+from functools import cache
 from typing import TYPE_CHECKING
 
-import cv2
 import numpy as np
+from PIL import Image, ImageDraw, ImageFont
 
 if TYPE_CHECKING:  # ROS 1 only where it publishes: the ROS 2 simulator (sim2) uses the rest
     import genpy
@@ -33,7 +34,7 @@ ODOM_TOPIC = "/robot/odom"
 IMAGE_TOPIC = "/robot/complicatedImage"
 IMAGE_WIDTH = 320
 IMAGE_HEIGHT = 240
-NOISE_PATCH = (88, 64)  # width, height of the sensor-noise patch that sets the PNG size
+NOISE_PATCH = (120, 72)  # width, height of the sensor-noise patch that sets the PNG size
 NOISE_SIGMA = 6.0
 LAP_SECONDS = 60.0
 HALF_WIDTH = 3.0  # metres
@@ -81,34 +82,37 @@ def draw_scene(frame: int) -> np.ndarray:
     scene[..., 2] = np.clip(255 * x * (1 - y) + 60, 0, 255).astype(np.uint8)
     ground = h * 3 // 4
     scene[ground:] = (60, 70, 60)
+    # drawn in RGB by Pillow (colours below are BGR, as the scene is), then back to BGR
+    canvas = Image.fromarray(np.ascontiguousarray(scene[..., ::-1]))
+    draw = ImageDraw.Draw(canvas)
+
+    def rgb(bgr: tuple[int, int, int]) -> tuple[int, int, int]:
+        return bgr[2], bgr[1], bgr[0]
+
     for column in range(-w, 2 * w, 40):
-        cv2.line(scene, (w // 2, ground), (column, h - 1), (110, 120, 110), 1)
+        draw.line([(w // 2, ground), (column, h - 1)], fill=rgb((110, 120, 110)), width=1)
     angle = frame * 0.3
     orbit = (int(w / 2 + 90 * math.cos(angle)), int(h / 2 - 20 + 50 * math.sin(angle)))
-    cv2.circle(scene, orbit, 24, (40, 40, 220), -1, cv2.LINE_AA)
+    draw.ellipse(
+        [orbit[0] - 24, orbit[1] - 24, orbit[0] + 24, orbit[1] + 24], fill=rgb((40, 40, 220))
+    )
     corner = (int(40 + 30 * math.sin(angle * 0.7)), 40)
-    cv2.rectangle(scene, corner, (corner[0] + 60, corner[1] + 40), (220, 160, 30), -1)
-    triangle = np.array(
-        [[200 + 20 * math.cos(angle), 150], [240, 110 + 10 * math.sin(angle)], [280, 150]],
-        np.int32,
-    )
-    cv2.fillPoly(scene, [triangle], (30, 200, 230), cv2.LINE_AA)
-    cv2.putText(
-        scene,
-        f"AuthROS sim frame {frame}",
-        (8, h - 10),
-        cv2.FONT_HERSHEY_SIMPLEX,
-        0.55,
-        (255, 255, 255),
-        1,
-        cv2.LINE_AA,
-    )
+    draw.rectangle([corner, (corner[0] + 60, corner[1] + 40)], fill=rgb((220, 160, 30)))
+    triangle = [(200 + 20 * math.cos(angle), 150), (240, 110 + 10 * math.sin(angle)), (280, 150)]
+    draw.polygon([(int(x), int(y)) for x, y in triangle], fill=rgb((30, 200, 230)))
+    draw.text((8, h - 24), f"AuthROS sim frame {frame}", fill=(255, 255, 255), font=_font())
+    scene = np.asarray(canvas)[..., ::-1].copy()
     patch_w, patch_h = NOISE_PATCH
     rng = np.random.default_rng(frame)
     patch = scene[:patch_h, w - patch_w :].astype(np.float32)
     patch += rng.normal(0.0, NOISE_SIGMA, patch.shape).astype(np.float32)
     scene[:patch_h, w - patch_w :] = np.clip(patch, 0, 255).astype(np.uint8)
     return scene
+
+
+@cache
+def _font() -> ImageFont.ImageFont | ImageFont.FreeTypeFont:
+    return ImageFont.load_default(size=14)
 
 
 def odometry_message(pose: Pose2D, stamp: genpy.Time) -> Odometry:

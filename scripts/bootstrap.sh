@@ -1,16 +1,21 @@
 #!/usr/bin/env bash
 # Install what is missing, idempotently: Debian packages, npm packages, the virtualenv.
 # Used by `make run`, `make test` and `make bench`; safe to run again at any time.
+# `bootstrap.sh` installs what running needs; `bootstrap.sh --test` (make test) adds the test
+# tooling: PostgreSQL (the suite's second database), Chromium (browser tests) and systemd's
+# analyzer (the unit tests).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
 APT_PACKAGES=(
-  python3-venv python3-dev redis-server postgresql postgresql-client
+  python3-venv python3-dev redis-server
   ros-core python3-rospy python3-rosmaster python3-roslaunch
   python3-nav-msgs python3-sensor-msgs python3-std-msgs
-  chromium
-  systemd
 )
+TEST_APT_PACKAGES=(postgresql postgresql-client chromium systemd)
+if [ "${1:-}" = "--test" ]; then APT_PACKAGES+=("${TEST_APT_PACKAGES[@]}"); shift; fi
+# --list: the Debian packages this run would need, one a line, and nothing installed
+if [ "${1:-}" = "--list" ]; then printf '%s\n' "${APT_PACKAGES[@]}"; exit 0; fi
 VENV=.venv
 STAMP_DIR=$VENV/.stamps
 

@@ -16,7 +16,7 @@ cd "$(dirname "$0")/.."
 fast=0
 if [ "${1:-}" = --fast ]; then fast=1; shift; fi
 
-bash scripts/bootstrap.sh
+bash scripts/bootstrap.sh --test
 # What the suite started, stopped again when it is done, whatever its outcome.
 cleanups=()
 cleanup() {

@@ -2,11 +2,12 @@
 wheels for Linux x86_64 and aarch64): smcrypto.sm2's backend where Tongsuo is not installed
 and this is, once it has reproduced GB/T 32918's examples at import.
 
-It is not one of the project's dependencies (0.1.0, its only release, built from a patched
-fork of gmssl-rs): an operator who wants C speed on an aarch64 robot installs it. Its limits,
-met here: it encrypts and decrypts at most 255 bytes of plaintext (GmSSL's fixed buffer), so
-longer messages take the pure-Python backend; it cannot give a private key's public key, so
-that too is the pure-Python backend's (once per key); every failed call (a signature that
+The agent's and the verifier's extras install it on Linux aarch64 only, where Tongsuo has no
+wheel (0.1.0, its only release, built from a patched fork of gmssl-rs: pinned, and checked at
+every import); on x86_64 Tongsuo is first. Its limits, met here: it encrypts and decrypts at
+most 255 bytes of plaintext (GmSSL's fixed buffer), so longer messages take the pure-Python
+backend; it cannot give a private key's public key, so that too is the pure-Python backend's
+(once per key); every failed call (a signature that
 does not hold, a C3 mismatch) makes GmSSL print its call trace to stderr; it holds the GIL.
 Whether GmSSL's scalar multiplication is constant-time neither package says: treat it as not.
 Measured on this project's 2-core machine (idle): sign 0.78 ms, verify 1.43 ms, encrypt 1.47 ms,

@@ -8,10 +8,12 @@ signature r||s (128 hex) over SM3(Z||data) with the default user ID "12345678123
 The arithmetic is a backend's, chosen when this module is imported; `BACKEND` names it:
 
 - `tongsuo` (smcrypto._sm2_tongsuo): Tongsuo 8.3's C through `tongsuopy`, wherever it imports.
-  tongsuopy has wheels for Linux x86_64 and macOS only (no source to build), so it is the
-  portal's and most workstations' backend, not an ARM64 robot's or auditor's.
-- `gmssl-fast` (smcrypto._sm2_gmssl_fast): GmSSL's C, if that optional package is installed
-  and reproduces GB/T 32918's examples at import; it has Linux aarch64 wheels.
+  tongsuopy has wheels for Linux x86_64 and macOS only (no source to build), so the locked sets
+  install it there: the portal's, most workstations' and x86_64 robots' backend.
+- `gmssl-fast` (smcrypto._sm2_gmssl_fast): GmSSL's C, if that package is installed and
+  reproduces GB/T 32918's examples at import. It has Linux x86_64 and aarch64 wheels; the
+  agent's and the verifier's locked sets install it on Linux aarch64 (Jetson, Raspberry Pi),
+  the suite's on every Linux, so that it is tested against the others.
 - `gmssl` (smcrypto._sm2_gmssl): pure Python on gmssl's point arithmetic, everywhere. With one
   signature per upload batch (provenance v2) its few milliseconds a signature are a robot's
   whole cost per batch, and a check verifies each batch once.

@@ -83,6 +83,11 @@ _STOP = {  # signal and seconds each process gets before its group is killed
 }
 
 
+def is_loopback(host: str) -> bool:
+    """Whether a listening address is this machine's alone (127.0.0.0/8, ::1, localhost)."""
+    return host == "localhost" or host.startswith("127.") or host in ("::1", "[::1]")
+
+
 def _env_bool(environ: dict[str, str], name: str, default: bool) -> bool:
     value = environ.get(name, "").strip().lower()
     return default if not value else value in ("1", "true", "yes", "on")
@@ -93,7 +98,10 @@ class StackConfig:
     """What to start and where. Every field has an environment variable (from_environment)."""
 
     workdir: Path  # AUTHROS_VAR_DIR: database, secrets, logs, anvil state, demo files
-    host: str = "127.0.0.1"  # PORTAL_HOST
+    host: str = "127.0.0.1"  # PORTAL_HOST; 0.0.0.0 (or ::) listens on every address
+    # PORTAL_PUBLIC_URL: where robots and browsers on the network reach the portal (its host is
+    # allowed, beside loopback); needed when PORTAL_HOST is not a loopback address
+    public_url: str = ""
     port: int = 8000  # PORTAL_PORT; 0 = a free port
     anvil_port: int = 8545  # ANVIL_PORT; 0 = a free port
     chain_rpc_url: str = ""  # CHAIN_RPC_URL; "" = http://127.0.0.1:<anvil_port>
@@ -121,6 +129,7 @@ class StackConfig:
         return cls(
             workdir=Path(environ.get("AUTHROS_VAR_DIR") or REPO_ROOT / "var"),
             host=environ.get("PORTAL_HOST", "127.0.0.1"),
+            public_url=environ.get("PORTAL_PUBLIC_URL", "").rstrip("/"),
             port=int(environ.get("PORTAL_PORT", "8000")),
             anvil_port=int(environ.get("ANVIL_PORT", "8545")),
             chain_rpc_url=environ.get("CHAIN_RPC_URL", ""),
@@ -191,10 +200,29 @@ class Stack:
         host = "127.0.0.1" if self.config.host in ("0.0.0.0", "") else self.config.host  # noqa: S104
         return f"http://{host}:{self.config.port}"
 
+    @property
+    def public_url(self) -> str:
+        """Where robots and browsers reach the portal: PORTAL_PUBLIC_URL, else web_url."""
+        return self.config.public_url or self.web_url
+
+    @property
+    def allowed_hosts(self) -> list[str]:
+        """The Host headers the portal answers: DJANGO_ALLOWED_HOSTS if set, else loopback's,
+        the address it listens on and the public URL's host."""
+        if os.environ.get("DJANGO_ALLOWED_HOSTS"):
+            return os.environ["DJANGO_ALLOWED_HOSTS"].split(",")
+        hosts = ["localhost", "127.0.0.1", "[::1]"]
+        for host in (self.config.host, urlsplit(self.public_url).hostname or ""):
+            host = f"[{host}]" if ":" in host else host
+            if host not in (*hosts, "", "0.0.0.0", "[::]"):  # noqa: S104
+                hosts.append(host)
+        return hosts
+
     def environment(self) -> dict[str, str]:
         """The settings every process of the stack gets (on top of this process's own)."""
         config = self.config
         env = {
+            "DJANGO_ALLOWED_HOSTS": ",".join(self.allowed_hosts),
             "DJANGO_SETTINGS_MODULE": "portal.settings",
             "AUTHROS_VAR_DIR": str(self.workdir),
             "DATABASE_URL": config.database_url,
@@ -423,7 +451,16 @@ class Stack:
         url = self.web_url
         lines = ["", f"  {BANNER}"]
         if self.config.web:
-            lines.append(f"    Portal:        {url}/")
+            lines.append(f"    Portal:        {self.public_url}/")
+            lines.append(f"    Allowed hosts: {', '.join(self.allowed_hosts)}")
+            lines.append(
+                f"    Pair a robot:  authros-agent pair --portal {self.public_url} --name NAME"
+            )
+            if is_loopback(self.config.host):
+                lines.append(
+                    "                   (this machine only; for robots on the network: "
+                    "PORTAL_HOST=0.0.0.0 PORTAL_PUBLIC_URL=http://ADDRESS:PORT make run)"
+                )
         if self.demo is not None:
             password = (Path(self.demo["password_file"])).read_text().strip()
             lines.append(
@@ -578,7 +615,8 @@ def main(argv: list[str]) -> int:
     run_parser = commands.add_parser("run", help="start the whole stack (what `make run` does)")
     options = (
         ("--workdir", Path, defaults.workdir, "AUTHROS_VAR_DIR: database, secrets, logs, state"),
-        ("--host", str, defaults.host, "PORTAL_HOST"),
+        ("--host", str, defaults.host, "PORTAL_HOST (0.0.0.0: every address)"),
+        ("--public-url", str, defaults.public_url, "PORTAL_PUBLIC_URL: robots reach it there"),
         ("--port", int, defaults.port, "PORTAL_PORT (0 = a free port)"),
         ("--anvil-port", int, defaults.anvil_port, "ANVIL_PORT (0 = a free port)"),
         ("--block-time", float, defaults.block_time, "ANVIL_BLOCK_TIME, seconds"),
@@ -606,12 +644,20 @@ def main(argv: list[str]) -> int:
     args = parser.parse_args(argv)
     if args.command == "redis":
         return redis(defaults.redis_url, defaults.workdir / "redis")
+    if not is_loopback(args.host) and not args.public_url:
+        parser.error(
+            f"PORTAL_HOST={args.host} listens beyond this machine: say where robots reach it, "
+            "PORTAL_PUBLIC_URL=http://ADDRESS:PORT (its host is then allowed)"
+        )
+    if args.public_url and urlsplit(args.public_url).scheme not in ("http", "https"):
+        parser.error(f"PORTAL_PUBLIC_URL must be an http:// or https:// URL, not {args.public_url}")
     if min(args.workers, args.verify_workers) < 1 or min(args.web_workers, args.web_threads) < 0:
         parser.error("--workers and --verify-workers must be at least 1")
     config = replace(
         defaults,
         workdir=args.workdir,
         host=args.host,
+        public_url=args.public_url.rstrip("/"),
         port=args.port,
         anvil_port=args.anvil_port,
         block_time=args.block_time,

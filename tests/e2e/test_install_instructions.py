@@ -31,7 +31,7 @@ def test_the_install_and_pair_commands_fit_a_desktop_and_a_phone(
         page.goto(f"{live_server.url}/robots/")
         install = page.locator("[data-testid=install-command]")
         pair = page.locator("[data-testid=pair-command]")
-        expect(install).to_contain_text("-py3-none-any.whl[agent]")
+        expect(install).to_contain_text("bin/pip install --no-deps ./authros_portal-")
         expect(pair).to_have_text(f"authros-agent pair --portal {live_server.url} --name NAME")
         page.screenshot(path=shots / f"robots-{name}.png", full_page=True)
         assert page.evaluate("document.documentElement.scrollWidth") <= viewport["width"], name

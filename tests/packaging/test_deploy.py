@@ -6,6 +6,7 @@ settings the agent accepts; the ROS 2 launch description runs the agent's comman
 
 import importlib.util
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -32,7 +33,7 @@ PORTAL_UNITS = [
     "authros-worker.service",
 ]
 ROS1_PACKAGE = REPO_ROOT / "deploy" / "ros1" / "authros_agent"
-ROS2_LAUNCH = REPO_ROOT / "deploy" / "ros2" / "authros_agent.launch.py"
+ROS2_LAUNCH = REPO_ROOT / "deploy" / "ros2" / "authros_agent" / "launch" / "authros_agent.launch.py"
 AGENT_PREFIX, PORTAL_CHECKOUT = "/opt/authros-agent", "/srv/authros"
 STATE_DIR = "/var/lib/authros-agent"
 
@@ -262,3 +263,33 @@ def test_the_ros2_launch_description_runs_the_agents_ros2_command():
     ]
     assert declared["agent"] in project_scripts()
     assert process.kwargs["respawn"] is True
+
+
+@pytest.mark.process
+@pytest.mark.parametrize("unit", UNITS, ids=lambda unit: unit.name)
+def test_each_unit_is_exposed_at_most_2_0_by_systemd_analyze_security(unit):
+    """The hardening (SystemCallFilter, ProtectProc, ProcSubset, RemoveIPC, ...) measured as
+    `systemd-analyze security --offline` rates it: 3.2 before it, 1.4-1.5 with it."""
+    analyze = shutil.which("systemd-analyze")
+    assert analyze, "systemd-analyze is missing: scripts/bootstrap.sh --test installs it"
+    done = subprocess.run(
+        [analyze, "security", "--offline=yes", "--threshold=20", str(unit)],
+        capture_output=True, text=True, timeout=60, check=False,
+    )  # fmt: skip
+    assert done.returncode == 0, done.stdout[-2000:] + done.stderr
+    overall = re.search(r"Overall exposure level for \S+: (\d+\.\d)", done.stdout)
+    assert overall, done.stdout[-2000:]
+    assert float(overall.group(1)) <= 2.0, done.stdout
+
+
+def test_the_nginx_example_terminates_tls_and_passes_the_client_to_the_web_unit():
+    conf = (REPO_ROOT / "deploy" / "nginx" / "authros.conf").read_text()
+    web = unit_settings(SYSTEMD / "authros-web.service")["ExecStart"][0]
+    assert "--bind 127.0.0.1:8000" in web
+    assert "server 127.0.0.1:8000;" in conf
+    assert "listen 443 ssl;" in conf
+    assert "return 301 https://$host$request_uri;" in conf
+    # one address, the client's, which API_NUM_PROXIES=1 reads
+    assert "proxy_set_header X-Forwarded-For $remote_addr;" in conf
+    assert "proxy_set_header X-Forwarded-Proto $scheme;" in conf
+    assert "API_NUM_PROXIES=1" in conf

@@ -31,13 +31,13 @@ ROLES = {
     "portal": ("portal", "accounts", "sharing", "alerts", "chainworker", "core", "smcrypto",
                "authros_verify"),
 }  # fmt: skip
+# The extras a role's machine may install: a ROS 2 robot adds [ros2] (ros_agent/dds.py).
+ROLE_EXTRAS = {"agent": ("agent", "ros2")}
 # ROS 1 is Debian's (python3-rospy and the message packages), never from PyPI.
 FROM_DEBIAN = {"agent": {"rospy", "roslib", "genpy", "nav_msgs", "sensor_msgs", "std_msgs"}}
 # Chains and tools for tests only: no runtime module may import them.
 TEST_ONLY = {"eth_tester", "evm", "pytest", "hypothesis", "schemathesis", "playwright",
              "aiosmtpd", "mcap_ros2", "matplotlib"}  # fmt: skip
-# Installed by an operator who wants it, in no extra: smcrypto.sm2 uses it when it imports.
-OPTIONAL = {"gmssl_fast"}
 # a pin, with an environment marker or not (tongsuopy only where it has a wheel)
 _PIN = re.compile(r"^([A-Za-z0-9][A-Za-z0-9._-]*)==\S+(?: ;[^\\\n]*)? \\$", re.MULTILINE)
 
@@ -80,23 +80,25 @@ def locked(role: str) -> set[str]:
 @pytest.mark.parametrize("role", sorted(ROLES))
 def test_a_roles_packages_import_only_what_its_extra_installs(role):
     distributions = packages_distributions()
-    allowed = extra_distributions(role)
+    allowed = set().union(*(extra_distributions(x) for x in ROLE_EXTRAS.get(role, (role,))))
     outside = {
         module: where
         for module, where in third_party_modules(role_files(role)).items()
         if module not in FROM_DEBIAN.get(role, set())
-        and module not in OPTIONAL
         and not {canonicalize_name(d) for d in distributions.get(module, [module])} & allowed
     }
     assert outside == {}, f"imported by the {role} but not in its extra"
 
 
-def test_the_agent_and_the_verifier_import_no_django():
-    """They run on robots and auditors' machines, where the portal is not installed."""
+def test_the_agent_and_the_verifier_import_no_django_and_install_no_opencv():
+    """They run on robots and auditors' machines, where the portal is not installed; their PNG
+    is Pillow's (13 MB), not OpenCV's (150 MB), and a ROS 1 robot installs no DDS."""
     for role in ("agent", "verify"):
         modules = third_party_modules(role_files(role))
-        assert not {"django", "rest_framework", "celery", "kombu", "redis"} & set(modules)
-        assert "django" not in extra_distributions(role)
+        assert not {"django", "rest_framework", "celery", "kombu", "redis", "cv2"} & set(modules)
+        assert not {"django", "opencv-python-headless", "opencv-python"} & locked(role), role
+    assert "cyclonedds" not in locked("agent")
+    assert "cyclonedds" in locked("ros2")
 
 
 def test_no_runtime_code_imports_a_test_chain_or_a_test_tool():
@@ -106,10 +108,10 @@ def test_no_runtime_code_imports_a_test_chain_or_a_test_tool():
         assert not {"eth-tester", "py-evm"} & locked(role), role
 
 
-@pytest.mark.parametrize("role", ["agent", "verify", "portal", "dev"])
+@pytest.mark.parametrize("role", ["agent", "ros2", "verify", "portal", "flower", "dev"])
 def test_each_extra_is_in_its_locked_set_with_hashes(role):
     """`make lock` was run after the last change of pyproject.toml's extras."""
-    extras = {"dev": ["portal", "agent", "verify", "dev"]}.get(role, [role])
+    extras = {"dev": ["portal", "agent", "ros2", "verify", "flower", "dev"]}.get(role, [role])
     wanted = set().union(*(extra_distributions(extra) for extra in extras))
     assert wanted - locked(role) == set()
     assert locked(role) <= locked("dev")  # a role runs the versions the suite ran

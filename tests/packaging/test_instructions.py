@@ -16,8 +16,11 @@ from tests.support.harness import REPO_ROOT
 
 PYPROJECT = tomllib.loads((REPO_ROOT / "pyproject.toml").read_text())["project"]
 FIRST_SCREEN = 45  # lines
-# The project is not on PyPI: its install commands name the wheel (or a copy of the repository).
-INSTALL = re.compile(r'pip install "\./([a-z_]+)-([0-9.]+)-py3-none-any\.whl\[([a-z-]+)\]"')
+# The project is not on PyPI: its install commands name the wheel built from this repository,
+# each into a virtual environment made on the same screen, after the role's locked set.
+INSTALL = re.compile(r"(\S+)/bin/pip install --no-deps \./([a-z_]+)-([0-9.]+)-py3-none-any\.whl")
+LOCKED = re.compile(r"(\S+)/bin/pip install --require-hashes -r requirements/([a-z0-9_-]+)\.txt")
+VENV = re.compile(r"python3 -m venv (?:--system-site-packages )?(\S+)")
 WHEEL = (PYPROJECT["name"].replace("-", "_"), PYPROJECT["version"])
 
 
@@ -39,12 +42,30 @@ def test_the_readme_opens_with_the_two_commands_then_the_quickstart():
         assert f"**{step}" in first_screen, step
 
 
+def installs_of(text: str) -> list[tuple[str, str]]:
+    """(virtual environment, locked set) of each install in the text, each checked to be the
+    wheel's, into a virtual environment the text makes, after that role's locked set; no
+    bare `pip install` and no name of the project on PyPI, which nobody here owns."""
+    venvs = VENV.findall(text)
+    locked = LOCKED.findall(text)
+    wheels = INSTALL.findall(text)
+    assert [(venv, *WHEEL) for venv, _ in locked] == wheels
+    assert {venv for venv, _ in locked} <= set(venvs)
+    assert all((REPO_ROOT / "requirements" / f"{role}.txt").is_file() for _, role in locked)
+    assert not re.search(r"(?<!/bin/)\bpip install", text.replace("python -m pip wheel", ""))
+    assert f"{PYPROJECT['name']}[" not in text
+    return locked
+
+
 def test_the_quickstarts_commands_are_the_packages(capsys):
     first_screen = "\n".join((REPO_ROOT / "README.md").read_text().splitlines()[:FIRST_SCREEN])
-    installs = INSTALL.findall(first_screen)
-    assert installs == [(*WHEEL, "agent"), (*WHEEL, "verify")]
-    assert {extra for *_, extra in installs} <= set(PYPROJECT["optional-dependencies"])
+    assert installs_of(first_screen) == [
+        ("~/authros-agent", "agent"),
+        ("~/authros-verify", "verify"),
+    ]
     assert "pip wheel --no-deps -w dist ." in first_screen  # how the wheel is made
+    assert "PORTAL_HOST=0.0.0.0" in first_screen  # how robots on the network reach it
+    assert "PORTAL_PUBLIC_URL=http://ADDRESS:8000" in " ".join(first_screen.split())
     for command in ("authros-agent pair", "authros-agent --config", "authros-verify"):
         assert command in first_screen
         assert command.split()[0] in PYPROJECT["scripts"]
@@ -60,7 +81,7 @@ def test_the_quickstarts_commands_are_the_packages(capsys):
 def test_the_robots_page_says_how_to_install_the_agent_and_pair_it(client, make_owner):
     client.force_login(make_owner("alice").user)
     page = client.get(reverse("robots")).content.decode()
-    assert INSTALL.findall(page.replace("&quot;", '"')) == [(*WHEEL, "agent")]
+    assert installs_of(page) == [("~/authros-agent", "agent")]
     assert "authros-agent pair --portal http://testserver --name NAME" in page
 
 

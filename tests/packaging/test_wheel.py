@@ -17,6 +17,7 @@ import os
 import shutil
 import subprocess
 import sys
+import tomllib
 import zipfile
 from pathlib import Path
 
@@ -30,6 +31,7 @@ pytestmark = [pytest.mark.process, pytest.mark.slow, pytest.mark.timeout(1200)]
 
 WHEELHOUSE = REPO_ROOT / "var" / "wheelhouse"
 PACKAGES = ("ros_agent", "authros_verify", "smcrypto")
+MODULES = ("authros_commands.py",)  # the console scripts' entry points
 # The interpreter the virtual environments are made from: the system's, as on a robot.
 BASE_PYTHON = getattr(sys, "_base_executable", sys.executable)
 
@@ -50,7 +52,7 @@ def wheel(tmp_path_factory) -> Path:
     """The wheel, built from a copy of what it is made of (setuptools leaves its build
     folders beside the sources)."""
     source = tmp_path_factory.mktemp("source")
-    for name in ("pyproject.toml", "README.md"):
+    for name in ("pyproject.toml", "README.md", "LICENSE", *MODULES):
         shutil.copy(REPO_ROOT / name, source / name)
     for package in PACKAGES:
         shutil.copytree(
@@ -100,21 +102,38 @@ def test_the_wheel_holds_the_robots_and_the_auditors_packages_and_commands(wheel
         entry_points = archive.read(
             next(n for n in names if n.endswith(".dist-info/entry_points.txt"))
         ).decode()
-    assert {name.split("/")[0] for name in names if "dist-info" not in name} == set(PACKAGES)
+        metadata = archive.read(next(n for n in names if n.endswith(".dist-info/METADATA")))
+    top = {name.split("/")[0] for name in names if "dist-info" not in name}
+    assert top == {*PACKAGES, *MODULES}
     assert "ros_agent/agent.example.yaml" in names
-    assert "authros-agent = ros_agent.__main__:main" in entry_points
-    assert "authros-verify = authros_verify.__main__:main" in entry_points
+    assert "authros-agent = authros_commands:agent" in entry_points
+    assert "authros-verify = authros_commands:verify" in entry_points
+    assert b"\nLicense-Expression: Apache-2.0\n" in metadata
+    assert any(name.endswith(".dist-info/licenses/LICENSE") for name in names)
 
 
 def test_the_agent_installs_alone_and_each_command_answers(wheel, tmp_path):
     bin_dir = role_venv(tmp_path, "agent", wheel, system_site_packages=True)
     agent = str(bin_dir / "authros-agent")
+    version = tomllib.loads((REPO_ROOT / "pyproject.toml").read_text())["project"]["version"]
+    assert run([agent, "--version"], cwd=tmp_path).stdout == f"authros-agent {version}\n"
+    # The auditor's command is there too, and says what it needs instead of a traceback.
+    verify = run(
+        [str(bin_dir / "authros-verify"), "p.json", "--rpc", "x"], cwd=tmp_path, check=False
+    )
+    assert verify.returncode == 2
+    assert verify.stderr.startswith("authros-verify: this environment lacks the [verify] extra")
+    assert len(verify.stderr.splitlines()) == 1
     overview = run([agent, "--help"], cwd=tmp_path).stdout
     assert "pair --portal URL --name NAME" in overview
     assert "--ros2 --config agent.yaml" in overview
     assert "usage:" in run([agent, "pair", "--help"], cwd=tmp_path).stdout
     assert "--portal PORTAL" in run([agent, "pair", "--help"], cwd=tmp_path).stdout
     assert "--domain-id" in run([agent, "--ros2", "--help"], cwd=tmp_path).stdout
+    # A ROS 1 robot's set has no DDS: the ROS 2 agent says which set has it.
+    ros2 = run([agent, "--ros2", "--config", "agent.yaml"], cwd=tmp_path, check=False)
+    assert ros2.returncode == 2
+    assert "lacks the [ros2] extra (no module named 'cyclonedds')" in ros2.stderr
     assert "--config" in run([agent, "import", "--help"], cwd=tmp_path).stdout
     # The ROS 1 node: rospy from Debian, seen through --system-site-packages.
     assert (
@@ -169,6 +188,14 @@ def test_the_verifier_installs_alone_and_checks_an_export_against_the_chain(
     bin_dir = role_venv(tmp_path, "verify", wheel, system_site_packages=False)
     verify = str(bin_dir / "authros-verify")
     assert "--require-signed" in run([verify, "--help"], cwd=tmp_path).stdout
+    assert run([verify, "--version"], cwd=tmp_path).stdout.startswith("authros-verify 0.")
+    pair = [str(bin_dir / "authros-agent"), "pair", "--portal", "http://p", "--name", "r"]
+    paired = run(pair, cwd=tmp_path, check=False)
+    assert paired.returncode == 2
+    assert paired.stderr == (
+        "authros-agent: this environment lacks the [agent] extra (no module named 'yaml'): "
+        "install requirements/agent.txt into it (docs/deployment.md)\n"
+    )
     command = [verify, "proofs.json", "--mcap", "export.mcap", "--rpc", settings.CHAIN_RPC_URL]
     command += ["--contract", deployed.address, "--require-signed"]
     passed = run(command, cwd=tmp_path)

@@ -152,3 +152,36 @@ def test_the_scrape_reports_a_source_that_does_not_answer_and_the_others(setting
     assert "authros_chain_head_block" not in text
     assert 'authros_chain_backlog{kind="records"}' in text
     assert 'authros_celery_queue_length{queue="' in text
+
+
+@pytest.mark.parametrize("path", ["/healthz", "/readyz", "/metrics"])
+def test_each_probe_answers_options_with_allow_as_haproxys_httpchk_asks(client, path):
+    answer = client.options(path)
+    assert answer.status_code == 204
+    assert answer["Allow"] == "GET, HEAD, OPTIONS"
+    assert answer.content == b""
+
+
+@pytest.mark.django_db
+@pytest.mark.parametrize("path", ["/healthz", "/readyz"])
+def test_head_gets_the_gets_status_and_length_without_the_body(client, path):
+    got = client.get(path)
+    head = client.head(path)
+    assert (head.status_code, got.status_code) == (200, 200)
+    assert head["Content-Length"] == str(len(got.content))
+    assert head["Content-Type"] == got["Content-Type"]
+    assert head.content == b""
+
+
+def test_head_of_metrics_needs_what_get_needs(settings):
+    settings.METRICS_TOKEN = TOKEN
+    assert Client(REMOTE_ADDR=ELSEWHERE).head("/metrics").status_code == 401
+    allowed = Client(REMOTE_ADDR=ELSEWHERE).head("/metrics", HTTP_AUTHORIZATION=f"Bearer {TOKEN}")
+    assert allowed.status_code == 200
+
+
+@pytest.mark.parametrize("method", ["post", "put", "delete", "patch"])
+def test_other_methods_are_405_with_allow(client, method):
+    answer = getattr(client, method)("/healthz")
+    assert answer.status_code == 405
+    assert answer["Allow"] == "GET, HEAD, OPTIONS"

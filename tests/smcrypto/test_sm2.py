@@ -712,6 +712,14 @@ def test_tongsuo_imports_where_it_has_a_wheel() -> None:
     assert "tongsuo" in PRESENT
 
 
+@pytest.mark.skipif(sys.platform != "linux", reason="gmssl-fast has wheels for Linux only")
+def test_gmssl_fast_imports_where_the_locked_sets_install_it() -> None:
+    """The aarch64 robots' and auditors' backend (requirements/agent.txt, verify.txt), which
+    the suite's set installs on every Linux: its self-check and its calls are tested here."""
+    assert sm2.backend_load("gmssl-fast").NAME == "gmssl-fast"
+    assert "gmssl-fast" in PRESENT
+
+
 def test_backend_names_the_one_in_use() -> None:
     assert sm2.BACKEND == sm2._backend.NAME
     assert sm2.BACKEND in sm2.BACKENDS

@@ -1,4 +1,5 @@
-"""The AuthROS agent in a ROS 2 launch: `ros2 launch authros_agent.launch.py [config:=FILE]`.
+"""The AuthROS agent in a ROS 2 launch, from the ament package around this folder:
+`ros2 launch authros_agent authros_agent.launch.py [config:=FILE]`.
 
 The agent talks DDS itself (Cyclone DDS, no rclpy), so it is a process of the launch, not a
 Node: `authros-agent --ros2 --config FILE`, started again if it dies, stopped with SIGINT (it
