@@ -125,7 +125,7 @@ def records_open(
     # One record (a record page, a content answer) is asked of a verify worker directly,
     # without Celery's round trip (sharing/verification/direct.py); pages and plots go
     # through the queue, where the verify workers take their batches side by side.
-    send = _send_direct if len(records) == 1 else _send
+    send = _send_direct if len(records) == 1 and settings.VERIFY_DIRECT else _send
     pending = [
         send(
             VERIFY_TASK,

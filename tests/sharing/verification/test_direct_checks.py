@@ -65,6 +65,10 @@ def test_one_record_is_checked_by_the_worker_through_redis(worker_stack, setting
     with pytest.raises(AccessDenied):
         record_open(record_id=good.pk, viewer=bob.owner)
 
+    settings.VERIFY_DIRECT = False  # the task, as before: the same answer
+    assert record_open(record_id=good.pk, viewer=alice.owner).envelope == stored
+    settings.VERIFY_DIRECT = True
+
     # Nobody serves any more: the view sends the task, which no worker takes here either.
     stack.kill_worker("w0")
     wait_for(lambda: not direct_checks_served(), timeout=30, what="the presence key expired")
