@@ -63,12 +63,6 @@ class SingleViewRun:
 
 def measure(run: SingleViewRun) -> dict[str, Any]:
     """Every phase on one fresh stack."""
-    from django.conf import settings
-
-    from sharing.models import Record
-    from sharing.services.uploads import record_create_batch
-    from sharing.verification.opening import record_open
-
     workdir = Path(tempfile.mkdtemp(prefix="authros-bench-single-view-"))
     stack = BenchStack(
         StackOptions(
@@ -83,7 +77,13 @@ def measure(run: SingleViewRun) -> dict[str, Any]:
     )
     found: dict[str, Any] = {}
     try:
-        stack.start()
+        stack.start()  # Django is set up from here on
+        from django.conf import settings
+
+        from sharing.models import Record
+        from sharing.services.uploads import record_create_batch
+        from sharing.verification.opening import record_open
+
         ((robot, key),) = owners_register(stack, 1)
         owner = robot.owner
         for first in range(1, run.records + 1, BATCH):
