@@ -7,8 +7,8 @@ from bench import available
 
 # Run only when named: the soak takes an hour (`make soak`), too long for a run of them all;
 # webserver compares two checkouts' web servers (bench/webserver.py); robot_status writes
-# millions of rows first.
-ON_DEMAND = ("soak", "webserver", "robot_status")
+# millions of rows first; single_view compares two ways of one check on one stack.
+ON_DEMAND = ("soak", "webserver", "robot_status", "single_view")
 
 
 def main(argv: list[str]) -> int:

@@ -196,6 +196,10 @@ class FixedInsert:
         self.model = model
         self._auto = model._meta.pk if isinstance(model._meta.pk, AutoField) else None
         self._fields = [field for field in model._meta.concrete_fields if field is not self._auto]
+        # Per field, how a str or int value reaches the database when the field's own chain
+        # of methods (pre_save, get_db_prep_save, get_prep_value, ...) would hand it on
+        # unchanged: 13 fields of 100 rows are 1,300 such chains an upload.
+        self._plain = [_plain_saved(field) for field in self._fields]
         self._sql: dict[tuple[str, int], str] = {}
 
     def insert(self, instances: Sequence[Model]) -> None:
@@ -208,9 +212,9 @@ class FixedInsert:
         for start in range(0, len(instances), size):
             chunk = instances[start : start + size]
             params = [
-                field.get_db_prep_save(field.pre_save(instance, True), connection)
+                self._saved(field, plain, instance, connection)
                 for instance in chunk
-                for field in self._fields
+                for field, plain in zip(self._fields, self._plain, strict=True)
             ]
             rows = len(chunk)
             sql = _built(self._sql, (alias, rows), lambda rows=rows: self._build(connection, rows))
@@ -223,6 +227,18 @@ class FixedInsert:
             instance._state.adding = False
             instance._state.db = alias
 
+    @staticmethod
+    def _saved(field: Field, plain: str | None, instance: Model, connection: Any) -> object:
+        """The value of `field` as the database takes it for a new row of `instance`."""
+        if plain is not None:
+            value = instance.__dict__.get(field.attname)
+            kind = type(value)
+            if kind is str and plain == _TEXT:
+                return value
+            if kind is int and plain != _TEXT:
+                return connection.ops.adapt_integerfield_value(value, plain)
+        return field.get_db_prep_save(field.pre_save(instance, True), connection)
+
     def _build(self, connection: Any, rows: int) -> str:
         quote = connection.ops.quote_name
         columns = ", ".join(quote(field.column) for field in self._fields)
@@ -230,6 +246,34 @@ class FixedInsert:
         table = quote(self.model._meta.db_table)
         returning = f" RETURNING {quote(self._auto.column)}" if self._auto is not None else ""
         return f"INSERT INTO {table} ({columns}) VALUES {', '.join([row] * rows)}{returning}"  # noqa: S608
+
+
+_TEXT = "text"
+_INTEGER_TYPES = frozenset(
+    {
+        "IntegerField",
+        "BigIntegerField",
+        "SmallIntegerField",
+        "PositiveIntegerField",
+        "PositiveBigIntegerField",
+        "PositiveSmallIntegerField",
+    }
+)
+
+
+def _plain_saved(field: Field) -> str | None:
+    """`_TEXT` for a field that saves a str as it is (CharField, TextField), the internal type
+    of an integer field (an int goes to the backend's adapt_integerfield_value, as the
+    field's own get_db_prep_value ends), None for any other (the field's own methods). Only
+    the exact classes: a subclass may convert in its own way."""
+    kind = type(field).__name__
+    if type(field).__module__ != "django.db.models.fields":
+        return None
+    if kind in ("CharField", "TextField"):
+        return _TEXT
+    if kind in _INTEGER_TYPES:
+        return kind
+    return None
 
 
 class FixedUpdate:

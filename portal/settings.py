@@ -508,6 +508,9 @@ RETENTION_MAX_BATCHES = env.int("RETENTION_MAX_BATCHES", default=20)
 RETENTION_LOCK_TTL = env.float("RETENTION_LOCK_TTL", default=900.0)
 # How long a web request waits for the worker's integrity verdict.
 VERIFY_TIMEOUT = env.float("VERIFY_TIMEOUT", default=30.0)
+# A single record's check asked of a verify worker through Redis, not as a Celery task
+# (sharing/verification/direct.py); off, every check is a task (as before, and for comparison).
+VERIFY_DIRECT = env.bool("VERIFY_DIRECT", default=True)
 # Series (sharing/series.py, docs/api.md): the longest capture-time range one series covers,
 # and the most records it may check (every record in range is checked, none skipped).
 SERIES_MAX_RANGE = timedelta(seconds=env.int("SERIES_MAX_RANGE_SECONDS", default=6 * 3600))

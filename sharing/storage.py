@@ -45,20 +45,24 @@ class DurableFileSystemStorage(FileSystemStorage):
         """Write new files (each name must not exist) and make them durable together: one
         sync of the file system (Linux syncfs), not two fsyncs a file; all or none."""
         written: list[str] = []
+        folders: set[Path] = set()  # made (or found) once per upload, not once per file
+        mode = self.file_permissions_mode
         try:
             for name, data in files:
                 path = Path(self.path(name))
-                path.parent.mkdir(
-                    mode=self.directory_permissions_mode or 0o777, parents=True, exist_ok=True
-                )
+                if path.parent not in folders:
+                    path.parent.mkdir(
+                        mode=self.directory_permissions_mode or 0o777, parents=True, exist_ok=True
+                    )
+                    folders.add(path.parent)
                 fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
                 written.append(str(path))
                 try:
                     os.write(fd, data)  # envelopes are small: one write takes them whole
+                    if mode is not None:
+                        os.fchmod(fd, mode)  # on the open file: no second lookup of the path
                 finally:
                     os.close(fd)
-                if self.file_permissions_mode is not None:
-                    os.chmod(path, self.file_permissions_mode)
             _sync(written, self.location)
         except BaseException:
             for path in written:

@@ -7,7 +7,7 @@ time runs on the verify queue (portal/celery.py) with a short policy: a person i
 from datetime import timedelta
 from typing import Any
 
-from celery import shared_task
+from celery import current_app, shared_task, signals
 from django.conf import settings
 
 from accounts.errors import IdentityMismatch
@@ -16,7 +16,7 @@ from chainworker.work import CHAIN_TASK
 from sharing import disk
 from sharing.exports import run, withdraw
 from sharing.services import anchoring, completeness, deletion, grant_chain, reconcile, sweep
-from sharing.verification import budget, check, series_check
+from sharing.verification import budget, check, direct, series_check
 
 
 @shared_task(name="sharing.tasks.records_anchor", **CHAIN_TASK)
@@ -132,6 +132,18 @@ def series_verify(
         answer_key=answer_key,
         part=part,
     )
+
+
+@signals.worker_process_init.connect
+def direct_checks_start(**kwargs: object) -> None:
+    """Each pool process of a worker that takes the verify queue also answers the web's
+    single-record checks straight from Redis (sharing/verification/direct.py), with this
+    task's own function."""
+    queues = current_app.amqp.queues
+    verify = current_app.conf.task_default_queue + current_app.conf.verify_queue_suffix
+    consumed = queues.consume_from if queues.consume_from else queues
+    if verify in consumed:
+        direct.direct_checks_serving(records_verify.run)
 
 
 # An export runs for as long as its records take; a message delivered twice finds it done.

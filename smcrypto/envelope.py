@@ -111,22 +111,42 @@ def seal(
     return aad + sm4.gcm_encrypt(key, nonce, plaintext, aad)
 
 
-def open(key: bytes, envelope: bytes) -> tuple[dict[str, Any], bytes]:
-    """Check and decrypt an envelope; return (header, plaintext).
+def open(
+    key: bytes, envelope: bytes, *, info: EnvelopeInfo | None = None
+) -> tuple[dict[str, Any], bytes]:
+    """Check and decrypt an envelope; return (header, plaintext). `info` is
+    read_header(envelope) when the caller read it already (an upload reads each header first),
+    so that the header is not parsed and checked twice.
 
     Raises MalformedEnvelope or UnsupportedEnvelope, then WrongKey, then AuthenticationFailed.
     """
     expected_key_id = key_id(key)
-    info = read_header(envelope)
+    if info is None:
+        info = read_header(envelope)
+        data = bytes(envelope)
+        boundary = PREFIX_SIZE + len(info.header_bytes)
+    else:
+        data = bytes(envelope)
+        boundary = PREFIX_SIZE + len(info.header_bytes)
+        _check_info_is_of(info, data, boundary)
     if not hmac.compare_digest(info.key_id, expected_key_id):
         raise WrongKey(
             f"envelope was sealed under key id {info.key_id.hex()}, "
             f"but the key given has id {expected_key_id.hex()}"
         )
-    data = bytes(envelope)
-    boundary = PREFIX_SIZE + len(info.header_bytes)
     plaintext = sm4.gcm_decrypt(key, info.nonce, data[boundary:], data[:boundary])
     return info.header, plaintext
+
+
+def _check_info_is_of(info: EnvelopeInfo, data: bytes, boundary: int) -> None:
+    """MalformedEnvelope unless `info` is what read_header read from these very bytes (a few
+    comparisons, not a second parse of the header)."""
+    if (
+        len(data) < boundary + TAG_SIZE
+        or _PREFIX.unpack_from(data)[3:] != (info.key_id, info.nonce, len(info.header_bytes))
+        or data[PREFIX_SIZE:boundary] != info.header_bytes
+    ):
+        raise MalformedEnvelope("the header given is not this envelope's")
 
 
 def read_header(envelope: bytes) -> EnvelopeInfo:

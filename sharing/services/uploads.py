@@ -390,7 +390,7 @@ def _check_upload(robot: Robot, data: bytes, keys: _UploadKeys) -> _CheckedUploa
         raise UnknownKey("the envelope is not sealed under the owner's current key")
     key, key_bytes = usable
     try:
-        _sealed_header, plaintext = envelope.open(key_bytes, data)
+        _sealed_header, plaintext = envelope.open(key_bytes, data, info=info)
     except CryptoError:
         SecurityEvent.objects.create(
             kind=SecurityEvent.Kind.FORGED_UPLOAD,

@@ -60,6 +60,7 @@ from sharing.verification.access import (
 from sharing.verification.answers import answer_key_make, answer_open
 from sharing.verification.budget import CheckRun, check_run
 from sharing.verification.check import ANSWERED_FIELDS
+from sharing.verification.direct import direct_check_send
 from sharing.verification.keys import RecordKeys
 from smcrypto import envelope
 
@@ -162,8 +163,12 @@ def _records_checked(
     )
     sent_accesses = {str(owner_id): access_id for owner_id, access_id in accesses.items()}
     batches = [records[at : at + VERIFY_BATCH] for at in range(0, len(records), VERIFY_BATCH)]
+    # One record (a record page, a content answer) is asked of a verify worker directly,
+    # without Celery's round trip (sharing/verification/direct.py); pages and plots go
+    # through the queue, where the verify workers take their batches side by side.
+    send = _send_direct if len(records) == 1 and settings.VERIFY_DIRECT else _send
     pending = [
-        _send(
+        send(
             VERIFY_TASK,
             [str(record.pk) for record in batch],
             viewer.pk,
@@ -235,6 +240,16 @@ def _send(task_name: str, *args: Any) -> Any:
         return dispatch(task_name, *args)
     except Exception as exc:  # the broker is down
         return exc
+
+
+def _send_direct(task_name: str, *args: Any) -> Any:
+    """The check asked of a verify worker through Redis, or sent as the task when no worker
+    serves there (`_send`)."""
+    try:
+        direct = direct_check_send(*args)
+    except (RedisError, OSError) as exc:
+        return exc
+    return direct if direct is not None else _send(task_name, *args)
 
 
 def _verdict_of(answer: dict[str, Any], record: Record, viewer: Owner) -> Verdict:

@@ -495,3 +495,26 @@ def test_key_commitment_bad_address(address: Any) -> None:
 def test_key_commitment_bad_key() -> None:
     with pytest.raises(InvalidKey, match="SM4 key"):
         envelope.key_commitment("0x" + "00" * 20, bytes(15))
+
+
+def test_open_with_the_header_read_already_is_open() -> None:
+    """An upload reads each header first, then opens with it (`info`): the same answer, and
+    a header read from other bytes is refused rather than trusted."""
+    info = envelope.read_header(SEALED)
+    assert envelope.open(KEY, SEALED, info=info) == envelope.open(KEY, SEALED)
+    other = envelope.seal(KEY, {**HEADER, "seq": 43}, PLAINTEXT)
+    with pytest.raises(MalformedEnvelope, match="not this envelope's"):
+        envelope.open(KEY, other, info=info)
+    with pytest.raises(MalformedEnvelope, match="not this envelope's"):
+        envelope.open(KEY, SEALED[:40], info=info)
+    renonced = envelope.seal(KEY, HEADER, PLAINTEXT)  # a fresh nonce, the same header
+    with pytest.raises(MalformedEnvelope, match="not this envelope's"):
+        envelope.open(KEY, renonced, info=info)
+
+
+def test_every_single_byte_change_is_refused_with_the_header_read_first() -> None:
+    for index in range(len(SEALED)):
+        tampered = bytearray(SEALED)
+        tampered[index] ^= 0x01
+        with pytest.raises(CryptoError):
+            envelope.open(KEY, bytes(tampered), info=envelope.read_header(bytes(tampered)))
