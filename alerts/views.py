@@ -15,6 +15,7 @@ from accounts.decorators import no_store, owner_required, page_throttle
 from accounts.models import Owner
 from alerts.errors import AlertError
 from alerts.forms import KIND_CHOICES, AlertPreferencesForm, WebhookEndpointForm
+from alerts.models import AlertPreferences
 from alerts.selectors import (
     alert_deliveries_of,
     alert_preferences_of,
@@ -59,6 +60,9 @@ def _page(
         "endpoints": webhook_endpoints_of(owner),
         "deliveries": alert_deliveries_of(owner),
     }
+    preferences = context["preferences"]
+    if not (preferences.email and preferences.email_verified_at) and not context["endpoints"]:
+        context["no_channel"] = _no_channel(preferences)
     return render(request, "alerts/alerts.html", context, status=status)
 
 
@@ -166,5 +170,17 @@ def alert_test(request: HttpRequest) -> HttpResponse:
         channels = "1 channel" if count == 1 else f"{count} channels"
         messages.success(request, f"A test alert is on its way to {channels}.")
     else:
-        messages.warning(request, "Nothing was sent: give an e-mail address or add a webhook.")
+        messages.warning(
+            request, f"Nothing was sent: {_no_channel(alert_preferences_of(request.owner))}"
+        )
     return redirect("alerts")
+
+
+def _no_channel(preferences: AlertPreferences) -> str:
+    """Why a test alert has nowhere to go, in words the owner can act on."""
+    if preferences.email and preferences.email_verified_at is None:
+        return (
+            f"{preferences.email} is not confirmed yet (follow the link sent to it) and no "
+            "webhook is set up."
+        )
+    return "no e-mail address and no webhook is set up to receive alerts; add one above."

@@ -40,6 +40,15 @@ class Uninterpretable(ValueError):
     """A record's plaintext that is not JSON the pages can show; the message says why."""
 
 
+# The labels of the record format's fields (DESIGN.md: the paper's Fig. 4, `K` the data).
+RECORD_FIELD_LABELS = {
+    "Owner": "Owner (Owner)",
+    "Time": "Captured, UTC (Time)",
+    "Type": "ROS message type (Type)",
+    "Topic": "Topic (Topic)",
+}
+
+
 @dataclass
 class Content:
     """What the record page shows of a decrypted record.
@@ -56,6 +65,9 @@ class Content:
     odometry: list[tuple[str, str]] = field(default_factory=list)
     is_odometry: bool = False
     ros_seq: int | None = None  # the message's own std_msgs/Header seq, if it has one
+    # The paper's record format (Fig. 4) named: its fields but K, labelled, and K, the data.
+    fields: list[tuple[str, str]] = field(default_factory=list)
+    data_pretty: str = ""
     problem: str = ""
     raw: str = ""
     raw_shown_bytes: int = 0
@@ -135,6 +147,13 @@ def _interpret(content: Content, *, data_type: str, document: Any) -> None:
         content.is_odometry = True
         content.odometry = odometry_rows(data)
     content.pretty = _printable(json.dumps(shown, indent=2, ensure_ascii=False))
+    if isinstance(shown, dict) and "K" in shown:
+        content.fields = [
+            (label, _printable(str(shown[key])))
+            for key, label in RECORD_FIELD_LABELS.items()
+            if key in shown and isinstance(shown[key], str | int | float)
+        ]
+        content.data_pretty = _printable(json.dumps(shown["K"], indent=2, ensure_ascii=False))
 
 
 def _raw_content(plaintext: bytes, *, problem: str) -> Content:

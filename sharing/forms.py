@@ -339,6 +339,8 @@ class AccessLogFilterForm(PeriodFilterForm):
         required=False,
         choices=[("", "any"), *((v, label) for v, label in Credential.choices if v)],
     )
+    # The owner's own reads of their own records are not listed unless asked for (issue 48).
+    mine = forms.BooleanField(label="Include my own views", required=False)
 
     def __init__(self, data: object, *, choices: dict[str, QuerySet]) -> None:
         super().__init__(data)
@@ -363,7 +365,16 @@ class AccessLogFilterForm(PeriodFilterForm):
     def filters(self) -> dict[str, Any]:
         found = super().filters()
         found.pop("direction", None)
+        found.pop("mine", None)
         return found
+
+    def with_own_views(self, owner_name: str) -> bool:
+        """Whether the owner's own views are listed: asked for, or the viewer filter names
+        the owner."""
+        filters = self.filters()
+        return bool(self.is_bound and self.is_valid() and self.cleaned_data.get("mine")) or (
+            filters.get("viewer") == owner_name
+        )
 
 
 class ExportForm(RecordSelectionForm, PeriodFilterForm):

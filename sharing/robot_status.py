@@ -40,6 +40,8 @@ class TopicRate:
     data_type: str
     last_minute: int
     last_hour: int
+    # What the hour's rate is over: the hour, or less for a robot added within it (issue 48).
+    hour_seconds: float = HOUR.total_seconds()
 
     @property
     def per_second_minute(self) -> float:
@@ -47,7 +49,7 @@ class TopicRate:
 
     @property
     def per_second_hour(self) -> float:
-        return self.last_hour / HOUR.total_seconds()
+        return self.last_hour / self.hour_seconds
 
 
 @dataclass(frozen=True)
@@ -57,6 +59,14 @@ class RobotActivity:
     last_upload_at: datetime | None  # when the portal received its newest upload
     last_captured_at: datetime | None  # the newest capture time it sent
     topics: list[TopicRate] = field(default_factory=list)
+    hour_seconds: float = HOUR.total_seconds()
+
+    @property
+    def hour_label(self) -> str:
+        """The hour's column in words: "Last hour", or since when for a younger robot."""
+        if self.hour_seconds >= HOUR.total_seconds():
+            return "Last hour"
+        return f"Last {self.hour_seconds / 60:.0f} min (since it was added)"
 
     @property
     def last_seen_at(self) -> datetime | None:
@@ -84,14 +94,17 @@ def robot_activity(robot: Robot, *, now: datetime) -> RobotActivity:
     newest = Record.objects.filter(robot=robot).aggregate(newest=Max("captured_at"))["newest"]
     minute = _counts_since(robot, now - MINUTE)
     hour = _hour_counts(robot, now)
+    # A robot added within the hour has sent for less than it: its rate is over that time.
+    age = (now - robot.created_at).total_seconds() if robot.created_at else HOUR.total_seconds()
+    span = min(HOUR.total_seconds(), max(MINUTE.total_seconds(), age))
     rates = []
     for topic, data_type in {*minute, *hour}:
         in_minute = minute.get((topic, data_type), 0)
         # The hour's counts may be a minute old: never fewer than the minute's.
         in_hour = max(hour.get((topic, data_type), 0), in_minute)
-        rates.append(TopicRate(topic, data_type, in_minute, in_hour))
+        rates.append(TopicRate(topic, data_type, in_minute, in_hour, span))
     topics = sorted(rates, key=lambda rate: (-rate.last_minute, -rate.last_hour, rate.topic))
-    return RobotActivity(robot, now, robot.last_upload_at, newest, topics)
+    return RobotActivity(robot, now, robot.last_upload_at, newest, topics, span)
 
 
 def _counts_since(robot: Robot, since: datetime) -> dict[tuple[str, str], int]:

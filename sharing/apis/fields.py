@@ -16,18 +16,20 @@ from rest_framework import serializers
 from rest_framework.pagination import LimitOffsetPagination
 from rest_framework.permissions import BasePermission
 from rest_framework.request import Request
+from rest_framework.utils.urls import remove_query_param, replace_query_param
 from rest_framework.views import APIView
 
 from accounts.authentication import caller_owner_token, caller_robot
 from accounts.models import OwnerToken
 from sharing.errors import NOT_VISIBLE, RecordNotFound
-from sharing.models import Credential
+from sharing.models import Credential, Record
 from sharing.selection import (
     MAX_SELECTED_ROBOTS,
     MAX_SELECTED_TOPICS,
     MAX_TOPIC_LENGTH,
     RecordSelection,
 )
+from sharing.selectors.record_pages import BadCursor, RecordCursor
 
 # A username is at most 150 characters, an address 42.
 MAX_OWNER_IDENTIFIER = 150
@@ -209,6 +211,60 @@ class RecordPagination(LimitOffsetPagination):
                 "in": "query",
                 "description": "records to skip",
                 "schema": {"type": "integer", "minimum": 0, "maximum": self.max_offset},
+            },
+        ]
+
+
+class RecordKeysetPagination(RecordPagination):
+    """The record list by capture time, newest first: `?after=<cursor>` (the `next` link) is
+    the page after a record, so a page stays what it was while robots upload (issue 48); a
+    cursor is (captured_at, id), `2026-03-01T12:00:00.000000Z_<uuid hex>`. `?offset=` still
+    pages by offset, for the clients written before."""
+
+    cursor_query_param = "after"
+
+    def paginate_queryset(
+        self, queryset: Any, request: Request, view: APIView | None = None
+    ) -> list[Record] | None:
+        if self.offset_query_param in request.query_params:
+            self.after_records = None
+            return super().paginate_queryset(queryset, request, view)
+        self.request = request
+        self.limit = self.get_limit(request)
+        self.count = self.get_count(queryset)
+        records = queryset.order_by("-captured_at", "-id")
+        if raw := request.query_params.get(self.cursor_query_param):
+            try:
+                after = RecordCursor.parse(raw)
+            except BadCursor:
+                message = "must be the cursor of a `next` link"
+                raise serializers.ValidationError({self.cursor_query_param: [message]}) from None
+            records = records.filter(after.q_before())
+        page = list(records[: self.limit + 1])
+        self.after_records = page[self.limit - 1] if len(page) > self.limit else False
+        return page[: self.limit]
+
+    def get_next_link(self) -> str | None:
+        if self.after_records is None:
+            return super().get_next_link()
+        if not self.after_records:
+            return None
+        url = remove_query_param(self.request.build_absolute_uri(), self.offset_query_param)
+        cursor = str(RecordCursor.of(self.after_records))
+        return replace_query_param(url, self.cursor_query_param, cursor)
+
+    def get_previous_link(self) -> str | None:
+        return super().get_previous_link() if self.after_records is None else None
+
+    def get_schema_operation_parameters(self, view: APIView) -> list[dict[str, Any]]:
+        return [
+            *super().get_schema_operation_parameters(view),
+            {
+                "name": self.cursor_query_param,
+                "required": False,
+                "in": "query",
+                "description": "the records captured before this cursor (the `next` link's)",
+                "schema": {"type": "string"},
             },
         ]
 

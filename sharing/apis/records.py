@@ -31,7 +31,7 @@ from sharing.apis.fields import (
     Base64EnvelopeField,
     IsRobot,
     NullIfBlankCharField,
-    RecordPagination,
+    RecordKeysetPagination,
     TextField,
     record_uuid,
     refuse_unseen,
@@ -106,7 +106,7 @@ class RecordOutputSerializer(serializers.Serializer):
 class RecordsApi(APIView):
     """`GET /api/v1/records/`: what the caller may read; `POST`: a robot's upload."""
 
-    pagination_class = RecordPagination
+    pagination_class = RecordKeysetPagination
 
     class SingleInputSerializer(serializers.Serializer):
         class Meta:

@@ -27,7 +27,12 @@ class RobotTopicRateSerializer(serializers.Serializer):
     last_minute = serializers.IntegerField(help_text="messages captured in the last minute")
     last_hour = serializers.IntegerField(help_text="messages captured in the last hour")
     per_second_minute = serializers.FloatField(help_text="messages per second, last minute")
-    per_second_hour = serializers.FloatField(help_text="messages per second, last hour")
+    per_second_hour = serializers.FloatField(
+        help_text="messages per second, last hour (over hour_seconds)"
+    )
+    hour_seconds = serializers.FloatField(
+        help_text="what the hour's rate is over: 3600, or less for a robot added within the hour"
+    )
 
 
 class RobotStatusApi(APIView):

@@ -33,7 +33,14 @@ def export_create(
 ) -> Export:
     """Check the selection (robots and topics, empty: all; capture times [since, until)) and
     queue its export; ExportRefused if it cannot be exported (its count says why). The
-    credential (and token) that asked is what its access-log lines record."""
+    credential (and token) that asked is what its access-log lines record.
+
+    A window open at its end is closed at the moment asked (to the second): the export holds
+    the records of its selection as of then, not what robots capture while it runs, so its
+    count is the one it was asked with and its progress never passes 100% (issue 48)."""
+    asked = timezone.now().replace(microsecond=0)
+    if until is None and (since is None or since < asked):
+        until = asked
     counted = export_count(
         requester=requester, robots=robots, topics=topics, since=since, until=until
     )

@@ -6,7 +6,7 @@ and an export's selection described for its page."""
 import uuid
 from collections.abc import Sequence
 from dataclasses import dataclass
-from datetime import datetime
+from datetime import datetime, timedelta
 
 from django.conf import settings
 from django.db.models import QuerySet
@@ -23,10 +23,12 @@ from sharing.selection import (
     WINDOW_NOT_ORDERED,
     RecordSelection,
     SelectionError,
-    iso_utc,
 )
 from sharing.selectors.completeness import Completeness, record_streams
 from sharing.selectors.records import record_list_visible_to
+
+# How close to an export's asking its window's end is the moment it was asked for.
+_ASKED_WITHIN = timedelta(seconds=2)
 
 # An export's own words for these refusals of its selection; the others keep the selection's.
 _TOO_MANY = f"select at most {MAX_SELECTED_ROBOTS} robots and {MAX_SELECTED_TOPICS} topics"
@@ -137,7 +139,10 @@ def export_selection_described(export: Export) -> dict[str, object]:
     return {
         "robots": [names.get(robot, str(robot)) for robot in selection.robots],
         "topics": list(selection.topics),
-        "since": iso_utc(selection.since),
-        "until": iso_utc(selection.until),
+        "since": selection.since,
+        "until": selection.until,
+        # Its end is the moment it was asked for (export_create closes an open window).
+        "until_asked": selection.until is not None
+        and abs(export.created_at - selection.until) < _ASKED_WITHIN,
         "verify_command": " ".join(command),
     }

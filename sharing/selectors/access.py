@@ -59,6 +59,12 @@ def access_list_access_log(owner: Owner, *, direction: str) -> QuerySet[Access]:
     ).order_by("-created_at", "-id")
 
 
+def access_own(owner: Owner) -> Q:
+    """The owner's own views (not an operator's checks made with the owner's rights): what an
+    access log of who read the owner's records leaves out unless asked (issue 48)."""
+    return Q(viewer=owner, checked_by__isnull=True)
+
+
 def access_list_filtered(
     accesses: QuerySet[Access],
     *,

@@ -28,6 +28,37 @@ def grant_live(*, owner_id: int, viewer: Owner) -> Grant | None:
     return grant_list_live_received(viewer).filter(owner_id=owner_id).first()
 
 
+# An owner's grants to one viewer that ended, newest first, looked at for a record's.
+_ENDED_GRANTS_LOOKED_AT = 5
+
+
+def grant_ended_covering(viewer: Owner, record_id: uuid.UUID) -> Grant | None:
+    """The grant that once let `viewer` read another owner's record and no longer does
+    (revoked, or expired), when no live grant from that owner covers it; None otherwise, and
+    for a record that is not there: only a viewer who could read it learns why it is gone."""
+    record = (
+        Record.objects.filter(pk=record_id)
+        .exclude(owner=viewer)
+        .only("id", "owner_id", "robot_id", "topic", "captured_at")
+        .first()
+    )
+    if record is None or grant_live(owner_id=record.owner_id, viewer=viewer) is not None:
+        return None
+    ended = (
+        Grant.objects.filter(owner_id=record.owner_id, grantee=viewer)
+        .filter(
+            Q(status__in=[Grant.Status.REVOKED, Grant.Status.REVOKING])
+            | (Q(status=Grant.Status.ACTIVE) & ~_unexpired())
+        )
+        .select_related("owner__user")
+        .order_by("-updated_at")
+    )
+    for grant in ended[:_ENDED_GRANTS_LOOKED_AT]:
+        if grant.scope.apply(Record.objects.filter(pk=record.pk)).exists():
+            return grant
+    return None
+
+
 def owners_granting(viewer: Owner) -> QuerySet[Owner]:
     """Owners whose grant to `viewer` is active (and not expired) in the portal."""
     return Owner.objects.filter(pk__in=grant_list_live_received(viewer).values("owner_id"))

@@ -95,9 +95,10 @@ def record_list_filtered(
 
 
 # How a record list may be sorted: the `sort` value (a leading "-" for descending) and the
-# columns it orders by; capture time and seq break ties, so that pages never overlap.
+# columns it orders by; capture time and seq break ties, so that pages never overlap (capture
+# order itself is (captured_at, id), as its pages' cursors: sharing/selectors/record_pages.py).
 RECORD_SORTS = {
-    "captured": ("captured_at", "seq"),
+    "captured": ("captured_at", "id"),
     "robot": ("robot__name", "captured_at", "seq"),
     "topic": ("topic", "data_type", "captured_at", "seq"),
     "status": ("status", "captured_at", "seq"),

@@ -14,9 +14,11 @@ from sharing.forms import AccessLogFilterForm
 from sharing.models import Access
 from sharing.selectors.access import (
     ACCESS_LOG_DIRECTIONS,
+    ACCESS_LOG_INCOMING,
     access_list_access_log,
     access_list_filtered,
     access_log_filter_choices,
+    access_own,
 )
 from sharing.views.filters import say_left_out
 
@@ -32,6 +34,12 @@ def access_log(request: HttpRequest) -> HttpResponse:
     time."""
     form, direction, accesses = _access_log_asked(request)
     say_left_out(request, form)
+    own_hidden = 0
+    if _without_own_views(request, form, direction):
+        # Said, with a link that lists them: left out, not lost.
+        own = access_list_access_log(request.owner, direction=direction)
+        own = own.filter(access_own(request.owner))
+        own_hidden = access_list_filtered(own, **form.filters()).count()
     page = access_log_page(
         accesses, reader=request.owner, page=request.GET.get("page"), per_page=ACCESS_LOG_PER_PAGE
     )
@@ -41,6 +49,7 @@ def access_log(request: HttpRequest) -> HttpResponse:
         "directions": ACCESS_LOG_DIRECTIONS,
         "page": page,
         "filtered": bool(form.filters()),
+        "own_hidden": own_hidden,
     }
     return render(request, "sharing/access_log.html", context)
 
@@ -72,4 +81,12 @@ def _access_log_asked(
     choices = access_log_filter_choices(request.owner, direction=direction)
     form = AccessLogFilterForm(request.GET or None, choices=choices)
     accesses = access_list_access_log(request.owner, direction=direction)
+    if _without_own_views(request, form, direction):
+        accesses = accesses.exclude(access_own(request.owner))
     return form, direction, access_list_filtered(accesses, **form.filters())
+
+
+def _without_own_views(request: HttpRequest, form: AccessLogFilterForm, direction: str) -> bool:
+    """Who read the owner's records is about others: the owner's own views are left out
+    unless asked for (the "Include my own views" box, or the owner named as the viewer)."""
+    return direction == ACCESS_LOG_INCOMING and not form.with_own_views(request.owner.username)

@@ -1,9 +1,12 @@
 """The grants page: giving access, changing a grant's terms (with a confirmation page for a
 grant of everything), and revoking, with the lists of grants given and received."""
 
+from urllib.parse import urlencode
+
 from django.contrib import messages
-from django.http import HttpRequest, HttpResponse
+from django.http import HttpRequest, HttpResponse, QueryDict
 from django.shortcuts import redirect, render
+from django.urls import reverse
 from django.views.decorators.cache import never_cache
 from django.views.decorators.http import require_GET, require_http_methods, require_POST
 
@@ -59,6 +62,7 @@ def grants(request: HttpRequest) -> HttpResponse:
         "received": received,
         "owner": owner,
         # A grant or revocation still on its way to the chain: the page follows it.
+        "made": _grant_said(owner, request.GET) if request.method == "GET" else "",
         "waiting": any(
             g.status in (Grant.Status.PENDING, Grant.Status.REVOKING) for g in given + received
         ),
@@ -100,18 +104,28 @@ def _grant_give_or_change(request: HttpRequest, form: GrantForm) -> HttpResponse
     except SharingError as exc:
         form.add_error("grantee", str(exc))
         return None
-    if data["change"]:
-        said = (
-            f"The new terms of {grantee}'s access are being written to the chain: {grantee} "
-            "may read what they cover once they are confirmed there."
-        )
-    else:
-        said = (
-            f"The grant to {grantee} is being written to the chain: {grantee} may read your "
-            "records once it is confirmed there."
-        )
-    messages.success(request, said)
-    return redirect("grants")
+    # The page says what the grant is when it shows its row (_grant_said), not what it was now.
+    made = urlencode({"made": grantee.username, **({"changed": "1"} if data["change"] else {})})
+    return redirect(f"{reverse('grants')}?{made}")
+
+
+def _grant_said(owner: Owner, query: QueryDict) -> str:
+    """What the grant just made (or changed, `?made=<grantee>&changed=1`) is, as its row says
+    as the page is shown: confirmed on chain (the worker may be that quick) or still being
+    written there (issue 48); "" for no such grant."""
+    grantee = owner_by_identifier(query.get("made", ""))
+    grant = grant_terms_of(owner, grantee) if grantee is not None else None
+    if grant is None:
+        return ""
+    changed = query.get("changed") == "1"
+    what = f"The new terms of {grantee}'s access are" if changed else f"The grant to {grantee} is"
+    covers = "they cover" if changed else "it covers"
+    if grant.status == Grant.Status.ACTIVE:
+        return f"{what} confirmed on chain: {grantee} may read what {covers}."
+    return (
+        f"{what} being written to the chain: {grantee} may read what {covers} once its row "
+        "below says active."
+    )
 
 
 def _grant_change_initial(owner: Owner, grantee_name: str | None) -> dict[str, object]:

@@ -7,6 +7,7 @@ content is shown is sharing/content.py.
 """
 
 import re
+import uuid
 from dataclasses import dataclass
 from datetime import datetime, timedelta
 
@@ -20,6 +21,7 @@ from django.views.decorators.http import require_GET
 
 from accounts.decorators import no_store, owner_required, page_throttle
 from accounts.errors import IdentityMismatch
+from accounts.models import Owner
 from sharing.content import IMAGE_TYPES, content_of
 from sharing.errors import (
     NOT_VISIBLE,
@@ -32,7 +34,8 @@ from sharing.errors import (
     VerificationUnavailable,
 )
 from sharing.forms import TopicRangeForm
-from sharing.models import Access, Credential, Record, Verdict
+from sharing.models import Access, Credential, Grant, Record, Verdict
+from sharing.selectors.grants import grant_ended_covering
 from sharing.selectors.records import (
     record_get_visible,
     record_list_same_topic,
@@ -50,6 +53,8 @@ RANGE_AROUND = timedelta(minutes=5)
 # A record page's refusal for a record whose anchoring failed (the worker's verdict says only
 # "not anchored yet").
 ANCHORING_FAILED = "anchoring_failed"
+# A record page's refusal for a viewer whose grant covered the record and ended.
+ACCESS_ENDED = "access_ended"
 
 
 @dataclass
@@ -67,7 +72,11 @@ def _open_or_refuse(request: HttpRequest, record_id: str) -> OpenedRecord | Refu
     try:
         return record_open(record_id=record_id, viewer=request.owner, credential=Credential.SESSION)
     except (RecordNotFound, AccessDenied):
-        # One answer whether it exists or not (the worker kept the refused view's verdict).
+        # One answer whether it exists or not (the worker kept the refused view's verdict),
+        # but to whom a grant once let read it: why it is no longer theirs (issue 48).
+        ended = _access_ended(request.owner, record_id)
+        if ended is not None:
+            return Refusal(ACCESS_ENDED, 403, ended)
         return Refusal("not_found", 404, NOT_VISIBLE)
     except RecordDeleted as exc:
         # Its metadata stays (a tombstone), never TAMPERED: the ciphertext went on purpose.
@@ -89,6 +98,20 @@ def _open_or_refuse(request: HttpRequest, record_id: str) -> OpenedRecord | Refu
         return Refusal("unavailable", 503, str(exc))
     except IdentityMismatch as exc:
         return Refusal(IdentityMismatch.code, IdentityMismatch.http_status, str(exc))
+
+
+def _access_ended(viewer: Owner, record_id: str) -> str | None:
+    """Why a grant that covered the record no longer lets `viewer` read it, or None."""
+    try:
+        grant = grant_ended_covering(viewer, uuid.UUID(record_id))
+    except ValueError:
+        return None
+    if grant is None:
+        return None
+    if grant.status in (Grant.Status.REVOKED, Grant.Status.REVOKING):
+        when = f"{grant.updated_at:%Y-%m-%d %H:%M:%S}"
+        return f"access revoked by owner: {grant.owner} revoked your access on {when} UTC"
+    return f"grant expired on {grant.expires_at:%Y-%m-%d %H:%M:%S} UTC: {grant.owner}'s grant ended"
 
 
 @owner_required

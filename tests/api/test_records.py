@@ -78,6 +78,41 @@ def test_the_list_is_paginated(robot_api, fleet):
     assert _seqs(robot_api.get(RECORDS, {"offset": 100})) == []
 
 
+def test_the_next_page_stays_while_the_robot_uploads(robot, robot_api, upload, fleet):
+    """The `next` link is a cursor of capture time (issue 48), not an offset: records uploaded
+    between two pages neither push one onto the next page twice nor into it."""
+    first = robot_api.get(RECORDS, {"limit": 2})
+    assert _seqs(first) == [4, 3]
+    assert "after=" in first.json()["next"]
+    assert "offset=" not in first.json()["next"]
+    newer = [
+        _sealed(robot, seq, topic="/odom", data_type="nav_msgs/Odometry", minutes=seq, body={})
+        for seq in (5, 6)
+    ]
+    assert upload(robot_api, *newer).status_code == 201
+    second = robot_api.get(first.json()["next"])
+    assert _seqs(second) == [2, 1]
+    assert second.json()["next"] is None
+    # Offsets still page as before, for the clients that send them.
+    assert _seqs(robot_api.get(RECORDS, {"limit": 2, "offset": 2})) == [4, 3]
+
+
+@pytest.mark.parametrize(
+    "cursor",
+    [
+        "yesterday",
+        "2026-03-01T12:00:00.000000Z_xyz",
+        "_",
+        "2026-03-01T12:00:00Z_" + "0" * 32,
+        "é" * 100,
+    ],
+)
+def test_a_bad_cursor_gets_400(robot_api, cursor):
+    answer = robot_api.get(RECORDS, {"after": cursor})
+    assert answer.status_code == 400, answer.content
+    assert answer.json()["error"] == "invalid_request"
+
+
 def test_one_record_in_the_list_says_everything_about_it(robot, robot_api, fleet):
     listed = robot_api.get(RECORDS, {"limit": 1}).json()["results"][0]
     record = Record.objects.get(seq=4)

@@ -81,6 +81,10 @@ def test_the_access_log_on_a_desktop_and_a_phone(live_server, browser: Browser, 
     page = desktop.pages[0]
     page.click("[data-testid=nav-access-log]")
     rows = page.locator("[data-testid=access-log-row]")
+    # Others' views first: her own two are left out, said, and a click away (issue 48).
+    expect(rows).to_have_count(4)
+    expect(page.get_by_test_id("own-views-hidden")).to_contain_text("2 of your own views")
+    page.get_by_test_id("show-own-views").click()
     expect(rows).to_have_count(6)
     expect(rows.first.locator("[data-testid=access-log-kind]")).to_have_text("plot, 5 records")
     expect(rows.first.locator("[data-testid=access-log-verdict]")).to_have_text("5 verified")

@@ -291,18 +291,22 @@ def test_two_owners_share_revoke_and_see_tampering(
     shot(a, "a-grant-revoked")
     refused = b.reload()
     assert refused is not None
-    assert refused.status == 404
-    expect(b.locator("#verdict")).to_have_attribute("data-verdict", "not_found")
+    # B read it before: B is told the owner revoked the access (issue 48), and nothing more.
+    assert refused.status == 403
+    expect(b.locator("#verdict")).to_have_attribute("data-verdict", "access_ended")
+    expect(b.get_by_test_id("refusal-detail")).to_contain_text("Access revoked by owner")
+    expect(b.get_by_test_id("to-shared")).to_have_attribute("href", "/shared/")
     expect_no_content(b)
     shot(b, "b-record-refused-after-revocation")
     raw = bob.request.get(f"{base}/records/{shared_id}/raw.json")
-    assert raw.status == 404
-    assert raw.json()["error"] == "not_found"
+    assert raw.status == 403
+    assert raw.json()["error"] == "access_ended"
 
-    # B types the URL of another record of A, never shared with a live grant now.
+    # B types the URL of another record of A, covered by the grant that ended: told so too
+    # (tests/pages/test_access_ended.py: an owner never granted gets the one 404).
     direct = open_record(b, base, tampered_id)
-    assert direct.status == 404
-    expect(b.locator("#verdict")).to_have_attribute("data-verdict", "not_found")
+    assert direct.status == 403
+    expect(b.locator("#verdict")).to_have_attribute("data-verdict", "access_ended")
     expect_no_content(b)
     expect(b.locator("main")).not_to_contain_text(IMAGE_TOPIC)
     shot(b, "b-other-record-by-url-refused")

@@ -112,7 +112,8 @@ def test_records_on_a_desktop_and_a_phone(
         cell = robot_cell.bounding_box()
         assert cell is not None
         page.mouse.click(cell["x"] + cell["width"] / 2, cell["y"] + cell["height"] / 2)
-        page.wait_for_url(f"**/records/{track[0].pk}/?list=sort%3Dcaptured")  # back: this list
+        # back: this list, as of its newest record
+        page.wait_for_url(f"**/records/{track[0].pk}/?list=sort%3Dcaptured%26top%3D*")
         expect(page.get_by_test_id("verdict")).to_have_attribute("data-verdict", "verified")
         expect(page.get_by_test_id("upload-seq")).to_contain_text("1")
 

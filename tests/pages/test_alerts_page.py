@@ -166,3 +166,17 @@ def test_the_test_alert_is_logged_for_its_owner_only(
     assert (delivery.target, delivery.status) == ("alice@example.org", AlertDelivery.Status.SENT)
     assert b'data-testid="alert-delivery"' in client.get(ALERTS).content
     assert b'data-testid="alert-delivery"' not in login(bob).get(ALERTS).content
+
+
+def test_a_test_alert_with_nowhere_to_go_says_so(login, pending_owner):
+    """Nothing set up: the page says a test alert would reach nothing, and sending one says
+    why nothing was sent (issue 48); an address not confirmed yet is named."""
+    client = login(pending_owner("alice"))
+    page = client.get(ALERTS).content.decode()
+    assert 'data-testid="alert-test-nowhere"' in page
+    answer = client.post(reverse("alert-test"), follow=True).content.decode()
+    assert "Nothing was sent: no e-mail address and no webhook is set up" in answer
+    assert not AlertDelivery.objects.exists()
+    assert client.post(ALERTS, GOOD).status_code == 302
+    answer = client.post(reverse("alert-test"), follow=True).content.decode()
+    assert "Nothing was sent: alice@example.org is not confirmed yet" in answer

@@ -64,3 +64,21 @@ def test_odometry_rows_of_partial_or_odd_data_say_what_is_missing():
     assert rows["Position (m)"] == f"x {MISSING}, y {MISSING}, z 2.0000"
     assert rows["Heading (yaw)"] == MISSING
     assert rows["Stamp"] == MISSING
+
+
+def test_the_record_formats_fields_are_labelled_and_k_is_the_data():
+    """The paper's record format named (issue 48): Owner, Time, Type and Topic labelled, and K
+    shown as the data, not a bare "K" wrapping everything."""
+    content = content_of(data_type="nav_msgs/Odometry", plaintext=odometry("alice", 1.5, -2.0))
+    fields = dict(content.fields)
+    assert fields["Owner (Owner)"] == "alice"
+    assert fields["ROS message type (Type)"] == "nav_msgs/Odometry"
+    assert fields["Topic (Topic)"] == "/robot/odom"
+    assert "Captured, UTC (Time)" in fields
+    assert json.loads(content.data_pretty)["position"] == {"x": 1.5, "y": -2.0, "z": 0.0}
+    # An image's K keeps its pixels out of the data shown, as the whole record's JSON does.
+    shown = content_of(data_type="sensor_msgs/Image", plaintext=image("alice"))
+    assert "base64 characters, above" in json.loads(shown.data_pretty)["data"]
+    # Not the record format: no fields claimed.
+    other = content_of(data_type="std_msgs/String", plaintext=b'{"data": "hi"}')
+    assert (other.fields, other.data_pretty) == ([], "")

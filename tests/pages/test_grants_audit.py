@@ -2,10 +2,12 @@
 test_audit_index.py has the index it reads)."""
 
 import re
+from datetime import timedelta
 
 import pytest
 from django.test import Client
 from django.urls import reverse
+from django.utils import timezone
 
 from sharing.models import Grant, Record
 from sharing.services.uploads import record_create_batch
@@ -32,10 +34,10 @@ def test_grant_by_username_then_revoke(client, make_owner, django_capture_on_com
     assert page.status_code == 302
     grant = Grant.objects.get(owner=alice, grantee=bob)
     assert grant.status == Grant.Status.ACTIVE
-    html = client.get(reverse("grants")).content.decode()
-    # The grant is pending until the chain confirms it, and the message says so.
-    assert "bob may read your records once it is confirmed" in html
-    assert "may now read" not in html
+    # The page says what the grant is as it shows its row: confirmed already (issue 48).
+    html = client.get(page.url).content.decode()
+    assert "The grant to bob is confirmed on chain: bob may read what it covers." in html
+    assert "being written" not in html
     assert grant.grant_tx in html
     assert re.search(r'data-grantee="bob" data-status="active"', html)
 
@@ -58,6 +60,26 @@ def test_grant_by_username_then_revoke(client, make_owner, django_capture_on_com
     again = client.post(reverse("grant-revoke"), {"grantee": "bob"}, follow=True)
     assert "has no access to revoke" in again.content.decode()
     assert client.get(reverse("grant-revoke")).status_code == 405
+
+
+def test_the_grant_notice_says_what_its_row_says(client, make_owner):
+    """A grant the chain has not confirmed yet is said to be on its way, beside its row
+    "pending"; one confirmed, beside "active" (issue 48)."""
+    alice, bob = make_owner("alice"), make_owner("bob")
+    client.force_login(alice.user)
+    page = client.post(reverse("grants"), {"grantee": "bob", "confirm_all": "True"})
+    assert page.url == reverse("grants") + "?made=bob"
+    html = client.get(page.url).content.decode()
+    assert re.search(r'data-grantee="bob" data-status="pending"', html)
+    assert "The grant to bob is being written to the chain" in html
+    assert "once its row below says active" in html
+    Grant.objects.filter(owner=alice, grantee=bob).update(status=Grant.Status.ACTIVE)
+    html = client.get(page.url).content.decode()
+    assert "The grant to bob is confirmed on chain" in html
+    # Nothing said of a grant there is not, or of a name nobody has.
+    for made in ("carol", "", "\x00", "x" * 500):
+        html = client.get(reverse("grants"), {"made": made}).content.decode()
+        assert 'data-testid="grant-made"' not in html
 
 
 def test_grant_by_eoa_address(client, make_owner, django_capture_on_commit_callbacks):
@@ -183,3 +205,20 @@ def test_a_limited_grant_needs_no_confirmation_and_a_change_to_everything_does(
     assert done.status_code == 302
     grant = Grant.objects.filter(status__in=Grant.LIVE).get()
     assert grant.scope_topics == []
+
+
+def test_an_expired_grant_offers_remove_not_revoke(client, make_owner):
+    alice = make_owner("alice")
+    make_owner("bob")
+    client.force_login(alice.user)
+    client.post(reverse("grants"), {"grantee": "bob", "confirm_all": "True"})
+    expired = timezone.now().replace(microsecond=0) - timedelta(days=1)
+    Grant.objects.filter(owner=alice).update(status=Grant.Status.ACTIVE, expires_at=expired)
+    html = client.get(reverse("grants")).content.decode()
+    assert 'data-testid="remove-grant"' in html
+    assert "Remove the expired grant to bob" in html
+    assert 'data-testid="revoke-grant"' not in html
+    confirm = client.get(reverse("grant-revoke-confirm"), {"grantee": "bob"}).content.decode()
+    assert "Remove the expired grant to bob?" in confirm
+    assert f"It expired on {expired:%Y-%m-%d %H:%M:%S} UTC" in confirm
+    assert "Revoke access" not in confirm

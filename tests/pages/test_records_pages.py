@@ -8,6 +8,7 @@ tests/e2e/test_records_browse.py.
 
 import re
 from datetime import UTC, datetime, timedelta
+from urllib.parse import quote
 
 import pytest
 from django.urls import reverse
@@ -15,6 +16,7 @@ from django.utils import timezone
 
 from accounts.services.robots import robot_create
 from sharing.models import Record, Verdict
+from sharing.selectors.record_pages import RecordCursor
 from sharing.services.grants import grant_create
 from tests.pages.conftest import fig4, image, odometry
 from tests.support.robot_setup import RobotSetup
@@ -83,8 +85,10 @@ def test_sort_filter_pages_and_bad_parameters(client, fleet, make_robot, upload,
         assert _rows(page.content.decode()) == _ids(fleet, *expected), sort
     # The column headers link to their sort, the current one to its reverse.
     html = client.get(url, {"sort": "topic"}).content.decode()
-    assert re.search(r'href="\?sort=-topic"[^>]*aria-sort="ascending"', html)
-    assert 'href="?sort=robot"' in html
+    # ... in the list as of its newest record when it was opened (the `top` cursor).
+    top = quote(str(RecordCursor.of(Record.objects.get(pk=fleet["cam"].pk))))
+    assert re.search(rf'href="\?sort=-topic&amp;top={top}"[^>]*aria-sort="ascending"', html)
+    assert f'href="?sort=robot&amp;top={top}"' in html
 
     # The robot filter, alone and with the others.
     arm = fleet["scan"].robot
@@ -141,15 +145,16 @@ def test_sort_filter_pages_and_bad_parameters(client, fleet, make_robot, upload,
     nav = nav[: nav.index("</nav>")]
     assert re.findall(r'data-testid="page-number">(\d+)<', nav) == ["1", "3", "4"]
     assert re.search(r'data-testid="page-current">2<', nav)
-    assert 'href="?page=1&amp;sort=topic" data-testid="page-first"' in nav
-    assert 'href="?page=1&amp;sort=topic" rel="prev"' in nav
-    assert 'href="?page=3&amp;sort=topic" rel="next"' in nav
-    assert 'href="?page=4&amp;sort=topic" data-testid="page-last"' in nav
+    assert f'href="?page=1&amp;sort=topic&amp;top={top}" data-testid="page-first"' in nav
+    assert f'href="?page=1&amp;sort=topic&amp;top={top}" rel="prev"' in nav
+    assert f'href="?page=3&amp;sort=topic&amp;top={top}" rel="next"' in nav
+    assert f'href="?page=4&amp;sort=topic&amp;top={top}" data-testid="page-last"' in nav
     assert _rows(html) == _ids(fleet, "chat")
     first = client.get(url).content.decode()
     assert 'data-testid="page-first"' not in first
     assert 'data-testid="page-last"' in first
-    assert 'data-testid="page-next"' not in client.get(url, {"page": 4}).content.decode()
+    last = client.get(url, {"page": 4, "sort": "topic"}).content.decode()
+    assert 'data-testid="page-next"' not in last
 
     # The dashboard counts pending, failed and tampered records, each linking to them.
     Record.objects.filter(pk=fleet["odom"].pk).update(tampered_at=timezone.now())

@@ -34,8 +34,10 @@ def alice(make_robot) -> RobotSetup:
 @pytest.fixture
 def busy(alice, upload) -> RobotSetup:
     """alice's robot: 6 odometry messages in the last minute, 4 more in the last hour, 3 older;
-    2 images in the last hour; nothing anchored (no chain work)."""
+    2 images in the last hour; nothing anchored (no chain work). Added a day ago."""
     now = timezone.now()
+    Robot.objects.filter(pk=alice.robot.pk).update(created_at=now - timedelta(days=1))
+    alice.robot.refresh_from_db()
     seq = 0
     for ago, count, topic, data_type in (
         (timedelta(seconds=20), 6, "/odom", "nav_msgs/Odometry"),
@@ -61,6 +63,23 @@ def test_rates_per_topic_over_the_last_minute_and_hour(busy):
     assert activity.last_upload_at is not None
     newest = max(record.captured_at for record in busy.robot.records.all())
     assert activity.last_captured_at == newest
+
+
+def test_a_robot_added_within_the_hour_says_over_what_time_its_rate_is(client, alice, upload):
+    """8 minutes old at a message every 10 s: 0.10/s over its 8 minutes, not 0.01/s over an
+    hour it was not there for (issue 48)."""
+    now = timezone.now()
+    Robot.objects.filter(pk=alice.robot.pk).update(created_at=now - timedelta(minutes=8))
+    for seq in range(1, 49):
+        moment = now - timedelta(seconds=10 * (49 - seq))
+        upload(alice, seq, anchor=False, time=_iso(moment))
+    client.force_login(alice.owner.user)
+    html = client.get(reverse("robot-detail", args=[alice.robot.pk])).content.decode()
+    assert re.search(r'data-testid="rate-hour-heading">Last 8 min \(since it was added\)<', html)
+    assert re.search(r'rate-hour">0.10/s <span class="help">\(48\)', html)
+    api = client.get(reverse("api-v1:robot-status", args=[alice.robot.pk])).json()
+    assert api["topics"][0]["hour_seconds"] == pytest.approx(480, abs=5)
+    assert api["topics"][0]["per_second_hour"] == pytest.approx(0.1, abs=0.002)
 
 
 def test_robot_page_shows_last_seen_and_rates(client, busy):
