@@ -35,10 +35,12 @@ def export_create(
     queue its export; ExportRefused if it cannot be exported (its count says why). The
     credential (and token) that asked is what its access-log lines record.
 
-    A window open at its end is closed at the moment asked (to the second): the export holds
-    the records of its selection as of then, not what robots capture while it runs, so its
-    count is the one it was asked with and its progress never passes 100% (issue 48)."""
-    asked = timezone.now().replace(microsecond=0)
+    A window open at its end is closed at the moment asked, rounded up to the second (a record
+    captured earlier in that second is in it): the export holds the records of its selection as
+    of then, not what robots capture while it runs, so its count is the one it was asked with
+    and its progress never passes 100% (issue 48)."""
+    now = timezone.now()
+    asked = now.replace(microsecond=0) + (timedelta(seconds=1) if now.microsecond else timedelta())
     if until is None and (since is None or since < asked):
         until = asked
     counted = export_count(

@@ -66,7 +66,7 @@ def test_a_plot_is_one_check_and_one_insert(client, alice, bob, upload, sent):
             plot = client.get(SERIES, _series(records[-1]))
         body = plot.json()
         assert plot.status_code == 200
-        assert sent == ["sharing.tasks.records_verify"]
+        assert sent == ["sharing.tasks.series_verify"]
         assert _verdict_inserts(queries) == 1
         assert Verdict.objects.count() == before + len(records)
         # The tampered pose is refused and left out; the others are plotted.
@@ -82,10 +82,10 @@ def test_a_plot_is_one_check_and_one_insert(client, alice, bob, upload, sent):
 
 def test_a_long_plot_is_sent_in_batches_side_by_side(client, alice, upload, sent, monkeypatch):
     records = [upload(alice, seq, plaintext=odometry("alice", seq, 0)) for seq in range(1, 6)]
-    monkeypatch.setattr(opening, "VERIFY_BATCH", 2)
+    monkeypatch.setattr(opening, "SERIES_BATCH", 2)
     client.force_login(alice.owner.user)
     body = client.get(SERIES, _series(records[-1])).json()
-    assert sent == ["sharing.tasks.records_verify"] * 3
+    assert sent == ["sharing.tasks.series_verify"] * 3
     assert body["verified"] == 5
     # Still one line of the access log for the whole plot.
     assert list(Access.objects.values_list("kind", "count")) == [("plot", 5)]
