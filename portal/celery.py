@@ -27,7 +27,7 @@ logger = logging.getLogger(__name__)
 EXIT_MISCONFIGURED = 78
 
 # Tasks a person is waiting for, answered from the verify queue (see settings).
-VERIFY_TASKS = frozenset({"sharing.tasks.records_verify"})
+VERIFY_TASKS = frozenset({"sharing.tasks.records_verify", "sharing.tasks.series_verify"})
 
 
 def route_task(name, args, kwargs, options, task=None, **kw):

@@ -24,7 +24,6 @@ from core.metrics import (
     TASKS,
     UPLOAD_SECONDS,
     UPLOADS,
-    VERDICTS,
     VIEW_SECONDS,
     VIEWS,
 )
@@ -47,7 +46,6 @@ HTTP_METHODS = frozenset({"GET", "HEAD", "POST", "PUT", "PATCH", "DELETE", "OPTI
 OTHER = "other"
 _ERROR_CODE = re.compile(r"[a-z][a-z0-9_]{0,47}")
 
-VERIFY_TASKS = frozenset({"sharing.tasks.records_verify"})
 ANCHOR_TASK = "sharing.tasks.records_anchor"
 EXPORT_TASK = "sharing.tasks.export_run"
 ALERT_DELIVERY_TASK = "alerts.tasks.alert_deliver"
@@ -119,11 +117,9 @@ def task_observed(name: str, state: str, retval: Any) -> None:
     TASKS.labels(name, state).inc()
     if state != "SUCCESS":
         return
-    if name in VERIFY_TASKS:
-        for answer in retval if isinstance(retval, list) else [retval]:
-            if isinstance(answer, dict) and answer.get("outcome"):
-                VERDICTS.labels(str(answer["outcome"])).inc()
-    elif name == ANCHOR_TASK and isinstance(retval, int) and retval > 0:
+    # Verdicts are counted where they are written (sharing/verification/check.py): a series'
+    # task answers only counts, and a single record's check may not be a task at all.
+    if name == ANCHOR_TASK and isinstance(retval, int) and retval > 0:
         RECORDS_ANCHORED.inc(retval)
     elif name == EXPORT_TASK and isinstance(retval, str):
         EXPORTS.labels(retval).inc()

@@ -29,7 +29,7 @@ from sharing.selection import (
     MAX_TOPIC_LENGTH,
     RecordSelection,
 )
-from sharing.selectors.record_pages import BadCursor, RecordCursor
+from sharing.selectors.record_pages import CURSOR_PATTERN, BadCursor, RecordCursor
 
 # A username is at most 150 characters, an address 42.
 MAX_OWNER_IDENTIFIER = 150
@@ -264,7 +264,7 @@ class RecordKeysetPagination(RecordPagination):
                 "required": False,
                 "in": "query",
                 "description": "the records captured before this cursor (the `next` link's)",
-                "schema": {"type": "string"},
+                "schema": {"type": "string", "pattern": CURSOR_PATTERN},
             },
         ]
 

@@ -2,20 +2,26 @@
 while robots upload (issue 48).
 
 A cursor is a record's place in capture order, (captured_at, id), written
-`2026-03-01T12:00:00.000000Z_<uuid hex>`. A list is read as of its newest record when it was
+`<microseconds since 1970 UTC>_<uuid hex>`. A list is read as of its newest record when it was
 opened (`top`): what is captured later is counted ("n newer records"), never slid into the
 pages, and `after` / `before` name the record a page starts after or ends before; no page is
 an offset into a list that grows."""
 
+import re
 import uuid
 from dataclasses import dataclass
-from datetime import UTC, datetime
+from datetime import UTC, datetime, timedelta
 
 from django.db.models import Q, QuerySet
 
 from sharing.models import Record
 
-CURSOR_TIME_FORMAT = "%Y-%m-%dT%H:%M:%S.%fZ"
+# A cursor is `<microseconds since 1970 UTC>_<record id as 32 hex>`: every text of this shape
+# (CURSOR_PATTERN, the API schema's) is a cursor that can be read (17 digits stay before 5138).
+CURSOR_PATTERN = "^[0-9]{1,17}_[0-9a-f]{32}$"
+_CURSOR = re.compile(CURSOR_PATTERN[1:-1])
+_EPOCH = datetime(1970, 1, 1, tzinfo=UTC)
+_MICROSECOND = timedelta(microseconds=1)
 # Longer than any cursor this module writes: refused unread.
 _MAX_CURSOR_LENGTH = 80
 
@@ -35,17 +41,13 @@ class RecordCursor:
 
     @classmethod
     def parse(cls, text: str) -> "RecordCursor":
-        if len(text) > _MAX_CURSOR_LENGTH or text.count("_") != 1:
+        if len(text) > _MAX_CURSOR_LENGTH or not _CURSOR.fullmatch(text):
             raise BadCursor(text[:_MAX_CURSOR_LENGTH])
-        at, _, record_id = text.partition("_")
-        try:
-            captured = datetime.strptime(at, CURSOR_TIME_FORMAT).replace(tzinfo=UTC)
-            return cls(captured, uuid.UUID(hex=record_id))
-        except ValueError as error:
-            raise BadCursor(text) from error
+        micros, _, record_id = text.partition("_")
+        return cls(_EPOCH + int(micros) * _MICROSECOND, uuid.UUID(hex=record_id))
 
     def __str__(self) -> str:
-        return f"{self.captured_at.astimezone(UTC):{CURSOR_TIME_FORMAT}}_{self.id.hex}"
+        return f"{(self.captured_at - _EPOCH) // _MICROSECOND}_{self.id.hex}"
 
     def q_after(self) -> Q:
         """Records after this one in capture order."""

@@ -16,6 +16,7 @@ signed envelopes it opened, so that nothing is decrypted twice in one process.
 import base64
 import logging
 import uuid
+from collections import Counter
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -27,6 +28,7 @@ from accounts.models import Owner, OwnerKey, Robot
 from chainworker.client import AuthROSChain
 from chainworker.codec import OnChainRoot, RobotKeyOnChain
 from chainworker.services import chain_client, chain_head
+from core.metrics import VERDICTS
 from core.rows import FixedInsert
 from sharing.cache import envelopes_fetch
 from sharing.models import Access, Credential, Grant, Record, Verdict
@@ -168,6 +170,8 @@ def records_verify(
             for record, (fields, _data) in zip(records, checked, strict=True)
         ]
         _VERDICTS.insert(verdicts)
+    for outcome, count in Counter(verdict.outcome for verdict in verdicts).items():
+        VERDICTS.labels(outcome).inc(count)  # where they are written: any task, or a direct check
     return [
         Verification(verdict, data, reads.opened.get(verdict.record_id) if data else None)
         for verdict, (_fields, data) in zip(verdicts, checked, strict=True)

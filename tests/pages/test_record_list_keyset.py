@@ -124,6 +124,6 @@ def test_a_cursor_past_the_end_is_an_empty_page(client, make_robot, upload, smal
     alice = make_robot("alice")
     upload(alice, 1, anchor=False, time=_at(60))
     client.force_login(alice.owner.user)
-    page = client.get(reverse("records"), {"after": "2000-01-01T00:00:00.000000Z_" + "0" * 32})
+    page = client.get(reverse("records"), {"after": "946684800000000_" + "0" * 32})  # 2000-01-01
     assert page.status_code == 200
     assert _rows(page.content.decode()) == []

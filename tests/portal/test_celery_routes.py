@@ -39,6 +39,6 @@ def test_a_worker_started_without_queues_consumes_both():
 
 
 def test_the_routed_names_are_the_tasks_names():
-    from sharing.tasks import records_verify
+    from sharing.tasks import records_verify, series_verify
 
-    assert {records_verify.name} == VERIFY_TASKS
+    assert {records_verify.name, series_verify.name} == VERIFY_TASKS
