@@ -226,6 +226,13 @@ class RecordKeysetPagination(RecordPagination):
     def paginate_queryset(
         self, queryset: Any, request: Request, view: APIView | None = None
     ) -> list[Record] | None:
+        after = None
+        if raw := request.query_params.get(self.cursor_query_param):
+            try:
+                after = RecordCursor.parse(raw)
+            except BadCursor:  # refused whatever else is asked, an offset too
+                message = "must be the cursor of a `next` link"
+                raise serializers.ValidationError({self.cursor_query_param: [message]}) from None
         if self.offset_query_param in request.query_params:
             self.after_records = None
             return super().paginate_queryset(queryset, request, view)
@@ -233,12 +240,7 @@ class RecordKeysetPagination(RecordPagination):
         self.limit = self.get_limit(request)
         self.count = self.get_count(queryset)
         records = queryset.order_by("-captured_at", "-id")
-        if raw := request.query_params.get(self.cursor_query_param):
-            try:
-                after = RecordCursor.parse(raw)
-            except BadCursor:
-                message = "must be the cursor of a `next` link"
-                raise serializers.ValidationError({self.cursor_query_param: [message]}) from None
+        if after is not None:
             records = records.filter(after.q_before())
         page = list(records[: self.limit + 1])
         self.after_records = page[self.limit - 1] if len(page) > self.limit else False

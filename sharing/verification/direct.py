@@ -27,6 +27,7 @@ from django.db import connections
 from redis.exceptions import RedisError
 
 from accounts.errors import IdentityMismatch
+from core.logging import current_request_id, log_context_reset, log_context_set
 from core.redis_client import get_redis, redis_key
 
 logger = logging.getLogger(__name__)
@@ -38,6 +39,8 @@ POLL_SECONDS = 1.0
 # An answer nobody reads (the web gave up) is gone after this long.
 ANSWER_SECONDS = 60
 _IDENTITY = "identity_mismatch"
+# The task whose function a direct check runs, as its log lines name it.
+DIRECT_TASK = "sharing.tasks.records_verify"
 
 
 def _requests_key() -> str:
@@ -86,7 +89,8 @@ def direct_check_send(*task_args: Any) -> DirectCheck | None:
         return None
     client = get_redis()
     request_id = uuid.uuid4().hex
-    client.rpush(_requests_key(), json.dumps({"id": request_id, "args": list(task_args)}))
+    request = {"id": request_id, "args": list(task_args), "request_id": current_request_id()}
+    client.rpush(_requests_key(), json.dumps(request))
     return DirectCheck(request_id)
 
 
@@ -111,7 +115,15 @@ def direct_checks_serve(run: Callable[..., Any], stop: threading.Event) -> None:
         except (ValueError, KeyError, TypeError):
             logger.warning("direct checks: a request that is not one was dropped")
             continue
-        answer = _checked(run, args)
+        # Its lines name the task and the web request that asked, as a task's do (portal/celery.py).
+        context = log_context_set(
+            request_id=request.get("request_id"), task=DIRECT_TASK, task_id=request_id
+        )
+        try:
+            answer = _checked(run, args)
+            logger.info("direct check of %s records answered", len(args[0]) if args else 0)
+        finally:
+            log_context_reset(context)
         try:
             with client.pipeline(transaction=False) as pipe:
                 pipe.rpush(_answer_key(request_id), json.dumps(answer))
