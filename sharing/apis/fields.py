@@ -227,7 +227,7 @@ class RecordKeysetPagination(RecordPagination):
         self, queryset: Any, request: Request, view: APIView | None = None
     ) -> list[Record] | None:
         after = None
-        if raw := request.query_params.get(self.cursor_query_param):
+        if (raw := request.query_params.get(self.cursor_query_param)) is not None:  # "" too
             try:
                 after = RecordCursor.parse(raw)
             except BadCursor:  # refused whatever else is asked, an offset too
