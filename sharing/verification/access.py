@@ -67,13 +67,10 @@ def accesses_open(
     credential: str,
     token_id: int | None,
     checked_by_id: int | None = None,
-    refresh: bool = False,
 ) -> dict[int, int]:
     """The access log's line for a read of these records: one Access per record owner (so that
     each owner's log is one range), naming how many of the owner's records it read, the record
-    when it is one, the robot and topic when they all share them; a `refresh` of a plot adds
-    to the viewer's line of it begun within PLOT_REFRESHES_COALESCED, where there is one.
-    Record owner id -> Access id."""
+    when it is one, the robot and topic when they all share them. Record owner id -> Access id."""
     by_owner: dict[int, list[Record]] = defaultdict(list)
     for record in records:
         by_owner[record.owner_id].append(record)
@@ -94,7 +91,6 @@ def accesses_open(
         credential=credential,
         token_id=token_id,
         checked_by_id=checked_by_id,
-        refresh=refresh,
     )
 
 
