@@ -6,7 +6,6 @@ import re
 from datetime import timedelta
 
 import pytest
-import redis
 from django.db import connection
 from django.test.utils import CaptureQueriesContext
 from django.urls import reverse
@@ -15,6 +14,7 @@ from sharing.models import Access, Verdict
 from sharing.verification import opening
 from stack.anvil import free_port
 from tests.pages.conftest import odometry
+from tests.support.redis_down import redis_nobody_answers
 from tests.support.tampering import tamper
 
 pytestmark = pytest.mark.django_db
@@ -155,7 +155,7 @@ def test_every_owner_page_has_a_rate_per_user(client, alice, settings):
 
 def test_pages_are_served_when_redis_cannot_count(client, alice, settings, monkeypatch):
     settings.PAGE_RATE_USER = "1/day"
-    down = redis.Redis(port=free_port(), socket_connect_timeout=1)
+    down = redis_nobody_answers()
     monkeypatch.setattr("accounts.decorators.get_redis", lambda: down)
     client.force_login(alice.owner.user)
     for _ in range(3):

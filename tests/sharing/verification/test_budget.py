@@ -6,15 +6,14 @@ batch whose read stopped waiting is not checked and gives its records back."""
 from datetime import UTC, datetime, timedelta
 
 import pytest
-import redis
 from django.urls import reverse
 
 from sharing import tasks
 from sharing.models import Access, Record, Verdict
 from sharing.verification.budget import check_run
-from stack.anvil import free_port
 from tests.api.conftest import session_client, token_client
 from tests.pages.conftest import odometry
+from tests.support.redis_down import redis_nobody_answers
 
 pytestmark = pytest.mark.django_db
 
@@ -171,7 +170,7 @@ def test_reads_are_checked_uncounted_without_a_budget(alice, upload, settings):
 def test_reads_are_checked_uncounted_when_redis_cannot_count(alice, upload, settings, monkeypatch):
     record = upload(alice, 1, plaintext=odometry("alice", 0.0, 0.0))
     settings.CHECK_BUDGET = "1/day"
-    down = redis.Redis(port=free_port(), socket_connect_timeout=1)
+    down = redis_nobody_answers()
     monkeypatch.setattr("sharing.verification.budget.get_redis", lambda: down)
     owner = session_client(alice.owner)
     assert [_content(owner, record) for _ in range(3)] == [200, 200, 200]
