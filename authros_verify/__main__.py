@@ -121,10 +121,10 @@ def _export_checked(args: argparse.Namespace, chain: ChainReader, bar: ProgressB
         "contract": args.contract,
         "chain_id": args.chain_id,
         "jobs": args.jobs or os.cpu_count() or 1,
-        "progress": records_checked,
+        "progress": records_checked if bar.shown else None,
     }
-    if args.mcap is None:
-        return verify(args.bundle, mcap=None, **checked)
+    if args.mcap is None or not bar.shown:  # nothing drawn: the file as given, unwrapped
+        return verify(args.bundle, mcap=args.mcap, **checked)
     with args.mcap.open("rb") as source:
         # read twice: its SM3 and size, then its messages
         mcap = ReadCounted(source, bar, stage="MCAP file", passes=2)

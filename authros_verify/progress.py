@@ -57,11 +57,14 @@ class ReadCounted:
         self._stage = stage
         self._total = Path(source.name).stat().st_size * passes
         self._read = 0
+        self._next = 0  # drawn again once this many bytes are read (every MiB at most)
 
     def read(self, size: int = -1) -> bytes:
         data = self._source.read(size)
         self._read += len(data)
-        self._bar.show(self._stage, self._read, self._total, in_bytes=True)
+        if self._read >= self._next:
+            self._bar.show(self._stage, self._read, self._total, in_bytes=True)
+            self._next = self._read + _MIB
         return data
 
     def __getattr__(self, name: str) -> Any:
