@@ -6,6 +6,9 @@
         [--token-file FILE] [--contract 0x..] [--chain-id N] [--allow-unsigned]
     python -m authros_verify keys --owner 0x.. --rpc URL --contract 0x.. [--from-block N]
 
+An export's check draws a progress bar on stderr while it runs, only when stderr is a terminal,
+and ends with one verdict line on stdout: `VERIFIED: ...` or `FAILED: ...`.
+
 Exit status: 0 everything holds; 1 a check fails (the record, key or bundle is named), or
 with --complete a stream has a gap or a record is counted by none; 2 the input cannot be read,
 or the chain node or the portal cannot be asked.
@@ -30,6 +33,7 @@ from authros_verify.portal import (
     read_key_file,
     read_token_file,
 )
+from authros_verify.progress import ProgressBar, ReadCounted, bundle_records_stated
 from authros_verify.record import RecordCheck, record_check
 
 EXIT_OK, EXIT_FAILED, EXIT_UNUSABLE = 0, 1, 2
@@ -83,37 +87,76 @@ def export_main(argv: list[str]) -> int:
     args = parser.parse_args(argv)
     if args.jobs < 0:
         parser.error("--jobs must be 0 or more")
+    chain = ChainReader.from_url(args.rpc)
+    bar = ProgressBar(sys.stderr)
     try:
         for given in (args.bundle, args.mcap):
             if given is not None and not given.is_file():
                 raise OSError(f"{given} is not a file")
-        report = verify(
-            args.bundle,
-            chain=ChainReader.from_url(args.rpc),
-            mcap=args.mcap,
-            contract=args.contract,
-            chain_id=args.chain_id,
-            jobs=args.jobs or os.cpu_count() or 1,
-        )
+        report = _export_checked(args, chain, bar)
+        chain_id = args.chain_id if args.chain_id is not None else chain.chain_id()
     except OSError as exc:
         print(f"cannot read: {exc}", file=sys.stderr)
         return EXIT_UNUSABLE
     except ChainUnreachable as exc:
         print(str(exc), file=sys.stderr)
         return EXIT_UNUSABLE
+    finally:
+        bar.close()
     print_report(report, mcap_checked=args.mcap is not None, pinned=args.contract is not None)
+    failure = export_failure(report, require_signed=args.require_signed, complete=args.complete)
+    print(failure or verified_line(report, chain_id=chain_id, contract=args.contract))
+    return EXIT_FAILED if failure else EXIT_OK
+
+
+def _export_checked(args: argparse.Namespace, chain: ChainReader, bar: ProgressBar) -> Report:
+    """The export checked, the bar following the MCAP file's bytes, then the records."""
+    total = bundle_records_stated(args.bundle) if bar.shown else 0
+
+    def records_checked(done: int) -> None:
+        bar.show("records  ", done, total)
+
+    checked = {
+        "chain": chain,
+        "contract": args.contract,
+        "chain_id": args.chain_id,
+        "jobs": args.jobs or os.cpu_count() or 1,
+        "progress": records_checked if bar.shown else None,
+    }
+    if args.mcap is None or not bar.shown:  # nothing drawn: the file as given, unwrapped
+        return verify(args.bundle, mcap=args.mcap, **checked)
+    with args.mcap.open("rb") as source:
+        # read twice: its SM3 and size, then its messages
+        mcap = ReadCounted(source, bar, stage="MCAP file", passes=2)
+        return verify(args.bundle, mcap=mcap, **checked)
+
+
+def export_failure(report: Report, *, require_signed: bool, complete: bool) -> str:
+    """The verdict line of an export that fails, or "" when it holds."""
     if not report.ok:
-        return EXIT_FAILED
-    if args.require_signed and report.not_genuine:
-        print(f"FAILED: {len(report.not_genuine)} records are not genuine (--require-signed)")
-        return EXIT_FAILED
-    if args.complete and (report.gaps or report.uncounted):
-        print(
+        return (
+            f"FAILED: {len(report.failed):,} of {len(report.records):,} records refused, "
+            f"{len(report.problems)} problems with the bundle or the MCAP file"
+        )
+    if require_signed and report.not_genuine:
+        return f"FAILED: {len(report.not_genuine)} records are not genuine (--require-signed)"
+    if complete and (report.gaps or report.uncounted):
+        return (
             f"FAILED: {report.gaps} gaps, {len(report.uncounted)} records no stream counts "
             "(--complete)"
         )
-        return EXIT_FAILED
-    return EXIT_OK
+    return ""
+
+
+def verified_line(report: Report, *, chain_id: int, contract: str | None) -> str:
+    """The verdict line of an export that holds: its records, the chain and the contract."""
+    pinned = contract if contract is not None else "named by the bundle (not pinned)"
+    unsigned = len(report.not_genuine)
+    but = f", {unsigned:,} unsigned (not genuine)" if unsigned else ""
+    return (
+        f"VERIFIED: {len(report.records):,} records, {len(report.failed)} refused{but}, "
+        f"chain {chain_id} contract {pinned}"
+    )
 
 
 def print_report(report: Report, *, mcap_checked: bool, pinned: bool) -> None:
@@ -139,12 +182,6 @@ def print_report(report: Report, *, mcap_checked: bool, pinned: bool) -> None:
         print("note: no --mcap given; the MCAP file itself was not checked")
     if not pinned:
         print("note: no --contract given; the contract the bundle names was trusted")
-    if not report.ok:
-        print("FAILED")
-    elif report.not_genuine:
-        print(f"OK, but {len(report.not_genuine)} records are unsigned: not genuine")
-    else:
-        print("OK")
 
 
 def print_streams(report: Report) -> None:

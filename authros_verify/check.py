@@ -18,7 +18,7 @@ import json
 import multiprocessing
 import re
 from collections import deque
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -174,6 +174,7 @@ def verify(
     contract: str | None = None,
     chain_id: int | None = None,
     jobs: int = 1,
+    progress: Callable[[int], None] | None = None,
 ) -> Report:
     """Check the bundle (its bytes, or its path) and the MCAP file, if given (its bytes, its
     path, or a binary file at its start), against the chain.
@@ -186,8 +187,10 @@ def verify(
     its signature is still verified once), their results gathered in order: the same report
     as one process's. The MCAP file is read as a stream (`_mcap_messages`). `contract` and
     `chain_id` are what the verifier knows independently (the portal's published contract);
-    without them the bundle's own are checked for consistency only. Raises ChainUnreachable if
-    the node cannot be asked; OSError if a file cannot be read.
+    without them the bundle's own are checked for consistency only. `progress`, if given, is
+    told how many records are checked so far after each chunk of them (a progress bar's; the
+    report is the same). Raises ChainUnreachable if the node cannot be asked; OSError if a
+    file cannot be read.
     """
     with _lines_of(bundle) as lines:
         head = _head_read(lines)
@@ -214,6 +217,8 @@ def verify(
             report.signatures_verified += verified
             if not scan.canonical:
                 break
+            if progress is not None:
+                progress(len(report.records))
     if not scan.canonical:
         return _verify_whole(
             _bytes_of(bundle), chain=chain, mcap=mcap, contract=contract, chain_id=chain_id

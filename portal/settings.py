@@ -187,6 +187,9 @@ MEDIA_ROOT = Path(env.str("AUTHROS_MEDIA_ROOT", default=str(VAR_DIR / "media")))
 # --- Chain -------------------------------------------------------------------------------
 # The JSON-RPC endpoint of the chain node: http(s)://host:port.
 CHAIN_RPC_URL = env.str("CHAIN_RPC_URL", default="http://127.0.0.1:8545")
+# The chain node's URL as the portal's users reach it, printed in the verify command of an
+# export's page; the portal's own by default (`make run`'s anvil, on this machine).
+PUBLIC_RPC_URL = env.str("PUBLIC_RPC_URL", default=CHAIN_RPC_URL)
 # Optional pin; otherwise the address recorded by `manage.py chain_deploy` is used.
 CHAIN_CONTRACT_ADDRESS = env.str("CHAIN_CONTRACT_ADDRESS", default="")
 # Hex private key of the operator (contract admin, funds new EOAs); else a 0600 file.

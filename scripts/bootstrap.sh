@@ -62,6 +62,22 @@ install_python_packages() {
   fi
 }
 
+# The project itself, editable, into .venv: its console scripts (`authros-verify`, as the export
+# page prints it, and `authros-agent`) run from any folder and always run this checkout's code.
+# setuptools is in the locked set, so no build isolation (nothing downloaded). Done again only
+# when pyproject.toml changes or the venv points at another checkout (the stamp holds its path).
+install_project() {
+  if [ -x $VENV/bin/authros-verify ] && [ -f $STAMP_DIR/project ] \
+    && [ "$(cat $STAMP_DIR/project)" = "$PWD" ] && [ ! pyproject.toml -nt $STAMP_DIR/project ]; then
+    return
+  fi
+  log "installing the project into $VENV (editable: authros-verify, authros-agent)"
+  $VENV/bin/python -m pip install -q --disable-pip-version-check --no-deps \
+    --no-build-isolation --no-index -e .
+  printf '%s' "$PWD" >$STAMP_DIR/project
+}
+
 install_debian_packages
 install_npm_packages
 install_python_packages
+install_project

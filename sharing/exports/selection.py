@@ -3,6 +3,7 @@ selection they may view (own, and of owners granting them, inside the grants' sc
 completeness (per stream, tombstones included), how many that is against EXPORT_MAX_RECORDS,
 and an export's selection described for its page."""
 
+import shlex
 import uuid
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -125,17 +126,6 @@ def export_selection_described(export: Export) -> dict[str, object]:
     selection = RecordSelection.from_json(export.selection)
     robots = Robot.objects.filter(pk__in=selection.robots).select_related("owner__user")
     names = {robot.pk: f"{robot.name} ({robot.owner.username})" for robot in robots}
-    stem = export_file_stem(export)
-    command = [
-        "authros-verify",
-        f"{stem}.proofs.json",
-        f"--mcap {stem}.mcap",
-        "--rpc RPC_URL",
-    ]
-    if export.contract:
-        command.append(f"--contract {export.contract}")
-    if export.chain_id is not None:
-        command.append(f"--chain-id {export.chain_id}")
     return {
         "robots": [names.get(robot, str(robot)) for robot in selection.robots],
         "topics": list(selection.topics),
@@ -144,5 +134,20 @@ def export_selection_described(export: Export) -> dict[str, object]:
         # Its end is the moment it was asked for (export_create closes an open window).
         "until_asked": selection.until is not None
         and abs(export.created_at - selection.until) < _ASKED_WITHIN,
-        "verify_command": " ".join(command),
+        "verify_command": export_verify_command(export),
     }
+
+
+def export_verify_command(export: Export) -> str:
+    """The shell command that checks the export's files against its chain, as printed on its
+    page: run as it stands in the folder the files were downloaded into (their names as
+    downloaded), with this portal's public node (PUBLIC_RPC_URL) and the export's contract
+    and chain id filled in."""
+    stem = export_file_stem(export)
+    command = ["authros-verify", f"{stem}.proofs.json", "--mcap", f"{stem}.mcap"]
+    command += ["--rpc", settings.PUBLIC_RPC_URL]
+    if export.contract:
+        command += ["--contract", export.contract]
+    if export.chain_id is not None:
+        command += ["--chain-id", str(export.chain_id)]
+    return shlex.join(command)

@@ -322,7 +322,7 @@ def test_unsigned_records_are_exported_and_reported_unsigned_never_genuine(
     out = capsys.readouterr().out
     assert out.count("UNSIGNED record") == 2
     assert "2 of 2 records verified against the chain: 0 genuine" in out
-    assert "OK, but 2 records are unsigned: not genuine" in out
+    assert "VERIFIED: 2 records, 0 refused, 2 unsigned (not genuine), chain " in out
     assert main([*arguments, "--require-signed"]) == 1
 
     # An unsigned record that claims a signature, and a signed one passed off as unsigned.

@@ -113,7 +113,7 @@ def test_the_access_log_on_a_desktop_and_a_phone(live_server, browser: Browser, 
     assert lines[0]["record"] == str(world.records["odom"].pk)
     desktop.close()
 
-    # --- bob, phone: his own views of shared data, as cards -----------------------------------
+    # --- bob, phone: his own views of shared data, as compact rows ----------------------------
     phone = _signed_in(browser, base, world.bob.username, PHONE)
     page = phone.pages[0]
     page.goto(f"{base}/access-log/")
@@ -121,14 +121,15 @@ def test_the_access_log_on_a_desktop_and_a_phone(live_server, browser: Browser, 
     page.click("[data-testid=access-log-tab-outgoing]")
     rows = page.locator("[data-testid=access-log-row]")
     expect(rows).to_have_count(4)
-    # A card per access: the table head is hidden, each field labelled in its card.
+    # A compact row per access: the table head is hidden and no cell carries a label of its
+    # own (each field in the same place of every row: when and who, what and its verdict, ...).
     head = page.evaluate("document.querySelector('#access-log-table thead').offsetHeight")
     assert head <= 1
     label = page.evaluate(
         """getComputedStyle(document.querySelector('#access-log-table td'), '::before')
             .content"""
     )
-    assert label == '"When (UTC)"'
+    assert label == "none"
     _nothing_overflows(page)
     expect(page.get_by_text(CAROL_TOPIC)).to_be_visible()
     expect(page.get_by_text("plot, 5 records")).to_be_visible()

@@ -323,7 +323,7 @@ def test_a_real_agents_v2_batches_verify_and_a_dropped_record_is_named_missing(
             f"topic {topic} (robot {robot.id}): topic_seq 0..{PER_TOPIC - 1}, "
             f"{PER_TOPIC} records, nothing" in complete.stdout
         ), complete.stdout
-    assert complete.stdout.rstrip().endswith("OK")
+    assert complete.stdout.rstrip().splitlines()[-1].startswith("VERIFIED: ")
 
     # --- 4. a record dropped behind the portal's back ------------------------------------------
     dropped = by_stream[ODOM[0]][DROPPED]
@@ -372,4 +372,4 @@ def test_a_real_agents_v2_batches_verify_and_a_dropped_record_is_named_missing(
         f"{PER_TOPIC - 1} records, 1 gaps" in plain.stdout
     ), plain.stdout
     assert f"    GAP {DROPPED} (1 records): missing\n" in plain.stdout
-    assert plain.stdout.rstrip().endswith("OK")
+    assert plain.stdout.rstrip().splitlines()[-1].startswith("VERIFIED: ")

@@ -200,7 +200,10 @@ def test_the_verifier_installs_alone_and_checks_an_export_against_the_chain(
     command += ["--contract", deployed.address, "--require-signed"]
     passed = run(command, cwd=tmp_path)
     assert "2 of 2 records verified against the chain: 2 genuine" in passed.stdout
-    assert passed.stdout.strip().endswith("OK")
+    assert passed.stdout.strip().splitlines()[-1] == (
+        f"VERIFIED: 2 records, 0 refused, chain {deployed.w3.eth.chain_id} "
+        f"contract {deployed.address}"
+    )
     # One changed byte of a message fails it, naming the record.
     (tmp_path / "export.mcap").write_bytes(mcap.replace(b"msg 2", b"msg 3"))
     failed = run(command, cwd=tmp_path, check=False)
