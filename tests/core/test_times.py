@@ -23,7 +23,8 @@ def test_a_stored_iso_text_reads_as_the_same_words():
     # How a stored selection keeps its range, which the export page showed raw.
     assert utc_text("2026-12-01T21:46:00.000000Z") == "2026-12-01 21:46:00 UTC"
     assert utc_text("2026-12-01T22:46:00+01:00") == "2026-12-01 21:46:00 UTC"
-    assert utc_text(None) == "" and utc_text("") == ""
+    assert utc_text(None) == ""
+    assert utc_text("") == ""
     assert utc_text("not a time") == "not a time"
 
 

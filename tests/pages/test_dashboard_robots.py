@@ -196,7 +196,8 @@ def test_the_robots_page_folds_the_install_away_and_says_times_in_utc(client, pe
     details = re.search(r'<details class="install"[^>]*>(.*?)</details>', html, re.S).group(1)
     assert "--require-hashes -r requirements/agent.txt" in details
     # The pair command stays on screen, outside the fold.
-    assert 'data-testid="pair-command"' in html and 'data-testid="pair-command"' not in details
+    assert 'data-testid="pair-command"' in html
+    assert 'data-testid="pair-command"' not in details
     assert '<span class="topic-type">nav_msgs/Odometry</span>' in html
     assert f"{robot.created_at:%Y-%m-%d %H:%M:%S} UTC" in html
 
