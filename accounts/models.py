@@ -332,13 +332,15 @@ class ChainActivity(models.Model):
         ANCHORED = "anchored", "records anchored"
         GRANTED = "granted", "access granted"
         REVOKED = "revoked", "access revoked"
+        ROBOT_KEY_ADDED = "robot_key_added", "robot key registered"
+        ROBOT_KEY_REVOKED = "robot_key_revoked", "robot key revoked"
 
     owner = models.ForeignKey(Owner, on_delete=models.CASCADE, related_name="chain_activity")
     # The other side of a grant or revocation (who sees it as "received").
     counterpart = models.ForeignKey(
         Owner, on_delete=models.SET_NULL, null=True, blank=True, related_name="+"
     )
-    kind = models.CharField(max_length=16, choices=Kind.choices)
+    kind = models.CharField(max_length=24, choices=Kind.choices)
     tx_hash = models.CharField(max_length=66)
     block_number = models.BigIntegerField(null=True, blank=True)
     record_count = models.PositiveIntegerField(default=0)

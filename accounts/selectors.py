@@ -157,6 +157,12 @@ def robot_count_active(owner: Owner) -> int:
     return owner.robots.filter(is_active=True).count()
 
 
+def robot_any_of(owner: Owner) -> bool:
+    """Whether the owner ever had a robot, unpaired ones included: until then the dashboard
+    is the first step, pairing one."""
+    return owner.robots.exists()
+
+
 def robot_topics(robot: Robot) -> tuple[Topic, ...]:
     """The topics kept with the robot when it was added: what its agent config lists."""
     return tuple(Topic(name=entry["name"], type=entry["type"]) for entry in robot.topics)

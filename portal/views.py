@@ -21,12 +21,14 @@ from django.utils import timezone
 from django.views.decorators.http import require_GET
 
 from accounts.decorators import owner_required, page_throttle
+from accounts.forms import PairingCodeForm
 from accounts.models import AccountEvent, ChainState, Owner
 from accounts.selectors import (
     account_events_of,
     account_events_to_notice,
     owner_for_user,
     owner_key_current,
+    robot_any_of,
     robot_count_active,
 )
 from accounts.services.funding import owner_eoa_gas
@@ -55,7 +57,9 @@ def home(request: HttpRequest) -> HttpResponse:
 @page_throttle()
 @require_GET
 def dashboard(request: HttpRequest) -> HttpResponse:
-    """The owner's identity on chain, with its EOA balance, and what it has and shares."""
+    """The owner's identity on chain, with its EOA balance, and what it has and shares; an
+    owner with no robot yet is first shown how to pair one (install, pair, approve), with the
+    commands for the address this page was asked at."""
     owner: Owner = request.owner
     balance, gas, chain_problem = None, None, None
     try:
@@ -77,6 +81,8 @@ def dashboard(request: HttpRequest) -> HttpResponse:
         "grants_received_count": grant_count_received(owner),
         "robot_count": robot_count_active(owner),
         "security_notice": _security_notice(owner),
+        "first_robot": not robot_any_of(owner),
+        "code_form": PairingCodeForm(),
     }
     return render(request, "portal/dashboard.html", context)
 

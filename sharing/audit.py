@@ -2,7 +2,8 @@
 owner's transactions (accounts.models.ChainActivity), never from the chain's logs.
 
 The worker writes one row per transaction when it sees the receipt: registration steps, key
-rotations, anchoring batches, grants and revocations (the grantee sees those too). The page
+rotations, robots' keys added and revoked (from the receipt's RobotKeyAdded and RobotKeyRevoked
+events), anchoring batches, grants and revocations (the grantee sees those too). The page
 lists the few that change who may read what first (grants, revocations, keys, registration),
 then the anchoring, grouped per minute: a robot anchoring once a second makes one line a
 minute ("Anchored 720 records in 12:04 (UTC)"), not sixty, each naming its transactions and
@@ -173,6 +174,16 @@ def _entry(owner: Owner, row: ChainActivity) -> AuditEntry:
     detail = row.detail if isinstance(row.detail, dict) else {}
     if row.kind in (Kind.REGISTERED, Kind.KEY_ROTATED) and detail.get("key_id"):
         entry.detail = f"key {detail['key_id']}, commitment {detail.get('commitment', '-')}"
+    elif row.kind in (Kind.ROBOT_KEY_ADDED, Kind.ROBOT_KEY_REVOKED):
+        added = row.kind == Kind.ROBOT_KEY_ADDED
+        robot = detail.get("robot") or "a robot"
+        entry.title = (
+            f"Registered the signing key of robot {robot}"
+            if added
+            else f"Revoked the signing key of robot {robot}"
+        )
+        entry.kind = "robot-key-added" if added else "robot-key-revoked"
+        entry.detail = f"key hash {detail.get('key_hash', '-')}"
     elif row.kind in (Kind.GRANTED, Kind.REVOKED):
         granted = row.kind == Kind.GRANTED
         if row.owner_id == owner.pk:

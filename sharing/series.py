@@ -7,9 +7,9 @@ counted), has the workers check every one of them (verification.opening.records_
 access-log line of kind "plot", slices checked side by side), which read the fields (dotted
 paths into the record's decoded message, `K` of the paper's Fig. 4 JSON, `record_values`) of
 the verified ones and hand back only those, sealed for this read: one row per record, which
-the series API thins for display (sharing/thinning.py). A refused record
-(tampered, signature not valid, not anchored, no access on chain) is counted in `refused` and
-never plotted.
+the series API thins for display (sharing/thinning.py). A record not verified is never
+plotted: one not anchored yet (its anchoring still to come, or given up) is counted in
+`not_anchored_yet`, any other (tampered, signature not valid, no access on chain) in `refused`.
 """
 
 import math
@@ -63,7 +63,8 @@ class Series:
     points: list[list[float | None]]  # [t (Unix seconds), v1, v2...], oldest first, all
     source_records: int  # records in the range the caller may see
     verified: int  # of them, checked and verified
-    refused: int  # of them, refused by the check: never plotted
+    refused: int  # of them, refused by the check for what they are: never plotted
+    not_anchored_yet: int  # of them, not verified because not anchored yet: not plotted yet
     without_values: int  # verified, but holding none of the fields as a number
     # The range's streams, first to last topic_seq and every gap (tombstones give reasons).
     completeness: Completeness
@@ -75,6 +76,7 @@ class Series:
             "source_records": self.source_records,
             "verified": self.verified,
             "refused": self.refused,
+            "not_anchored_yet": self.not_anchored_yet,
             "without_values": self.without_values,
             **self.completeness.as_json(),
         }
@@ -135,19 +137,23 @@ def series_window(viewer: Owner, query: SeriesQuery) -> QuerySet[Record]:
     return selection.apply(record_list_visible_to(viewer))
 
 
-def series_record_ids(viewer: Owner, query: SeriesQuery) -> tuple[list[str], list[OwnerRead]]:
+def series_record_ids(viewer: Owner, query: SeriesQuery) -> tuple[list[str], list[OwnerRead], int]:
     """The ids of every record of the range the viewer may see (own, or in a live grant's
-    scope), oldest first, and what the plot's access line names of each record owner's.
-    SeriesRefused when they are more than SERIES_MAX_RECORDS. Ids only: a range of hours
-    holds hundreds of thousands of records, which the workers read themselves."""
+    scope), oldest first, what the plot's access line names of each record owner's, and how
+    many of them are not anchored (pending, or anchoring given up). SeriesRefused when they
+    are more than SERIES_MAX_RECORDS. Ids only: a range of hours holds hundreds of thousands
+    of records, which the workers read themselves."""
     in_range = series_window(viewer, query).live().order_by("captured_at", "seq")
     most = settings.SERIES_MAX_RECORDS
     record_ids: list[str] = []
     by_owner: Counter[int] = Counter()
     first_of: dict[int, str] = {}
+    unanchored = 0
+    rows = in_range.values_list("pk", "owner_id", "status")[: most + 1]
     # Streamed, as text: 216,000 ids take about 25 MB so, twice that as UUIDs in a list.
-    for pk, owner_id in in_range.values_list("pk", "owner_id")[: most + 1].iterator(10_000):
+    for pk, owner_id, status in rows.iterator(10_000):
         record_ids.append(str(pk))
+        unanchored += status != Record.Status.ANCHORED
         by_owner[owner_id] += 1
         first_of.setdefault(owner_id, record_ids[-1])
     if len(record_ids) > most:
@@ -162,7 +168,7 @@ def series_record_ids(viewer: Owner, query: SeriesQuery) -> tuple[list[str], lis
         )
         for owner_id, count in by_owner.items()
     ]
-    return record_ids, reads
+    return record_ids, reads, unanchored
 
 
 def series_of(
@@ -179,7 +185,7 @@ def series_of(
     verification.opening.records_rows_open), one row per record, and the range's streams with
     their gaps (record_streams). VerificationUnavailable if the workers could not check them
     all."""
-    record_ids, reads = series_record_ids(viewer, query)
+    record_ids, reads, unanchored = series_record_ids(viewer, query)
     checked = records_rows_open(
         record_ids=record_ids,
         reads=reads,
@@ -190,12 +196,19 @@ def series_of(
         refresh=refresh,
     )
     plotted = [row for row in checked.rows if any(value is not None for value in row[1:])]
+    not_verified = len(record_ids) - checked.verified
+    # Counted from the rows' status, not the verdicts (the workers answer only how many they
+    # verified): a record not anchored when listed fails its check as not anchored yet, unless
+    # its anchoring landed meanwhile (verified then) or the check refused it first for another
+    # reason (a bad signature, counted here as not anchored yet).
+    not_anchored_yet = min(unanchored, not_verified)
     return Series(
         fields=query.fields,
         points=plotted,
         source_records=len(record_ids),
         verified=checked.verified,
-        refused=len(record_ids) - checked.verified,
+        refused=not_verified - not_anchored_yet,
+        not_anchored_yet=not_anchored_yet,
         without_values=checked.verified - len(plotted),
         completeness=record_streams(series_window(viewer, query)),
     )

@@ -26,10 +26,11 @@ from dataclasses import dataclass
 from django.conf import settings
 from django.db import transaction
 
-from accounts.models import ChainState, Owner, Robot
+from accounts.models import ChainActivity, ChainState, Owner, Robot
 from accounts.selectors import owner_eoa_account
+from accounts.services.activity import chain_activity_record
 from accounts.services.registration import owner_chain_ready
-from chainworker.codec import RobotKeyOnChain
+from chainworker.codec import RobotKeyOnChain, TxResult
 from chainworker.errors import ChainError, InsufficientFunds, TransactionReverted
 from chainworker.selectors import operator_alert_open
 from chainworker.services import (
@@ -154,6 +155,7 @@ def robot_key_register_on_chain(*, robot_id: uuid.UUID | str) -> Robot:
                 owner_eoa_account(owner), key_hash, bytes.fromhex(robot.public_key)[1:]
             )
             added_block: int | None = result.block_number
+            _robot_key_activity_record(robot, result, "RobotKeyAdded")
         except InsufficientFunds:
             # Waits for gas, using up nothing: the task retries and the sweep queues it again.
             enqueue("accounts.tasks.owner_top_up", owner.pk)
@@ -184,6 +186,30 @@ def robot_key_register_on_chain(*, robot_id: uuid.UUID | str) -> Robot:
         owner_chain_ready(owner.pk)  # records that waited for the key can be anchored now
         robot_key_revocations_release(owner_id=owner.pk)
     return robot
+
+
+_ROBOT_KEY_KINDS = {
+    "RobotKeyAdded": ChainActivity.Kind.ROBOT_KEY_ADDED,
+    "RobotKeyRevoked": ChainActivity.Kind.ROBOT_KEY_REVOKED,
+}
+
+
+def _robot_key_activity_record(robot: Robot, result: TxResult, event_name: str) -> None:
+    """The audit page's entry of the robot key's addition or revocation, from the event its
+    transaction's receipt holds (RobotKeyAdded, RobotKeyRevoked): as grants' are recorded."""
+    for event in result.events:
+        if event.name == event_name:
+            chain_activity_record(
+                owner=robot.owner,
+                kind=_ROBOT_KEY_KINDS[event_name],
+                tx_hash=result.tx_hash,
+                block_number=event.block_number,
+                detail={
+                    "robot_id": str(robot.pk),
+                    "robot": robot.name,
+                    "key_hash": bytes(event.args["keyHash"]).hex(),
+                },
+            )
 
 
 def _added_for(robot: Robot, on_chain: RobotKeyOnChain) -> bool:
@@ -217,7 +243,10 @@ def robot_key_revoke_on_chain(*, robot_id: uuid.UUID | str) -> Robot:
             return robot
         state = ChainState.CONFIRMED
         try:
-            chain_client().robot_key_revoke(owner_eoa_account(owner), bytes.fromhex(robot.key_hash))
+            result = chain_client().robot_key_revoke(
+                owner_eoa_account(owner), bytes.fromhex(robot.key_hash)
+            )
+            _robot_key_activity_record(robot, result, "RobotKeyRevoked")
         except InsufficientFunds:
             enqueue("accounts.tasks.owner_top_up", owner.pk)
             raise

@@ -100,7 +100,12 @@ class RecordSeriesApi(APIView):
             "refused": {
                 "type": "integer",
                 "description": "of them, refused by the check (tampered, signature not valid, "
-                "not anchored yet, no access on chain): never plotted",
+                "no access on chain): never plotted",
+            },
+            "not_anchored_yet": {
+                "type": "integer",
+                "description": "of them, not verified because not anchored on chain yet (or "
+                "their anchoring gave up): not plotted until they are",
             },
             "without_values": {
                 "type": "integer",

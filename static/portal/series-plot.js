@@ -1,7 +1,8 @@
 /*
  * series-plot.js: plots of verified records from the series API (GET /api/v1/records/series/),
  * with no library. Every record in the range is checked against the chain by the portal; the
- * plot draws the verified ones and says how many were refused (never drawn).
+ * plot draws the verified ones and says how many are not anchored yet (drawn once they are)
+ * and how many were refused (never drawn).
  *
  * Put an element on a page and load this file (<script src=".../series-plot.js" defer>):
  *
@@ -32,7 +33,8 @@
  * An element added later is plotted by window.AuthROSSeriesPlot.start(element).
  * The browser's session authenticates the call (a GET: no CSRF token needed). The element gets
  * an <svg> that scales to its width (readable from 390 px up) and a status line; its
- * data-state becomes "loading", "ready" or "error", and data-verified / data-refused the counts;
+ * data-state becomes "loading", "ready" or "error", and data-verified / data-refused /
+ * data-not-anchored the counts;
  * data-missing how many records of the range's streams are missing (the series' `streams`),
  * which the status line says, with how many were deleted; data-method how the points were
  * thinned (the answer's `method`) and data-points-shown how many are drawn. Legends sit above
@@ -334,8 +336,11 @@
   function status(element, answer) {
     var text = answer.source_records + " record" + (answer.source_records === 1 ? "" : "s") +
       " in range, " + answer.verified + " verified against the chain";
+    if (answer.not_anchored_yet) {
+      text += ", " + answer.not_anchored_yet + " not anchored yet (not drawn)";
+    }
     if (answer.refused) {
-      text += ", " + answer.refused + " refused (not drawn)";
+      text += ", " + answer.refused + " refused";
     }
     if (answer.without_values) {
       text += ", " + answer.without_values + " without these fields";
@@ -351,12 +356,19 @@
     if (gone.deleted) {
       text += "; " + gone.deleted + " deleted";
     }
-    if (answer.refreshedAt && !answer.added && !answer.tailRefused) {
+    var tail = [];
+    if (answer.tailNotAnchored) {
+      tail.push(answer.tailNotAnchored + " not anchored yet");
+    }
+    if (answer.tailRefused) {
+      tail.push(answer.tailRefused + " refused");
+    }
+    if (answer.refreshedAt && !answer.added && !tail.length) {
       text += "; no newer records at " + utc(answer.refreshedAt / 1000).slice(11) + " UTC";
     } else if (answer.refreshedAt) {
       text += "; since, " + answer.added + " newer record" + (answer.added === 1 ? "" : "s") +
         " verified and added (last refresh " + utc(answer.refreshedAt / 1000).slice(11) + " UTC" +
-        (answer.tailRefused ? ", " + answer.tailRefused + " of the newest not drawn yet: not anchored or refused" : "") + ")";
+        (tail.length ? "; of the newest, not drawn: " + tail.join(", ") : "") + ")";
     }
     return text + ".";
   }
@@ -396,6 +408,7 @@
     }
     element.dataset.verified = answer.verified + (answer.added || 0);
     element.dataset.refused = answer.refused;
+    element.dataset.notAnchored = answer.not_anchored_yet || 0;
     element.dataset.missing = gaps(answer).missing;
     element.dataset.method = answer.method;
     element.dataset.pointsShown = answer.points.length;
@@ -437,8 +450,8 @@
         var since = range.since.getTime() / 1000;
         // The whole plot's counts stay those of its whole answer; a refresh tells how many
         // records it verified and added (thinned like the rest). Records after the newest
-        // point that were refused (not anchored yet, most often) are asked for again by the
-        // next refresh, and drawn once they pass.
+        // point not verified (not anchored yet, most often) are asked for again by the next
+        // refresh, and drawn once they pass.
         var added = chunk.points.filter(function (p) { return p[0] > newest; });
         var merged = {
           fields: answer.fields,
@@ -446,11 +459,13 @@
           source_records: answer.source_records,
           verified: answer.verified,
           refused: answer.refused,
+          not_anchored_yet: answer.not_anchored_yet,
           without_values: answer.without_values,
           streams: (answer.streams || []).concat(chunk.streams || []),
           method: answer.method === "all" ? chunk.method : answer.method,
           added: (answer.added || 0) + chunk.verified,
           tailRefused: chunk.refused,
+          tailNotAnchored: chunk.not_anchored_yet,
           refreshedAt: Date.now()
         };
         held.answer = merged;

@@ -44,10 +44,42 @@ def test_dashboard_shows_identity_and_counts(
     assert re.search(r'data-testid="grants-received-count">0<', html)
     assert alice.key.hex() not in html
 
+    assert 'data-testid="first-robot"' not in html
+
+    # bob has no robot: his first step is pairing one; what is shared with him still shows.
     client.force_login(bob.user)
     html = client.get(reverse("dashboard")).content.decode()
-    assert re.search(r'data-testid="record-count">0<', html)
+    assert 'data-testid="first-robot"' in html
+    assert 'data-testid="record-count"' not in html
     assert re.search(r'data-testid="grants-received-count">1<', html)
+
+
+def test_a_new_owners_dashboard_pairs_a_first_robot_at_this_portals_address(
+    client, pending_owner, settings
+):
+    settings.ALLOWED_HOSTS = [*settings.ALLOWED_HOSTS, "portal.example.org"]
+    owner = pending_owner("newbie")
+    client.force_login(owner.user)
+    html = client.get(reverse("dashboard"), HTTP_HOST="portal.example.org:8443").content.decode()
+    steps = re.findall(r'data-testid="first-step-(\w+)"', html)
+    assert steps == ["install", "pair", "approve"]
+    # The README's locked-set install, in a venv of its own.
+    assert "python3 -m venv --system-site-packages ~/authros-agent" in html
+    assert "~/authros-agent/bin/pip install --require-hashes -r requirements/agent.txt" in html
+    pair = re.search(r'data-testid="pair-command">([^<]+)<', html).group(1)
+    assert pair == (
+        "~/authros-agent/bin/authros-agent pair --portal http://portal.example.org:8443 "
+        "--name my-robot"
+    )
+    assert f'action="{reverse("robot-pair")}"' in html
+    assert 'data-testid="record-count"' not in html
+
+    # Once a robot exists (even unpaired since), the normal dashboard shows.
+    client.post(reverse("robots"), {"name": "turtle-1", "topics": "/odom nav_msgs/Odometry"})
+    Robot.objects.filter(owner=owner).update(is_active=False)
+    html = client.get(reverse("dashboard")).content.decode()
+    assert 'data-testid="first-robot"' not in html
+    assert re.search(r'data-testid="robot-count">0<', html)
 
 
 def test_dashboard_counts_agree_on_both_sides_of_a_revoked_grant(
@@ -155,6 +187,21 @@ def test_add_a_robot_shows_its_token_once(client, pending_owner, tmp_path):
     assert robot.token_prefix in listing
 
 
+def test_the_robots_page_folds_the_install_away_and_says_times_in_utc(client, pending_owner):
+    owner = pending_owner("hal")
+    client.force_login(owner.user)
+    client.post(reverse("robots"), {"name": "turtle-1", "topics": "/odom nav_msgs/Odometry"})
+    robot = Robot.objects.get(owner=owner)
+    html = client.get(reverse("robots")).content.decode()
+    details = re.search(r'<details class="install"[^>]*>(.*?)</details>', html, re.S).group(1)
+    assert "--require-hashes -r requirements/agent.txt" in details
+    # The pair command stays on screen, outside the fold.
+    assert 'data-testid="pair-command"' in html
+    assert 'data-testid="pair-command"' not in details
+    assert '<span class="topic-type">nav_msgs/Odometry</span>' in html
+    assert f"{robot.created_at:%Y-%m-%d %H:%M:%S} UTC" in html
+
+
 def test_agent_config_download_names_a_token_file(client, pending_owner, tmp_path):
     owner = pending_owner("ida")
     client.force_login(owner.user)
@@ -213,8 +260,11 @@ def test_config_downloaded_again_has_the_topics_given_when_the_robot_was_added(
 
     listing = client.get(reverse("robots")).content.decode()
     cell = re.search(r'data-testid="robot-topics">(.*?)</td>', listing, re.S).group(1)
-    assert "<code>/scan</code> sensor_msgs/LaserScan" in cell
-    assert "<code>/front_camera/image_raw</code> sensor_msgs/Image" in cell
+    assert '<code>/scan</code> <span class="topic-type">sensor_msgs/LaserScan</span>' in cell
+    assert (
+        '<code>/front_camera/image_raw</code> <span class="topic-type">sensor_msgs/Image</span>'
+        in cell
+    )
     assert DEFAULT_TOPICS[0].name not in cell
 
 

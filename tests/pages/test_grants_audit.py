@@ -9,6 +9,8 @@ from django.test import Client
 from django.urls import reverse
 from django.utils import timezone
 
+from accounts.services.robots import robot_token_revoke
+from chainworker.services import chain_client
 from sharing.models import Grant, Record
 from sharing.services.uploads import record_create_batch
 
@@ -159,6 +161,32 @@ def test_audit_shows_the_owners_history(
         assert reverse("record-detail", args=[record.id]) in html
     assert f"Block {owner.registered_block}" in html
     assert carol.owner.register_tx not in html
+
+
+def test_audit_lists_robot_key_registrations_and_revocations_from_their_events(
+    client, make_owner, pair_robot, on_commit
+):
+    owner = make_owner("alice")
+    robot = pair_robot(owner).robot
+    on_commit(lambda: robot_token_revoke(robot=robot, actor=owner.user))
+    robot.refresh_from_db()
+    added, revoked = chain_client().events(names=["RobotKeyAdded", "RobotKeyRevoked"])
+    client.force_login(owner.user)
+    html = client.get(reverse("audit")).content.decode()
+    kinds = re.findall(r'data-kind="([\w-]+)" data-testid="audit-entry"', html)
+    assert kinds[:3] == ["robot-key-revoked", "robot-key-added", "registered"]
+    assert f"Registered the signing key of robot {robot.name}" in html
+    assert f"Revoked the signing key of robot {robot.name}" in html
+    assert f"key hash {robot.key_hash}" in html
+    for event in (added, revoked):
+        assert event.tx_hash in html
+        assert f"Block {event.block_number}" in html
+    # Their kind is one of the filter's.
+    html = client.get(reverse("audit"), {"kind": "robot_key_added"}).content.decode()
+    kinds = re.findall(r'data-kind="([\w-]+)" data-testid="audit-entry"', html)
+    assert kinds == ["robot-key-added"]
+    times = re.findall(r'data-testid="audit-time">([^<]+)<', html)
+    assert all(re.fullmatch(r"\d{4}-\d\d-\d\d \d\d:\d\d:\d\d UTC", t) for t in times)
 
 
 def test_audit_groups_a_batch_and_caps_its_list(

@@ -74,6 +74,25 @@ def test_the_series_answers_every_record_in_range_and_refuses_a_tampered_one(ali
     assert outcomes == ["tampered"] + ["verified"] * 7
 
 
+def test_records_not_anchored_yet_are_counted_apart_from_the_refused(alice, upload):
+    for i in range(3):
+        _odometry(upload, alice, i + 1, x=float(i), y=0.0, at=T0 + timedelta(seconds=i))
+    tampered = _odometry(upload, alice, 4, x=4.0, y=0.0, at=T0 + timedelta(seconds=4))
+    tamper(tampered)
+    for i in (5, 6):  # their anchoring has not run
+        plaintext = odometry(alice.owner.username, float(i), 0.0)
+        at = _iso(T0 + timedelta(seconds=i))
+        upload(alice, i, plaintext=plaintext, time=at, anchor=False)
+    body = (
+        session_client(alice.owner)
+        .get(API, _query(alice, since=T0, until=T0 + timedelta(minutes=1)))
+        .json()
+    )
+    counts = ("source_records", "verified", "refused", "not_anchored_yet")
+    assert tuple(body[name] for name in counts) == (6, 3, 1, 2)
+    assert [point[1] for point in body["points"]] == [0.0, 1.0, 2.0]
+
+
 def test_a_series_with_an_owner_token_is_logged_as_that_token(alice, upload, make_owner_token):
     _odometry(upload, alice, 1, x=1.0, y=1.0, at=T0)
     token, key = make_owner_token(alice.owner, scopes=("read",))
