@@ -1,6 +1,7 @@
 """Celery workers started as `make run` starts them (stack/processes.py `celery_worker`) are
 seen alive by monitoring: they answer `celery -A portal inspect ping`, and send the heartbeats
-by which Flower tells a live worker from a dead one."""
+by which Flower tells a live worker from a dead one; they send task events (Flower's list of
+tasks), and a worker host serves /metrics on WORKER_METRICS_PORT, its pool's counts included."""
 
 import json
 import socket
@@ -8,9 +9,12 @@ import subprocess
 import uuid
 
 import pytest
+import requests
 from kombu import Connection
+from prometheus_client.parser import text_string_to_metric_families
 
 from portal.celery import app
+from stack.anvil import free_port
 from stack.processes import PYTHON, REPO_ROOT
 from tests.support.harness import wait_for
 
@@ -62,3 +66,62 @@ def test_a_worker_answers_inspect_ping_and_sends_heartbeats(worker_stack, settin
             receiver.capture(limit=None, timeout=60, wakeup=False)
     assert heartbeats[-1]["active"] == 0
     assert all(isinstance(beat["active"], int) and beat["active"] >= 0 for beat in heartbeats)
+
+
+# A task no beat schedule sends within the test (hourly), cheap, with no arguments.
+PROBE_TASK = "accounts.tasks.robot_pairings_purge"
+
+
+def _samples(url: str) -> dict[tuple[str, tuple], float]:
+    answer = requests.get(url, timeout=30)
+    assert answer.status_code == 200, answer.text
+    return {
+        (sample.name, tuple(sorted(sample.labels.items()))): sample.value
+        for family in text_string_to_metric_families(answer.text)
+        for sample in family.samples
+    }
+
+
+def test_a_worker_sends_task_events_and_its_host_serves_metrics(worker_stack, settings, tmp_path):
+    stack = worker_stack(workers=0)
+    name = f"events-{uuid.uuid4().hex[:8]}"
+    hostname = f"{name}@{socket.gethostname()}"
+    port = free_port()
+    env = {
+        **stack.env(),
+        "WORKER_METRICS_PORT": str(port),
+        "PROMETHEUS_MULTIPROC_DIR": str(tmp_path / "metrics" / "worker"),
+    }
+    stack.start_worker(name, env=env)
+    sent: list[str] = []
+    seen: dict[str, set[str]] = {}
+
+    def on_event(event: dict) -> None:
+        # The worker listens once it sends heartbeats: only then is the task sent.
+        if event["type"] == "worker-heartbeat" and event.get("hostname") == hostname and not sent:
+            sent.append(app.send_task(PROBE_TASK).id)
+        if sent and event.get("uuid") == sent[0]:
+            seen.setdefault(event["type"], set()).add(event.get("hostname", ""))
+            if event["type"] == "task-succeeded":
+                raise _Seen
+
+    with Connection(settings.CELERY_BROKER_URL) as connection:
+        receiver = app.events.Receiver(connection, handlers={"*": on_event})
+        with pytest.raises(_Seen):
+            receiver.capture(limit=None, timeout=90, wakeup=False)
+    # The client's task-sent, the worker's received, started and succeeded.
+    assert {"task-sent", "task-received", "task-started", "task-succeeded"} <= set(seen)
+    assert seen["task-succeeded"] == {hostname}
+
+    url = f"http://127.0.0.1:{port}/metrics"
+    counted = ("authros_celery_tasks_total", (("state", "SUCCESS"), ("task", PROBE_TASK)))
+    # Counted by the pool process, served by the worker's main process.
+    wait_for(lambda: _samples(url).get(counted, 0) >= 1, timeout=30, what="the task counted")
+    samples = _samples(url)
+    for source in ("database", "redis", "chain", "disk"):
+        assert samples[("authros_metrics_source_up", (("source", source),))] == 1, source
+    assert samples[("authros_operator_balance_wei", ())] > 0
+    assert samples[("authros_operator_nonce", ())] >= 1  # the stack's deployment
+    assert ("authros_operator_alerts_open", ()) in samples
+    assert any(key[0] == "authros_disk_free_bytes" for key in samples)
+    assert requests.get(f"http://127.0.0.1:{port}/", timeout=30).status_code == 404
