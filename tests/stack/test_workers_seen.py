@@ -1,9 +1,12 @@
 """Celery workers started as `make run` starts them (stack/processes.py `celery_worker`) are
 seen alive by monitoring: they answer `celery -A portal inspect ping`, and send the heartbeats
-by which Flower tells a live worker from a dead one; they send task events (Flower's list of
-tasks), and a worker host serves /metrics on WORKER_METRICS_PORT, its pool's counts included."""
+by which Flower tells a live worker from a dead one; they send task events, so that Flower,
+started as docs/operations.md says, lists their tasks; and a worker host serves /metrics on
+WORKER_METRICS_PORT, its pool's counts included."""
 
 import json
+import re
+import shlex
 import socket
 import subprocess
 import uuid
@@ -70,6 +73,30 @@ def test_a_worker_answers_inspect_ping_and_sends_heartbeats(worker_stack, settin
 
 # A task no beat schedule sends within the test (hourly), cheap, with no arguments.
 PROBE_TASK = "accounts.tasks.robot_pairings_purge"
+FLOWER_COMMAND = re.compile(r"`\.venv/bin/(celery -A portal flower [^`]*)`")
+
+
+def _flower_as_documented(port: int) -> list[str]:
+    """docs/operations.md's command for Flower, on `port`."""
+    (command,) = FLOWER_COMMAND.findall((REPO_ROOT / "docs" / "operations.md").read_text())
+    argv = shlex.split(command)
+    assert "--port=5555" in argv
+    return [PYTHON, "-m", *[f"--port={port}" if a == "--port=5555" else a for a in argv]]
+
+
+def _flower_state(url: str, task_id: str) -> str | None:
+    try:
+        answer = requests.get(f"{url}/api/task/info/{task_id}", timeout=10)
+    except requests.RequestException:
+        return None
+    return answer.json().get("state") if answer.status_code == 200 else None
+
+
+def _answers(url: str) -> bool:
+    try:
+        return requests.get(url, timeout=5).status_code == 200
+    except requests.RequestException:
+        return False
 
 
 def _samples(url: str) -> dict[tuple[str, tuple], float]:
@@ -92,7 +119,15 @@ def test_a_worker_sends_task_events_and_its_host_serves_metrics(worker_stack, se
         "WORKER_METRICS_PORT": str(port),
         "PROMETHEUS_MULTIPROC_DIR": str(tmp_path / "metrics" / "worker"),
     }
+    flower = f"http://127.0.0.1:{free_port()}"
+    stack.children.spawn(
+        "flower",
+        _flower_as_documented(int(flower.rsplit(":", 1)[1])),
+        env={**stack.env(), "FLOWER_UNAUTHENTICATED_API": "true"},
+    )
     stack.start_worker(name, env=env)
+    # Flower listens before the task is sent (below, at the worker's first heartbeat).
+    wait_for(lambda: _answers(f"{flower}/healthcheck"), timeout=60, what="Flower to answer")
     sent: list[str] = []
     seen: dict[str, set[str]] = {}
 
@@ -112,6 +147,11 @@ def test_a_worker_sends_task_events_and_its_host_serves_metrics(worker_stack, se
     # The client's task-sent, the worker's received, started and succeeded.
     assert {"task-sent", "task-received", "task-started", "task-succeeded"} <= set(seen)
     assert seen["task-succeeded"] == {hostname}
+    wait_for(
+        lambda: _flower_state(flower, sent[0]) == "SUCCESS",
+        timeout=30,
+        what="Flower to list the task as succeeded",
+    )
 
     url = f"http://127.0.0.1:{port}/metrics"
     counted = ("authros_celery_tasks_total", (("state", "SUCCESS"), ("task", PROBE_TASK)))
