@@ -17,8 +17,10 @@ from __future__ import annotations
 import logging
 import os
 import socket
+import sys
 import threading
 from collections.abc import Callable, Iterable
+from socketserver import ThreadingMixIn
 from typing import Any
 from wsgiref.simple_server import WSGIRequestHandler, WSGIServer, make_server
 
@@ -32,6 +34,8 @@ from portal.probes import metrics
 logger = logging.getLogger(__name__)
 
 METRICS_PATH = "/metrics"
+# Seconds a connection may take to send its request.
+READ_TIMEOUT = 10.0
 _NOT_FOUND = b'{"error": "not_found", "detail": "this port serves /metrics alone"}'
 
 
@@ -50,12 +54,28 @@ def worker_metrics_app(
     return [response.content]
 
 
-class _ServerV6(WSGIServer):
+class _Server(ThreadingMixIn, WSGIServer):
+    """A thread per connection: a client that connects and sends nothing (or a scrape waiting
+    for a silent chain node) holds up no other scrape."""
+
+    daemon_threads = True
+
+    def handle_error(self, request: object, client_address: object) -> None:
+        """One line, not socketserver's traceback on stderr (a client that timed out, ...)."""
+        logger.warning(
+            "worker metrics: a request from %s failed: %r", client_address, sys.exc_info()[1]
+        )
+
+
+class _ServerV6(_Server):
     address_family = socket.AF_INET6
 
 
 class _QuietHandler(WSGIRequestHandler):
-    """No line on stderr per scrape (the web logs none for its probes either)."""
+    """No line on stderr per scrape (the web logs none for its probes either); a connection
+    that sends nothing is dropped after READ_TIMEOUT seconds."""
+
+    timeout = READ_TIMEOUT
 
     def log_message(self, format: str, *args: object) -> None:
         pass
@@ -74,7 +94,7 @@ def worker_metrics_serve(**kwargs: object) -> WSGIServer | None:
             address,
             port,
             worker_metrics_app,
-            server_class=_ServerV6 if ":" in address else WSGIServer,
+            server_class=_ServerV6 if ":" in address else _Server,
             handler_class=_QuietHandler,
         )
     except OSError as exc:

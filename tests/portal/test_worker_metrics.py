@@ -62,9 +62,11 @@ def test_the_worker_serves_it_once_ready_where_a_port_is_set(settings):
     server = worker_metrics_serve()
     assert server is not None
     try:
-        answer = requests.get(
-            f"http://127.0.0.1:{settings.WORKER_METRICS_PORT}/metrics", timeout=30
-        )
+        # A client that connects and says nothing holds up no scrape.
+        with socket.create_connection(("127.0.0.1", settings.WORKER_METRICS_PORT)):
+            answer = requests.get(
+                f"http://127.0.0.1:{settings.WORKER_METRICS_PORT}/metrics", timeout=30
+            )
         assert answer.status_code == 200
         assert "authros_metrics_source_up" in answer.text
     finally:
