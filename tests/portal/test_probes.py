@@ -157,6 +157,7 @@ def test_the_scrape_reports_a_source_that_does_not_answer_and_the_others(setting
 
 
 @pytest.mark.django_db
+@pytest.mark.timeout(60)  # a scrape that hangs fails here
 def test_a_node_that_never_answers_costs_the_scrape_its_timeout_not_a_hang(settings):
     """A node behind a dead link takes the connection and says nothing (here: a socket that
     listens and never reads): the chain's gauges are left out after the client's timeout,

@@ -9,6 +9,7 @@ import re
 import shlex
 import socket
 import subprocess
+import time
 import uuid
 
 import pytest
@@ -73,6 +74,7 @@ def test_a_worker_answers_inspect_ping_and_sends_heartbeats(worker_stack, settin
 
 # A task no beat schedule sends within the test (hourly), cheap, with no arguments.
 PROBE_TASK = "accounts.tasks.robot_pairings_purge"
+EVENTS_WAIT = 90.0  # seconds
 FLOWER_COMMAND = re.compile(r"`\.venv/bin/(celery -A portal flower [^`]*)`")
 
 
@@ -109,6 +111,7 @@ def _samples(url: str) -> dict[tuple[str, tuple], float]:
     }
 
 
+@pytest.mark.timeout(600)  # the deadline below fails it first
 def test_a_worker_sends_task_events_and_its_host_serves_metrics(worker_stack, settings, tmp_path):
     stack = worker_stack(workers=0)
     name = f"events-{uuid.uuid4().hex[:8]}"
@@ -131,7 +134,13 @@ def test_a_worker_sends_task_events_and_its_host_serves_metrics(worker_stack, se
     sent: list[str] = []
     seen: dict[str, set[str]] = {}
 
+    # The worker's heartbeats keep the capture from timing out by itself (they are events
+    # too, every 2 s): a worker that sends no task events fails the test at this deadline.
+    deadline = time.monotonic() + EVENTS_WAIT
+
     def on_event(event: dict) -> None:
+        if time.monotonic() > deadline:
+            raise AssertionError(f"no task-succeeded within {EVENTS_WAIT:g} s; seen: {seen}")
         # The worker listens once it sends heartbeats: only then is the task sent.
         if event["type"] == "worker-heartbeat" and event.get("hostname") == hostname and not sent:
             sent.append(app.send_task(PROBE_TASK).id)
@@ -143,7 +152,7 @@ def test_a_worker_sends_task_events_and_its_host_serves_metrics(worker_stack, se
     with Connection(settings.CELERY_BROKER_URL) as connection:
         receiver = app.events.Receiver(connection, handlers={"*": on_event})
         with pytest.raises(_Seen):
-            receiver.capture(limit=None, timeout=90, wakeup=False)
+            receiver.capture(limit=None, timeout=EVENTS_WAIT, wakeup=False)
     # The client's task-sent, the worker's received, started and succeeded.
     assert {"task-sent", "task-received", "task-started", "task-succeeded"} <= set(seen)
     assert seen["task-succeeded"] == {hostname}
