@@ -1,9 +1,14 @@
 # AuthROS portal. `make run` starts the stack, `make test` runs the whole suite, `make test-fast`
 # its fast tier (tests/support/tiers.py) in a few minutes.
-.PHONY: run test test-fast bench soak install lint format contracts lock clean
+.PHONY: run test test-fast bench soak install install-test lint format contracts lock clean
 
+# What `make run` needs (requirements/run.txt); install-test adds the test tooling and
+# requirements/dev.txt (`make test` installs it itself; lint, the benchmarks and lock need it).
 install:
 	bash scripts/bootstrap.sh
+
+install-test:
+	bash scripts/bootstrap.sh --test
 
 run:
 	bash scripts/run.sh
@@ -14,18 +19,18 @@ test:
 test-fast:
 	bash scripts/test.sh --fast
 
-bench: install
+bench: install-test
 	.venv/bin/python -m bench
 
 # An hour of make run's stack with its simulated robot, sampled (not part of `make bench`).
-soak: install
+soak: install-test
 	.venv/bin/python -m bench soak
 
-lint: install
+lint: install-test
 	.venv/bin/ruff check .
 	.venv/bin/ruff format --check .
 
-format: install
+format: install-test
 	.venv/bin/ruff check --fix .
 	.venv/bin/ruff format .
 
@@ -33,9 +38,10 @@ contracts: install
 	node contracts/build.mjs
 
 # requirements/*.txt: each role's packages (pyproject.toml's extras) at exact versions with their
-# hashes, resolved by uv. dev.txt (everything `make run` and `make test` need) is resolved
-# first and the roles' sets are held to its versions, so a robot, an auditor and a server run
-# what the suite tested. Versions already locked are kept; `make lock UPGRADE=1` moves them.
+# hashes, resolved by uv. dev.txt (everything `make test` needs) is resolved first and the
+# roles' sets are held to its versions (run.txt, `make run`'s, among them), so a robot, an
+# auditor, a server and `make run` run what the suite tested. Versions already locked are kept;
+# `make lock UPGRADE=1` moves them.
 # Each ROLE.txt is universal: its environment markers pick each platform's packages where pip
 # runs (Linux x86_64 and aarch64, macOS; Python 3.11-3.13). The robot's and the auditor's sets
 # are also locked per platform (ROLE-linux-MACHINE.txt, wheels only, the same versions), for a
@@ -47,10 +53,10 @@ LOCK = .venv/bin/uv pip compile pyproject.toml --quiet --generate-hashes --unive
 PLATFORM_LOCK = .venv/bin/uv pip compile pyproject.toml --quiet --generate-hashes --only-binary :all: \
 	--python-version 3.11 --custom-compile-command "make lock" $(if $(UPGRADE),--upgrade)
 
-lock: install
-	$(LOCK) --extra portal --extra agent --extra ros2 --extra verify --extra flower --extra dev \
-	  -o requirements/dev.txt
-	for role in portal agent ros2 verify flower; do \
+lock: install-test
+	$(LOCK) --extra portal --extra agent --extra ros2 --extra verify --extra flower --extra run \
+	  --extra dev -o requirements/dev.txt
+	for role in portal agent ros2 verify flower run; do \
 	  $(LOCK) --extra $$role -c requirements/dev.txt -o requirements/$$role.txt || exit 1; \
 	done
 	for role in agent verify; do for machine in x86_64 aarch64; do \

@@ -338,6 +338,10 @@ LOGGING = logging_config(log_format=LOG_FORMAT, level=env.str("LOG_LEVEL", defau
 # GET /metrics is free from this host; from anywhere else it needs `Authorization: Bearer
 # <METRICS_TOKEN>` (empty: refused from anywhere else). "Anywhere else" follows API_NUM_PROXIES.
 METRICS_TOKEN = env.str("METRICS_TOKEN", default="")
+# A host that runs only workers: its worker's main process serves the same /metrics on this
+# port (portal/worker_metrics.py; 0: none) and address (the token rule above holds there too).
+WORKER_METRICS_PORT = env.int("WORKER_METRICS_PORT", default=0)
+WORKER_METRICS_ADDRESS = env.str("WORKER_METRICS_ADDRESS", default="127.0.0.1")
 
 # --- Celery (broker and results in Redis) ------------------------------------------------
 # Both in the URL forms of REDIS_URL; a Cluster cannot carry either (kombu has no Cluster
@@ -389,6 +393,8 @@ CELERY_TASK_QUEUES = (
     Queue(CELERY_TASK_DEFAULT_QUEUE + CELERY_VERIFY_QUEUE_SUFFIX),
 )
 CELERY_WORKER_HIJACK_ROOT_LOGGER = False
+# Imported by workers once Django's apps are loaded: /metrics on WORKER_METRICS_PORT.
+CELERY_IMPORTS = ("portal.worker_metrics",)
 # Task events for monitors (Flower, `celery events`: docs/operations.md): what each worker
 # received, started, finished or retried, and each task as it is sent. CELERY_TASK_EVENTS=false
 # saves their publishes where no monitor runs.

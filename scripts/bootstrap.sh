@@ -1,9 +1,10 @@
 #!/usr/bin/env bash
 # Install what is missing, idempotently: Debian packages, npm packages, the virtualenv.
 # Used by `make run`, `make test` and `make bench`; safe to run again at any time.
-# `bootstrap.sh` installs what running needs; `bootstrap.sh --test` (make test) adds the test
-# tooling: PostgreSQL (the suite's second database), Chromium (browser tests) and systemd's
-# analyzer (the unit tests).
+# `bootstrap.sh` installs what running needs (`make run`: the Python packages of
+# requirements/run.txt); `bootstrap.sh --test` (make test) adds the test tooling: PostgreSQL
+# (the suite's second database), Chromium (browser tests), systemd's analyzer (the unit tests)
+# and requirements/dev.txt (Playwright, pytest, the linters, the benchmarks' plotting, ...).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -13,9 +14,14 @@ APT_PACKAGES=(
   python3-nav-msgs python3-sensor-msgs python3-std-msgs
 )
 TEST_APT_PACKAGES=(postgresql postgresql-client chromium systemd)
-if [ "${1:-}" = "--test" ]; then APT_PACKAGES+=("${TEST_APT_PACKAGES[@]}"); shift; fi
-# --list: the Debian packages this run would need, one a line, and nothing installed
-if [ "${1:-}" = "--list" ]; then printf '%s\n' "${APT_PACKAGES[@]}"; exit 0; fi
+# every version and hash locked (`make lock`); pip refuses a download whose hash differs
+REQUIREMENTS=requirements/run.txt
+if [ "${1:-}" = "--test" ]; then
+  APT_PACKAGES+=("${TEST_APT_PACKAGES[@]}"); REQUIREMENTS=requirements/dev.txt; shift
+fi
+# --list: what this run would install, one a line (the Debian packages, then the locked set of
+# Python packages), and nothing installed
+if [ "${1:-}" = "--list" ]; then printf '%s\n' "${APT_PACKAGES[@]}" "$REQUIREMENTS"; exit 0; fi
 VENV=.venv
 STAMP_DIR=$VENV/.stamps
 
@@ -52,13 +58,14 @@ install_python_packages() {
     /usr/bin/python3 -m venv --system-site-packages $VENV
   fi
   mkdir -p $STAMP_DIR
-  # requirements/dev.txt: what `make run` and `make test` need, every version and hash locked
-  # (`make lock`); pip refuses a download whose hash differs.
-  if [ ! -f $STAMP_DIR/requirements ] || [ requirements/dev.txt -nt $STAMP_DIR/requirements ]; then
-    log "installing Python packages (requirements/dev.txt)"
+  # one stamp per set: make test's (dev.txt) holds make run's, not the other way round
+  local stamp
+  stamp=$STAMP_DIR/$(basename "$REQUIREMENTS" .txt)
+  if [ ! -f "$stamp" ] || [ "$REQUIREMENTS" -nt "$stamp" ]; then
+    log "installing Python packages ($REQUIREMENTS)"
     $VENV/bin/python -m pip install -q --disable-pip-version-check --require-hashes \
-      -r requirements/dev.txt
-    touch $STAMP_DIR/requirements
+      -r "$REQUIREMENTS"
+    touch "$stamp"
   fi
 }
 

@@ -70,17 +70,24 @@ def disk_room_check(needed: int) -> None:
             )
 
 
+def portal_disks_free() -> dict[Path, int]:
+    """The free bytes of each folder of portal_disks() whose room can be read (the watch
+    below, and /metrics: portal/scrape.py)."""
+    free_of: dict[Path, int] = {}
+    for folder in portal_disks():
+        try:
+            free_of[folder] = filesystem_free(folder)
+        except OSError as exc:
+            logger.warning("the free space of %s could not be read: %s", folder, exc)
+    return free_of
+
+
 def disk_space_watch() -> dict[str, int]:
     """An operator alert for each folder of portal_disks() with less than
     STORAGE_LOW_FREE_BYTES free, and the alerts of those with room again resolved; the free
     bytes of each folder read."""
     free_of: dict[str, int] = {}
-    for folder in portal_disks():
-        try:
-            free = filesystem_free(folder)
-        except OSError as exc:
-            logger.warning("the free space of %s could not be read: %s", folder, exc)
-            continue
+    for folder, free in portal_disks_free().items():
         free_of[str(folder)] = free
         subject = _subject(folder)
         if free < settings.STORAGE_LOW_FREE_BYTES:

@@ -168,6 +168,17 @@ def test_the_portal_units_run_the_checkouts_programs_with_their_settings_private
     assert "--without-heartbeat" not in worker + verify  # monitors see the workers alive
 
 
+def test_the_worker_unit_serves_its_hosts_metrics_on_a_port_of_its_own():
+    """A host of workers alone is scraped at the worker (portal/worker_metrics.py), which adds
+    up the counts of every service folder beside its own."""
+    unit = unit_settings(SYSTEMD / "authros-worker.service")
+    environment = dict(pair.split("=", 1) for line in unit["Environment"] for pair in line.split())
+    assert int(environment["WORKER_METRICS_PORT"]) > 0
+    assert environment["PROMETHEUS_MULTIPROC_DIR"] == "/run/authros/metrics/worker"
+    web = unit_settings(SYSTEMD / "authros-web.service")["Environment"]
+    assert any("PROMETHEUS_MULTIPROC_DIR=/run/authros/metrics/web" in line for line in web)
+
+
 @pytest.mark.process
 def test_the_ros1_launch_file_gives_the_node_settings_the_agent_accepts(tmp_path):
     """roslaunch reads the launch file (the agent.yaml pairing wrote, loaded as the node's

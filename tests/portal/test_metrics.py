@@ -6,6 +6,7 @@ import re
 import threading
 import uuid
 from datetime import timedelta
+from pathlib import Path
 
 import pytest
 from django.db import connection
@@ -14,8 +15,11 @@ from django.urls import resolve
 from django.utils import timezone
 from prometheus_client.parser import text_string_to_metric_families
 
+from chainworker.services import chain_client, operator_alert_raise, operator_alert_resolve
+from core.files import filesystem_free
 from portal.metrics import UPLOAD_ROUTES, VIEW_ROUTES
 from portal.scrape import state_collector
+from sharing.disk import portal_disks
 from sharing.models import Record
 from tests.api.conftest import RECORDS, b64, token_client
 
@@ -146,6 +150,40 @@ def test_the_backlog_and_its_oldest_record_are_read_when_scraped(make_robot, set
     state_collector.forget()
     assert value(samples, "authros_chain_backlog", kind="records") == 2
     assert 600 <= value(samples, "authros_anchoring_oldest_pending_seconds") < 3600
+
+
+def test_the_operators_account_open_alerts_and_free_disk_are_read_when_scraped(
+    deployed, operator, settings
+):
+    """What an operator alerts on before it fails the portal: the operator running out of
+    funds (or its nonce standing still), alerts nobody resolved, a disk filling up."""
+    operator_alert_raise(kind="operator-low-balance", subject=operator.address)
+    operator_alert_raise(kind="disk-low", subject="/somewhere")
+    operator_alert_raise(kind="disk-low", subject="/elsewhere")
+    operator_alert_resolve(kind="disk-low", subject="/elsewhere")
+    state_collector.forget()
+    samples = scrape()
+    state_collector.forget()
+
+    assert value(samples, "authros_metrics_source_up", source="chain") == 1
+    assert value(samples, "authros_operator_balance_wei") == float(
+        chain_client().balance(operator.address)
+    )
+    mined = chain_client().w3.eth.get_transaction_count(operator.address)
+    assert mined >= 1  # the deployment, at least
+    assert value(samples, "authros_operator_nonce") == mined
+    assert value(samples, "authros_operator_alerts_open") == 2
+    assert value(samples, "authros_metrics_source_up", source="disk") == 1
+    free = {
+        labels[0][1]: count
+        for (name, labels), count in samples.items()
+        if name == "authros_disk_free_bytes"
+    }
+    assert set(free) == {str(folder) for folder in portal_disks()}
+    envelopes = str(Path(settings.STORAGES["envelopes"]["OPTIONS"]["location"]).absolute())
+    assert envelopes in free
+    # Others write to this disk meanwhile: the same order of size, not the same byte.
+    assert abs(free[envelopes] - filesystem_free(envelopes)) < 1024**3 // 16
 
 
 @pytest.mark.parametrize("route", sorted(route for _, route in UPLOAD_ROUTES | VIEW_ROUTES))

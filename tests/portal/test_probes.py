@@ -1,6 +1,8 @@
 """/healthz, /readyz and /metrics (portal/probes.py): what answers a load balancer and a
 monitor, before any other middleware, never rate-limited, never in the access log."""
 
+import socket
+
 import pytest
 from django.test import Client
 
@@ -152,6 +154,26 @@ def test_the_scrape_reports_a_source_that_does_not_answer_and_the_others(setting
     assert "authros_chain_head_block" not in text
     assert 'authros_chain_backlog{kind="records"}' in text
     assert 'authros_celery_queue_length{queue="' in text
+
+
+@pytest.mark.django_db
+@pytest.mark.timeout(60)  # a scrape that hangs fails here
+def test_a_node_that_never_answers_costs_the_scrape_its_timeout_not_a_hang(settings):
+    """A node behind a dead link takes the connection and says nothing (here: a socket that
+    listens and never reads): the chain's gauges are left out after the client's timeout,
+    `source="chain"` says why, and the rest is served."""
+    with socket.create_server(("127.0.0.1", 0)) as silent:
+        settings.CHAIN_RPC_URL = f"http://127.0.0.1:{silent.getsockname()[1]}"
+        state_collector.forget()
+        text = Client(REMOTE_ADDR=LOCAL).get("/metrics").content.decode()
+        state_collector.forget()
+    assert 'authros_metrics_source_up{source="chain"} 0.0' in text
+    assert "authros_operator_balance_wei" not in text
+    assert "authros_operator_nonce" not in text
+    assert 'authros_metrics_source_up{source="database"} 1.0' in text
+    assert "authros_operator_alerts_open 0.0" in text
+    assert 'authros_metrics_source_up{source="disk"} 1.0' in text
+    assert "authros_disk_free_bytes{" in text
 
 
 @pytest.mark.parametrize("path", ["/healthz", "/readyz", "/metrics"])
