@@ -5,9 +5,11 @@ aarch64 (Jetson, Raspberry Pi), Python 3.11-3.13.
   reads them on that machine: the same packages at the same versions, with the same hashes.
 - Each aarch64 set downloads from wheels alone (no source to build on a robot), for each
   Python, with its dependencies resolved against it: what `pip install -r` does on the robot.
-  It reads the package index, once per set (var/wheelhouse-platforms/ keeps the files).
+  It reads the package index for each set; the files are kept in the machine's cache
+  (tests/support/downloads.py), so a fresh clone downloads only what an earlier run did not.
 """
 
+import hashlib
 import re
 import sys
 from pathlib import Path
@@ -17,10 +19,11 @@ from packaging.markers import Marker
 from packaging.utils import canonicalize_name
 
 from tests.packaging.test_wheel import run
+from tests.support.downloads import DOWNLOADS
 from tests.support.harness import REPO_ROOT
 
 REQUIREMENTS = REPO_ROOT / "requirements"
-WHEELHOUSE = REPO_ROOT / "var" / "wheelhouse-platforms"
+WHEELHOUSE = DOWNLOADS / "wheelhouse-platforms"
 ROLES = ("agent", "verify")
 MACHINES = ("x86_64", "aarch64")
 PYTHONS = ("3.11", "3.12", "3.13")
@@ -90,6 +93,14 @@ def test_the_sm2_backend_in_c_and_no_opencv_or_dds_on_either_machine(role):
         assert not {"opencv-python-headless", "cyclonedds", "django"} & set(packages)
 
 
+def _keep_only_the_locks_files(wheelhouse: Path, locked: Path) -> None:
+    """Remove what an earlier lock downloaded: every file whose hash the lock does not name."""
+    hashes = set().union(*(hashes for _, _, hashes in pins(locked).values()))
+    for path in wheelhouse.glob("*") if wheelhouse.is_dir() else ():
+        if hashlib.sha256(path.read_bytes()).hexdigest() not in hashes:
+            path.unlink()
+
+
 @pytest.mark.process
 @pytest.mark.slow
 @pytest.mark.timeout(1200)
@@ -101,6 +112,7 @@ def test_each_role_downloads_for_aarch64_from_wheels_alone(role, python, tmp_pat
     download = [sys.executable, "-m", "pip", "download", "-q", "--only-binary=:all:"]
     download += [f"--platform={platform}" for platform in AARCH64_PLATFORMS]
     download += ["--python-version", python, "--require-hashes", "-r", str(locked)]
+    _keep_only_the_locks_files(wheelhouse, locked)  # a cache of earlier runs, earlier locks
     run([*download, "-d", str(wheelhouse)], cwd=tmp_path)
     wheels = {
         canonicalize_name(path.name.split("-")[0]): path.name for path in wheelhouse.iterdir()

@@ -8,8 +8,8 @@ environment each, and run from a folder outside the repository, which is on no p
 - the auditor's (`[verify]`, nothing of the system's): `authros-verify` checks an export the
   portal made against the session's chain, and fails it once a byte of it changes.
 
-The packages come from a wheelhouse per role in var/wheelhouse/, filled once (`pip download`),
-then offline.
+The packages come from a wheelhouse per role in the machine's cache (tests/support/downloads.py),
+filled with what it lacks (`pip download`), then offline.
 """
 
 import json
@@ -25,11 +25,12 @@ import pytest
 from django.conf import settings
 
 from tests.authros_verify.conftest import export_of
+from tests.support.downloads import DOWNLOADS
 from tests.support.harness import REPO_ROOT
 
 pytestmark = [pytest.mark.process, pytest.mark.slow, pytest.mark.timeout(1200)]
 
-WHEELHOUSE = REPO_ROOT / "var" / "wheelhouse"
+WHEELHOUSE = DOWNLOADS / "wheelhouse"
 PACKAGES = ("ros_agent", "authros_verify", "smcrypto")
 MODULES = ("authros_commands.py",)  # the console scripts' entry points
 # The interpreter the virtual environments are made from: the system's, as on a robot.
