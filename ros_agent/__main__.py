@@ -30,7 +30,8 @@ authros-agent import --help, authros-agent --config agent.yaml --help.
 """
 NO_ROSPY = (
     "ROS 1's rospy is not importable: install Debian's python3-rospy (and make the agent's "
-    "virtual environment with --system-site-packages), or run the agent with --ros2"
+    "virtual environment of Debian's Python with --system-site-packages: "
+    "/usr/bin/python3 -m venv --system-site-packages DIR), or run the agent with --ros2"
 )
 
 

@@ -320,7 +320,7 @@ class Stack:
         config = self.config
         sizing = config.sizing()
         self._say(
-            f"starting the portal on {self.web_url}/ (gunicorn, {sizing.workers} workers x "
+            f"starting the portal on {self._listening()} (gunicorn, {sizing.workers} workers x "
             f"{sizing.threads} threads, DEBUG {'on' if config.debug else 'off'})"
         )
         self._web_command = web_server(config.host, config.port, sizing)
@@ -447,8 +447,16 @@ class Stack:
 
     # --- running -------------------------------------------------------------------------
 
+    def _listening(self) -> str:
+        """Where the portal listens, as the start line says it: its URL on loopback, else the
+        address and port with where robots reach it (so 0.0.0.0 is not mistaken for loopback)."""
+        if is_loopback(self.config.host):
+            return f"{self.web_url}/"
+        return f"{self.config.host}:{self.config.port}, reached at {self.public_url}/"
+
     def banner(self) -> str:
-        url = self.web_url
+        # Robots and browsers on the network reach every page at the public URL, not loopback.
+        url = self.public_url
         lines = ["", f"  {BANNER}"]
         if self.config.web:
             lines.append(f"    Portal:        {self.public_url}/")

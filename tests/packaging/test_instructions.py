@@ -18,7 +18,9 @@ PYPROJECT = tomllib.loads((REPO_ROOT / "pyproject.toml").read_text())["project"]
 FIRST_SCREEN = 45  # lines
 # The project is not on PyPI: its install commands name the wheel built from this repository,
 # each into a virtual environment made on the same screen, after the role's locked set.
-INSTALL = re.compile(r"(\S+)/bin/pip install --no-deps \./([a-z_]+)-([0-9.]+)-py3-none-any\.whl")
+INSTALL = re.compile(
+    r"(\S+)/bin/pip install --no-deps \./(?:dist/)?([a-z_]+)-([0-9.]+)-py3-none-any\.whl"
+)
 LOCKED = re.compile(r"(\S+)/bin/pip install --require-hashes -r requirements/([a-z0-9_-]+)\.txt")
 VENV = re.compile(r"python3 -m venv (?:--system-site-packages )?(\S+)")
 WHEEL = (PYPROJECT["name"].replace("-", "_"), PYPROJECT["version"])

@@ -26,6 +26,10 @@ def test_the_public_urls_host_is_allowed_beside_loopback(tmp_path, monkeypatch):
     assert f"Portal:        {PUBLIC}/" in banner
     assert f"authros-agent pair --portal {PUBLIC} --name NAME" in banner
     assert "192.168.1.10" in banner.split("Allowed hosts:")[1].splitlines()[0]
+    # every link it prints opens from another machine
+    assert f"Admin console: {PUBLIC}/admin/" in banner
+    assert f"API docs:      {PUBLIC}/api/docs/" in banner
+    assert stack._listening() == f"0.0.0.0:8000, reached at {PUBLIC}/"
 
 
 def test_loopback_stays_the_default_and_the_banner_says_how_to_listen_beyond(tmp_path, monkeypatch):

@@ -167,15 +167,17 @@ class WorkerStack:
         env: dict[str, str] | None = None,
         max_requests: int = WEB_MAX_REQUESTS,
         max_requests_jitter: int = 0,
+        host: str = "127.0.0.1",
     ) -> str:
         """The portal under gunicorn on 127.0.0.1 (the same port again after a stop_web);
         returns its URL once it answers and all its worker processes run. Another `name` is
-        another portal, on its own port."""
+        another portal, on its own port. `host` 0.0.0.0 listens on every address too, as
+        `PORTAL_HOST=0.0.0.0 make run` does (the URL returned stays loopback's)."""
         if name == "web":
             self.web_port = self.web_port or free_port()
         port = self.web_port if name == "web" else self._web_ports.setdefault(name, free_port())
         command = web_server(
-            "127.0.0.1",
+            host,
             port,
             WebSizing(workers, WEB_THREADS),
             max_requests=max_requests,
