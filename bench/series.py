@@ -510,6 +510,7 @@ def baseline_measure(ref: str, run: SeriesRun, workers: int) -> dict[str, Any]:
                 "--web-workers", str(run.web_workers),
                 "--redis-url", run.redis_url,
                 "--results-dir", str(results),
+                "--baseline", "",  # its own default is its merge base: it would recurse
             ],
             cwd=tree,
             check=True,

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 from typing import Any, LiteralString
 
 from django.db import connections, router
-from django.db.models import AutoField, Field, Model
+from django.db.models import AutoField, Field, ForeignKey, Model
 
 
 def _built(cache: dict[Any, Any], key: Any, build: Callable[[], Any]) -> Any:
@@ -235,6 +235,8 @@ class FixedInsert:
             kind = type(value)
             if kind is str and plain == _TEXT:
                 return value
+            if kind is int and plain == _KEY:
+                return connection.ops.validate_autopk_value(value)  # as AutoField ends
             if kind is int and plain != _TEXT:
                 return connection.ops.adapt_integerfield_value(value, plain)
         return field.get_db_prep_save(field.pre_save(instance, True), connection)
@@ -249,6 +251,8 @@ class FixedInsert:
 
 
 _TEXT = "text"
+_KEY = "key"  # a foreign key to an automatic primary key (AutoField's kind)
+_AUTO_TYPES = frozenset({"AutoField", "BigAutoField", "SmallAutoField"})
 _INTEGER_TYPES = frozenset(
     {
         "IntegerField",
@@ -264,9 +268,15 @@ _INTEGER_TYPES = frozenset(
 def _plain_saved(field: Field) -> str | None:
     """`_TEXT` for a field that saves a str as it is (CharField, TextField), the internal type
     of an integer field (an int goes to the backend's adapt_integerfield_value, as the
-    field's own get_db_prep_value ends), None for any other (the field's own methods). Only
-    the exact classes: a subclass may convert in its own way."""
+    field's own get_db_prep_value ends), `_KEY` for a ForeignKey to an automatic primary key
+    (an int goes to the backend's validate_autopk_value, as AutoField's ends), None for any
+    other (the field's own methods). Only the exact classes: a subclass may convert in its
+    own way."""
     kind = type(field).__name__
+    if type(field) is ForeignKey:
+        target = field.target_field
+        exact = type(target).__module__ == "django.db.models.fields"
+        return _KEY if exact and type(target).__name__ in _AUTO_TYPES else None
     if type(field).__module__ != "django.db.models.fields":
         return None
     if kind in ("CharField", "TextField"):

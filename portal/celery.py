@@ -5,6 +5,7 @@ log context of the task's run: core/logging.py), count every finished task for /
 (portal/metrics.py), and empty a worker's metrics folder as it starts (core/metrics.py).
 """
 
+import gc
 import logging
 import os
 import threading
@@ -98,6 +99,17 @@ def task_finished(
 def worker_metrics_folder_reset(**kwargs: object) -> None:
     """The worker's main process, before it forks its pool: last run's counts go."""
     metrics_folder_reset()
+
+
+@signals.worker_process_init.connect
+def worker_heap_freeze(**kwargs: object) -> None:
+    """A pool process, once made: what the worker built before its first task (modules, the
+    app, the settings: about 300,000 objects) lives as long as the process, so it leaves the
+    collector's sight, as the web's warm-up does (portal/wsgi.py). A series' slice makes a few
+    hundred thousand short-lived objects; each full collection walked the whole heap with
+    them (about a fifth of a slice's CPU, bench/REPORT.md), now only what the tasks made."""
+    gc.collect()
+    gc.freeze()
 
 
 @signals.worker_init.connect

@@ -6,6 +6,7 @@ Listing is the portal's view; every read of content is checked on chain again
 (sharing/verification/)."""
 
 import uuid
+from collections.abc import Sequence
 from datetime import datetime
 
 from django.db.models import Prefetch, Q, QuerySet
@@ -268,6 +269,55 @@ def records_to_check(records: QuerySet[Record]) -> QuerySet[Record]:
     return records.select_related(None).prefetch_related(
         "owner", "robot", Prefetch("anchor_root", AnchorRoot.objects.defer("leaves"))
     )
+
+
+# What the worker's check reads of a record's row (sharing/verification/check.py: access,
+# the stored envelope and its key, the tree and the path, the signature's row facts, its tamper
+# answer; a series' capture time): the other columns are not read for a check.
+_CHECKED_COLUMNS = (
+    "id",
+    "owner_id",
+    "robot_id",
+    "topic",
+    "seq",
+    "captured_at",
+    "key_id",
+    "digest",
+    "signer",
+    "topic_seq",
+    "storage_name",
+    "status",
+    "block_number",
+    "anchor_root_id",
+    "leaf_index",
+    "merkle_path",
+    "deleted_at",
+)
+
+
+def records_to_check_by_id(record_ids: Sequence[uuid.UUID]) -> list[Record]:
+    """The records of these ids that exist, in the order asked, with what the check reads:
+    only the check's columns of each row, and its owner, robot and tree (without its leaves)
+    each read once for all the records that share it, set on the records directly (the
+    queryset's prefetch machinery per record cost more than the rows: bench/REPORT.md)."""
+    found = {
+        record.pk: record
+        for record in Record.objects.filter(pk__in=record_ids).only(*_CHECKED_COLUMNS)
+    }
+    records = [found[record_id] for record_id in record_ids if record_id in found]
+    owners = Owner.objects.in_bulk({record.owner_id for record in records})
+    robots = Robot.objects.in_bulk({record.robot_id for record in records})
+    trees = AnchorRoot.objects.defer("leaves").in_bulk(
+        {record.anchor_root_id for record in records} - {None}
+    )
+    for record in records:
+        _OWNER.set_cached_value(record, owners[record.owner_id])
+        _ROBOT.set_cached_value(record, robots[record.robot_id])
+        _TREE.set_cached_value(record, trees.get(record.anchor_root_id))
+    return records
+
+
+_OWNER, _ROBOT, _TREE = (Record._meta.get_field(name) for name in ("owner", "robot", "anchor_root"))
 
 
 def record_to_open(record_id: uuid.UUID) -> Record | None:

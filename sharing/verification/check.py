@@ -32,7 +32,7 @@ from core.metrics import VERDICTS
 from core.rows import FixedInsert
 from sharing.cache import envelopes_fetch
 from sharing.models import Access, Credential, Grant, Record, Verdict
-from sharing.selectors.records import records_to_check
+from sharing.selectors.records import records_to_check_by_id
 from sharing.services.roots import record_path
 from sharing.verification.access import (
     access_kind_check,
@@ -161,11 +161,13 @@ def records_verify(
                 checked_by_id=checked_by_id,
             )
         verdicts = [
-            Verdict(
-                record=record,
-                access_id=accesses[record.owner_id],
-                block_number=_verdict_block(block, record),
-                **fields,
+            _verdict_new(
+                record,
+                {
+                    "access_id": accesses[record.owner_id],
+                    "block_number": _verdict_block(block, record),
+                    **fields,
+                },
             )
             for record, (fields, _data) in zip(records, checked, strict=True)
         ]
@@ -183,11 +185,26 @@ def records_verify(
 _VERDICTS = FixedInsert(Verdict)
 
 
+# Verdict's columns in the model's order: a check makes a verdict per record, built from its
+# values in order (Model.__init__'s fast path, not its per-keyword one), its record cached on it.
+_VERDICT_COLUMNS = [(field.attname, field.get_default) for field in Verdict._meta.concrete_fields]
+_VERDICT_RECORD = Verdict._meta.get_field("record")
+
+
+def _verdict_new(record: Record, values: dict[str, object]) -> Verdict:
+    """A new verdict of `record` with these column values (by attname), the others their
+    defaults."""
+    values = {**values, "record_id": record.pk}
+    verdict = Verdict(
+        *[values[name] if name in values else default() for name, default in _VERDICT_COLUMNS]
+    )
+    _VERDICT_RECORD.set_cached_value(verdict, record)
+    return verdict
+
+
 def _records_read(record_ids: Sequence[uuid.UUID | str]) -> list[Record]:
     """The records of these ids that exist, in the order asked, with what the check reads."""
-    wanted = [uuid.UUID(str(record_id)) for record_id in record_ids]
-    found = records_to_check(Record.objects.filter(pk__in=wanted)).in_bulk(wanted)
-    return [found[record_id] for record_id in wanted if record_id in found]
+    return records_to_check_by_id([uuid.UUID(str(record_id)) for record_id in record_ids])
 
 
 def _kind_of(count: int, checked_by_id: int | None) -> str:

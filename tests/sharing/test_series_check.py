@@ -209,3 +209,65 @@ def test_the_task_hands_back_only_the_rows_sealed_for_its_read(
         )
     assert Verdict.objects.count() == verdicts  # refused before any check
     assert key.key not in base64.b64decode(key.wrapped)
+
+
+def _slice_checked(setup, records: list[Record]) -> tuple[dict, list]:
+    """series_rows_check of `records` as one slice under a fresh plot line: the answer and its
+    rows opened."""
+    accesses = accesses_open(
+        kind=Access.Kind.PLOT,
+        viewer_id=setup.owner.pk,
+        records=records,
+        credential="session",
+        token_id=None,
+    )
+    key = answer_key_make()
+    answer = tasks.series_verify(
+        [str(r.pk) for r in records],
+        setup.owner.pk,
+        "session",
+        None,
+        {str(k): v for k, v in accesses.items()},
+        ["position.x"],
+        key.read_id,
+        key.wrapped,
+        0,
+    )
+    return answer, answer_open(key=key, part=0, sealed=answer["rows"])
+
+
+def test_every_record_of_a_slice_is_checked_a_tampered_one_inside_it_refused(
+    make_paired_robot, django_capture_on_commit_callbacks
+):
+    setup = make_paired_robot("alice")
+    with django_capture_on_commit_callbacks(execute=True):
+        records = record_create_batch(robot=setup.robot, envelopes=_batch(setup, range(1, 8), 0))
+    tamper(records[3])  # in the middle of the slice and of its v2 batch
+    answer, rows = _slice_checked(setup, records)
+    assert answer["verified"] == 6
+    assert rows == [[r.captured_at.timestamp(), r.seq + 0.25] for r in records if r != records[3]]
+    outcomes = dict(Verdict.objects.values_list("record_id", "outcome"))
+    assert outcomes == {r.pk: "tampered" if r == records[3] else "verified" for r in records}, (
+        "one verdict per record of the slice, the tampered one refused"
+    )
+    records[3].refresh_from_db()
+    assert records[3].tampered_at is not None
+
+
+def test_a_slice_reads_what_its_check_needs_at_once_whatever_its_size(
+    make_paired_robot, django_capture_on_commit_callbacks
+):
+    """The worker reads only some columns of each record: a column the check needed but did
+    not read would be read per record (Django's deferred fields), here seen as more queries
+    for a bigger slice."""
+    setup = make_paired_robot("alice")
+    with django_capture_on_commit_callbacks(execute=True):
+        records = record_create_batch(robot=setup.robot, envelopes=_batch(setup, range(1, 9), 0))
+    queries = []
+    for size in (2, 8):
+        _slice_checked(setup, records[:size])  # warm: the keys and the chain's reads
+        with CaptureQueriesContext(connection) as captured:
+            answer, rows = _slice_checked(setup, records[:size])
+        assert (answer["verified"], len(rows)) == (size, size)
+        queries.append(len(captured.captured_queries))
+    assert queries[0] == queries[1], queries
