@@ -18,6 +18,12 @@ from authros_verify.values import Invalid, address, hash32, record_id, whole
 from smcrypto.merkle import leaf_hash, proof_holds
 
 ANCHOR_FIELDS = {"chain_id", "contract", "sender", "tx", "block"}
+# No receipt: a made-up transaction, or a node that keeps recent transactions only (anvil's
+# --transaction-block-keeper, geth's --history.transactions) and has dropped it.
+_UNKNOWN_TRANSACTION = (
+    "its transaction is not known to this node (made up, or dropped by a node that keeps recent"
+    " transactions only: check against a node that keeps them all)"
+)
 
 
 @dataclass(frozen=True)
@@ -102,7 +108,9 @@ def _root_check(
             check="rootOf",
         )
     receipt = chain.receipt(proof["anchor"]["tx"])
-    if receipt is None or receipt.status != 1 or receipt.block != block:
+    if receipt is None:
+        raise Invalid(_UNKNOWN_TRANSACTION, check="rootOf")
+    if receipt.status != 1 or receipt.block != block:
         raise Invalid("its transaction is not a successful one in its block", check="rootOf")
     if receipt.root_anchored(contract, owner, root) != size:
         raise Invalid(
@@ -134,7 +142,9 @@ def _slot_check(
             "the chain holds another owner or digest for its id (dataQuery)", check="dataQuery"
         )
     receipt = chain.receipt(proof["anchor"]["tx"])
-    if receipt is None or receipt.status != 1 or receipt.block != block:
+    if receipt is None:
+        raise Invalid(_UNKNOWN_TRANSACTION, check="dataQuery")
+    if receipt.status != 1 or receipt.block != block:
         raise Invalid("its transaction is not a successful one in its block", check="dataQuery")
     if receipt.data_uploaded(contract, slot_id, owner) != digest:
         raise Invalid(

@@ -63,10 +63,12 @@ PAIR_TIMEOUT = 60
 # Seconds between writes of the chain state (stack/anvil.py StateKeeper): a crash of anvil
 # loses at most the last second, about the last block.
 ANVIL_STATE_INTERVAL = 1.0
-# The development node keeps the transactions, receipts and logs of the latest blocks only
-# (about 17 minutes of make run's traffic): the portal reads the chain's state and recent
-# receipts, never old logs, and the state written every second stays a few MiB.
-ANVIL_TRANSACTION_BLOCKS = 1024
+# The development node keeps the transactions, receipts and logs of this many latest blocks
+# (about three weeks of make run's traffic, a few KiB a block in its state file): an export's
+# verifier reads the receipt of every anchoring transaction in it, so a node that had dropped
+# them (1,024 blocks, half an hour of the demo robot, until 2026-12) failed every export made
+# more than half an hour before.
+ANVIL_TRANSACTION_BLOCKS = 1_000_000
 # The processes that count for /metrics (core/metrics.py), each in its own folder.
 METRICS_SERVICES = ("web", "worker", "verify")
 # Stopped one at a time in this order (anvil and Redis after them): nothing new is

@@ -209,6 +209,9 @@ def test_each_lie_of_the_portal_fails_naming_its_check(shared, deployed):
             )
             assert check in _failed(checked), (viewer, lie, checked.outcomes)
             assert checked.plaintext is None, (viewer, lie)
+            if lie == "other transaction":  # a node without it says so, not "not successful"
+                details = [o.detail for o in checked.outcomes if o.check == "rootOf"]
+                assert any("not known to this node" in detail for detail in details), details
 
         for contract, chain_id in ((deployed.address, 1), ("0x" + "11" * 20, None)):
             checked = record_check(
