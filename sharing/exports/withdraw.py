@@ -80,7 +80,7 @@ def export_access_lost(export: Export) -> str:
         return "a record in it was deleted, and its data with it"
     others = Record.objects.filter(pk__in=ids).exclude(owner_id=export.requester_id)
     grants = {}
-    for owner_id in others.values_list("owner_id", flat=True).distinct():
+    for owner_id in others.order_by().values_list("owner_id", flat=True).distinct():
         grants[owner_id] = grant_live(owner_id=owner_id, viewer=export.requester)
         if grants[owner_id] is None:
             return _grant_ended(owner_id, export.requester)

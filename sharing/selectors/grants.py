@@ -101,7 +101,10 @@ def grant_count_received(owner: Owner) -> int:
 def grant_topic_choices(owner: Owner, robots: list[Robot]) -> list[str]:
     """Topics a grant of the owner's may name: those of its records and those its robots'
     agents are set up for, sorted."""
-    recorded = Record.objects.filter(owner=owner).values_list("topic", flat=True).distinct()
+    # order_by(): the model's ordering would join DISTINCT (every record's topic read)
+    recorded = (
+        Record.objects.filter(owner=owner).order_by().values_list("topic", flat=True).distinct()
+    )
     configured = {entry["name"] for robot in robots for entry in robot.topics}
     return sorted({*recorded, *configured})
 

@@ -72,8 +72,11 @@ def records_missing_scan(*, window: timedelta) -> int:
     last `window` (tombstones in, so deletions stay reasons); how many alerts were made. A few
     queries per robot that uploaded in the window; gaps already alerted write nothing."""
     since = timezone.now() - window
+    # order_by(): the model's ordering would join DISTINCT, one "robot" a record (a day of a
+    # robot's records scanned once for each of them: hours of a worker, every 10 minutes)
     robots = (
         Record.objects.filter(captured_at__gte=since, topic_seq__isnull=False)
+        .order_by()
         .values_list("robot_id", flat=True)
         .distinct()
     )

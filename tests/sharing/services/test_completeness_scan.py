@@ -48,3 +48,11 @@ def test_records_outside_the_window_are_not_read(robot):  # noqa: F811
 
     assert records_missing_scan(window=timedelta(hours=1)) == 0
     assert _missing_alerts(robot.owner) == []
+
+
+def test_a_robot_is_scanned_once_whatever_it_holds(robot, django_assert_max_num_queries):  # noqa: F811
+    rows(robot, range(40))
+    row(robot, 45)
+    # one robot's queries (13 here), not one robot's for each of its records (173)
+    with django_assert_max_num_queries(20):
+        assert records_missing_scan(window=WINDOW) == 1
