@@ -80,7 +80,7 @@ def test_scoped_grant_and_revoke_confirmation_on_desktop_and_phone(
     expect(row.get_by_test_id("grant-scope")).to_contain_text("Topics: /robot/odom.")
     expect(row.get_by_test_id("grant-scope")).to_contain_text("from 2026-01-01 00:00")
     expect(row.get_by_test_id("grant-expiry")).to_contain_text(
-        f"Until {expires:%Y-%m-%d %H:%M} UTC"
+        f"Until {expires:%Y-%m-%d %H:%M:%S} UTC"
     )
     grant = Grant.objects.get(grantee__user__username="bob")
     assert grant.scope_topics == ["/robot/odom"]

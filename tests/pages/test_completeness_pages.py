@@ -80,7 +80,7 @@ def test_the_record_list_names_each_gap_and_links_to_it(client, alice, odom):
         (
             "deleted",
             f"deleted 1 record deleted by the owner on {ODOM} of {robot} (#3), on "
-            f"{deleted_at:%Y-%m-%d %H:%M} UTC: the deleted records",
+            f"{deleted_at:%Y-%m-%d %H:%M:%S} UTC: the deleted records",
         ),
     ]
     assert "You are alerted once per gap" in _text(html, "completeness-missing-help")
@@ -169,7 +169,7 @@ def test_a_retention_gap_is_named_with_when(client, alice, upload):
     assert gap == (
         "retention",
         f"retention 2 records removed by the retention policy on {ODOM} of {alice.robot.name} "
-        f"between #0 and #1, on {swept:%Y-%m-%d %H:%M} UTC: the deleted records",
+        f"between #0 and #1, on {swept:%Y-%m-%d %H:%M:%S} UTC: the deleted records",
     )
 
 
