@@ -5,7 +5,8 @@ choices; a viewer's latest verdict on a record."""
 import uuid
 from datetime import datetime
 
-from django.db.models import Exists, OuterRef, Q, QuerySet
+from django.db.models import Count, Exists, OuterRef, Q, QuerySet, Sum
+from django.db.models.functions import TruncHour
 
 from accounts.models import Owner, Robot
 from sharing.models import Access, Record, Verdict
@@ -63,6 +64,22 @@ def access_own(owner: Owner) -> Q:
     """The owner's own views (not an operator's checks made with the owner's rights): what an
     access log of who read the owner's records leaves out unless asked (issue 48)."""
     return Q(viewer=owner, checked_by__isnull=True)
+
+
+# The hours of the owner's own views the access log sums up, newest first.
+ACCESS_OWN_HOURS_SHOWN = 24
+
+
+def access_own_by_hour(own: QuerySet[Access]) -> list[dict[str, object]]:
+    """The owner's own views grouped: one line per hour, kind of page and robot, with how many
+    views and records (the access log's summary of what it leaves out; newest first)."""
+    return list(
+        own.order_by()
+        .annotate(hour=TruncHour("created_at"))
+        .values("hour", "kind", "robot__name")
+        .annotate(views=Count("id"), records=Sum("count"))
+        .order_by("-hour", "kind", "robot__name")[:ACCESS_OWN_HOURS_SHOWN]
+    )
 
 
 def access_list_filtered(

@@ -19,6 +19,7 @@ from sharing.selectors.access import (
     access_list_filtered,
     access_log_filter_choices,
     access_own,
+    access_own_by_hour,
 )
 from sharing.views.filters import say_left_out
 
@@ -34,12 +35,13 @@ def access_log(request: HttpRequest) -> HttpResponse:
     time."""
     form, direction, accesses = _access_log_asked(request)
     say_left_out(request, form)
-    own_hidden = 0
+    own_hidden, own_hours = 0, []
     if _without_own_views(request, form, direction):
-        # Said, with a link that lists them: left out, not lost.
+        # Said, summed up by the hour, with a link that lists them: left out, not lost.
         own = access_list_access_log(request.owner, direction=direction)
-        own = own.filter(access_own(request.owner))
-        own_hidden = access_list_filtered(own, **form.filters()).count()
+        own = access_list_filtered(own.filter(access_own(request.owner)), **form.filters())
+        own_hidden = own.count()
+        own_hours = access_own_by_hour(own) if own_hidden else []
     page = access_log_page(
         accesses, reader=request.owner, page=request.GET.get("page"), per_page=ACCESS_LOG_PER_PAGE
     )
@@ -50,6 +52,7 @@ def access_log(request: HttpRequest) -> HttpResponse:
         "page": page,
         "filtered": bool(form.filters()),
         "own_hidden": own_hidden,
+        "own_hours": own_hours,
     }
     return render(request, "sharing/access_log.html", context)
 

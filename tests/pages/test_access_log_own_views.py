@@ -38,6 +38,9 @@ def test_own_views_are_left_out_unless_asked(
     said = re.search(r'data-testid="own-views-hidden">([^<]*)<a href="([^"]+)"', html)
     assert said is not None
     assert said.group(1) == "3 of your own views not listed: "
+    # summed up: the three record pages of the hour are one line
+    hours = re.findall(r'data-testid="own-views-hour" data-kind="(\w+)" data-views="(\d+)"', html)
+    assert hours == [("view", "3")]
     shown = client.get(log + said.group(2).replace("&amp;", "&")).content.decode()
     assert _lines(shown) == 4
     assert 'data-testid="own-views-hidden"' not in shown
