@@ -223,7 +223,7 @@ def measure(run: ExportsRun) -> dict[str, Any]:
                 rows.append({"step": "export", "variant": variant, "records": count, **row})
                 if variant == "today":
                     files = _export_files(robot.owner, export_id, workdir)
-            verifiers = [("baseline", baseline, 1), ("today", REPO, 1)]
+            verifiers = [("baseline", baseline, 1), ("today --jobs 1", REPO, 1)]
             if run.jobs > 1:
                 verifiers.append((f"today --jobs {run.jobs}", REPO, run.jobs))
             for variant, tree, jobs in verifiers:
@@ -305,7 +305,8 @@ def _verify_measured(
         *(sys.executable, "-m", "authros_verify", str(bundle), "--mcap", str(mcap)),
         *("--rpc", chain["rpc"], "--contract", chain["contract"]),
         *("--chain-id", str(chain["chain_id"])),
-        *(("--jobs", str(jobs)) if jobs > 1 else ()),
+        # Always named: the command's default is one process per core.
+        *("--jobs", str(jobs)),
     ]
     watch = OthersCpu(os.getpid())
     watch.start()
