@@ -47,8 +47,8 @@ from accounts.models import Owner, OwnerKey
 from authros_verify.bundle import BUNDLE_FORMAT, bundle_entry_line, bundle_write
 from authros_verify.messages import EncodedMessage, message_encode, message_log_time
 from chainworker.errors import ChainError
-from core.rows import FixedInsert
 from chainworker.services import chain_client
+from core.rows import FixedInsert
 from sharing.disk import disk_room_check
 from sharing.errors import SharingError
 from sharing.exports.files import EXPORT_STORAGE_PREFIX, export_file_stem, export_key_purpose
