@@ -80,9 +80,10 @@ def export_main(argv: list[str]) -> int:
     parser.add_argument(
         "--jobs",
         type=int,
-        default=1,
+        default=0,
         metavar="N",
-        help="check the records in N processes (0: one per core); the report is the same",
+        help="check the records in N processes (0, the default: one per core); the report is "
+        "the same",
     )
     args = parser.parse_args(argv)
     if args.jobs < 0:

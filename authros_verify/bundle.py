@@ -13,7 +13,7 @@ line. `bundle_sm3` is the SM3 of the compact JSON of the bundle without that fie
 """
 
 import json
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Iterator
 from typing import IO, Any
 
 from smcrypto.sm3 import sm3_hasher, sm3_hex
@@ -73,16 +73,41 @@ def bundle_write(
             hasher.update(_compact(head[name]).encode("ascii"))
             continue
         hasher.update(b"[")
-        for index, line in enumerate(entries()):
-            hasher.update(("," if index else "").encode("ascii") + line.encode("ascii"))
+        for block in _joined(entries(), ","):
+            hasher.update(block)
         hasher.update(b"]")
     hasher.update(b"}")
     digest = "0x" + hasher.finalize().hex()
     output.write((_compact({**head, "bundle_sm3": digest})[:-1] + ',\n"records":[').encode())
-    for index, line in enumerate(entries()):
-        output.write((",\n" if index else "\n").encode("ascii") + line.encode("ascii"))
+    first = True
+    for block in _joined(entries(), ",\n"):
+        output.write(b"\n" + block if first else block)
+        first = False
     output.write(b"\n]}\n")
     return digest
+
+
+# Lines joined into blocks of about this many characters: one hash update and one write a
+# block, not one a record.
+_BLOCK = 1 << 20
+
+
+def _joined(lines: Iterable[str], separator: str) -> Iterator[bytes]:
+    """`separator.join(lines)` as ASCII, in blocks of about _BLOCK bytes (a block after the
+    first starts with its separator)."""
+    block: list[str] = []
+    size = 0
+    started = False
+    for line in lines:
+        if started or block:
+            block.append(separator)
+        block.append(line)
+        size += len(line) + len(separator)
+        if size >= _BLOCK:
+            yield "".join(block).encode("ascii")
+            block, size, started = [], 0, True
+    if block:
+        yield "".join(block).encode("ascii")
 
 
 def record_line_index(data: bytes, offset: int, records: int) -> int | None:

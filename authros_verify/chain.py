@@ -115,6 +115,13 @@ def _events_decoded(
     )
 
 
+# An address's checksummed spelling (keccak of it) once per spelling, not once per record: an
+# export's records name a few owners.
+@functools.lru_cache(maxsize=256)
+def _checksummed(address: str) -> str:
+    return Web3.to_checksum_address(address)
+
+
 def _address_topic(address: str) -> bytes:
     return bytes(12) + bytes.fromhex(address.removeprefix("0x"))
 
@@ -191,7 +198,7 @@ class ChainReader:
         """The key as `owner` registered it (robotKeyOfOwner): owner None if `owner` never
         added it, whoever else did. A contract from before per-owner keys has robotKeyOf
         alone: its answer then, when it names `owner`."""
-        owner = Web3.to_checksum_address(owner)
+        owner = _checksummed(owner)
 
         def ask() -> RobotKey:
             functions = self._contract(contract).functions

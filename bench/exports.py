@@ -33,7 +33,8 @@ peak RSS at most 400 MiB; `authros-verify` on it at 5,000 records/s or more with
 300 MiB. Ratios are today's over the baseline's at the same count. Figures, not assertions.
 
 Run: `python -m bench exports [--counts 10000,30000,100000] [--baseline-ref main] [--jobs 2]
-[--quick]`. Writes bench/results/exports.json, exports.csv and exports.png.
+[--quick]`. Writes bench/results/exports.json, exports.csv and exports.png, and each row
+as it is measured to exports.rows.jsonl.
 """
 
 import argparse
@@ -126,6 +127,9 @@ class ExportsRun:
     block_time: float | None = None
     batch_max: int = 500
     max_wait: float = MAKE_RUN_ANCHOR_MAX_WAIT
+    # Each row also appended here as soon as it is measured (JSON lines), so that a run cut
+    # short on a busy machine still leaves the figures it made.
+    rows_file: Path | None = None
 
 
 def odometry_plaintext(owner: str, seq: int, moment: datetime) -> bytes:
@@ -221,15 +225,17 @@ def measure(run: ExportsRun) -> dict[str, Any]:
                 print(f"== export, {variant}, {count} records", flush=True)
                 row = _export_measured(export_id, tree)
                 rows.append({"step": "export", "variant": variant, "records": count, **row})
+                _row_kept(run, rows[-1])
                 if variant == "today":
                     files = _export_files(robot.owner, export_id, workdir)
-            verifiers = [("baseline", baseline, 1), ("today", REPO, 1)]
+            verifiers = [("baseline", baseline, 1), ("today --jobs 1", REPO, 1)]
             if run.jobs > 1:
                 verifiers.append((f"today --jobs {run.jobs}", REPO, run.jobs))
             for variant, tree, jobs in verifiers:
                 print(f"== authros-verify, {variant}, {count} records", flush=True)
                 row = _verify_measured(files, chain, tree, jobs)
                 rows.append({"step": "verify", "variant": variant, "records": count, **row})
+                _row_kept(run, rows[-1])
             for path in files:
                 path.unlink()
         result = {"results": rows, "export_batch": settings.EXPORT_BATCH}
@@ -237,6 +243,12 @@ def measure(run: ExportsRun) -> dict[str, Any]:
         stack.stop()
         _worktree_remove(baseline)
     return run_finished(result, stack, keep_logs=run.keep_logs)
+
+
+def _row_kept(run: ExportsRun, row: dict[str, Any]) -> None:
+    if run.rows_file is not None:
+        with run.rows_file.open("a") as rows:
+            rows.write(json.dumps({"at": now_iso(), **row}) + "\n")
 
 
 def _worktree_add(path: Path, commit: str) -> None:
@@ -305,7 +317,8 @@ def _verify_measured(
         *(sys.executable, "-m", "authros_verify", str(bundle), "--mcap", str(mcap)),
         *("--rpc", chain["rpc"], "--contract", chain["contract"]),
         *("--chain-id", str(chain["chain_id"])),
-        *(("--jobs", str(jobs)) if jobs > 1 else ()),
+        # Always named: the command's default is one process per core.
+        *("--jobs", str(jobs)),
     ]
     watch = OthersCpu(os.getpid())
     watch.start()
@@ -515,7 +528,9 @@ def main(argv: list[str]) -> int:
         redis_url=args.redis_url,
         keep_logs=args.keep_logs,
         timeout=args.timeout,
+        rows_file=args.results_dir / f"{NAME}.rows.jsonl",
     )
+    args.results_dir.mkdir(parents=True, exist_ok=True)
     portal = run_in_child(measure, run)
     rows = portal["results"]
     ratios(rows)

@@ -48,6 +48,7 @@ from authros_verify.bundle import BUNDLE_FORMAT, bundle_entry_line, bundle_write
 from authros_verify.messages import EncodedMessage, message_encode, message_log_time
 from chainworker.errors import ChainError
 from chainworker.services import chain_client
+from core.rows import FixedInsert
 from sharing.disk import disk_room_check
 from sharing.errors import SharingError
 from sharing.exports.files import EXPORT_STORAGE_PREFIX, export_file_stem, export_key_purpose
@@ -80,6 +81,11 @@ REASONS = {
     Verdict.Outcome.NOT_ANCHORED_YET: NOT_ANCHORED,
     Verdict.Outcome.SIGNATURE_REFUSED: SIGNATURE_REFUSED,
 }
+
+
+# The export's records, kept as each batch is written: one INSERT of plain columns, without the
+# ORM's per-object work (core.rows).
+_EXPORT_RECORDS = FixedInsert(ExportRecord)
 
 
 class _SignerUnknown(Exception):
@@ -128,16 +134,18 @@ def export_batches(records: QuerySet[Record], size: int) -> Iterator[list[Record
 
 
 class _SealedOutput:
-    """A file written as plaintext, stored sealed: the bytes are hashed (SM3) and counted on
-    their way into a SealedWriter (smcrypto/stream.py). `tell` is the plaintext's, as the MCAP
-    writer asks for its offsets."""
+    """A file written as plaintext, stored sealed: the bytes are counted, and hashed (SM3) when
+    `hashed` (the MCAP file's digest is in the bundle; the bundle's own is not kept: its
+    bundle_sm3 is hashed by bundle_write), on their way into a SealedWriter
+    (smcrypto/stream.py). `tell` is the plaintext's, as the MCAP writer asks for its offsets."""
 
-    def __init__(self, target: IO[bytes], key: bytes) -> None:
+    def __init__(self, target: IO[bytes], key: bytes, *, hashed: bool = True) -> None:
         self.sealed = SealedWriter(target, key)
-        self._sm3 = sm3_hasher()
+        self._sm3 = sm3_hasher() if hashed else None
 
     def write(self, data: bytes) -> int:
-        self._sm3.update(data)
+        if self._sm3 is not None:
+            self._sm3.update(data)
         return self.sealed.write(data)
 
     def tell(self) -> int:
@@ -146,10 +154,10 @@ class _SealedOutput:
     def flush(self) -> None:
         """Nothing to flush: a segment is sealed as soon as it is full."""
 
-    def close(self) -> tuple[int, str]:
-        """Seal the last segment; (plaintext size, its SM3 in hex)."""
+    def close(self) -> tuple[int, str | None]:
+        """Seal the last segment; (plaintext size, its SM3 in hex when hashed)."""
         self.sealed.close()
-        return self.sealed.written, self._sm3.finalize().hex()
+        return self.sealed.written, None if self._sm3 is None else self._sm3.finalize().hex()
 
 
 def _run(export: Export) -> None:
@@ -216,9 +224,9 @@ def _run(export: Export) -> None:
             "excluded": excluded,
             "streams": streams,
         }
-        bundle = _SealedOutput(bundle_file, key)
+        bundle = _SealedOutput(bundle_file, key, hashed=False)
         bundle_write(head, lambda: _lines(entries), bundle)
-        bundle_size, _bundle_sm3 = bundle.close()
+        bundle_size, _ = bundle.close()
         folder = f"{EXPORT_STORAGE_PREFIX}/{export.pk}"
         files = [
             (f"{folder}/{mcap_name}.sealed", mcap_file),
@@ -276,7 +284,7 @@ def _batch_prepared(
             logger.warning("export %s: record %s not opened: %s", export.pk, record.pk, exc)
             excluded.append(_excluded(record, "cannot_open"))
             continue
-        inside.append(ExportRecord(export=export, record=record))
+        inside.append(ExportRecord(export_id=export.pk, record_id=record.pk))
     return prepared, inside
 
 
@@ -459,7 +467,7 @@ def _written(export: Export, encoding: _Encoding, builder: McapBuilder, entries:
     for item, message, log_time, line in encoding.answer.get():
         builder.add(topic=item.topic, message=message, log_time=log_time, sequence=item.sequence)
         entries.write(line + "\n")
-    ExportRecord.objects.bulk_create(encoding.inside)
+    _EXPORT_RECORDS.insert(encoding.inside)
     Export.objects.filter(pk=export.pk).update(
         processed=encoding.processed, exported=encoding.exported
     )
