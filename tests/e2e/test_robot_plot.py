@@ -58,7 +58,8 @@ def _box(locator: Locator) -> dict[str, float]:
 def test_the_robot_page_draws_the_path_beside_the_time_plot_and_refreshes_only_new_records(
     live_server, make_robot, client, browser: Browser, artifacts: Path, monkeypatch
 ):
-    monkeypatch.setattr("sharing.views.robot.PLOT_REFRESH_SECONDS", 2)
+    # long enough that no refresh lands between a page's first answer and the checks of it
+    monkeypatch.setattr("sharing.views.robot.PLOT_REFRESH_SECONDS", 8)
     alice = make_robot("alice")
     _drive(alice, 0, DRIVEN - 20)
     client.force_login(alice.owner.user)
