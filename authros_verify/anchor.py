@@ -13,7 +13,7 @@ import uuid
 from dataclasses import dataclass
 from typing import Any
 
-from authros_verify.chain import ChainReader
+from authros_verify.chain import ChainReader, Receipt
 from authros_verify.values import Invalid, address, hash32, record_id, whole
 from smcrypto.merkle import leaf_hash, proof_holds
 
@@ -107,15 +107,23 @@ def _root_check(
             f"not size {size} in block {block}",
             check="rootOf",
         )
-    receipt = chain.receipt(proof["anchor"]["tx"])
-    if receipt is None:
-        raise Invalid(_UNKNOWN_TRANSACTION, check="rootOf")
-    if receipt.status != 1 or receipt.block != block:
-        raise Invalid("its transaction is not a successful one in its block", check="rootOf")
+    receipt = _anchoring_receipt(chain, proof, block, check="rootOf")
     if receipt.root_anchored(contract, owner, root) != size:
         raise Invalid(
             "its transaction's receipt holds no RootAnchored event for its root", check="rootOf"
         )
+
+
+def _anchoring_receipt(
+    chain: ChainReader, proof: dict[str, Any], block: int, *, check: str
+) -> Receipt:
+    """The receipt of the proof's transaction, which succeeded in `block`; else Invalid."""
+    receipt = chain.receipt(proof["anchor"]["tx"])
+    if receipt is None:
+        raise Invalid(_UNKNOWN_TRANSACTION, check=check)
+    if receipt.status != 1 or receipt.block != block:
+        raise Invalid("its transaction is not a successful one in its block", check=check)
+    return receipt
 
 
 def _slot_check(
@@ -141,11 +149,7 @@ def _slot_check(
         raise Invalid(
             "the chain holds another owner or digest for its id (dataQuery)", check="dataQuery"
         )
-    receipt = chain.receipt(proof["anchor"]["tx"])
-    if receipt is None:
-        raise Invalid(_UNKNOWN_TRANSACTION, check="dataQuery")
-    if receipt.status != 1 or receipt.block != block:
-        raise Invalid("its transaction is not a successful one in its block", check="dataQuery")
+    receipt = _anchoring_receipt(chain, proof, block, check="dataQuery")
     if receipt.data_uploaded(contract, slot_id, owner) != digest:
         raise Invalid(
             "its transaction's receipt holds no DataUploaded event for it", check="dataQuery"
