@@ -1,8 +1,9 @@
-"""What the verifier's tests share: an export made through the portal's own services, and the
-export as a tamperer leaves it, with every SM3 and size recomputed (the `mcap` library, not the
-portal's writer, rewrites the MCAP file)."""
+"""What the verifier's tests share: signed text messages to export, an export made through
+the portal's own services, and the export as a tamperer leaves it, with every SM3 and size
+recomputed (the `mcap` library, not the portal's writer, rewrites the MCAP file)."""
 
 import io
+import json
 import uuid
 from collections.abc import Callable, Sequence
 
@@ -21,6 +22,20 @@ from smcrypto import envelope
 from smcrypto.merkle import leaf_hash
 from smcrypto.sm3 import sm3_hex
 from tests.support.robot_setup import RobotSetup
+
+
+def chatter_envelopes(setup: RobotSetup, seqs: Sequence[int]) -> list[bytes]:
+    """The robot's std_msgs/String messages "msg SEQ" on /chatter, sealed (and signed when
+    the robot is paired), one per upload sequence number."""
+    return [
+        setup.seal(
+            seq,
+            topic="/chatter",
+            data_type="std_msgs/String",
+            plaintext=json.dumps({"K": {"data": f"msg {seq}"}}).encode(),
+        )
+        for seq in seqs
+    ]
 
 
 def export_of(

@@ -5,7 +5,6 @@ with the project's `.venv/bin` on PATH (`. .venv/bin/activate`: scripts/bootstra
 export, draws nothing on a stderr that is piped, and ends with its verdict line."""
 
 import html
-import json
 import os
 import re
 import subprocess
@@ -16,6 +15,7 @@ from django.urls import reverse
 from sharing.exports.create import export_create
 from sharing.models import Export
 from sharing.services.uploads import record_create_batch
+from tests.authros_verify.conftest import chatter_envelopes
 from tests.support.harness import REPO_ROOT
 
 pytestmark = [pytest.mark.django_db, pytest.mark.process]
@@ -29,15 +29,7 @@ def test_the_command_the_export_page_prints_runs_as_printed_in_the_downloads_fol
 ):
     settings.PUBLIC_RPC_URL = settings.CHAIN_RPC_URL  # the session's anvil, as users reach it
     alice = make_paired_robot("alice")  # its envelopes are signed: genuine
-    envelopes = [
-        alice.seal(
-            seq,
-            topic="/chatter",
-            data_type="std_msgs/String",
-            plaintext=json.dumps({"K": {"data": f"msg {seq}"}}).encode(),
-        )
-        for seq in (1, 2)
-    ]
+    envelopes = chatter_envelopes(alice, (1, 2))
     with django_capture_on_commit_callbacks(execute=True):
         record_create_batch(robot=alice.robot, envelopes=envelopes)
     with django_capture_on_commit_callbacks(execute=True):

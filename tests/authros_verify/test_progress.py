@@ -3,14 +3,13 @@ piped or redirected stderr gets nothing), and one verdict line last on stdout, V
 FAILED, with the exit codes as before."""
 
 import io
-import json
 import sys
 
 import pytest
 
 from authros_verify.__main__ import main
 from authros_verify.progress import ProgressBar
-from tests.authros_verify.conftest import export_of
+from tests.authros_verify.conftest import chatter_envelopes, export_of
 
 pytestmark = pytest.mark.django_db
 
@@ -53,15 +52,7 @@ def test_a_piped_run_prints_no_bar_and_ends_with_its_verdict(
     monkeypatch,
 ):
     setup = make_paired_robot("alice")
-    envelopes = [
-        setup.seal(
-            seq,
-            topic="/chatter",
-            data_type="std_msgs/String",
-            plaintext=json.dumps({"K": {"data": f"msg {seq}"}}).encode(),
-        )
-        for seq in (1, 2)
-    ]
+    envelopes = chatter_envelopes(setup, (1, 2))
     bundle, mcap = export_of(setup, django_capture_on_commit_callbacks, envelopes)
     (tmp_path / "proofs.json").write_bytes(bundle)
     (tmp_path / "export.mcap").write_bytes(mcap)
