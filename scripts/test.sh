@@ -3,13 +3,14 @@
 # (tests/support/tiers.py), in passes one after the other, each in parallel by pytest-xdist:
 #   1. the unit tier on SQLite (with the benchmark tooling's tests), one worker per core;
 #   2. on PostgreSQL (PG_TEST_URL, else a server at 127.0.0.1:5432, else a throwaway cluster of
-#      its own): the unit tests that use the database again, and the process, browser and slow
-#      tests, once. Its connections commit without waiting for the disk
+#      its own): the process, browser and slow tests, once, and beside them, at the same time,
+#      the unit tests that use the database again. Its connections commit without waiting for the disk
 #      (synchronous_commit=off, through PGOPTIONS): the test databases are thrown away.
 # `make test-fast` (`scripts/test.sh --fast`): the fast tier on SQLite only, for the inner loop.
 # Further arguments go to pytest. TEST_WORKERS sets the xdist workers of the SQLite pass
-# and of `make test-fast` (default: one per core), TEST_PROCESS_WORKERS those of the PostgreSQL pass
-# (default 3: its tests mostly wait on the processes they start).
+# and of `make test-fast` (default: one per core), TEST_PROCESS_WORKERS those of the PostgreSQL
+# process tests (default 3: they mostly wait on the processes they start), TEST_UNIT_DB_WORKERS
+# those of the unit tests beside them (default 2).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -44,6 +45,8 @@ run_pytest() {
 
 workers=${TEST_WORKERS:-auto}
 process_workers=${TEST_PROCESS_WORKERS:-3}
+unit_db_workers=${TEST_UNIT_DB_WORKERS:-2}
+unit_db_redis=${TEST_UNIT_DB_REDIS_URL:-redis://127.0.0.1:6379/13}
 sqlite_url="sqlite:///$PWD/var/db.sqlite3"
 mkdir -p var
 
@@ -87,15 +90,28 @@ say "unit tier on SQLite ($workers workers)"
 sqlite_rc=0
 DATABASE_URL="$sqlite_url" run_pytest -n "$workers" --tier=unit "$@" || sqlite_rc=$?
 
-# Two pytest runs on PostgreSQL: one run of both took 1,085-1,208 s in a fresh clone, the two
-# apart 489 s (process, browser and slow) and 134 s (unit tests that use the database).
+# Two pytest runs on PostgreSQL, side by side: the process, browser and slow tests mostly
+# wait on the processes they start (about 69% of two cores busy), and the unit tests that use
+# the database fill the rest. The second has a database name and a Redis database of its own
+# (pytest-django names the test databases after the first and the xdist worker, the same in
+# both runs); its output is shown when it is done.
 pg_rc=0
-say "on PostgreSQL ($PG_TEST_URL, $process_workers workers): the process, browser and slow tests"
+unit_db_url="${PG_TEST_URL%/*}/$(basename "${PG_TEST_URL##*/}")_unit_db"
+unit_db_log=var/test-unit-db.log
+say "on PostgreSQL ($PG_TEST_URL): the process, browser and slow tests ($process_workers workers)" \
+  "and, beside them, the unit tests that use the database ($unit_db_workers workers, $unit_db_log)"
+DATABASE_URL="$unit_db_url" TEST_REDIS_URL="$unit_db_redis" \
+  PGOPTIONS="${PGOPTIONS:-} -c synchronous_commit=off" \
+  run_pytest -n "$unit_db_workers" --tier=unit-db "$@" >"$unit_db_log" 2>&1 &
+unit_db_pid=$!
+cleanups+=("kill $unit_db_pid")
 DATABASE_URL="$PG_TEST_URL" PGOPTIONS="${PGOPTIONS:-} -c synchronous_commit=off" \
   run_pytest -n "$process_workers" --tier=once "$@" || pg_rc=$?
-say "on PostgreSQL ($PG_TEST_URL, $process_workers workers): the unit tests that use the database"
-DATABASE_URL="$PG_TEST_URL" PGOPTIONS="${PGOPTIONS:-} -c synchronous_commit=off" \
-  run_pytest -n "$process_workers" --tier=unit-db "$@" || pg_rc=$?
+unit_db_rc=0
+wait "$unit_db_pid" || unit_db_rc=$?
+say "on PostgreSQL ($unit_db_url): the unit tests that use the database"
+cat "$unit_db_log"
+[ "$unit_db_rc" = 0 ] || pg_rc=$unit_db_rc
 
 say "SQLite pass: exit $sqlite_rc; PostgreSQL pass: exit $pg_rc"
 [ "$sqlite_rc" = 0 ] && [ "$pg_rc" = 0 ]
