@@ -17,6 +17,8 @@ from typing import Any, LiteralString
 
 from django.db import connections, router
 from django.db.models import AutoField, Field, ForeignKey, Model
+from django.db.models.base import ModelState
+from django.db.models.signals import post_init, pre_init
 
 
 def _built(cache: dict[Any, Any], key: Any, build: Callable[[], Any]) -> Any:
@@ -183,6 +185,37 @@ class FixedSelect:
             if table.foreign_key is not None and parent is not None:
                 table.foreign_key.set_cached_value(parent, instances[-1])
         return instances[0]
+
+
+def instances_made(
+    model: type[Model], names: Sequence[str], rows: Sequence[Sequence[object]], *, alias: str | None
+) -> list[Model]:
+    """Instances of `model`, one per row of values of the fields (attnames) `names`, in
+    order: as read from database `alias` (Model.from_db's; the fields not named are deferred,
+    read on first use, as `only()` leaves them), or new ones (`alias` None: every concrete
+    field named). The values are taken as they are, as Model.__init__'s positional path takes
+    them, without its per-field work (a check makes thousands: bench/REPORT.md); a model with
+    receivers of pre_init or post_init gets Model.__init__ itself."""
+    if pre_init.has_listeners(model) or post_init.has_listeners(model):
+        return _instances_by_init(model, names, rows, alias=alias)
+    made = []
+    new = model.__new__
+    for row in rows:
+        instance = new(model)
+        instance.__dict__.update(zip(names, row, strict=True))
+        state = instance._state = ModelState()
+        if alias is not None:
+            state.adding, state.db = False, alias
+        made.append(instance)
+    return made
+
+
+def _instances_by_init(
+    model: type[Model], names: Sequence[str], rows: Sequence[Sequence[object]], *, alias: str | None
+) -> list[Model]:
+    if alias is not None:
+        return [model.from_db(alias, names, row) for row in rows]
+    return [model(**dict(zip(names, row, strict=True))) for row in rows]
 
 
 class FixedInsert:

@@ -120,22 +120,38 @@ def open(
 
     Raises MalformedEnvelope or UnsupportedEnvelope, then WrongKey, then AuthenticationFailed.
     """
-    expected_key_id = key_id(key)
-    if info is None:
-        info = read_header(envelope)
-        data = bytes(envelope)
-        boundary = PREFIX_SIZE + len(info.header_bytes)
-    else:
-        data = bytes(envelope)
-        boundary = PREFIX_SIZE + len(info.header_bytes)
-        _check_info_is_of(info, data, boundary)
-    if not hmac.compare_digest(info.key_id, expected_key_id):
-        raise WrongKey(
-            f"envelope was sealed under key id {info.key_id.hex()}, "
-            f"but the key given has id {expected_key_id.hex()}"
-        )
-    plaintext = sm4.gcm_decrypt(key, info.nonce, data[boundary:], data[:boundary])
-    return info.header, plaintext
+    return OpeningKey(key).open(envelope, info=info)
+
+
+class OpeningKey:
+    """One SM4 key that opens many envelopes (a check run's records of one owner key): its key
+    id hashed and its cipher made once, not per envelope. Held only as long as the key itself
+    is (a read, a check run), never cached beyond it."""
+
+    __slots__ = ("_cipher", "key_id")
+
+    def __init__(self, key: bytes) -> None:
+        self._cipher = sm4.GcmKey(key)
+        self.key_id = key_id(key)
+
+    def open(
+        self, envelope: bytes, *, info: EnvelopeInfo | None = None
+    ) -> tuple[dict[str, Any], bytes]:
+        """open(key, envelope, info=info) under this key: the same checks, in the same order."""
+        if info is None:
+            info = read_header(envelope)
+            data = bytes(envelope)
+            boundary = PREFIX_SIZE + len(info.header_bytes)
+        else:
+            data = bytes(envelope)
+            boundary = PREFIX_SIZE + len(info.header_bytes)
+            _check_info_is_of(info, data, boundary)
+        if not hmac.compare_digest(info.key_id, self.key_id):
+            raise WrongKey(
+                f"envelope was sealed under key id {info.key_id.hex()}, "
+                f"but the key given has id {self.key_id.hex()}"
+            )
+        return info.header, self._cipher.decrypt(info.nonce, data[boundary:], data[:boundary])
 
 
 def _check_info_is_of(info: EnvelopeInfo, data: bytes, boundary: int) -> None:
