@@ -239,10 +239,14 @@ def canonical_json(header: Mapping[str, Any]) -> bytes:
     """The header's bytes as the envelope carries them: UTF-8 JSON, keys sorted, separators
     `,` `:`, no `\\u` escapes (DESIGN.md "Wire formats"). TypeError or ValueError if it is
     not plain JSON."""
-    text = json.dumps(
-        header, sort_keys=True, separators=(",", ":"), ensure_ascii=False, allow_nan=False
-    )
-    return text.encode("utf-8")
+    return _CANONICAL.encode(header).encode("utf-8")
+
+
+# json.dumps and json.loads with options make an encoder or decoder per call; these are made
+# once (both keep no state between calls), each header's check runs both.
+_CANONICAL = json.JSONEncoder(
+    sort_keys=True, separators=(",", ":"), ensure_ascii=False, allow_nan=False
+)
 
 
 def _encode_header(header: Mapping[str, Any]) -> bytes:
@@ -273,7 +277,7 @@ def _encode_header(header: Mapping[str, Any]) -> bytes:
 def _decode_header(header_bytes: bytes) -> dict[str, Any]:
     _check_json_depth(header_bytes)
     try:
-        header = json.loads(header_bytes.decode("utf-8"), parse_constant=_reject_constant)
+        header = _HEADER_DECODER.decode(header_bytes.decode("utf-8"))
     except (ValueError, RecursionError):
         raise MalformedEnvelope("envelope header is not valid UTF-8 JSON") from None
     if not isinstance(header, dict):
@@ -318,6 +322,9 @@ def _check_json_depth(header_bytes: bytes) -> None:
 
 def _reject_constant(name: str) -> NoReturn:
     raise ValueError(f"{name} is not JSON")
+
+
+_HEADER_DECODER = json.JSONDecoder(parse_constant=_reject_constant)
 
 
 def _check_header_fields(header: dict[str, Any]) -> None:
