@@ -11,12 +11,16 @@ UPDATE of set columns under a fixed condition. Only for statements whose shape n
 everything else uses the ORM.
 """
 
+import uuid
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any, LiteralString
 
 from django.db import connections, router
-from django.db.models import AutoField, Field, ForeignKey, Model
+from django.db.models import AutoField, DateTimeField, Field, ForeignKey, Model, UUIDField
+from django.db.models.base import ModelState
+from django.db.models.signals import post_init, pre_init
+from django.utils import timezone
 
 
 def _built(cache: dict[Any, Any], key: Any, build: Callable[[], Any]) -> Any:
@@ -185,6 +189,37 @@ class FixedSelect:
         return instances[0]
 
 
+def instances_made(
+    model: type[Model], names: Sequence[str], rows: Sequence[Sequence[object]], *, alias: str | None
+) -> list[Model]:
+    """Instances of `model`, one per row of values of the fields (attnames) `names`, in
+    order: as read from database `alias` (Model.from_db's; the fields not named are deferred,
+    read on first use, as `only()` leaves them), or new ones (`alias` None: every concrete
+    field named). The values are taken as they are, as Model.__init__'s positional path takes
+    them, without its per-field work (a check makes thousands: bench/REPORT.md); a model with
+    receivers of pre_init or post_init gets Model.__init__ itself."""
+    if pre_init.has_listeners(model) or post_init.has_listeners(model):
+        return _instances_by_init(model, names, rows, alias=alias)
+    made = []
+    new = model.__new__
+    for row in rows:
+        instance = new(model)
+        instance.__dict__.update(zip(names, row, strict=True))
+        state = instance._state = ModelState()
+        if alias is not None:
+            state.adding, state.db = False, alias
+        made.append(instance)
+    return made
+
+
+def _instances_by_init(
+    model: type[Model], names: Sequence[str], rows: Sequence[Sequence[object]], *, alias: str | None
+) -> list[Model]:
+    if alias is not None:
+        return [model.from_db(alias, names, row) for row in rows]
+    return [model(**dict(zip(names, row, strict=True))) for row in rows]
+
+
 class FixedInsert:
     """INSERT whole new instances of `model`, as `bulk_create` does (each field's `pre_save`,
     so `auto_now_add` applies; no signals), with the SQL written once per number of rows. The
@@ -231,13 +266,18 @@ class FixedInsert:
     def _saved(field: Field, plain: str | None, instance: Model, connection: Any) -> object:
         """The value of `field` as the database takes it for a new row of `instance`."""
         if plain is not None:
+            if plain == _NOW:  # auto_now(_add) on a new row: pre_save's moment, as it sets it
+                moment = instance.__dict__[field.attname] = timezone.now()
+                return connection.ops.adapt_datetimefield_value(moment)
             value = instance.__dict__.get(field.attname)
             kind = type(value)
             if kind is str and plain == _TEXT:
                 return value
+            if kind is uuid.UUID and plain == _UUID:  # as UUIDField's get_db_prep_value ends
+                return value if connection.features.has_native_uuid_field else value.hex
             if kind is int and plain == _KEY:
                 return connection.ops.validate_autopk_value(value)  # as AutoField ends
-            if kind is int and plain != _TEXT:
+            if kind is int and plain not in (_TEXT, _UUID):
                 return connection.ops.adapt_integerfield_value(value, plain)
         return field.get_db_prep_save(field.pre_save(instance, True), connection)
 
@@ -252,6 +292,8 @@ class FixedInsert:
 
 _TEXT = "text"
 _KEY = "key"  # a foreign key to an automatic primary key (AutoField's kind)
+_UUID = "uuid"  # a UUIDField, or a foreign key to one
+_NOW = "now"  # a DateTimeField set to the moment of its save (auto_now or auto_now_add)
 _AUTO_TYPES = frozenset({"AutoField", "BigAutoField", "SmallAutoField"})
 _INTEGER_TYPES = frozenset(
     {
@@ -269,16 +311,25 @@ def _plain_saved(field: Field) -> str | None:
     """`_TEXT` for a field that saves a str as it is (CharField, TextField), the internal type
     of an integer field (an int goes to the backend's adapt_integerfield_value, as the
     field's own get_db_prep_value ends), `_KEY` for a ForeignKey to an automatic primary key
-    (an int goes to the backend's validate_autopk_value, as AutoField's ends), None for any
-    other (the field's own methods). Only the exact classes: a subclass may convert in its
+    (an int goes to the backend's validate_autopk_value, as AutoField's ends), `_UUID` for a
+    UUIDField or a ForeignKey to one (a UUID goes as the backend takes it, as UUIDField's
+    ends), `_NOW` for a DateTimeField of auto_now or auto_now_add (a new row's: the moment,
+    set on the instance and adapted as the field's pre_save and get_db_prep_value do), None
+    for any other (the field's own methods). Only the exact classes: a subclass may convert in its
     own way."""
     kind = type(field).__name__
     if type(field) is ForeignKey:
         target = field.target_field
         exact = type(target).__module__ == "django.db.models.fields"
-        return _KEY if exact and type(target).__name__ in _AUTO_TYPES else None
+        if exact and type(target).__name__ in _AUTO_TYPES:
+            return _KEY
+        return _UUID if type(target) is UUIDField else None
     if type(field).__module__ != "django.db.models.fields":
         return None
+    if type(field) is UUIDField:
+        return _UUID
+    if type(field) is DateTimeField and (field.auto_now or field.auto_now_add):
+        return _NOW
     if kind in ("CharField", "TextField"):
         return _TEXT
     if kind in _INTEGER_TYPES:

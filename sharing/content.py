@@ -84,9 +84,8 @@ def document_parse(plaintext: bytes) -> Any:
     # A text that cannot break the bounds (_within_bounds) is parsed without a call back per
     # number and without a walk for its depth: the same document, a series' records faster.
     bounded = _within_bounds(plaintext)
-    hooks = {} if bounded else {"parse_int": _bounded_int, "parse_float": _finite_float}
     try:
-        document = json.loads(text, parse_constant=_no_constant, **hooks)
+        document = (_BOUNDED_DECODER if bounded else _CHECKING_DECODER).decode(text)
     except RecursionError:
         raise Uninterpretable(f"it is nested more than {MAX_DEPTH} levels deep") from None
     except Uninterpretable:
@@ -228,6 +227,14 @@ def _finite_float(text: str) -> float:
 
 def _no_constant(name: str) -> float:
     raise Uninterpretable(f"it holds {name}, which is not a finite number")
+
+
+# Made once (json.loads with options makes a decoder per call; a decoder keeps no state
+# between calls): a text within the bounds, and one whose numbers are each checked.
+_BOUNDED_DECODER = json.JSONDecoder(parse_constant=_no_constant)
+_CHECKING_DECODER = json.JSONDecoder(
+    parse_constant=_no_constant, parse_int=_bounded_int, parse_float=_finite_float
+)
 
 
 def _depth_exceeds(document: Any, limit: int) -> bool:

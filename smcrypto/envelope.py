@@ -120,22 +120,38 @@ def open(
 
     Raises MalformedEnvelope or UnsupportedEnvelope, then WrongKey, then AuthenticationFailed.
     """
-    expected_key_id = key_id(key)
-    if info is None:
-        info = read_header(envelope)
-        data = bytes(envelope)
-        boundary = PREFIX_SIZE + len(info.header_bytes)
-    else:
-        data = bytes(envelope)
-        boundary = PREFIX_SIZE + len(info.header_bytes)
-        _check_info_is_of(info, data, boundary)
-    if not hmac.compare_digest(info.key_id, expected_key_id):
-        raise WrongKey(
-            f"envelope was sealed under key id {info.key_id.hex()}, "
-            f"but the key given has id {expected_key_id.hex()}"
-        )
-    plaintext = sm4.gcm_decrypt(key, info.nonce, data[boundary:], data[:boundary])
-    return info.header, plaintext
+    return OpeningKey(key).open(envelope, info=info)
+
+
+class OpeningKey:
+    """One SM4 key that opens many envelopes (a check run's records of one owner key): its key
+    id hashed and its cipher made once, not per envelope. Held only as long as the key itself
+    is (a read, a check run), never cached beyond it."""
+
+    __slots__ = ("_cipher", "key_id")
+
+    def __init__(self, key: bytes) -> None:
+        self._cipher = sm4.GcmKey(key)
+        self.key_id = key_id(key)
+
+    def open(
+        self, envelope: bytes, *, info: EnvelopeInfo | None = None
+    ) -> tuple[dict[str, Any], bytes]:
+        """open(key, envelope, info=info) under this key: the same checks, in the same order."""
+        if info is None:
+            info = read_header(envelope)
+            data = bytes(envelope)
+            boundary = PREFIX_SIZE + len(info.header_bytes)
+        else:
+            data = bytes(envelope)
+            boundary = PREFIX_SIZE + len(info.header_bytes)
+            _check_info_is_of(info, data, boundary)
+        if not hmac.compare_digest(info.key_id, self.key_id):
+            raise WrongKey(
+                f"envelope was sealed under key id {info.key_id.hex()}, "
+                f"but the key given has id {self.key_id.hex()}"
+            )
+        return info.header, self._cipher.decrypt(info.nonce, data[boundary:], data[:boundary])
 
 
 def _check_info_is_of(info: EnvelopeInfo, data: bytes, boundary: int) -> None:
@@ -223,10 +239,14 @@ def canonical_json(header: Mapping[str, Any]) -> bytes:
     """The header's bytes as the envelope carries them: UTF-8 JSON, keys sorted, separators
     `,` `:`, no `\\u` escapes (DESIGN.md "Wire formats"). TypeError or ValueError if it is
     not plain JSON."""
-    text = json.dumps(
-        header, sort_keys=True, separators=(",", ":"), ensure_ascii=False, allow_nan=False
-    )
-    return text.encode("utf-8")
+    return _CANONICAL.encode(header).encode("utf-8")
+
+
+# json.dumps and json.loads with options make an encoder or decoder per call; these are made
+# once (both keep no state between calls), each header's check runs both.
+_CANONICAL = json.JSONEncoder(
+    sort_keys=True, separators=(",", ":"), ensure_ascii=False, allow_nan=False
+)
 
 
 def _encode_header(header: Mapping[str, Any]) -> bytes:
@@ -257,7 +277,7 @@ def _encode_header(header: Mapping[str, Any]) -> bytes:
 def _decode_header(header_bytes: bytes) -> dict[str, Any]:
     _check_json_depth(header_bytes)
     try:
-        header = json.loads(header_bytes.decode("utf-8"), parse_constant=_reject_constant)
+        header = _HEADER_DECODER.decode(header_bytes.decode("utf-8"))
     except (ValueError, RecursionError):
         raise MalformedEnvelope("envelope header is not valid UTF-8 JSON") from None
     if not isinstance(header, dict):
@@ -302,6 +322,9 @@ def _check_json_depth(header_bytes: bytes) -> None:
 
 def _reject_constant(name: str) -> NoReturn:
     raise ValueError(f"{name} is not JSON")
+
+
+_HEADER_DECODER = json.JSONDecoder(parse_constant=_reject_constant)
 
 
 def _check_header_fields(header: dict[str, Any]) -> None:

@@ -96,19 +96,23 @@ def root_from_path(leaf: bytes, index: int, size: int, path: Sequence[bytes]) ->
     folded as RFC 9162 section 2.1.3.2 says; InvalidProof if the proof cannot hold."""
     if size < 1 or not 0 <= index < size:
         raise InvalidProof(f"leaf index {index} is outside a tree of {size}")
-    if len(leaf) != DIGEST_SIZE or any(len(p) != DIGEST_SIZE for p in path):
+    if len(leaf) != DIGEST_SIZE:
         raise InvalidProof(f"every hash is {DIGEST_SIZE} bytes")
-    fn, sn, result = index, size - 1, leaf
+    # The memoised node hash is called directly (no wrapper per level): a check folds two
+    # paths a record, each a level per doubling of its tree.
+    fn, sn, result = index, size - 1, bytes(leaf)
     for sibling in path:
+        if len(sibling) != DIGEST_SIZE:
+            raise InvalidProof(f"every hash is {DIGEST_SIZE} bytes")
         if sn == 0:
             raise InvalidProof("the path is longer than the tree is deep")
         if fn & 1 or fn == sn:
-            result = node_hash(sibling, result)
+            result = _node_hash(bytes(sibling), result)
             while not fn & 1 and fn != 0:
                 fn >>= 1
                 sn >>= 1
         else:
-            result = node_hash(result, sibling)
+            result = _node_hash(result, bytes(sibling))
         fn >>= 1
         sn >>= 1
     if sn != 0:

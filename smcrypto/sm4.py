@@ -32,24 +32,38 @@ def gcm_encrypt(key: bytes, nonce: bytes, plaintext: bytes, aad: bytes = b"") ->
 
 def gcm_decrypt(key: bytes, nonce: bytes, data: bytes, aad: bytes = b"") -> bytes:
     """Decrypt ciphertext||tag from gcm_encrypt; raise AuthenticationFailed if it was changed."""
-    key = _check_key(key)
-    nonce = _check_nonce(nonce)
-    data = _check_data(data, "SM4-GCM data")
-    aad = _check_data(aad, "SM4-GCM associated data")
-    if len(data) < GCM_TAG_SIZE:
-        raise AuthenticationFailed(
-            f"SM4-GCM data is {len(data)} bytes, shorter than the {GCM_TAG_SIZE}-byte tag"
-        )
-    ciphertext, tag = data[:-GCM_TAG_SIZE], data[-GCM_TAG_SIZE:]
-    decryptor = Cipher(algorithms.SM4(key), modes.GCM(nonce, tag)).decryptor()
-    decryptor.authenticate_additional_data(aad)
-    plaintext = decryptor.update(ciphertext)
-    try:
-        return plaintext + decryptor.finalize()
-    except InvalidTag:
-        raise AuthenticationFailed(
-            "SM4-GCM authentication failed: the data, its header or the key is not the one sealed"
-        ) from None
+    return GcmKey(key).decrypt(nonce, data, aad)
+
+
+class GcmKey:
+    """One SM4 key for SM4-GCM decryption of many messages: the key checked and its cipher
+    algorithm made once (gcm_decrypt makes both per message). Lives as long as its caller
+    holds the key."""
+
+    __slots__ = ("_algorithm",)
+
+    def __init__(self, key: bytes) -> None:
+        self._algorithm = algorithms.SM4(_check_key(key))
+
+    def decrypt(self, nonce: bytes, data: bytes, aad: bytes = b"") -> bytes:
+        """gcm_decrypt under this key."""
+        nonce = _check_nonce(nonce)
+        data = _check_data(data, "SM4-GCM data")
+        aad = _check_data(aad, "SM4-GCM associated data")
+        if len(data) < GCM_TAG_SIZE:
+            raise AuthenticationFailed(
+                f"SM4-GCM data is {len(data)} bytes, shorter than the {GCM_TAG_SIZE}-byte tag"
+            )
+        decryptor = Cipher(self._algorithm, modes.GCM(nonce, data[-GCM_TAG_SIZE:])).decryptor()
+        decryptor.authenticate_additional_data(aad)
+        plaintext = decryptor.update(data[:-GCM_TAG_SIZE])
+        try:
+            return plaintext + decryptor.finalize()
+        except InvalidTag:
+            raise AuthenticationFailed(
+                "SM4-GCM authentication failed: the data, its header or the key is not the one "
+                "sealed"
+            ) from None
 
 
 def cbc_encrypt(key: bytes, iv: bytes, plaintext: bytes) -> bytes:

@@ -12,7 +12,7 @@ from datetime import datetime
 from django.db.models import Prefetch, Q, QuerySet
 
 from accounts.models import Owner, Robot
-from core.rows import FixedSelect
+from core.rows import FixedSelect, instances_made
 from sharing.models import AnchorRoot, Record
 from sharing.selection import RecordSelection
 from sharing.selectors.grants import grant_list_live_received
@@ -295,14 +295,21 @@ _CHECKED_COLUMNS = (
 )
 
 
+_CHECKED_ATTNAMES = [Record._meta.get_field(name).attname for name in _CHECKED_COLUMNS]
+
+
 def records_to_check_by_id(record_ids: Sequence[uuid.UUID]) -> list[Record]:
     """The records of these ids that exist, in the order asked, with what the check reads:
     only the check's columns of each row, and its owner, robot and tree (without its leaves)
     each read once for all the records that share it, set on the records directly (the
-    queryset's prefetch machinery per record cost more than the rows: bench/REPORT.md)."""
+    queryset's prefetch machinery per record cost more than the rows: bench/REPORT.md). The
+    rows are read as tuples (with the ORM's converters) and made instances without
+    Model.__init__'s per-field work (core.rows.instances_made); the columns not read are
+    deferred, as `only()` leaves them."""
+    rows = Record.objects.filter(pk__in=record_ids).values_list(*_CHECKED_ATTNAMES)
     found = {
         record.pk: record
-        for record in Record.objects.filter(pk__in=record_ids).only(*_CHECKED_COLUMNS)
+        for record in instances_made(Record, _CHECKED_ATTNAMES, list(rows), alias=rows.db)
     }
     records = [found[record_id] for record_id in record_ids if record_id in found]
     owners = Owner.objects.in_bulk({record.owner_id for record in records})

@@ -29,7 +29,7 @@ from chainworker.client import AuthROSChain
 from chainworker.codec import OnChainRoot, RobotKeyOnChain
 from chainworker.services import chain_client, chain_head
 from core.metrics import VERDICTS
-from core.rows import FixedInsert
+from core.rows import FixedInsert, instances_made
 from sharing.cache import envelopes_fetch
 from sharing.models import Access, Credential, Grant, Record, Verdict
 from sharing.selectors.records import records_to_check_by_id
@@ -160,17 +160,17 @@ def records_verify(
                 token_id=token_id,
                 checked_by_id=checked_by_id,
             )
-        verdicts = [
-            _verdict_new(
-                record,
+        verdicts = _verdicts_new(
+            records,
+            [
                 {
                     "access_id": accesses[record.owner_id],
                     "block_number": _verdict_block(block, record),
                     **fields,
-                },
-            )
-            for record, (fields, _data) in zip(records, checked, strict=True)
-        ]
+                }
+                for record, (fields, _data) in zip(records, checked, strict=True)
+            ],
+        )
         _VERDICTS.insert(verdicts)
     for outcome, count in Counter(verdict.outcome for verdict in verdicts).items():
         VERDICTS.labels(outcome).inc(count)  # where they are written: any task, or a direct check
@@ -185,21 +185,27 @@ def records_verify(
 _VERDICTS = FixedInsert(Verdict)
 
 
-# Verdict's columns in the model's order: a check makes a verdict per record, built from its
-# values in order (Model.__init__'s fast path, not its per-keyword one), its record cached on it.
+# Verdict's columns in the model's order: a check makes a verdict per record, from its values
+# in order (core.rows.instances_made, without Model.__init__'s per-field work), its record
+# cached on it.
 _VERDICT_COLUMNS = [(field.attname, field.get_default) for field in Verdict._meta.concrete_fields]
+_VERDICT_NAMES = [name for name, _default in _VERDICT_COLUMNS]
 _VERDICT_RECORD = Verdict._meta.get_field("record")
 
 
-def _verdict_new(record: Record, values: dict[str, object]) -> Verdict:
-    """A new verdict of `record` with these column values (by attname), the others their
+def _verdicts_new(records: Sequence[Record], values: Sequence[dict[str, object]]) -> list[Verdict]:
+    """A new verdict of each record with its column values (by attname), the others their
     defaults."""
-    values = {**values, "record_id": record.pk}
-    verdict = Verdict(
-        *[values[name] if name in values else default() for name, default in _VERDICT_COLUMNS]
-    )
-    _VERDICT_RECORD.set_cached_value(verdict, record)
-    return verdict
+    rows = []
+    for record, given in zip(records, values, strict=True):
+        given = {**given, "record_id": record.pk}
+        rows.append(
+            [given[name] if name in given else default() for name, default in _VERDICT_COLUMNS]
+        )
+    verdicts = instances_made(Verdict, _VERDICT_NAMES, rows, alias=None)
+    for verdict, record in zip(verdicts, records, strict=True):
+        _VERDICT_RECORD.set_cached_value(verdict, record)
+    return verdicts
 
 
 def _records_read(record_ids: Sequence[uuid.UUID | str]) -> list[Record]:
@@ -303,7 +309,7 @@ def _provenance_claim(
         header = envelope.read_header(data).header
         return envelope.provenance_format(header) == "unsigned" and not record.signer
     try:
-        header, plaintext = envelope.open(reads.keys.of(record), data)
+        header, plaintext = reads.keys.opening(record).open(data)
     except (CryptoError, OwnerKey.DoesNotExist):  # anchored, yet not an envelope of its key
         return False
     reads.opened[record.pk] = header, plaintext

@@ -7,6 +7,7 @@ from contextlib import suppress
 from accounts.models import OwnerKey
 from accounts.selectors import owner_key_by_id, owner_key_bytes
 from sharing.models import Record
+from smcrypto.envelope import OpeningKey
 
 
 def record_key(record: Record) -> bytes:
@@ -22,12 +23,20 @@ class RecordKeys:
 
     def __init__(self) -> None:
         self._keys: dict[tuple[int, str], bytes] = {}
+        self._opening: dict[tuple[int, str], OpeningKey] = {}
 
     def of(self, record: Record) -> bytes:
         wanted = (record.owner_id, record.key_id)
         if wanted not in self._keys:
             self._keys[wanted] = record_key(record)
         return self._keys[wanted]
+
+    def opening(self, record: Record) -> OpeningKey:
+        """The record's key, to open envelopes with (its key id and cipher made once)."""
+        wanted = (record.owner_id, record.key_id)
+        if wanted not in self._opening:
+            self._opening[wanted] = OpeningKey(self.of(record))
+        return self._opening[wanted]
 
     def of_owner_key(self, key: OwnerKey) -> bytes:
         """An owner's key as read (the viewer's current key, to re-seal for them): the bytes

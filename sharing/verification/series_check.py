@@ -19,7 +19,6 @@ from sharing.series import record_values
 from sharing.verification.answers import answer_key_unwrap, answer_seal
 from sharing.verification.check import Verification, records_verify
 from sharing.verification.keys import RecordKeys
-from smcrypto import envelope
 from smcrypto.errors import CryptoError
 
 
@@ -72,7 +71,7 @@ def _plaintext(verification: Verification, keys: RecordKeys) -> bytes | None:
         return verification.opened[1]
     record = verification.verdict.record
     try:
-        _header, plaintext = envelope.open(keys.of(record), verification.envelope)
+        _header, plaintext = keys.opening(record).open(verification.envelope)
     except (CryptoError, OwnerKey.DoesNotExist):
         return None
     return plaintext

@@ -6,13 +6,14 @@ import uuid
 
 import pytest
 from django.db import connection
+from django.db.models.signals import post_init
 from django.test.utils import CaptureQueriesContext
 
 from accounts.models import OwnerKey, Robot
 from accounts.selectors import owner_keys, robot_by_token, robot_token_hash
 from accounts.services.keys import key_rotate
 from accounts.services.robots import robot_token_revoke
-from core.rows import FixedInsert
+from core.rows import FixedInsert, instances_made
 from sharing.models import Record, Verdict
 from sharing.selectors.records import record_to_open
 from sharing.services.anchoring import records_anchor
@@ -161,3 +162,68 @@ def test_a_model_with_an_automatic_key_gets_its_ids_from_the_insert_in_order(mak
     read = [Verdict.objects.get(pk=verdict.pk) for verdict in verdicts]
     assert [verdict.outcome for verdict in read] == outcomes
     assert [verdict.created_at for verdict in read] == [verdict.created_at for verdict in verdicts]
+
+
+def test_instances_made_are_the_orms_with_the_columns_not_read_deferred(make_robot):
+    setup = make_robot("alice")
+    record = record_create(robot=setup.robot, data=setup.seal(1))
+    names = ["id", "owner_id", "topic", "digest"]
+    (row,) = Record.objects.filter(pk=record.pk).values_list(*names)
+    (made,) = instances_made(Record, names, [row], alias="default")
+    expected = Record.objects.only(*names).get(pk=record.pk)
+    assert made == expected
+    assert {name: made.__dict__[name] for name in names} == {
+        name: expected.__dict__[name] for name in names
+    }
+    assert made.get_deferred_fields() == expected.get_deferred_fields()
+    assert (made._state.adding, made._state.db) == (False, "default")
+    with CaptureQueriesContext(connection) as queries:
+        assert made.seq == record.seq  # a column not read: read on first use, as only() does
+    assert len(queries.captured_queries) == 1
+    assert made.owner == setup.owner
+
+
+def test_new_instances_made_are_those_the_constructor_makes(make_robot):
+    setup = make_robot("alice")
+    record = record_create(robot=setup.robot, data=setup.seal(1))
+    (access,) = accesses_open(
+        kind="view",
+        viewer_id=setup.owner.pk,
+        records=[record],
+        credential="session",
+        token_id=None,
+    ).values()
+    names = [field.attname for field in Verdict._meta.concrete_fields]
+    given = {"record_id": record.pk, "access_id": access, "outcome": "verified"}
+    row = [
+        given.get(name, field.get_default())
+        for name, field in zip(names, Verdict._meta.concrete_fields, strict=True)
+    ]
+    (made,) = instances_made(Verdict, names, [row], alias=None)
+    expected = Verdict(**given)
+    assert fields_of(made) == fields_of(expected)
+    assert (made._state.adding, made._state.db) == (True, None)
+    FixedInsert(Verdict).insert([made])
+    assert fields_of(Verdict.objects.get(pk=made.pk)) == fields_of(made)
+
+
+def test_a_model_with_init_receivers_is_made_by_its_constructor(make_robot):
+    setup = make_robot("alice")
+    record = record_create(robot=setup.robot, data=setup.seal(1))
+    seen = []
+
+    def receiver(sender, instance, **kwargs):
+        seen.append(instance)
+
+    post_init.connect(receiver, sender=Record)
+    try:
+        (made,) = instances_made(
+            Record, ["id", "topic"], [(record.pk, record.topic)], alias="default"
+        )
+    finally:
+        post_init.disconnect(receiver, sender=Record)
+    assert seen == [made]
+    assert (
+        made.get_deferred_fields()
+        == Record.objects.only("id", "topic").get(pk=record.pk).get_deferred_fields()
+    )

@@ -290,6 +290,32 @@ def test_non_canonical_header_refused(header_bytes: bytes) -> None:
         envelope.read_header(framed)
     with pytest.raises(MalformedEnvelope):
         envelope.open(KEY, framed)
+    with pytest.raises(MalformedEnvelope):  # a check run's key, made once, refuses it alike
+        envelope.OpeningKey(KEY).open(framed)
+
+
+def test_one_opening_key_opens_many_envelopes_as_open_does() -> None:
+    """OpeningKey makes the key's id and cipher once for a run: each envelope opened as
+    `open` opens it, a wrong key, a changed byte and a header read from other bytes refused
+    as `open` refuses them."""
+    opening = envelope.OpeningKey(KEY)
+    sealed = [envelope.seal(KEY, {**HEADER, "seq": seq}, b"x" * seq) for seq in range(5)]
+    for data in sealed:
+        assert opening.open(data) == envelope.open(KEY, data)
+        assert opening.open(data, info=envelope.read_header(data)) == envelope.open(KEY, data)
+    other = envelope.seal(bytes(16), HEADER, PLAINTEXT)
+    with pytest.raises(WrongKey):
+        opening.open(other)
+    changed = bytearray(sealed[1])
+    changed[-1] ^= 1
+    with pytest.raises(AuthenticationFailed):
+        opening.open(bytes(changed))
+    with pytest.raises(MalformedEnvelope):
+        opening.open(sealed[1], info=envelope.read_header(sealed[2]))
+    with pytest.raises(MalformedEnvelope):
+        opening.open("not bytes")  # type: ignore[arg-type]
+    with pytest.raises(InvalidKey):
+        envelope.OpeningKey(b"short")
 
 
 @pytest.mark.parametrize(

@@ -70,6 +70,23 @@ def test_gcm_changed_aad_or_nonce_fails_authentication() -> None:
         sm4.gcm_decrypt(RFC8998_KEY, bytes(12), data, RFC8998_AAD)
 
 
+def test_one_gcm_key_decrypts_as_gcm_decrypt_and_refuses_alike() -> None:
+    key = sm4.GcmKey(RFC8998_KEY)
+    data = RFC8998_CIPHERTEXT + RFC8998_TAG
+    for _ in range(2):  # the same key, used again
+        assert key.decrypt(RFC8998_IV, data, RFC8998_AAD) == RFC8998_PLAINTEXT
+    with pytest.raises(AuthenticationFailed):
+        key.decrypt(RFC8998_IV, data, RFC8998_AAD + b"x")
+    with pytest.raises(AuthenticationFailed):
+        key.decrypt(RFC8998_IV, data[:-1] + bytes([data[-1] ^ 1]), RFC8998_AAD)
+    with pytest.raises(AuthenticationFailed, match="shorter than the 16-byte tag"):
+        key.decrypt(RFC8998_IV, b"\x00" * 15)
+    with pytest.raises(InvalidKey):
+        key.decrypt(b"short", data)
+    with pytest.raises(InvalidKey):
+        sm4.GcmKey(b"short")
+
+
 def test_gcm_data_shorter_than_tag() -> None:
     with pytest.raises(AuthenticationFailed, match="shorter than the 16-byte tag"):
         sm4.gcm_decrypt(RFC8998_KEY, RFC8998_IV, b"\x00" * 15)

@@ -47,7 +47,7 @@ def costs(monkeypatch) -> Iterator[Costs]:
     real_verify, real_unwrap, real_open = (
         check.records_verify,
         keys.owner_key_bytes,
-        envelope.open,
+        envelope.OpeningKey.open,
     )
 
     def verify(**kwargs):
@@ -61,9 +61,9 @@ def costs(monkeypatch) -> Iterator[Costs]:
         counted.unwraps[counted.side].append((owner_key.owner_id, owner_key.key_id))
         return real_unwrap(owner_key)
 
-    def decrypt(key, data):
+    def decrypt(opening, data, **kwargs):  # envelope.open opens through an OpeningKey too
         counted.decryptions[counted.side] += 1
-        return real_open(key, data)
+        return real_open(opening, data, **kwargs)
 
     def queries(execute, sql, params, many, context):
         if sql.lstrip().upper().startswith("SELECT") and _RECORD_ROWS.search(sql):
@@ -72,7 +72,7 @@ def costs(monkeypatch) -> Iterator[Costs]:
 
     monkeypatch.setattr(check, "records_verify", verify)
     monkeypatch.setattr(keys, "owner_key_bytes", unwrap)
-    monkeypatch.setattr(envelope, "open", decrypt)
+    monkeypatch.setattr(envelope.OpeningKey, "open", decrypt)
     with connection.execute_wrapper(queries):
         yield counted
 
