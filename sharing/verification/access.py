@@ -12,9 +12,9 @@ line per window, its verdicts (one per record and check) all under it.
 """
 
 import uuid
-from collections import defaultdict
+from collections import Counter, defaultdict
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from datetime import timedelta
 from typing import Any
 
@@ -105,19 +105,7 @@ def accesses_open_for(
     refresh: bool = False,
 ) -> dict[int, int]:
     """accesses_open for reads already summed up per owner. Record owner id -> Access id."""
-    named = {
-        read.owner_id: {
-            "kind": kind,
-            "viewer_id": viewer_id,
-            "record_owner_id": read.owner_id,
-            "checked_by_id": checked_by_id,
-            "credential": credential,
-            "token_id": token_id,
-            "robot_id": read.robot_id,
-            "topic": read.topic or "",
-        }
-        for read in reads
-    }
+    named = _names(kind, viewer_id, reads, credential, token_id, checked_by_id)
     lines: dict[int, int] = {}
     if refresh and kind == Access.Kind.PLOT and checked_by_id is None:
         lines = _lines_recent(named)
@@ -131,6 +119,62 @@ def accesses_open_for(
         if read.owner_id not in lines
     ]
     return lines | {row.record_owner_id: row.pk for row in Access.objects.bulk_create(rows)}
+
+
+def reads_new_to_lines(
+    *,
+    viewer_id: int,
+    reads: Sequence[OwnerRead],
+    record_ids: Sequence[str],
+    credential: str,
+    token_id: int | None,
+) -> list[OwnerRead]:
+    """A plot refresh's reads, each owner's count without the records that the line it adds to
+    holds already: a record read again (not anchored at the last refresh, checked now) is one
+    record of the line, not two; its new verdict goes under the line all the same."""
+    named = _names(Access.Kind.PLOT, viewer_id, reads, credential, token_id, None)
+    lines = _lines_recent(named)
+    if not lines:
+        return list(reads)
+    held = Counter(
+        access_id
+        for access_id, _ in Verdict.objects.filter(
+            access_id__in=lines.values(), record_id__in=record_ids
+        )
+        .order_by()  # Verdict's default ordering would join the DISTINCT
+        .values_list("access_id", "record_id")
+        .distinct()
+    )
+    return [
+        replace(read, count=max(read.count - held[lines[read.owner_id]], 0))
+        if read.owner_id in lines
+        else read
+        for read in reads
+    ]
+
+
+def _names(
+    kind: str,
+    viewer_id: int,
+    reads: Sequence[OwnerRead],
+    credential: str,
+    token_id: int | None,
+    checked_by_id: int | None,
+) -> dict[int, dict[str, Any]]:
+    """Per record owner, what names a read's line: its kind, viewer, credential, robot, topic."""
+    return {
+        read.owner_id: {
+            "kind": kind,
+            "viewer_id": viewer_id,
+            "record_owner_id": read.owner_id,
+            "checked_by_id": checked_by_id,
+            "credential": credential,
+            "token_id": token_id,
+            "robot_id": read.robot_id,
+            "topic": read.topic or "",
+        }
+        for read in reads
+    }
 
 
 def accesses_withdraw(

@@ -56,6 +56,7 @@ from sharing.verification.access import (
     accesses_open_for,
     accesses_withdraw,
     credential_check,
+    reads_new_to_lines,
 )
 from sharing.verification.answers import answer_key_make, answer_open
 from sharing.verification.budget import CheckRun, check_run
@@ -392,6 +393,14 @@ def _rows_checked(
     """records_rows_open's work, its records charged to the viewer's budget as `run`: the
     slices sent at once, then waited for in order; once one is not answered the read stops
     waiting, and its slices no worker has started are not run."""
+    if refresh:
+        reads = reads_new_to_lines(
+            viewer_id=viewer.pk,
+            reads=reads,
+            record_ids=record_ids,
+            credential=credential,
+            token_id=token_id,
+        )
     accesses = accesses_open_for(
         kind=Access.Kind.PLOT,
         viewer_id=viewer.pk,

@@ -187,3 +187,36 @@ def test_a_refresh_no_check_answered_leaves_the_plots_line_as_it_was(alice, driv
     assert answer.json()["error"] == "verification_unavailable"
     (line,) = Access.objects.filter(viewer=alice.owner)
     assert (line.count, line.verdicts.count()) == (10, 10)
+
+
+def test_a_record_read_again_by_a_refresh_is_one_record_of_the_line(
+    alice, django_capture_on_commit_callbacks
+):
+    client = session_client(alice.owner)
+    envelopes = [
+        alice.seal(
+            i + 1,
+            plaintext=odometry(alice.owner.username, *_figure_eight(i)),
+            time=_iso(T0 + timedelta(seconds=i / 10)),
+        )
+        for i in range(8)
+    ]
+    with django_capture_on_commit_callbacks(execute=True):
+        record_create_batch(robot=alice.robot, envelopes=envelopes[:5])
+    first = client.get(API, _query(alice)).json()
+    newest = str(first["points"][-1][0])
+    # Three newer records, not anchored yet: a refresh reads them and cannot draw them...
+    with django_capture_on_commit_callbacks(execute=False) as anchoring:
+        record_create_batch(robot=alice.robot, envelopes=envelopes[5:])
+    pending = client.get(API, _query(alice, after=newest)).json()
+    assert (pending["source_records"], pending["not_anchored_yet"]) == (3, 3)
+    (line,) = Access.objects.filter(viewer=alice.owner)
+    assert line.count == 8
+    # ...so the next refresh asks for them again from the same point, anchored by then: each
+    # is checked again (a verdict each time), and the line still counts 8 records, not 11.
+    for callback in anchoring:
+        callback()
+    again = client.get(API, _query(alice, after=newest)).json()
+    assert (again["source_records"], again["verified"]) == (3, 3)
+    (line,) = Access.objects.filter(viewer=alice.owner)
+    assert (line.count, line.verdicts.count()) == (8, 11)
