@@ -14,7 +14,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from authros_verify.chain import ChainReader, Receipt
-from authros_verify.values import Invalid, address, hash32, record_id, whole
+from authros_verify.values import Invalid, address, hash32, hashes32, record_id, whole
 from smcrypto.merkle import leaf_hash, proof_holds
 
 ANCHOR_FIELDS = {"chain_id", "contract", "sender", "tx", "block"}
@@ -93,9 +93,7 @@ def _root_check(
     index = whole(proof["leaf_index"], "leaf_index")
     size = whole(proof["tree_size"], "tree_size")
     root = hash32(proof["root"], "root")
-    if not isinstance(proof["path"], list):
-        raise Invalid("its path is not a list")
-    path = [hash32(step, "path") for step in proof["path"]]
+    path = hashes32(proof["path"], "path")
     if not proof_holds(leaf_hash(owner, anchored_id, digest), index, size, path, root):
         raise Invalid("its inclusion proof does not fold to its root", check="merkle path")
     anchored = chain.root_of(contract, owner, root)

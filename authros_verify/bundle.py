@@ -28,10 +28,14 @@ BUNDLE_FORMAT_V1 = "authros-export-proofs/v1"
 RECORDS_FIRST_LINE = 3
 
 
+# One encoder for every line (json.dumps with arguments makes one a call).
+_COMPACT = json.JSONEncoder(
+    sort_keys=True, separators=(",", ":"), ensure_ascii=True, allow_nan=False
+)
+
+
 def _compact(value: Any) -> str:
-    return json.dumps(
-        value, sort_keys=True, separators=(",", ":"), ensure_ascii=True, allow_nan=False
-    )
+    return _COMPACT.encode(value)
 
 
 def bundle_digest(document: dict[str, Any]) -> str:

@@ -323,13 +323,10 @@ class _RecordChecker:
         outcomes: list[_Outcome | None] = []
         for index, line in enumerate(chunk.lines, start=chunk.first):
             try:
-                entry = _strict_json(line)
-                canonical = (
-                    isinstance(entry, dict) and bundle_entry_line(entry).encode("ascii") == line
-                )
+                entry = _canonical_entry(line)
             except (UnicodeDecodeError, ValueError):
-                canonical = False
-            if not canonical:
+                entry = None
+            if entry is None:
                 outcomes.append(None)
                 break
             outcomes.append(self.outcome(index, entry))
@@ -388,7 +385,7 @@ class _Kept:
 
 # Lines handed to a process at a time, at least (a chunk ends where an upload batch does).
 CHUNK_LINES = 256
-_SIG = re.compile(rb'"sig":"([0-9a-f]{128})"')
+_SIG_FIELD = b'"sig":"'
 _FORKED: _RecordChecker | None = None  # the check a forked process runs (set before forking)
 
 
@@ -462,6 +459,14 @@ def _head_read(lines: Iterator[bytes]) -> dict | None:
     return head
 
 
+def _batch_hint(line: bytes) -> bytes | None:
+    """The batch signature a record's line states (its `"sig":"` field, last in the line's
+    sorted fields but `topic_seq` and `type`), or None: where to cut chunks, never trusted.
+    A search from the end, not a pattern over the whole line (5 KB of base64 before it)."""
+    at = line.rfind(_SIG_FIELD)
+    return None if at < 0 else line[at + len(_SIG_FIELD) : at + len(_SIG_FIELD) + 128]
+
+
 class _Scan:
     """The record lines of a bundle read once after its head, cut into chunks (an upload
     batch's lines kept together), hashed as they go by for `bundle_sm3`; `canonical` turns
@@ -503,8 +508,7 @@ class _Scan:
                     text = pending[:-1]
                     hasher.update(text if count == 0 else b"," + text)
                     count += 1
-                    found = _SIG.search(text)
-                    sig = found.group(1) if found else None
+                    sig = _batch_hint(text)
                     if len(chunk) >= 8 * CHUNK_LINES or (
                         len(chunk) >= CHUNK_LINES and sig != last_sig
                     ):
@@ -878,14 +882,19 @@ def _has_sequence(entry: Any) -> bool:
 def _strict_json(data: bytes) -> Any:
     """ASCII JSON as a bundle holds it: no field twice in an object, no NaN or Infinity.
     UnicodeDecodeError or ValueError if it is not."""
-    return json.loads(
-        data.decode("ascii"),
-        object_pairs_hook=_no_duplicates,
-        parse_constant=_no_constant,
-        # A bundle holds no fractions: one (a digit changed to "e", say) is kept as its text,
-        # which fails the form check at its own byte and every number check.
-        parse_float=str,
-    )
+    return _STRICT.decode(data.decode("ascii"))
+
+
+def _canonical_entry(line: bytes) -> dict | None:
+    """A record's line parsed once, if it is its entry's one serialisation (bundle_entry_line),
+    else None. Parsed without the duplicate-field hook: a line with a field twice cannot be
+    the serialisation of what it parses to (that has the field once), so the comparison
+    refuses it; NaN, Infinity and fractions are refused or kept as text as _strict_json does.
+    UnicodeDecodeError or ValueError if the line is not JSON."""
+    entry = _LINE.decode(line.decode("ascii"))
+    if isinstance(entry, dict) and bundle_entry_line(entry).encode("ascii") == line:
+        return entry
+    return None
 
 
 def _no_duplicates(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
@@ -897,6 +906,15 @@ def _no_duplicates(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
 
 def _no_constant(name: str) -> None:
     raise ValueError(f"{name} is not a number JSON allows")
+
+
+# Decoders made once (json.loads with arguments makes one a call). A bundle holds no
+# fractions: one (a digit changed to "e", say) is kept as its text, which fails the form
+# check at its own byte and every number check.
+_STRICT = json.JSONDecoder(
+    object_pairs_hook=_no_duplicates, parse_constant=_no_constant, parse_float=str
+)
+_LINE = json.JSONDecoder(parse_constant=_no_constant, parse_float=str)
 
 
 _RECORD_ID = re.compile(rb'"record":"([0-9a-f-]{36})"')

@@ -6,14 +6,12 @@ base64 and UUIDs, whole numbers). Each reader raises Invalid naming what is wron
 import base64
 import binascii
 import functools
-import re
 import uuid
 from datetime import UTC, datetime
 from typing import Any
 
 from eth_utils import to_checksum_address
 
-_HASH = re.compile(r"0x[0-9a-f]{64}")
 _EPOCH = datetime(1970, 1, 1, tzinfo=UTC)
 
 
@@ -27,9 +25,34 @@ class Invalid(ValueError):
 
 
 def hash32(value: Any, what: str) -> bytes:
-    if not isinstance(value, str) or not _HASH.fullmatch(value):
-        raise Invalid(f"its {what} is not 0x and 64 lowercase hex digits")
-    return bytes.fromhex(value[2:])
+    """The 32 bytes of "0x" and 64 lowercase hex digits (a digest, a root, a path's step).
+    The digits read back as themselves or it is not one: no upper case, no space."""
+    if isinstance(value, str) and len(value) == 66 and value.startswith("0x"):
+        try:
+            raw = bytes.fromhex(value[2:])
+        except ValueError:
+            raw = b""
+        if len(raw) == 32 and raw.hex() == value[2:]:
+            return raw
+    raise Invalid(f"its {what} is not 0x and 64 lowercase hex digits")
+
+
+def hashes32(values: Any, what: str) -> list[bytes]:
+    """A list of hash32 texts (a proof's path), read with one hex decoding for them all: each
+    "0x" and 64 lowercase hex digits, as hash32 says, or Invalid naming the first that is not."""
+    if not isinstance(values, list):
+        raise Invalid(f"its {what} is not a list")
+    if all(type(v) is str and len(v) == 66 and v.startswith("0x") for v in values):
+        digits = "".join([v[2:] for v in values])
+        try:
+            raw = bytes.fromhex(digits)
+        except ValueError:
+            raw = b""
+        if len(raw) == 32 * len(values) and raw.hex() == digits:
+            return [raw[i : i + 32] for i in range(0, len(raw), 32)]
+    for value in values:
+        hash32(value, what)  # names the step that is not one
+    raise Invalid(f"its {what} is not 0x and 64 lowercase hex digits")  # pragma: no cover
 
 
 def address(value: Any, what: str) -> str:
