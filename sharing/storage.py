@@ -4,8 +4,9 @@ import base64
 import hashlib
 import logging
 import os
+import threading
 from collections.abc import Sequence
-from concurrent.futures import ThreadPoolExecutor, wait
+from concurrent.futures import Future, ThreadPoolExecutor, wait
 from contextlib import suppress
 from pathlib import Path
 from typing import IO, Any
@@ -44,8 +45,19 @@ class DurableFileSystemStorage(FileSystemStorage):
     def save_durably(self, files: Sequence[tuple[str, bytes]]) -> list[str]:
         """Write new files (each name must not exist) and make them durable together: one
         sync of the file system (Linux syncfs), not two fsyncs a file; all or none."""
+        written = self.write_new(files)
+        try:
+            self.sync_written(written)
+        except BaseException:
+            _paths_remove(written)
+            raise
+        return [name for name, _ in files]
+
+    def write_new(self, files: Sequence[tuple[str, bytes]]) -> list[str]:
+        """Write new files (each name must not exist), not yet durable (`sync_written`); the
+        paths written. All or none: a failure removes those written before it."""
         written: list[str] = []
-        folders: set[Path] = set()  # made (or found) once per upload, not once per file
+        folders: set[Path] = set()  # made (or found) once per call, not once per file
         mode = self.file_permissions_mode
         try:
             for name, data in files:
@@ -63,13 +75,14 @@ class DurableFileSystemStorage(FileSystemStorage):
                         os.fchmod(fd, mode)  # on the open file: no second lookup of the path
                 finally:
                     os.close(fd)
-            _sync(written, self.location)
         except BaseException:
-            for path in written:
-                with suppress(OSError):
-                    os.remove(path)
+            _paths_remove(written)
             raise
-        return [name for name, _ in files]
+        return written
+
+    def sync_written(self, paths: Sequence[str]) -> None:
+        """Make files written by `write_new` and their directory entries durable."""
+        _sync(paths, self.location)
 
 
 class DurableS3Storage(S3Storage):
@@ -180,6 +193,103 @@ def _save_each(storage: Storage, files: Sequence[tuple[str, bytes]]) -> list[str
                 storage.delete(name)
         raise
     return saved
+
+
+# Envelopes of an upload handed to a file writer thread at a time, while the upload's next
+# ones are checked: the kernel's work of creating them runs beside the checks' Python.
+WRITE_CHUNK = 20
+_writers: tuple[int, ThreadPoolExecutor] | None = None
+_writers_lock = threading.Lock()
+
+
+def _writer_pool() -> ThreadPoolExecutor:
+    """This process's file writer threads (made again in a forked child: threads do not
+    survive a fork)."""
+    global _writers
+    with _writers_lock:
+        if _writers is None or _writers[0] != os.getpid():
+            _writers = (os.getpid(), ThreadPoolExecutor(2, thread_name_prefix="envelope-files"))
+        return _writers[1]
+
+
+class EnvelopeWriter:
+    """The files of one upload, written while the upload is still being checked (local disk:
+    WRITE_CHUNK at a time by a writer thread; other storage: all at once in `durable`).
+    `durable` answers their names once every file is written and synced, all or none
+    (StorageUnavailable); `discard` removes whatever was written, for an upload refused or
+    failed before or after. Nothing is durable, or answered stored, before `durable`."""
+
+    def __init__(self, storage: Storage) -> None:
+        self._storage = storage
+        self._local = isinstance(storage, DurableFileSystemStorage)
+        self._files: list[tuple[str, bytes]] = []
+        self._chunk: list[tuple[str, bytes]] = []
+        self._pending: list[Future[list[str]]] = []
+        self._written: list[str] = []
+        self._saved: list[str] = []  # names saved by envelopes_save (storage not local)
+
+    def add(self, name: str, data: bytes) -> None:
+        self._files.append((name, data))
+        if self._local:
+            self._chunk.append((name, data))
+            if len(self._chunk) >= WRITE_CHUNK:
+                self._pending.append(_writer_pool().submit(self._storage.write_new, self._chunk))
+                self._chunk = []
+
+    def durable(self) -> list[str]:
+        """Every file written and durable; their names, in the order added."""
+        if not self._local:
+            self._saved = envelopes_save(self._storage, self._files)
+            return self._saved
+        try:
+            if self._chunk:  # the last few (a single envelope's upload: all) in this thread
+                self._written.extend(self._storage.write_new(self._chunk))
+                self._chunk = []
+            failure = self._collect()
+            if failure is not None:
+                raise failure
+            self._storage.sync_written(self._written)
+        except OSError as exc:
+            self.discard()
+            logger.error("envelope storage refused %d files: %s", len(self._files), exc)
+            raise StorageUnavailable(
+                "the portal could not store the envelopes durably; nothing was stored, send "
+                "them again"
+            ) from exc
+        except BaseException:
+            self.discard()
+            raise
+        return [name for name, _ in self._files]
+
+    def discard(self) -> None:
+        """Remove every file of the upload written so far (waiting for those in hand)."""
+        self._chunk = []
+        self._collect()
+        _paths_remove(self._written)
+        self._written = []
+        storage = self._storage
+        for name in self._saved:
+            with suppress(OSError):
+                storage.delete(name)
+        self._saved = []
+
+    def _collect(self) -> BaseException | None:
+        """Wait for the writer thread's chunks; the first failure, if one failed (a chunk
+        that failed left none of its files)."""
+        failure = None
+        for future in self._pending:
+            try:
+                self._written.extend(future.result())
+            except BaseException as exc:
+                failure = failure or exc
+        self._pending = []
+        return failure
+
+
+def _paths_remove(paths: Sequence[str]) -> None:
+    for path in paths:
+        with suppress(OSError):
+            os.remove(path)
 
 
 def envelope_storage() -> Storage:

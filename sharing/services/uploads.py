@@ -15,14 +15,14 @@ before (a tombstone too) or twice in one upload, refuses the whole upload.
 
 import logging
 import uuid
-from collections.abc import Sequence
-from contextlib import suppress
-from dataclasses import dataclass
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, replace
 from datetime import UTC, datetime, timedelta
-from typing import NoReturn
+from typing import Any, NoReturn
 
 from django.conf import settings
-from django.db import IntegrityError, transaction
+from django.core.exceptions import ImproperlyConfigured
+from django.db import IntegrityError, connections, models, router, transaction
 from django.db.models import Q
 from django.utils import timezone
 from redis.exceptions import RedisError
@@ -32,7 +32,7 @@ from accounts.models import ChainState, OwnerKey, Robot
 from accounts.selectors import owner_key_bytes, owner_keys
 from core.commits import commits_durable
 from core.redis_client import get_redis
-from core.rows import FixedInsert, FixedUpdate
+from core.rows import FixedUpdate
 from sharing.cache import envelope_cache_put_queued
 from sharing.disk import disk_room_check
 from sharing.errors import (
@@ -49,9 +49,10 @@ from sharing.errors import (
 )
 from sharing.models import Record, SecurityEvent
 from sharing.services.anchoring import anchor_schedule_queued
-from sharing.storage import envelope_storage, envelopes_save
+from sharing.storage import EnvelopeWriter, envelope_storage
 from smcrypto import CryptoError, envelope, provenance, sm3
 from smcrypto.errors import SignatureInvalid, SignerMismatch
+from smcrypto.merkle import MerkleTree
 
 logger = logging.getLogger(__name__)
 security_log = logging.getLogger("authros.security")
@@ -74,9 +75,11 @@ class _CheckedUpload:
     captured_at: datetime
     digest: str  # SM3 of data, hex
     signer: str  # the robot key that signed it (hex), or "" (a robot added by hand)
-    # The robot's signature left to verify (with the others of the upload), None if unsigned.
+    # The robot's signature left to verify (with the others of the upload), None if unsigned;
+    # _PENDING for a v2 record until its batch is seen whole (_batch_claims).
     claim: provenance.SignatureClaim | None
     topic_seq: int | None  # a v2 record's place in its signer's count of the topic
+    plaintext: bytes = b""  # kept for a v2 record until its claim is made
 
 
 def record_create(*, robot: Robot, data: bytes) -> Record:
@@ -92,7 +95,120 @@ _ROBOT_SEQ_MOVE = FixedUpdate(
     where="id = %s AND last_seq < %s",
     params_of=("id", "last_seq"),
 )
-_RECORD_INSERT = FixedInsert(Record)
+
+
+class _UploadRows:
+    """An upload's Record rows INSERTed by one prepared statement run for each row
+    (executemany of tuples): the columns every record of an upload shares (its owner and
+    robot, the defaults, created_at) prepared once per upload by their fields, the ones of
+    each record's own as their fields would prepare them: text and integers as they are (the
+    exact CharField and integer classes hand them on unchanged), the id and capture time
+    through their fields."""
+
+    # Each record's own columns, from its _CheckedUpload (and its file's name).
+    OWN = (
+        "id",
+        "topic",
+        "data_type",
+        "seq",
+        "captured_at",
+        "key_id",
+        "digest",
+        "signer",
+        "topic_seq",
+        "size",
+        "storage_name",
+    )
+    _AS_IS = (models.CharField, models.BigIntegerField, models.PositiveIntegerField)
+
+    def __init__(self) -> None:
+        self._fields = list(Record._meta.concrete_fields)
+        names = [field.attname for field in self._fields]
+        unknown = set(self.OWN) - set(names)
+        if unknown:
+            raise ImproperlyConfigured(f"Record has no column(s) {sorted(unknown)}")
+        self._own = {field.attname: field for field in self._fields if field.attname in self.OWN}
+        self._sql: dict[str, str] = {}
+
+    def insert(
+        self, robot: Robot, checked: Sequence[_CheckedUpload], names: Sequence[str]
+    ) -> list[Record]:
+        alias = router.db_for_write(Record)
+        connection = connections[alias]
+        # The shared columns, their values and as prepared, once: the new record's
+        # defaults, its owner and robot, and created_at (pre_save: one moment an upload).
+        template = Record(owner_id=robot.owner_id, robot_id=robot.pk)
+        shared = {}
+        for field in self._fields:
+            if field.attname not in self._own:
+                value = field.pre_save(template, True)
+                shared[field.attname] = (value, field.get_db_prep_save(value, connection))
+        prepare = [self._preparer(field, connection) for field in self._fields]
+        records, rows = [], []
+        for upload, name in zip(checked, names, strict=True):
+            own = {
+                "id": upload.record_id,
+                "topic": upload.header["topic"],
+                "data_type": upload.header["type"],
+                "seq": upload.header["seq"],
+                "captured_at": upload.captured_at,
+                "key_id": upload.key.key_id,
+                "digest": upload.digest,
+                "signer": upload.signer,
+                "topic_seq": upload.topic_seq,
+                "size": len(upload.data),
+                "storage_name": name,
+            }
+            values, row = [], []
+            for field, own_prepared in zip(self._fields, prepare, strict=True):
+                if own_prepared is None:
+                    value, prepared = shared[field.attname]
+                else:
+                    value = own[field.attname]
+                    prepared = own_prepared(value)
+                values.append(value)
+                row.append(prepared)
+            # Positional, in the order of the concrete fields, as Model.from_db builds one.
+            record = Record(*values)
+            Record.robot.field.set_cached_value(record, robot)
+            records.append(record)
+            rows.append(row)
+        sql = self._sql.get(alias)
+        if sql is None:
+            sql = self._sql[alias] = self._build(connection)
+        with connection.cursor() as cursor:
+            cursor.executemany(sql, rows)
+        for record in records:
+            record._state.adding = False
+            record._state.db = alias
+        return records
+
+    def _preparer(self, field: models.Field, connection: Any) -> Callable[[object], object] | None:
+        """How one record's own value of `field` reaches the database; None if shared."""
+        if field.attname not in self._own:
+            return None
+        if type(field) in self._AS_IS:
+            integer = field.get_internal_type() if type(field) is not models.CharField else None
+
+            def as_is(value: object) -> object:
+                kind = type(value)
+                if kind is str and integer is None:
+                    return value
+                if kind is int and integer is not None:
+                    return connection.ops.adapt_integerfield_value(value, integer)
+                return field.get_db_prep_save(value, connection)
+
+            return as_is
+        return lambda value: field.get_db_prep_save(value, connection)
+
+    def _build(self, connection: Any) -> str:
+        quote = connection.ops.quote_name
+        columns = ", ".join(quote(field.column) for field in self._fields)
+        values = ", ".join(["%s"] * len(self._fields))
+        return f"INSERT INTO {quote(Record._meta.db_table)} ({columns}) VALUES ({values})"  # noqa: S608
+
+
+_RECORD_ROWS = _UploadRows()
 
 
 def record_create_batch(*, robot: Robot, envelopes: Sequence[bytes]) -> list[Record]:
@@ -113,19 +229,28 @@ def record_create_batch(*, robot: Robot, envelopes: Sequence[bytes]) -> list[Rec
     # The owner's commitment on chain must be the key the envelopes are sealed under.
     owner_identity_check(owner=robot.owner, keys=owner_keys_read)
     keys = _UploadKeys(owner_keys_read, robot)
-    checked = [_check_upload(robot, data, keys) for data in envelopes]
-    seqs = [c.header["seq"] for c in checked]
-    if seqs != sorted(set(seqs)):
-        raise InvalidEnvelope("sequence numbers in one upload must strictly increase")
-    _signatures_hold(robot, checked)
-    _topic_seqs_distinct(robot, checked)
-    disk_room_check(sum(len(upload.data) for upload in checked))
+    disk_room_check(sum(len(data) for data in envelopes))
     # The files first, durable before the transaction starts: the robot's row lock (and
-    # SQLite's write lock) is then held for the rows alone, not for a disk sync. Files of an
-    # upload refused or failed below are removed again.
-    names = envelopes_save(
-        envelope_storage(), [(f"{robot.owner_id}/{c.record_id}.env", c.data) for c in checked]
-    )
+    # SQLite's write lock) is then held for the rows alone, not for a disk sync. They are
+    # written as the envelopes pass their checks (a writer thread beside the checks), made
+    # durable once all are checked; those of an upload refused or failed are removed again.
+    files = EnvelopeWriter(envelope_storage())
+    try:
+        checked = []
+        for data in envelopes:
+            upload = _check_upload(robot, data, keys)
+            checked.append(upload)
+            files.add(f"{robot.owner_id}/{upload.record_id}.env", upload.data)
+        checked = _batch_claims(robot, checked)
+        seqs = [c.header["seq"] for c in checked]
+        if seqs != sorted(set(seqs)):
+            raise InvalidEnvelope("sequence numbers in one upload must strictly increase")
+        _signatures_hold(robot, checked)
+        _topic_seqs_distinct(robot, checked)
+        names = files.durable()
+    except BaseException:
+        files.discard()  # refused (each refusal raised its own alarm) or failed
+        raise
     try:
         try:
             records = _records_insert(robot, checked, seqs, names)
@@ -136,7 +261,7 @@ def record_create_batch(*, robot: Robot, envelopes: Sequence[bytes]) -> list[Rec
             raise
     except BaseException as refused:
         # Nothing of a refused or failed upload stays behind, not even its files.
-        _files_forget(names)
+        files.discard()
         if isinstance(refused, SequenceConflict):
             _sequence_conflict_alarm(robot, refused.detail)  # outside the refused transaction
         elif isinstance(refused, TopicSeqReused):
@@ -170,25 +295,7 @@ def _records_insert(
             last_seq = Robot.objects.values_list("last_seq", flat=True).get(pk=robot.pk)
             _sequence_check(robot, checked, last_seq=last_seq)
         _topic_seqs_unused(robot, checked)
-        records = [
-            Record(
-                id=upload.record_id,
-                owner_id=robot.owner_id,
-                robot=robot,
-                topic=upload.header["topic"],
-                data_type=upload.header["type"],
-                seq=upload.header["seq"],
-                captured_at=upload.captured_at,
-                key_id=upload.key.key_id,
-                digest=upload.digest,
-                signer=upload.signer,
-                topic_seq=upload.topic_seq,
-                size=len(upload.data),
-                storage_name=name,
-            )
-            for upload, name in zip(checked, names, strict=True)
-        ]
-        _RECORD_INSERT.insert(records)
+        records = _RECORD_ROWS.insert(robot, checked, names)
         transaction.on_commit(lambda: _after_upload(robot.owner_id, checked))
     return records
 
@@ -307,13 +414,6 @@ def _sequence_conflict_alarm(robot: Robot, detail: dict) -> None:
     )
 
 
-def _files_forget(names: Sequence[str]) -> None:
-    storage = envelope_storage()
-    for name in names:
-        with suppress(OSError):
-            storage.delete(name)
-
-
 def _after_upload(owner_id: int, uploads: Sequence[_CheckedUpload]) -> None:
     """Cache the envelopes and queue the owner's anchoring, in one round trip to Redis."""
     items = [(upload.record_id, upload.data) for upload in uploads]
@@ -402,23 +502,33 @@ def _check_upload(robot: Robot, data: bytes, keys: _UploadKeys) -> _CheckedUploa
     if captured_at < EPOCH:
         # The chain stores capture times as unsigned microseconds since 1970.
         raise InvalidEnvelope("the capture time must be 1970-01-01T00:00:00Z or later")
-    signer, claim = _signature_claim(robot, header, plaintext)
-    topic_seq = header["topic_seq"] if envelope.provenance_format(header) == "v2" else None
+    v2 = envelope.provenance_format(header) == "v2"
+    signer, claim = _signature_claim(robot, header, plaintext, deferred=v2)
     data = bytes(data)
     return _CheckedUpload(
-        uuid.uuid4(), data, header, key, captured_at, sm3.sm3_hex(data), signer, claim, topic_seq
+        uuid.uuid4(),
+        data,
+        header,
+        key,
+        captured_at,
+        sm3.sm3_hex(data),
+        signer,
+        claim,
+        header["topic_seq"] if v2 else None,
+        bytes(plaintext) if claim is _PENDING else b"",
     )
 
 
 def _signature_claim(
-    robot: Robot, header: dict, plaintext: bytes
+    robot: Robot, header: dict, plaintext: bytes, *, deferred: bool = False
 ) -> tuple[str, provenance.SignatureClaim | None]:
     """The robot key that signed the envelope (DESIGN.md "Provenance", v1 or v2 as its header
     says) and its signature left to verify (`_signatures_hold`), or ("", None) for a robot
     added by hand that signs nothing. A paired robot's envelope must carry `signer` and `sig`
     and name the robot's own key; a v2 one must fold up its batch path to a root its signature
     can be over; a robot added by hand has no key, so an envelope of its naming one is refused
-    too. Each refusal is a SecurityEvent."""
+    too. Each refusal is a SecurityEvent. With `deferred` (a v2 record), the claim is
+    _PENDING once the signer holds: _batch_claims makes it with the rest of its batch."""
     signed = "signer" in header or "sig" in header
     if not robot.key_hash and not signed:
         return "", None
@@ -438,8 +548,15 @@ def _signature_claim(
             "this robot's key could not be registered on chain for its owner: pair the robot "
             "again (a new key)"
         )
+    if deferred:
+        return robot.key_hash, _PENDING
+    return robot.key_hash, _claim_made(robot, header, plaintext)
+
+
+def _claim_made(robot: Robot, header: dict, plaintext: bytes) -> provenance.SignatureClaim:
+    """provenance.signature_claim of one record, its refusals SecurityEvents."""
     try:
-        return robot.key_hash, provenance.signature_claim(robot.public_key, header, plaintext)
+        return provenance.signature_claim(robot.public_key, header, plaintext)
     except SignerMismatch:
         _signature_refused(robot, header, SecurityEvent.Kind.FOREIGN_SIGNER)
         raise SignatureRefused("the envelope is signed by a key that is not this robot's") from None
@@ -448,6 +565,53 @@ def _signature_claim(
         raise SignatureRefused(
             f"the envelope's robot signature cannot hold: {exc}; nothing of the upload is stored"
         ) from None
+
+
+# A v2 record's claim before its batch is seen whole.
+_PENDING = provenance.SignatureClaim(public_key="", message=b"", sig="")
+
+
+def _batch_claims(robot: Robot, checked: list[_CheckedUpload]) -> list[_CheckedUpload]:
+    """The v2 records' claims, each batch's tree built once: a batch whose records are all in
+    the upload, each at its own sig_index, has its tree built from their leaves, and each
+    record whose sig_path is that tree's path of its index folds to the tree's root (the same
+    claim for all: one record's made by provenance.signature_claim, with every check of its
+    signer and shape). Any other v2 record (a path not the tree's, a batch not whole) has its
+    own claim folded up its own path, as provenance.signature_claim makes it."""
+    batches: dict[tuple[str, int], dict[int, int]] = {}
+    for place, upload in enumerate(checked):
+        if upload.claim is _PENDING:
+            by_index = batches.setdefault((upload.header["sig"], upload.header["sig_size"]), {})
+            by_index.setdefault(upload.header["sig_index"], place)
+    claims: dict[int, provenance.SignatureClaim] = {}
+    for (_sig, size), by_index in batches.items():
+        if len(by_index) != size:
+            continue  # not whole here (or an index twice): each record folds its own path
+        places = [by_index[index] for index in range(size)]
+        try:
+            tree = MerkleTree(
+                [provenance.batch_leaf(checked[at].header, checked[at].plaintext) for at in places]
+            )
+        except SignatureInvalid:
+            continue  # refused below, by the record's own claim
+        claim = None
+        for index, at in enumerate(places):
+            if checked[at].header["sig_path"] != b"".join(tree.path(index)).hex():
+                continue
+            if claim is None:
+                upload = checked[at]
+                claim = _claim_made(robot, upload.header, upload.plaintext)
+            claims[at] = claim
+    return [
+        upload
+        if upload.claim is not _PENDING
+        else replace(
+            upload,
+            claim=claims.get(place) or _claim_made(robot, upload.header, upload.plaintext),
+            plaintext=b"",
+        )
+        for place, upload in enumerate(checked)
+    ]
 
 
 def _signatures_hold(robot: Robot, checked: Sequence[_CheckedUpload]) -> None:

@@ -172,7 +172,7 @@ def test_a_batch_the_database_refuses_leaves_no_file_behind(make_robot, monkeypa
     def disk_full(*args, **kwargs):
         raise DatabaseError("disk full")
 
-    monkeypatch.setattr(uploads_module._RECORD_INSERT, "insert", disk_full)
+    monkeypatch.setattr(uploads_module._RECORD_ROWS, "insert", disk_full)
     with pytest.raises(DatabaseError):
         record_create_batch(robot=setup.robot, envelopes=[setup.seal(seq) for seq in (1, 2, 3)])
     _batch_left_nothing(setup)
@@ -197,6 +197,77 @@ def test_a_batch_whose_third_file_fails_leaves_no_file_behind(make_robot, monkey
     monkeypatch.undo()
     assert len(written) == 2
     _batch_left_nothing(setup)
+
+
+def test_a_batch_whose_file_fails_in_the_writer_thread_leaves_no_file_behind(
+    make_robot, monkeypatch
+):
+    """Files are written WRITE_CHUNK at a time beside the checks: a chunk that fails there
+    refuses the upload (503) and takes the chunks written before it with it."""
+    setup = make_robot()
+    count = 2 * storage_module.WRITE_CHUNK + 5
+    real_write = storage_module.os.write
+    written = []
+
+    def fails_in_the_second_chunk(fd: int, data: bytes) -> int:
+        if len(written) == storage_module.WRITE_CHUNK + 3:
+            raise OSError(28, "No space left on device")
+        written.append(fd)
+        return real_write(fd, data)
+
+    envelopes = [setup.seal(seq) for seq in range(1, count + 1)]
+    monkeypatch.setattr(storage_module.os, "write", fails_in_the_second_chunk)
+    with pytest.raises(errors.StorageUnavailable) as refused:
+        record_create_batch(robot=setup.robot, envelopes=envelopes)
+    assert refused.value.http_status == 503
+    monkeypatch.undo()
+    _batch_left_nothing(setup)
+
+
+def test_a_batch_refused_after_files_were_written_leaves_no_file_behind(make_robot):
+    """The last envelope names another robot: the files of those checked before it, written
+    already, are removed with the refusal."""
+    setup = make_robot()
+    count = 2 * storage_module.WRITE_CHUNK + 5
+    envelopes = [setup.seal(seq) for seq in range(1, count)]
+    envelopes.append(setup.seal(count, robot_id="00000000-0000-4000-8000-000000000000"))
+    with pytest.raises(errors.HeaderMismatch):
+        record_create_batch(robot=setup.robot, envelopes=envelopes)
+    _batch_left_nothing(setup)
+
+
+def test_a_batch_of_more_than_a_chunk_is_stored_whole_with_the_rows_the_orm_reads(make_robot):
+    """The rows go in as prepared tuples: read back through the ORM, each has its own
+    columns, the defaults of a new record, one created_at, and its file."""
+    setup = make_robot()
+    count = 2 * storage_module.WRITE_CHUNK + 5
+    envelopes = [setup.seal(seq, topic=f"/t{seq % 3}") for seq in range(1, count + 1)]
+    before = timezone.now()
+    returned = record_create_batch(robot=setup.robot, envelopes=envelopes)
+    stored = list(Record.objects.order_by("seq"))
+    assert [r.pk for r in stored] == [r.pk for r in returned]
+    assert len({r.created_at for r in stored}) == 1
+    assert before <= stored[0].created_at <= timezone.now()
+    for record, data in zip(stored, envelopes, strict=True):
+        header = envelope.read_header(data).header
+        assert (record.topic, record.data_type, record.seq) == (
+            header["topic"],
+            header["type"],
+            header["seq"],
+        )
+        assert record.captured_at.isoformat().replace("+00:00", "Z") == header["time"]
+        assert (record.owner_id, record.robot_id) == (setup.owner.pk, setup.robot.pk)
+        assert (record.digest, record.size) == (sm3.sm3_hex(data), len(data))
+        assert (record.status, record.anchor_attempts, record.tx_hash) == ("pending", 0, "")
+        assert (record.topic_seq, record.anchor_root_id, bytes(record.merkle_path)) == (
+            None,
+            None,
+            b"",
+        )
+        assert record.deleted_at is None
+        assert record.signer == ""
+        with envelope_storage().open(record.storage_name) as stored_file:
+            assert stored_file.read() == data
 
 
 def test_without_syncfs_every_file_and_folder_is_fsynced(make_robot, monkeypatch):

@@ -41,6 +41,28 @@ def test_a_v2_batch_is_verified_once_and_stored_with_its_topic_seqs(
     assert set(Record.objects.values_list("status", flat=True)) == {Record.Status.ANCHORED}
 
 
+def test_a_whole_batch_builds_its_tree_once_and_part_of_one_folds_each_path(
+    make_paired_robot, verifications, monkeypatch
+):
+    """A batch whose records are all in the upload is folded once (one claim made for it);
+    the records of a batch only partly in the upload each fold their own path, and hold."""
+    setup = make_paired_robot("alice")
+    claims_made = []
+    real_claim = provenance.signature_claim
+
+    def counting(*args):
+        claims_made.append(args[1]["seq"])
+        return real_claim(*args)
+
+    monkeypatch.setattr(provenance, "signature_claim", counting)
+    whole = seal_batch(setup, range(1, 31), topic_seqs=range(30))
+    part = seal_batch(setup, range(31, 35), topic_seqs=range(30, 34))[:2]
+    record_create_batch(robot=setup.robot, envelopes=whole + part)
+    assert claims_made == [1, 31, 32]
+    assert verifications == [2]  # two batches, two SM2 verifications
+    assert Record.objects.count() == 32
+
+
 def test_v1_from_a_paired_robot_is_still_taken_with_no_topic_seq(make_paired_robot):
     """Older agents sign each envelope (v1): accepted, and counted by no stream."""
     setup = make_paired_robot("alice")
@@ -86,6 +108,13 @@ def _another_batch_signature(setup):
     return batch_sealed(setup, signed)
 
 
+def _path_of_another_index(setup):
+    """A record carrying another record's path: well formed, not its place in the tree."""
+    signed = batch_signed(setup, [1, 2, 3], topic_seqs=[0, 1, 2])
+    signed[1][0]["sig_path"] = signed[0][0]["sig_path"]
+    return batch_sealed(setup, signed)
+
+
 def _changed_topic_seq(setup):
     """topic_seq is under the signature: renumbering a record breaks its leaf."""
     signed = batch_signed(setup, [1, 2, 3], topic_seqs=[0, 1, 2])
@@ -95,8 +124,22 @@ def _changed_topic_seq(setup):
 
 @pytest.mark.parametrize(
     "forge",
-    [_changed_record, _swapped_index, _wrong_size, _another_batch_signature, _changed_topic_seq],
-    ids=["changed-record", "swapped-index", "wrong-size", "other-batch-sig", "renumbered"],
+    [
+        _changed_record,
+        _swapped_index,
+        _wrong_size,
+        _another_batch_signature,
+        _path_of_another_index,
+        _changed_topic_seq,
+    ],
+    ids=[
+        "changed-record",
+        "swapped-index",
+        "wrong-size",
+        "other-batch-sig",
+        "path-of-another",
+        "renumbered",
+    ],
 )
 def test_a_batch_with_one_record_not_as_signed_is_refused_whole(make_paired_robot, forge):
     setup = make_paired_robot("alice")
