@@ -212,7 +212,10 @@ def test_pair_in_the_browser_then_rotate_while_offline_and_lose_nothing(
             back_online = datetime.now(UTC)
             stack.start_web()
             wait_until(
-                lambda: not spool_queued(spool), 120, "the spool draining after the rotation"
+                lambda: not spool_queued(spool),
+                120,
+                "the spool draining after the rotation",
+                logs=[agent_log, *sorted(stack.logs.glob("*.log"))],
             )
         assert stop_process(agent, signal.SIGINT) == 0
 

@@ -19,7 +19,7 @@ import subprocess
 import sys
 import time
 import xmlrpc.client
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -183,11 +183,20 @@ def published_odometry(sim_log: Path) -> Callable[[dict], dict]:
     return at
 
 
-def wait_until(condition: Callable[[], object], timeout: float, what: str) -> None:
+def wait_until(
+    condition: Callable[[], object], timeout: float, what: str, *, logs: Sequence[Path] = ()
+) -> None:
+    """Wait for `condition`; on a timeout, the failure shows the end of each of `logs` (what
+    the processes under test said meanwhile)."""
     deadline = time.monotonic() + timeout
     while not condition():
         if time.monotonic() > deadline:
-            raise AssertionError(f"timed out after {timeout} s waiting for {what}")
+            tails = "".join(
+                f"\n--- the end of {log} ---\n{log.read_text(errors='replace')[-4000:]}"
+                for log in logs
+                if log.exists()
+            )
+            raise AssertionError(f"timed out after {timeout} s waiting for {what}{tails}")
         time.sleep(0.05)
 
 
