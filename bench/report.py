@@ -1234,15 +1234,19 @@ def _section_series_variants(report: dict[str, Any]) -> str:
         "|---|---|---|---|---|---|---|---|---|---|",
     ]
     for row in rows:
-        p95 = "-" if row["p95_s"] is None else f"{row['p95_s']:.2f}"
+        # The scale's reads and the pages' first plots say how many records they checked.
+        path = row["path"]
+        if path not in ("per record", "series"):
+            path += f" ({row['records']:,} records)"
         lines.append(
-            f"| {row['variant']} | {row['path']} | {row['p50_s']:.2f} | {p95} | "
-            f"{row['web_cpu_ms_per_record']:.3f} | {row['workers_cpu_ms_per_record']:.3f} | "
+            f"| {row['variant']} | {path} | {row['p50_s']:.2f} | {_num(row.get('p95_s'), 2)} | "
+            f"{_num(row.get('web_cpu_ms_per_record'), 3)} | "
+            f"{_num(row.get('workers_cpu_ms_per_record'), 3)} | "
             f"{_ratio(row.get('p50_ratio_vs_per_record'))} | "
             f"{_ratio(row.get('p50_ratio_vs_unsigned'))} | "
             f"{_ratio(row.get('web_cpu_ratio_vs_unsigned'))}, "
             f"{_ratio(row.get('workers_cpu_ratio_vs_unsigned'))} | "
-            f"{_pct(row['others_cpu_share'])} |"
+            f"{_pct(row.get('others_cpu_share'))} |"
         )
     met = report.get("goal_met", {})
     judged = ", ".join(

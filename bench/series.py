@@ -123,6 +123,8 @@ class SeriesRun:
     batch_max: int = 100
     max_wait: float = MAKE_RUN_ANCHOR_MAX_WAIT
     variants: tuple[str, ...] = VARIANTS
+    scale: tuple[int, ...] = ()  # series reads over the first N records too (how cost grows)
+    first_plots: bool = False  # the record and robot pages' first plot, in Chromium
 
     def describe(self) -> str:
         return (
@@ -294,6 +296,13 @@ def measure(run: SeriesRun) -> dict[str, Any]:
         token = viewer_token(owner)
         cpu = _Cpu(stack)
         series = _series_reads(stack, run, cpu, robots, token, start, until)
+        scale = {
+            count: _series_reads(
+                stack, run, cpu, robots, token, start, start + timedelta(seconds=count / RATE_HZ)
+            )
+            for count in run.scale
+        }
+        plots = _first_plots(stack, run, owner, robots) if run.first_plots else {}
         for variant, robot in robots.items():
             ids = list(
                 Record.objects.filter(robot=robot)
@@ -304,6 +313,8 @@ def measure(run: SeriesRun) -> dict[str, Any]:
             sample = [str(pk) for pk in ids[::step][: run.per_record_sample]]
             found[variant] |= {
                 "series": series[variant],
+                "scale": {str(count): reads[variant] for count, reads in scale.items()},
+                "first_plots": plots.get(variant, {}),
                 "per_record": _per_record_reads(stack, run, cpu, token, sample),
                 "trees": Record.objects.filter(robot=robot)
                 .values("anchor_root")
@@ -384,6 +395,77 @@ def _series_reads(
     return found
 
 
+# Debian's Chromium, as the browser tests run it; nothing leaves the machine.
+CHROMIUM = "/usr/bin/chromium"
+CHROMIUM_ARGS = [
+    "--no-sandbox",
+    "--disable-gpu",
+    "--no-first-run",
+    "--disable-background-networking",
+]
+FIRST_PLOTS = (
+    # (path, the page's plot): the robot page plots its last 10 minutes, the record page the
+    # 5 minutes either side of a record in the middle of the range.
+    ("first plot, robot page", "robot-plot"),
+    ("first plot, record page", "trajectory-plot"),
+)
+
+
+def _first_plots(
+    stack: BenchStack, run: SeriesRun, owner: Any, robots: dict[str, Any]
+) -> dict[str, dict[str, Any]]:
+    """Each page's first plot as an owner sees it, run.series_rounds times per robot: logged
+    in, in a fresh browser context (no cache), from asking for the page to its plot drawn
+    (`data-state` "ready": every record of its window checked); what it checked."""
+    import secrets
+
+    from playwright.sync_api import sync_playwright
+
+    from sharing.models import Record
+
+    password = secrets.token_urlsafe(18)
+    owner.user.set_password(password)
+    owner.user.save(update_fields=["password"])
+    pages = {}  # the ORM's reads before Playwright's loop runs in this thread
+    for variant, robot in robots.items():
+        ids = list(
+            Record.objects.filter(robot=robot).order_by("captured_at").values_list("pk", flat=True)
+        )
+        pages[variant] = {
+            "robot-plot": f"{stack.web_url}/robots/{robot.pk}/",
+            "trajectory-plot": f"{stack.web_url}/records/{ids[len(ids) // 2]}/",
+        }
+    found: dict[str, dict[str, Any]] = {}
+    with sync_playwright() as playwright:
+        browser = playwright.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
+        try:
+            for variant in robots:
+                for path, plot in FIRST_PLOTS:
+                    seconds, verified = [], []
+                    for _ in range(run.series_rounds):
+                        context = browser.new_context(viewport={"width": 1280, "height": 900})
+                        page = context.new_page()
+                        page.goto(f"{stack.web_url}/login/")
+                        page.fill("#id_username", owner.user.username)
+                        page.fill("#id_password", password)
+                        page.click("#login-submit")
+                        page.wait_for_url("**/dashboard/")
+                        sent = time.perf_counter()
+                        page.goto(pages[variant][plot])
+                        ready = page.locator(f"[data-testid={plot}][data-state=ready]")
+                        ready.wait_for(timeout=600_000)
+                        seconds.append(time.perf_counter() - sent)
+                        verified.append(int(ready.get_attribute("data-verified") or 0))
+                        context.close()
+                    found.setdefault(variant, {})[path] = {
+                        "seconds": seconds,
+                        "verified": verified,
+                    }
+        finally:
+            browser.close()
+    return found
+
+
 def _per_record_reads(
     stack: BenchStack, run: SeriesRun, cpu: _Cpu, token: str, sample: list[str]
 ) -> dict[str, Any]:
@@ -441,6 +523,36 @@ def _rows(measured: dict[str, Any], run: SeriesRun) -> list[dict[str, Any]]:
             row[f"{key}_ratio_vs_per_record"] = _ratio(row[source], baseline[source])
             baseline[f"{key}_ratio_vs_per_record"] = 1.0
         rows += [baseline, row]
+        for count, reads in found.get("scale", {}).items():
+            part = summarize(reads["seconds"])
+            rows.append(
+                {
+                    "variant": variant,
+                    "path": "series, first records",
+                    "records": int(count),
+                    "p50_s": part["median_ms"],
+                    "p95_s": part["p95_ms"],
+                    "mean_s": part["mean_ms"],
+                    "web_cpu_ms_per_record": reads["web_cpu_ms_per_record"],
+                    "workers_cpu_ms_per_record": reads["workers_cpu_ms_per_record"],
+                    "others_cpu_share": reads["others_cpu_share"],
+                    "answers": reads["answers"],
+                }
+            )
+        for path, plots in found.get("first_plots", {}).items():
+            drawn = summarize(plots["seconds"])
+            rows.append(
+                {
+                    "variant": variant,
+                    "path": path,
+                    "records": max(plots["verified"]),
+                    "p50_s": drawn["median_ms"],
+                    "p95_s": drawn["p95_ms"],
+                    "mean_s": drawn["mean_ms"],
+                    "verified": plots["verified"],
+                    "rounds": len(plots["seconds"]),
+                }
+            )
     ratios_vs_unsigned(rows)
     return rows
 
@@ -460,19 +572,19 @@ def ratios_vs_unsigned(rows: list[dict[str, Any]]) -> None:
         base = unsigned.get(row["path"])
         for key, source in RATIO_SOURCES.items():
             row[f"{key}_ratio_vs_unsigned"] = (
-                _ratio(row[source], base[source]) if base is not None else None
+                _ratio(row.get(source), base.get(source)) if base is not None else None
             )
 
 
 def ratios_vs_baseline(rows: list[dict[str, Any]], baseline: list[dict[str, Any]]) -> None:
     """Each row's figures over the baseline's row of the same variant and path, as
     "<key>_ratio_vs_baseline" (None where the baseline has no such row)."""
-    base = {(row["variant"], row["path"]): row for row in baseline}
+    base = {(row["variant"], row["path"], row["records"]): row for row in baseline}
     for row in rows:
-        other = base.get((row["variant"], row["path"]))
+        other = base.get((row["variant"], row["path"], row["records"]))
         for key, source in RATIO_SOURCES.items():
             row[f"{key}_ratio_vs_baseline"] = (
-                _ratio(row[source], other.get(source)) if other is not None else None
+                _ratio(row.get(source), other.get(source)) if other is not None else None
             )
 
 
@@ -550,6 +662,17 @@ def main(argv: list[str]) -> int:
         help="commit measured first by its own bench, the same way (default: the branch's "
         "merge base with main; '' for none)",
     )
+    parser.add_argument(
+        "--scale",
+        default="",
+        help="series reads over the first N records too, comma-separated counts below "
+        "--records (how the cost grows; default none)",
+    )
+    parser.add_argument(
+        "--first-plots",
+        action="store_true",
+        help="also time the record and robot pages' first plot in Chromium",
+    )
     parser.add_argument("--workers", type=int, default=2, help="chain worker pool processes")
     parser.add_argument("--web-workers", type=int, default=0, help="0: as make run sizes it")
     parser.add_argument("--redis-url", default=BENCH_REDIS_URL)
@@ -564,6 +687,12 @@ def main(argv: list[str]) -> int:
         args.records, args.rounds, args.sample = 1_000, 2, 30
     if min(args.records, args.rounds, args.sample) < 1:
         parser.error("--records, --rounds and --sample must be at least 1")
+    try:
+        scale = tuple(sorted({int(count) for count in args.scale.split(",") if count.strip()}))
+    except ValueError:
+        parser.error("--scale takes record counts, comma-separated")
+    if any(not 0 < count < args.records for count in scale):
+        parser.error("--scale's counts must be between 0 and --records")
     run = SeriesRun(
         records=args.records,
         series_rounds=args.rounds,
@@ -573,6 +702,8 @@ def main(argv: list[str]) -> int:
         redis_url=args.redis_url,
         keep_logs=args.keep_logs,
         variants=tuple(variant for variant in VARIANTS if variant in variants),
+        scale=scale,
+        first_plots=args.first_plots,
     )
     started = now_iso()
     report = report_header(
@@ -607,6 +738,8 @@ def main(argv: list[str]) -> int:
         "anchor_mode": "root",
         "chain": "anvil, automine",
         "variants": list(run.variants),
+        "scale": list(run.scale),
+        "first_plots": run.first_plots,
         "sm2_backend": sm2.BACKEND,
     }
     report["goal_p50_s"] = goal_p50_s(run.records)
@@ -633,7 +766,13 @@ def _plot(report: dict[str, Any], path: Path) -> None:
     rows = report["results"]
     variants = list(dict.fromkeys(row["variant"] for row in rows))
     by = {(row["variant"], row["path"]): row for row in rows}
-    figure, (left, right) = plt.subplots(1, 2, figsize=(11, 3.8))
+    grows = [row for row in rows if row["path"] in ("series", "series, first records")]
+    plots = [row for row in rows if row["path"].startswith("first plot")]
+    panels = 2 + bool(len(grows) > len(variants) or plots)
+    figure, axes = plt.subplots(1, panels, figsize=(5.5 * panels, 3.8))
+    left, right = axes[0], axes[1]
+    if panels == 3:
+        _plot_growth(axes[2], report, grows, plots)
     width = 0.38
     for offset, path_name, color in (
         (-width / 2, "per record", "#8c959f"),
@@ -663,8 +802,8 @@ def _plot(report: dict[str, Any], path: Path) -> None:
     )  # fmt: skip
     left.set_xticks(range(len(variants)), variants)
     left.set_yscale("log")
-    left.set_ylim(top=max(row["p50_s"] for row in rows) * 10)  # room for the legend
-    left.set_ylabel(f"p50 seconds for {rows[0]['records']:,} records (log)")
+    left.set_ylim(top=max(row["p50_s"] for row in by.values()) * 10)  # room for the legend
+    left.set_ylabel(f"p50 seconds for {report['settings']['records']:,} records (log)")
     left.legend(fontsize=7, loc="upper left")
     bars = [(variant, path_name) for variant in variants for path_name in ("per record", "series")]
     labels = [f"{variant}\n{path_name}" for variant, path_name in bars]
@@ -686,8 +825,37 @@ def _plot(report: dict[str, Any], path: Path) -> None:
     save_figure(
         figure,
         path,
-        f"A series of {rows[0]['records']:,} odometry records of each robot, every one checked, "
-        "against one check per record"
+        f"A series of {report['settings']['records']:,} odometry records of each robot, every "
+        "one checked, against one check per record"
         + (f" (SM2: {backend})" if backend else "")
         + f"\n{machine_line(report)}",
     )
+
+
+_BARS = ("per record", "series")
+
+
+def _plot_growth(
+    axis: Any, report: dict[str, Any], grows: list[dict[str, Any]], plots: list[dict[str, Any]]
+) -> None:
+    """A series' p50 against the records it checks, per variant (the baseline's, and the
+    goals, marked), and the pages' first plots at the records they checked."""
+    for variant in dict.fromkeys(row["variant"] for row in grows):
+        points = sorted(
+            (row["records"], row["p50_s"]) for row in grows if row["variant"] == variant
+        )
+        axis.plot(*zip(*points, strict=True), marker="o", label=f"series, {variant}")
+    for row in report.get("baseline", {}).get("results", []):
+        if row["path"] == "series":
+            axis.scatter(row["records"], row["p50_s"], marker="_", s=300, color="#cf222e")
+    for records, goal in GOALS_P50_S:
+        axis.scatter(records, goal, marker="*", s=80, color="#cf222e")
+    for row in plots:
+        axis.scatter(
+            row["records"], row["p50_s"], marker="s", label=f"{row['path']}, {row['variant']}"
+        )
+    axis.set_xscale("log")
+    axis.set_yscale("log")
+    axis.set_xlabel("records checked (log)")
+    axis.set_ylabel("p50 seconds (log); red: baseline, stars: goals")
+    axis.legend(fontsize=7, loc="upper left")

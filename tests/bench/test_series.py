@@ -117,3 +117,46 @@ def test_the_series_section_sets_each_variant_beside_unsigned(tmp_path):
     judged = "for 18,000 records: this run has 100): unsigned **met**, signed **not met**, v2 "
     assert judged in text
     assert "![Series against per record](results/series.png)" in text
+
+
+def test_the_scale_reads_and_first_plots_are_rows_of_their_own_and_plotted(tmp_path):
+    run = series.SeriesRun(
+        records=300, series_rounds=2, per_record_sample=3, workers=2, web_workers=0,
+        redis_url="redis://127.0.0.1:6379/13", keep_logs=False, scale=(100,), first_plots=True,
+    )  # fmt: skip
+    found = _measured("v2", [3.0, 3.0], 0.011, 0.4)
+    found["scale"] = {"100": found["series"] | {"seconds": [1.0, 1.2]}}
+    found["first_plots"] = {
+        "first plot, robot page": {"seconds": [0.8, 1.0], "verified": [60, 61]},
+    }
+    rows = series._rows({"variants": {"v2": found}}, run)
+    by = {(row["path"], row["records"]): row for row in rows}
+
+    assert by[("series, first records", 100)]["p50_s"] == pytest.approx(1.1)
+    assert by[("series", 300)]["p50_s"] == 3.0
+    plot = by[("first plot, robot page", 61)]
+    assert (plot["p50_s"], plot["verified"], plot["rounds"]) == (pytest.approx(0.9), [60, 61], 2)
+    assert plot["p50_ratio_vs_unsigned"] is None  # no unsigned robot, and no CPU of its own
+
+    baseline = [dict(by[("series", 300)], p50_s=6.0)]
+    series.ratios_vs_baseline(rows, baseline)
+    assert by[("series", 300)]["p50_ratio_vs_baseline"] == pytest.approx(0.5)
+    assert by[("series, first records", 100)]["p50_ratio_vs_baseline"] is None
+
+    report = {
+        "results": rows,
+        "settings": {"records": 300},
+        "goal_p50_s": 1.0,
+        "machine": {"cpu_model": "Test CPU", "logical_cores": 2, "memory_bytes": 2**30},
+        "date": "2031-02-03T04:05:06Z",
+        "baseline": {"results": baseline},
+    }
+    series._plot(report, tmp_path / "series.png")
+    assert (tmp_path / "series.png").stat().st_size > 0
+
+
+@pytest.mark.parametrize("scale", ["300", "0", "x", "-5"])
+def test_scale_counts_are_below_the_records(scale):
+    with pytest.raises(SystemExit) as exit_info:
+        series.main(["--records", "300", "--scale", scale])
+    assert exit_info.value.code == 2
