@@ -53,7 +53,7 @@ import sys
 import tempfile
 import time
 from collections.abc import Iterator, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from datetime import UTC, datetime, timedelta
 from pathlib import Path
 from typing import Any
@@ -302,7 +302,7 @@ def measure(run: SeriesRun) -> dict[str, Any]:
             )
             for count in run.scale
         }
-        plots = _first_plots(stack, run, owner, robots) if run.first_plots else {}
+        plots = _first_plots(stack, run, owner, key) if run.first_plots else {}
         for variant, robot in robots.items():
             ids = list(
                 Record.objects.filter(robot=robot)
@@ -411,17 +411,30 @@ FIRST_PLOTS = (
 )
 
 
+PLOT_RECORDS = 6_000  # the pages' windows at 10 Hz: the robot page's last 10 minutes
+
+
 def _first_plots(
-    stack: BenchStack, run: SeriesRun, owner: Any, robots: dict[str, Any]
+    stack: BenchStack, run: SeriesRun, owner: Any, key: bytes
 ) -> dict[str, dict[str, Any]]:
-    """Each page's first plot as an owner sees it, run.series_rounds times per robot: logged
-    in, in a fresh browser context (no cache), from asking for the page to its plot drawn
-    (`data-state` "ready": every record of its window checked); what it checked."""
+    """Each page's first plot as an owner sees it, run.series_rounds times: logged in, in a
+    fresh browser context (no cache), from asking for the page to its plot drawn
+    (`data-state` "ready": every record of its window checked); what it checked. The pages'
+    robot is one more v2 robot whose PLOT_RECORDS end as they are stored, so that the robot
+    page's window of the last 10 minutes is full when it is drawn (the series robots' records
+    are minutes older by then)."""
     import secrets
 
     from playwright.sync_api import sync_playwright
 
     from sharing.models import Record
+
+    plots = replace(run, records=PLOT_RECORDS)
+    robot, signing_key = robot_paired(stack, owner, "odometry-pages")
+    start = datetime.now(tz=UTC).replace(microsecond=0) - timedelta(seconds=PLOT_RECORDS / RATE_HZ)
+    _store(plots, robot, key, signing_key, "v2", start)
+    _await_anchored(stack, plots, robot)
+    robots = {"v2": robot}
 
     password = secrets.token_urlsafe(18)
     owner.user.set_password(password)
@@ -691,6 +704,8 @@ def main(argv: list[str]) -> int:
         scale = tuple(sorted({int(count) for count in args.scale.split(",") if count.strip()}))
     except ValueError:
         parser.error("--scale takes record counts, comma-separated")
+    if args.first_plots and "v2" not in variants:
+        parser.error("--first-plots draws a v2 robot's pages: --variants must hold v2")
     if any(not 0 < count < args.records for count in scale):
         parser.error("--scale's counts must be between 0 and --records")
     run = SeriesRun(

@@ -160,3 +160,9 @@ def test_scale_counts_are_below_the_records(scale):
     with pytest.raises(SystemExit) as exit_info:
         series.main(["--records", "300", "--scale", scale])
     assert exit_info.value.code == 2
+
+
+def test_first_plots_need_the_v2_robot():
+    with pytest.raises(SystemExit) as exit_info:
+        series.main(["--variants", "unsigned", "--first-plots"])
+    assert exit_info.value.code == 2
