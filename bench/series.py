@@ -411,6 +411,20 @@ FIRST_PLOTS = (
 )
 
 
+# Where a first plot's time went, from the browser's own timings (ms from asking for the
+# page): the page's HTML in, its scripts run (DOMContentLoaded), and the series answer asked
+# for and in (the plot is drawn after it).
+_PAGE_TIMINGS = """() => {
+  const page = performance.getEntriesByType("navigation")[0];
+  const series = performance.getEntriesByType("resource")
+    .filter((entry) => entry.name.includes("/records/series/"));
+  return {
+    html: page.responseEnd,
+    scripts_run: page.domContentLoadedEventEnd,
+    series_asked: series.length ? series[0].startTime : null,
+    series_in: series.length ? series[0].responseEnd : null,
+  };
+}"""
 PLOT_RECORDS = 6_000  # the pages' windows at 10 Hz: the robot page's last 10 minutes
 
 
@@ -454,7 +468,7 @@ def _first_plots(
         try:
             for variant in robots:
                 for path, plot in FIRST_PLOTS:
-                    seconds, verified = [], []
+                    seconds, verified, parts = [], [], []
                     for _ in range(run.series_rounds):
                         context = browser.new_context(viewport={"width": 1280, "height": 900})
                         page = context.new_page()
@@ -469,10 +483,12 @@ def _first_plots(
                         ready.wait_for(timeout=600_000)
                         seconds.append(time.perf_counter() - sent)
                         verified.append(int(ready.get_attribute("data-verified") or 0))
+                        parts.append(page.evaluate(_PAGE_TIMINGS))
                         context.close()
                     found.setdefault(variant, {})[path] = {
                         "seconds": seconds,
                         "verified": verified,
+                        "timings_ms": parts,
                     }
         finally:
             browser.close()
@@ -564,6 +580,14 @@ def _rows(measured: dict[str, Any], run: SeriesRun) -> list[dict[str, Any]]:
                     "mean_s": drawn["mean_ms"],
                     "verified": plots["verified"],
                     "rounds": len(plots["seconds"]),
+                    # the median of each of the browser's timings, ms from asking for the page
+                    "timings_ms": {
+                        name: statistics.median(
+                            [part[name] for part in plots.get("timings_ms", []) if part[name]]
+                            or [0.0]
+                        )
+                        for name in ("html", "scripts_run", "series_asked", "series_in")
+                    },
                 }
             )
     ratios_vs_unsigned(rows)

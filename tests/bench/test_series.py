@@ -127,7 +127,14 @@ def test_the_scale_reads_and_first_plots_are_rows_of_their_own_and_plotted(tmp_p
     found = _measured("v2", [3.0, 3.0], 0.011, 0.4)
     found["scale"] = {"100": found["series"] | {"seconds": [1.0, 1.2]}}
     found["first_plots"] = {
-        "first plot, robot page": {"seconds": [0.8, 1.0], "verified": [60, 61]},
+        "first plot, robot page": {
+            "seconds": [0.8, 1.0],
+            "verified": [60, 61],
+            "timings_ms": [
+                {"html": 100.0, "scripts_run": 150.0, "series_asked": 160.0, "series_in": 700.0},
+                {"html": 120.0, "scripts_run": 170.0, "series_asked": 180.0, "series_in": 900.0},
+            ],
+        },
     }
     rows = series._rows({"variants": {"v2": found}}, run)
     by = {(row["path"], row["records"]): row for row in rows}
@@ -136,6 +143,9 @@ def test_the_scale_reads_and_first_plots_are_rows_of_their_own_and_plotted(tmp_p
     assert by[("series", 300)]["p50_s"] == 3.0
     plot = by[("first plot, robot page", 61)]
     assert (plot["p50_s"], plot["verified"], plot["rounds"]) == (pytest.approx(0.9), [60, 61], 2)
+    assert plot["timings_ms"] == {
+        "html": 110.0, "scripts_run": 160.0, "series_asked": 170.0, "series_in": 800.0,
+    }  # fmt: skip
     assert plot["p50_ratio_vs_unsigned"] is None  # no unsigned robot, and no CPU of its own
 
     baseline = [dict(by[("series", 300)], p50_s=6.0)]
