@@ -423,8 +423,20 @@ _PAGE_TIMINGS = """() => {
     scripts_run: page.domContentLoadedEventEnd,
     series_asked: series.length ? series[0].startTime : null,
     series_in: series.length ? series[0].responseEnd : null,
+    drawn: window.__plotReadyAt || null,
   };
 }"""
+# When the plot's data-state first became "ready", kept by the page itself (a locator's wait
+# in Playwright only sees it some milliseconds later).
+_PLOT_READY_AT = """new MutationObserver((changes, observer) => {
+  for (const change of changes) {
+    if (change.target.dataset && change.target.dataset.state === "ready") {
+      window.__plotReadyAt = performance.now();
+      observer.disconnect();
+      return;
+    }
+  }
+}).observe(document, { attributes: true, attributeFilter: ["data-state"], subtree: true });"""
 PLOT_RECORDS = 6_000  # the pages' windows at 10 Hz: the robot page's last 10 minutes
 
 
@@ -471,6 +483,7 @@ def _first_plots(
                     seconds, verified, parts = [], [], []
                     for _ in range(run.series_rounds):
                         context = browser.new_context(viewport={"width": 1280, "height": 900})
+                        context.add_init_script(_PLOT_READY_AT)
                         page = context.new_page()
                         page.goto(f"{stack.web_url}/login/")
                         page.fill("#id_username", owner.user.username)
@@ -583,10 +596,10 @@ def _rows(measured: dict[str, Any], run: SeriesRun) -> list[dict[str, Any]]:
                     # the median of each of the browser's timings, ms from asking for the page
                     "timings_ms": {
                         name: statistics.median(
-                            [part[name] for part in plots.get("timings_ms", []) if part[name]]
+                            [part[name] for part in plots.get("timings_ms", []) if part.get(name)]
                             or [0.0]
                         )
-                        for name in ("html", "scripts_run", "series_asked", "series_in")
+                        for name in ("html", "scripts_run", "series_asked", "series_in", "drawn")
                     },
                 }
             )
