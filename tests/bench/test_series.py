@@ -144,7 +144,8 @@ def test_the_scale_reads_and_first_plots_are_rows_of_their_own_and_plotted(tmp_p
     plot = by[("first plot, robot page", 61)]
     assert (plot["p50_s"], plot["verified"], plot["rounds"]) == (pytest.approx(0.9), [60, 61], 2)
     assert plot["timings_ms"] == {
-        "html": 110.0, "scripts_run": 160.0, "series_asked": 170.0, "series_in": 800.0, "drawn": 0.0,
+        "html": 110.0, "scripts_run": 160.0, "series_asked": 170.0, "series_in": 800.0,
+        "drawn": 0.0,
     }  # fmt: skip
     assert plot["p50_ratio_vs_unsigned"] is None  # no unsigned robot, and no CPU of its own
 
