@@ -244,11 +244,10 @@ class FixedInsert:
             self.model._default_manager.bulk_create(instances)
             return
         size = max(1, connection.ops.bulk_batch_size(self._fields, instances) or len(instances))
-        moment = timezone.now()  # auto_now(_add): one moment for the rows of one call
         for start in range(0, len(instances), size):
             chunk = instances[start : start + size]
             params = [
-                self._saved(field, plain, instance, connection, moment)
+                self._saved(field, plain, instance, connection)
                 for instance in chunk
                 for field, plain in zip(self._fields, self._plain, strict=True)
             ]
@@ -264,13 +263,11 @@ class FixedInsert:
             instance._state.db = alias
 
     @staticmethod
-    def _saved(
-        field: Field, plain: str | None, instance: Model, connection: Any, moment: Any
-    ) -> object:
+    def _saved(field: Field, plain: str | None, instance: Model, connection: Any) -> object:
         """The value of `field` as the database takes it for a new row of `instance`."""
         if plain is not None:
-            if plain == _NOW:  # auto_now(_add) on a new row: set as pre_save sets it
-                instance.__dict__[field.attname] = moment
+            if plain == _NOW:  # auto_now(_add) on a new row: pre_save's moment, as it sets it
+                moment = instance.__dict__[field.attname] = timezone.now()
                 return connection.ops.adapt_datetimefield_value(moment)
             value = instance.__dict__.get(field.attname)
             kind = type(value)

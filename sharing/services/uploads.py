@@ -15,13 +15,14 @@ before (a tombstone too) or twice in one upload, refuses the whole upload.
 
 import logging
 import uuid
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 from datetime import UTC, datetime, timedelta
-from typing import NoReturn
+from typing import Any, NoReturn
 
 from django.conf import settings
-from django.db import IntegrityError, transaction
+from django.core.exceptions import ImproperlyConfigured
+from django.db import IntegrityError, connections, models, router, transaction
 from django.db.models import Q
 from django.utils import timezone
 from redis.exceptions import RedisError
@@ -31,7 +32,7 @@ from accounts.models import ChainState, OwnerKey, Robot
 from accounts.selectors import owner_key_bytes, owner_keys
 from core.commits import commits_durable
 from core.redis_client import get_redis
-from core.rows import FixedInsert, FixedUpdate
+from core.rows import FixedUpdate
 from sharing.cache import envelope_cache_put_queued
 from sharing.disk import disk_room_check
 from sharing.errors import (
@@ -96,7 +97,118 @@ _ROBOT_SEQ_MOVE = FixedUpdate(
 )
 
 
-_RECORD_INSERT = FixedInsert(Record)
+class _UploadRows:
+    """An upload's Record rows INSERTed by one prepared statement run for each row
+    (executemany of tuples): the columns every record of an upload shares (its owner and
+    robot, the defaults, created_at) prepared once per upload by their fields, the ones of
+    each record's own as their fields would prepare them: text and integers as they are (the
+    exact CharField and integer classes hand them on unchanged), the id and capture time
+    through their fields."""
+
+    # Each record's own columns, from its _CheckedUpload (and its file's name).
+    OWN = (
+        "id",
+        "topic",
+        "data_type",
+        "seq",
+        "captured_at",
+        "key_id",
+        "digest",
+        "signer",
+        "topic_seq",
+        "size",
+        "storage_name",
+    )
+    _AS_IS = (models.CharField, models.BigIntegerField, models.PositiveIntegerField)
+
+    def __init__(self) -> None:
+        self._fields = list(Record._meta.concrete_fields)
+        names = [field.attname for field in self._fields]
+        unknown = set(self.OWN) - set(names)
+        if unknown:
+            raise ImproperlyConfigured(f"Record has no column(s) {sorted(unknown)}")
+        self._own = {field.attname: field for field in self._fields if field.attname in self.OWN}
+        self._sql: dict[str, str] = {}
+
+    def insert(
+        self, robot: Robot, checked: Sequence[_CheckedUpload], names: Sequence[str]
+    ) -> list[Record]:
+        alias = router.db_for_write(Record)
+        connection = connections[alias]
+        # The shared columns, their values and as prepared, once: the new record's
+        # defaults, its owner and robot, and created_at (pre_save: one moment an upload).
+        template = Record(owner_id=robot.owner_id, robot_id=robot.pk)
+        shared = {}
+        for field in self._fields:
+            if field.attname not in self._own:
+                value = field.pre_save(template, True)
+                shared[field.attname] = (value, field.get_db_prep_save(value, connection))
+        prepare = [self._preparer(field, connection) for field in self._fields]
+        records, rows = [], []
+        for upload, name in zip(checked, names, strict=True):
+            own = {
+                "id": upload.record_id,
+                "topic": upload.header["topic"],
+                "data_type": upload.header["type"],
+                "seq": upload.header["seq"],
+                "captured_at": upload.captured_at,
+                "key_id": upload.key.key_id,
+                "digest": upload.digest,
+                "signer": upload.signer,
+                "topic_seq": upload.topic_seq,
+                "size": len(upload.data),
+                "storage_name": name,
+            }
+            values, row = [], []
+            for field, own_prepared in zip(self._fields, prepare, strict=True):
+                if own_prepared is None:
+                    value, prepared = shared[field.attname]
+                else:
+                    value = own[field.attname]
+                    prepared = own_prepared(value)
+                values.append(value)
+                row.append(prepared)
+            # Positional, in the order of the concrete fields, as Model.from_db builds one.
+            record = Record(*values)
+            Record.robot.field.set_cached_value(record, robot)
+            records.append(record)
+            rows.append(row)
+        sql = self._sql.get(alias)
+        if sql is None:
+            sql = self._sql[alias] = self._build(connection)
+        with connection.cursor() as cursor:
+            cursor.executemany(sql, rows)
+        for record in records:
+            record._state.adding = False
+            record._state.db = alias
+        return records
+
+    def _preparer(self, field: models.Field, connection: Any) -> Callable[[object], object] | None:
+        """How one record's own value of `field` reaches the database; None if shared."""
+        if field.attname not in self._own:
+            return None
+        if type(field) in self._AS_IS:
+            integer = field.get_internal_type() if type(field) is not models.CharField else None
+
+            def as_is(value: object) -> object:
+                kind = type(value)
+                if kind is str and integer is None:
+                    return value
+                if kind is int and integer is not None:
+                    return connection.ops.adapt_integerfield_value(value, integer)
+                return field.get_db_prep_save(value, connection)
+
+            return as_is
+        return lambda value: field.get_db_prep_save(value, connection)
+
+    def _build(self, connection: Any) -> str:
+        quote = connection.ops.quote_name
+        columns = ", ".join(quote(field.column) for field in self._fields)
+        values = ", ".join(["%s"] * len(self._fields))
+        return f"INSERT INTO {quote(Record._meta.db_table)} ({columns}) VALUES ({values})"  # noqa: S608
+
+
+_RECORD_ROWS = _UploadRows()
 
 
 def record_create_batch(*, robot: Robot, envelopes: Sequence[bytes]) -> list[Record]:
@@ -183,25 +295,7 @@ def _records_insert(
             last_seq = Robot.objects.values_list("last_seq", flat=True).get(pk=robot.pk)
             _sequence_check(robot, checked, last_seq=last_seq)
         _topic_seqs_unused(robot, checked)
-        records = [
-            Record(
-                id=upload.record_id,
-                owner_id=robot.owner_id,
-                robot=robot,
-                topic=upload.header["topic"],
-                data_type=upload.header["type"],
-                seq=upload.header["seq"],
-                captured_at=upload.captured_at,
-                key_id=upload.key.key_id,
-                digest=upload.digest,
-                signer=upload.signer,
-                topic_seq=upload.topic_seq,
-                size=len(upload.data),
-                storage_name=name,
-            )
-            for upload, name in zip(checked, names, strict=True)
-        ]
-        _RECORD_INSERT.insert(records)
+        records = _RECORD_ROWS.insert(robot, checked, names)
         transaction.on_commit(lambda: _after_upload(robot.owner_id, checked))
     return records
 

@@ -172,7 +172,7 @@ def test_a_batch_the_database_refuses_leaves_no_file_behind(make_robot, monkeypa
     def disk_full(*args, **kwargs):
         raise DatabaseError("disk full")
 
-    monkeypatch.setattr(uploads_module._RECORD_INSERT, "insert", disk_full)
+    monkeypatch.setattr(uploads_module._RECORD_ROWS, "insert", disk_full)
     with pytest.raises(DatabaseError):
         record_create_batch(robot=setup.robot, envelopes=[setup.seal(seq) for seq in (1, 2, 3)])
     _batch_left_nothing(setup)
