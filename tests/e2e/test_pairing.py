@@ -38,7 +38,7 @@ from sharing.verification.opening import record_open
 from smcrypto import sm2, sm4
 from tests.ros_agent import conftest as ros_fixtures
 from tests.ros_agent.conftest import python_module, running, stop_process, wait_until
-from tests.support.agent_output import agent_final_stats, spool_queued
+from tests.support.agent_output import agent_final_stats, spool_queued, spool_queued_now_gone
 from tests.support.anchoring_checks import assert_anchored_exactly_once
 from tests.support.harness import WorkerStack, wait_for
 from tests.support.robot_setup import TEST_PASSWORD
@@ -210,13 +210,11 @@ def test_pair_in_the_browser_then_rotate_while_offline_and_lose_nothing(
 
             # --- 4. back online: everything arrives -----------------------------------------
             back_online = datetime.now(UTC)
-            offline = {path.name for path in spool_queued(spool)}  # spooled while offline
+            offline_sent = spool_queued_now_gone(spool)  # what was spooled while offline
             stack.start_web()
             logs = [agent_log, *sorted(stack.logs.glob("*.log"))]
-            # Not "the spool empty" while the robot still captures: on a loaded machine the
-            # spool may never be seen empty between one capture and the next upload.
             wait_until(
-                lambda: not offline & {path.name for path in spool_queued(spool)},
+                offline_sent,
                 180,
                 "what the agent spooled offline delivered after the rotation",
                 logs=logs,

@@ -41,7 +41,7 @@ from tests.ros_agent.conftest import (
     stop_process,
     wait_until,
 )
-from tests.support.agent_output import agent_final_stats, spool_queued
+from tests.support.agent_output import agent_final_stats, spool_queued, spool_queued_now_gone
 from tests.support.anchoring_checks import assert_anchored_exactly_once
 from tests.support.harness import WorkerStack, wait_for
 from tests.support.portal_checks import robot_config
@@ -127,11 +127,8 @@ def test_the_agent_delivers_to_the_real_portal_exactly_once_across_an_outage(
             ) as robot:
                 assert robot.wait(60) == 0
             wait_until(lambda: _stored(CHATTER) >= 5, 30, "chatter reaching the portal")
-            # What is queued now delivered (not "the spool empty": chatter goes on at 5 Hz, and
-            # on a loaded machine the spool may never be seen empty between two messages).
-            queued = {path.name for path in spool_queued(spool)}
             wait_until(
-                lambda: not queued & {path.name for path in spool_queued(spool)},
+                spool_queued_now_gone(spool),  # chatter goes on at 5 Hz meanwhile
                 30,
                 "the simulator's data reaching the portal",
             )
@@ -142,10 +139,10 @@ def test_the_agent_delivers_to_the_real_portal_exactly_once_across_an_outage(
                 lambda: len(spool_queued(spool)) >= 25, 30, "the agent spooling while offline"
             )
             assert _stored() == before_outage
-            offline = {path.name for path in spool_queued(spool)}
+            offline_sent = spool_queued_now_gone(spool)
             stack.start_web()
             wait_until(
-                lambda: not offline & {path.name for path in spool_queued(spool)},
+                offline_sent,
                 60,
                 "what was spooled offline draining to the portal",
             )

@@ -2,6 +2,7 @@
 its spool's queue, and the counters it logs (every so often, and once more on exit)."""
 
 import re
+from collections.abc import Callable
 from pathlib import Path
 
 _COUNTERS = re.compile(
@@ -13,6 +14,15 @@ _COUNTERS = re.compile(
 def spool_queued(spool: Path) -> list[Path]:
     """The envelopes waiting in the spool for the portal, oldest first."""
     return sorted((spool / "queue").glob("*.env"))
+
+
+def spool_queued_now_gone(spool: Path) -> Callable[[], bool]:
+    """A condition: every envelope queued in the spool now has left its queue (sent, or
+    rejected), whatever was queued since. Not "the spool empty" while the robot still
+    captures: on a loaded machine the spool may never be seen empty between one capture and
+    the next upload."""
+    queued = {path.name for path in spool_queued(spool)}
+    return lambda: not queued & {path.name for path in spool_queued(spool)}
 
 
 def agent_stats(log: Path) -> list[dict[str, int]]:
